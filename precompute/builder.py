@@ -1,0 +1,223 @@
+"""Build a C-Uniform table level by level: level sets, flow networks, exact max-flow, probabilities.
+
+Shapes: C cells over all levels, n / m cells of L_t / L_{t+1}, A actions, d state dimensions.
+
+``build_table`` is the library entry point (``python -m precompute.build`` wraps it). Each finished step
+t -> t+1 can be saved as a checkpoint file in ``checkpoint_dir``; a later call with ``resume=True`` loads the
+finished steps (after checking that the build settings are the same) and continues, and the table it
+writes is byte-identical to an uninterrupted build's.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import platform
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+import scipy
+import torch
+
+from cuniform_torch.fileio import write_npz
+from cuniform_torch.grid import Grid
+from cuniform_torch.systems import System, system_to_json
+from cuniform_torch.table import Table
+
+from .levels import LevelStep, PointMode, next_level
+from .maxflow import action_probs_from_flow, solve_maxflow, unique_arcs
+
+__all__ = ["BuildConfig", "BuildStats", "build_table", "propagate_cell_probs"]
+
+
+@dataclass(frozen=True)
+class BuildConfig:
+    """Settings of a table build (everything that changes the table's bytes)."""
+
+    horizon: int = 10
+    points: PointMode = PointMode.CENTERS
+    points_per_cell: int = 8
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        if isinstance(self.horizon, bool) or not isinstance(self.horizon, int) or self.horizon < 1:
+            raise ValueError(f"horizon must be a positive integer (steps), got {self.horizon!r}")
+        object.__setattr__(self, "points", PointMode.parse(self.points))
+        if self.points is PointMode.RANDOM and self.points_per_cell < 1:
+            raise ValueError(f"points_per_cell must be >= 1, got {self.points_per_cell}")
+
+
+@dataclass
+class StepResult:
+    """Everything one step t -> t+1 contributes to the table (local row indices)."""
+
+    next_cells: np.ndarray  # [m, d] int64
+    probs: np.ndarray  # [n, A] float64
+    src: np.ndarray  # [K] transitions
+    act: np.ndarray
+    dst: np.ndarray
+    frac: np.ndarray
+    arc_src: np.ndarray  # [E]
+    arc_dst: np.ndarray
+    arc_flow: np.ndarray
+    flow_value: int
+    zero_outflow: int
+    kept_fraction: float
+
+    _KEYS = ("next_cells", "probs", "src", "act", "dst", "frac", "arc_src", "arc_dst", "arc_flow")
+
+    def save(self, path: Path, fingerprint: str) -> None:
+        arrays = {k: getattr(self, k) for k in self._KEYS}
+        arrays["scalars"] = np.array([self.flow_value, self.zero_outflow], dtype=np.int64)
+        arrays["kept_fraction"] = np.array(self.kept_fraction)
+        arrays["fingerprint"] = np.array(fingerprint)
+        write_npz(path, arrays, compress=False)
+
+    @classmethod
+    def load(cls, path: Path, fingerprint: str) -> "StepResult | None":
+        try:
+            with np.load(path, allow_pickle=False) as z:
+                if str(z["fingerprint"][()]) != fingerprint:
+                    return None
+                arrays = {k: z[k] for k in cls._KEYS}
+                flow_value, zero = (int(v) for v in z["scalars"])
+                kept = float(z["kept_fraction"][()])
+        except Exception:  # a damaged checkpoint is recomputed, never trusted
+            return None
+        return cls(**arrays, flow_value=flow_value, zero_outflow=zero, kept_fraction=kept)
+
+
+@dataclass
+class BuildStats:
+    """Timings (seconds) and per-step facts of a build."""
+
+    seconds: dict[str, float] = field(default_factory=lambda: {"levels": 0.0, "maxflow": 0.0, "probabilities": 0.0, "write": 0.0})
+    resumed_steps: int = 0
+    kept_fraction: list[float] = field(default_factory=list)
+    zero_outflow: list[int] = field(default_factory=list)
+
+
+def propagate_cell_probs(prev: np.ndarray, probs: np.ndarray, src, act, dst, frac, m: int) -> np.ndarray:
+    """Exact next-level cell distribution: ``P'[j] = sum P[i] p(a|i) frac(i,a,j)`` -> ``[m]`` float64."""
+    return np.bincount(dst, weights=prev[src] * probs[src, act] * frac, minlength=m)
+
+
+def _fingerprint(system: System, config: BuildConfig) -> str:
+    spec = {"system": system_to_json(system, config.horizon), "points": config.points.value,
+            "points_per_cell": config.points_per_cell if config.points is PointMode.RANDOM else None,
+            "seed": config.seed if config.points is PointMode.RANDOM else None}
+    return hashlib.sha256(json.dumps(spec, sort_keys=True).encode()).hexdigest()
+
+
+def _solve_step(system: System, cells: np.ndarray, config: BuildConfig, t: int, stats: BuildStats) -> StepResult:
+    A = system.action_set().shape[0]
+    t0 = time.perf_counter()
+    gen = None
+    if config.points is PointMode.RANDOM:
+        gen = torch.Generator().manual_seed(config.seed * 1_000_003 + t)  # per-step stream: resumable
+    lvl: LevelStep = next_level(system, cells, config.points, config.points_per_cell, gen)
+    t1 = time.perf_counter()
+    n, m = len(cells), len(lvl.next_cells)
+    arc_src, arc_dst, arc_index = unique_arcs(lvl.src, lvl.dst, m)
+    flow = solve_maxflow(n, m, arc_src, arc_dst)
+    t2 = time.perf_counter()
+    probs, zero = action_probs_from_flow(n, A, lvl.src, lvl.act, arc_index, lvl.frac, flow)
+    t3 = time.perf_counter()
+    stats.seconds["levels"] += t1 - t0
+    stats.seconds["maxflow"] += t2 - t1
+    stats.seconds["probabilities"] += t3 - t2
+    return StepResult(lvl.next_cells, probs, lvl.src, lvl.act, lvl.dst, lvl.frac, flow.arc_src, flow.arc_dst,
+                      flow.arc_flow, flow.value, int(zero.sum()), lvl.kept_fraction)
+
+
+def build_table(
+    system: System,
+    config: BuildConfig = BuildConfig(),
+    checkpoint_dir: str | Path | None = None,
+    resume: bool = False,
+    progress: Callable[[int, StepResult], None] | None = None,
+    method: str = "maxflow",
+) -> tuple[Table, BuildStats]:
+    """Build the C-Uniform table of ``system`` from the origin for ``config.horizon`` steps.
+
+    ``progress(t, step)`` is called after each step t -> t+1. With ``checkpoint_dir`` every step is saved there;
+    ``resume=True`` reuses the saved steps of a build with the same settings.
+    """
+    stats = BuildStats()
+    fingerprint = _fingerprint(system, config)
+    ckpt = Path(checkpoint_dir) if checkpoint_dir is not None else None
+    grid = Grid.of(system)
+    x0 = torch.zeros((1, len(system.periodic)), dtype=torch.float64)
+    level_cells = [grid.cells(x0).numpy()]  # L_0: the start cell
+    steps: list[StepResult] = []
+    for t in range(config.horizon):
+        path = ckpt / f"step_{t:04d}.npz" if ckpt is not None else None
+        step = StepResult.load(path, fingerprint) if (resume and path is not None and path.exists()) else None
+        if step is not None and len(step.probs) == len(level_cells[-1]):
+            stats.resumed_steps += 1
+        else:
+            step = _solve_step(system, level_cells[-1], config, t, stats)
+            if path is not None:
+                step.save(path, fingerprint)
+        steps.append(step)
+        level_cells.append(step.next_cells)
+        stats.kept_fraction.append(step.kept_fraction)
+        stats.zero_outflow.append(step.zero_outflow)
+        if progress is not None:
+            progress(t, step)
+
+    t0 = time.perf_counter()
+    table = _assemble(system, config, level_cells, steps, method)
+    stats.seconds["probabilities"] += time.perf_counter() - t0
+    return table, stats
+
+
+def _assemble(system: System, config: BuildConfig, level_cells: list[np.ndarray], steps: list[StepResult], method: str) -> Table:
+    A = system.action_set().shape[0]
+    sizes = np.array([len(c) for c in level_cells], dtype=np.int64)
+    offsets = np.concatenate(([0], np.cumsum(sizes))).astype(np.int64)
+    probs = [s.probs for s in steps] + [np.full((sizes[-1], A), 1.0 / A)]  # last level: uniform
+    cell_probs = [np.ones(1)]
+    for t, s in enumerate(steps):
+        cell_probs.append(propagate_cell_probs(cell_probs[-1], s.probs, s.src, s.act, s.dst, s.frac, int(sizes[t + 1])))
+
+    arc_counts = np.array([len(s.arc_src) for s in steps], dtype=np.int64)
+    trans_counts = np.array([len(s.src) for s in steps], dtype=np.int64)
+    arcs = np.concatenate([np.stack((s.arc_src + offsets[t], s.arc_dst + offsets[t + 1]), 1) for t, s in enumerate(steps)])
+    transitions = np.concatenate(
+        [np.stack((s.src + offsets[t], s.act, s.dst + offsets[t + 1]), 1) for t, s in enumerate(steps)]
+    )
+    build_info = {
+        "points": config.points.value,
+        "points_per_cell": config.points_per_cell if config.points is PointMode.RANDOM else None,
+        "seed": config.seed if config.points is PointMode.RANDOM else None,
+        "lattice_scale": "delta/2.01",
+        "origin": "start cell of the zero state",
+        "zero_outflow_cells": [s.zero_outflow for s in steps],
+        "versions": {"python": platform.python_version(), "numpy": np.__version__, "scipy": scipy.__version__,
+                     "torch": torch.__version__.split("+")[0]},
+    }
+    return Table(
+        system=system_to_json(system, config.horizon),
+        actions=system.action_set(dtype=torch.float32).numpy(),
+        cell_size=np.asarray(system.cell_size, dtype=np.float64),
+        periodic=np.asarray(system.periodic, dtype=bool),
+        cell_offset=np.asarray(system.cell_offset, dtype=np.float64),
+        level_offsets=offsets,
+        cells=np.concatenate(level_cells).astype(np.int64),
+        action_probs=np.concatenate(probs).astype(np.float32),
+        cell_probs=np.concatenate(cell_probs),
+        flow_value=np.array([s.flow_value for s in steps], dtype=np.int64),
+        flow_target=(sizes[:-1] * sizes[1:]).astype(np.int64),
+        method=method,
+        build_info=json.dumps(build_info, sort_keys=True),
+        arc_offsets=np.concatenate(([0], np.cumsum(arc_counts))).astype(np.int64),
+        arcs=arcs.astype(np.int64),
+        arc_flow=np.concatenate([s.arc_flow for s in steps]).astype(np.int64),
+        transition_offsets=np.concatenate(([0], np.cumsum(trans_counts))).astype(np.int64),
+        transitions=transitions.astype(np.int64),
+        transition_frac=np.concatenate([s.frac for s in steps]).astype(np.float64),
+    )
