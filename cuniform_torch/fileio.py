@@ -35,6 +35,7 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
         yield tmp_path
         with open(tmp_path, "rb+") as fh:
             os.fsync(fh.fileno())
+        os.chmod(tmp_path, 0o644)  # mkstemp makes 0600; a table or report is an ordinary shared file
         os.replace(tmp_path, dest)
     except BaseException:
         with contextlib.suppress(FileNotFoundError):
@@ -57,7 +58,7 @@ def write_npz(path: str | os.PathLike, arrays: Mapping[str, np.ndarray], compres
     """Write arrays as an ``.npz`` that ``np.load(allow_pickle=False)`` reads; atomic and byte-deterministic."""
     compression = zipfile.ZIP_DEFLATED if compress else zipfile.ZIP_STORED
     with atomic_path(path) as tmp:
-        with zipfile.ZipFile(tmp, "w", compression=compression, allowZip64=True) as zf:
+        with zipfile.ZipFile(tmp, "w", compression=compression, compresslevel=1, allowZip64=True) as zf:
             for key, value in arrays.items():
                 arr = np.asarray(value)
                 if arr.dtype == object:
