@@ -1,0 +1,223 @@
+"""The table builder end to end: level sets, probabilities, exact propagation, report, CLI, resume."""
+
+from __future__ import annotations
+
+import json
+import os
+
+import numpy as np
+import pytest
+import torch
+
+from cuniform_torch.policy import TablePolicy, load_table
+from cuniform_torch.rollout import rollout
+from cuniform_torch.systems import make_system
+from cuniform_torch.table import read_table, write_table
+from precompute import build as build_cli
+from precompute.builder import BuildConfig, build_table
+from precompute.levels import PointMode, next_level
+from precompute.report import uniformity_report
+
+# Level sizes of an independent build of the reference construction with a 1% angle-grid offset.
+REFERENCE_LEVEL_SIZES = [1, 4, 11, 23, 43, 79, 145, 265, 473, 813, 1328]
+
+
+def test_default_dubins_level_sizes_are_close_to_the_reference(dubins_table):
+    sizes = dubins_table.level_sizes
+    assert sizes[:4] == REFERENCE_LEVEL_SIZES[:4]
+    for ours, ref in zip(sizes, REFERENCE_LEVEL_SIZES):
+        assert abs(ours - ref) <= 0.15 * ref, (sizes, REFERENCE_LEVEL_SIZES)
+
+
+def test_rows_sum_to_one_and_last_level_is_uniform(dubins_table):
+    t = dubins_table
+    np.testing.assert_allclose(t.action_probs.sum(axis=1, dtype=np.float64), 1.0, atol=1e-6)
+    np.testing.assert_allclose(t.action_probs[t.level(t.horizon)], 1.0 / t.actions.shape[0])
+    for lv in range(t.horizon + 1):
+        assert t.cell_probs[t.level(lv)].sum() == pytest.approx(1.0, abs=1e-9)
+
+
+def test_transition_fractions_sum_to_one_per_cell_action(dubins_table):
+    t = dubins_table
+    key = t.transitions[:, 0] * t.actions.shape[0] + t.transitions[:, 1]
+    sums = np.bincount(key, weights=t.transition_frac)
+    np.testing.assert_allclose(sums[np.unique(key)], 1.0)
+
+
+def test_cell_probs_are_the_exact_propagation(dubins_table):
+    """Slow reference: a dense Markov matrix per step from the stored transitions and probabilities."""
+    t = dubins_table
+    dist = np.ones(1)
+    for lv in range(6):
+        sl = slice(t.transition_offsets[lv], t.transition_offsets[lv + 1])
+        n, m = t.level_sizes[lv], t.level_sizes[lv + 1]
+        M = np.zeros((n, m))
+        for (i, a, j), f in zip(t.transitions[sl].tolist(), t.transition_frac[sl].tolist()):
+            M[i - t.level_offsets[lv], j - t.level_offsets[lv + 1]] += t.action_probs[i, a] * f
+        dist = dist @ M
+        np.testing.assert_allclose(t.cell_probs[t.level(lv + 1)], dist, rtol=1e-5, atol=1e-9)
+
+
+def test_random_walk_is_exactly_c_uniform(walk_table):
+    t = walk_table
+    assert t.level_sizes == [1 + 4 * k for k in range(t.horizon + 1)]
+    np.testing.assert_array_equal(t.flow_value, t.flow_target)  # flow = n*m at every level
+    for lv in range(t.horizon + 1):
+        np.testing.assert_allclose(t.cell_probs[t.level(lv)], 1.0 / t.level_sizes[lv], rtol=1e-9)
+
+
+def test_random_walk_figure_2_step_is_c_uniform(walk_table):
+    """L_1 -> L_2 is the paper's Figure 2 (n = 5, m = 9): every next cell receives exactly 5/9 x 1/5."""
+    t = walk_table
+    assert t.level_sizes[1:3] == [5, 9]
+    sl = slice(t.arc_offsets[1], t.arc_offsets[2])
+    inflow = np.bincount(t.arcs[sl, 1] - t.level_offsets[2], weights=t.arc_flow[sl], minlength=9)
+    np.testing.assert_array_equal(inflow, np.full(9, 5))
+
+
+def test_random_walk_rollouts_are_within_the_noise_floor(walk_table):
+    report = uniformity_report(walk_table, num_rollouts=4000, seed=3)
+    for lv in report.levels[1:]:
+        assert lv.outside_fraction == 0.0
+        assert lv.tv_rollout <= lv.tv_floor + 4 * lv.tv_floor_std + 1e-3, lv
+    assert report.miss_rate == 0.0
+
+
+def test_dubins_report_measures_rollouts_honestly(dubins_table):
+    report = uniformity_report(dubins_table, seed=0)
+    assert report.num_rollouts == 10 * max(dubins_table.level_sizes)
+    assert [lv.cells for lv in report.levels] == dubins_table.level_sizes
+    # the paper's network is not C-Uniform on real rollouts: far above the multinomial noise floor
+    last = report.levels[-1]
+    assert last.tv_rollout > last.tv_floor + 10 * last.tv_floor_std
+    assert 0.0 <= last.outside_fraction < 1.0
+
+
+def test_table_policy_rows_match_cells_at_centres(dubins_table):
+    policy = TablePolicy(dubins_table)
+    lv = 4
+    cells = torch.from_numpy(dubins_table.cells[dubins_table.level(lv)])
+    x = policy.grid.centers(cells, torch.float32)
+    rows = policy.rows(x, lv)
+    assert torch.equal(rows, torch.arange(dubins_table.level_offsets[lv], dubins_table.level_offsets[lv + 1]))
+    torch.testing.assert_close(policy.action_probs(x, lv), torch.from_numpy(dubins_table.action_probs[rows.numpy()]))
+    assert policy.miss_rate == 0.0
+
+
+def test_rollout_matches_a_plain_step_by_step_reference(dubins_table):
+    policy = TablePolicy(dubins_table)
+    gen = torch.Generator().manual_seed(0)
+    states, actions = rollout(policy.system, policy, torch.zeros(3), 64, 10, generator=gen)
+    assert states.shape == (64, 11, 3) and actions.shape == (64, 10, 1)
+    for t in range(10):
+        torch.testing.assert_close(states[:, t + 1], policy.system.step(states[:, t], actions[:, t]))
+    assert set(actions.flatten().tolist()) <= set(policy.actions.flatten().tolist())
+    again, _ = rollout(policy.system, policy, torch.zeros(3), 64, 10, generator=torch.Generator().manual_seed(0))
+    assert torch.equal(states, again)
+
+
+def test_point_modes():
+    system = make_system("dubins")
+    cells = np.zeros((1, 3), dtype=np.int64)
+    centre = next_level(system, cells, PointMode.CENTERS)
+    lattice = next_level(system, cells, PointMode.LATTICE)
+    assert lattice.kept_fraction == 1.0
+    assert len(lattice.next_cells) >= len(centre.next_cells)
+    r1 = next_level(system, cells, "random", 16, torch.Generator().manual_seed(1))
+    r1b = next_level(system, cells, "random", 16, torch.Generator().manual_seed(1))
+    np.testing.assert_array_equal(r1.frac, r1b.frac)
+    np.testing.assert_array_equal(r1.next_cells, centre.next_cells)  # level sets from the centres
+    with pytest.raises(ValueError, match="unknown point mode"):
+        next_level(system, cells, "grid")
+
+
+def test_resume_after_interrupt_gives_a_byte_identical_table(tmp_path):
+    system = make_system("dubins")
+    config = BuildConfig(horizon=6)
+    full, _ = build_table(system, config)
+    write_table(tmp_path / "full.npz", full)
+
+    ckpt = tmp_path / "ckpt"
+
+    def interrupt(t, step):
+        if t == 3:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        build_table(system, config, checkpoint_dir=ckpt, progress=interrupt)
+    assert len(list(ckpt.glob("step_*.npz"))) == 4
+    resumed, stats = build_table(system, config, checkpoint_dir=ckpt, resume=True)
+    assert stats.resumed_steps == 4
+    write_table(tmp_path / "resumed.npz", resumed)
+    assert (tmp_path / "full.npz").read_bytes() == (tmp_path / "resumed.npz").read_bytes()
+
+    # a checkpoint of other settings is not reused
+    other, stats = build_table(system, BuildConfig(horizon=6, points="lattice"), checkpoint_dir=ckpt, resume=True)
+    assert stats.resumed_steps == 0
+
+
+def test_interrupted_write_leaves_no_partial_file(tmp_path, dubins_table, monkeypatch):
+    dest = tmp_path / "t.npz"
+    calls = {"n": 0}
+    real = np.lib.format.write_array
+
+    def flaky(*args, **kwargs):
+        calls["n"] += 1
+        if calls["n"] == 5:
+            raise KeyboardInterrupt
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(np.lib.format, "write_array", flaky)
+    with pytest.raises(KeyboardInterrupt):
+        write_table(dest, dubins_table)
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_cli_builds_table_and_report(tmp_path, capsys):
+    out = tmp_path / "walk.npz"
+    code = build_cli.main(["--system", "random_walk_1d", "--horizon", "4", "--out", str(out), "--quiet"])
+    assert code == 0
+    table = read_table(out)
+    assert table.level_sizes == [1, 5, 9, 13, 17]
+    report = json.loads((tmp_path / "walk.report.json").read_text())
+    assert [lv["cells"] for lv in report["uniformity"]["levels"]] == table.level_sizes
+    assert set(report["seconds"]) >= {"levels", "maxflow", "probabilities", "write", "total"}
+    assert not (tmp_path / "walk.npz.partial").exists()
+    assert load_table(out).num_actions == 5
+
+
+def test_cli_system_parameters_are_flags(tmp_path):
+    out = tmp_path / "d.npz"
+    code = build_cli.main(["--system", "dubins", "--horizon", "3", "--num-actions", "7", "--cell-size", "0.1", "0.1",
+                           "0.1571", "--out", str(out), "--quiet", "--no-report"])
+    assert code == 0
+    table = read_table(out)
+    system = table.make_system()
+    assert system.num_actions == 7 and table.actions.shape == (7, 1)
+    assert system.cell_size[0] == 0.1 and table.horizon == 3
+
+
+def test_cli_resume_continues_from_checkpoints(tmp_path, monkeypatch, capsys):
+    out = tmp_path / "d.npz"
+    args = ["--system", "dubins", "--horizon", "5", "--out", str(out), "--quiet", "--no-report"]
+    import precompute.builder as builder
+
+    real = builder._solve_step
+    calls = {"n": 0}
+
+    def interrupting(*a, **k):
+        calls["n"] += 1
+        if calls["n"] == 3:
+            raise KeyboardInterrupt
+        return real(*a, **k)
+
+    monkeypatch.setattr(builder, "_solve_step", interrupting)
+    assert build_cli.main(args) == 130
+    assert not out.exists()
+    assert "--resume" in capsys.readouterr().err
+    monkeypatch.setattr(builder, "_solve_step", real)
+    assert build_cli.main(args + ["--resume"]) == 0
+    resumed = out.read_bytes()
+    os.remove(out)
+    assert build_cli.main(args) == 0
+    assert out.read_bytes() == resumed
