@@ -67,6 +67,8 @@ class Grid:
         """Cell index of each state: ``x [..., d]`` float -> ``[..., d]`` int64."""
         if x.shape[-1] != self.dim:
             raise ValueError(f"Grid.cells: states must have {self.dim} dimensions in the last axis, got shape {list(x.shape)}")
+        if not x.is_floating_point():
+            raise ValueError(f"Grid.cells: states must be a floating-point tensor, got {x.dtype}")
         scaled = x / self._vec(self.cell_size, x) + self._vec(self.offset, x)
         idx = torch.round(scaled).to(torch.int64)
         k = self.num_angle_cells

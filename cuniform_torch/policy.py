@@ -51,7 +51,7 @@ class TablePolicy:
 
     def rows(self, x: Tensor, t: int) -> Tensor:
         """Table row of each state's cell in level ``t``: ``x [N, d]`` -> ``[N]`` int64 (-1: not in L_t)."""
-        if not 0 <= t <= self.horizon:
+        if isinstance(t, bool) or not isinstance(t, int) or not 0 <= t <= self.horizon:
             raise ValueError(f"level t={t} is outside the table's levels 0..{self.horizon}")
         d = self.grid.dim
         if x.ndim != 2 or x.shape[1] != d:

@@ -40,10 +40,15 @@ def rollout(
     ``x0``; pass a seeded ``generator`` on that device for reproducible samples.
     """
     d = len(system.periodic)
+    for name, value, least in (("num_samples", num_samples, 1), ("horizon", horizon, 0)):
+        if isinstance(value, bool) or not isinstance(value, int) or value < least:
+            raise ValueError(f"{name} must be an integer >= {least}, got {value!r}")
+    if not isinstance(x0, torch.Tensor) or not x0.is_floating_point():
+        raise ValueError(f"x0 must be a floating-point tensor, got {getattr(x0, 'dtype', type(x0).__name__)}")
+    if x0.shape != (d,) and x0.shape != (num_samples, d):
+        raise ValueError(f"x0 must have shape [{d}] or [{num_samples}, {d}], got {list(x0.shape)}")
     if x0.ndim == 1:
         x0 = x0.unsqueeze(0).expand(num_samples, d)
-    if x0.shape != (num_samples, d):
-        raise ValueError(f"x0 must have shape [{d}] or [{num_samples}, {d}], got {list(x0.shape)}")
     if not bool(torch.isfinite(x0).all()):
         raise ValueError("x0 contains NaN or infinite values")
     table_horizon = getattr(policy, "horizon", None)

@@ -84,7 +84,7 @@ def wrap_angle(theta: Tensor) -> Tensor:
 def _as_float_tuple(value: Any, length: int, field: str, system: str) -> tuple[float, ...]:
     try:
         out = tuple(float(v) for v in value)
-    except TypeError:
+    except (TypeError, ValueError):
         raise ValueError(f"{system}: {field} must be a sequence of {length} numbers, got {value!r}") from None
     if len(out) != length:
         raise ValueError(f"{system}: {field} needs {length} value(s) (one per state dimension), got {len(out)}: {out}")
@@ -273,7 +273,7 @@ def known_systems() -> list[str]:
 
 def make_system(name: str, **params: Any) -> System:
     """Build a registered system by name; unknown names and parameters are clear errors."""
-    if name not in _REGISTRY:
+    if not isinstance(name, str) or name not in _REGISTRY:
         raise UnknownSystemError(f"unknown system {name!r}; known systems: {', '.join(known_systems())}")
     factory = _REGISTRY[name]
     if dataclasses.is_dataclass(factory):
@@ -302,6 +302,10 @@ def system_from_json(text: str) -> tuple[System, int]:
         raise ValueError(f"system JSON does not parse: {exc}") from None
     if not isinstance(spec, dict) or not {"name", "params", "horizon"} <= set(spec):
         raise ValueError(f"system JSON must be an object with name, params and horizon; got {text[:200]!r}")
+    if not isinstance(spec["name"], str):
+        raise ValueError(f"system JSON: name must be a string, got {spec['name']!r}")
+    if not isinstance(spec["params"], dict):
+        raise ValueError(f"system JSON: params must be an object of constructor arguments, got {spec['params']!r}")
     system = make_system(spec["name"], **spec["params"])
     horizon = spec["horizon"]
     if isinstance(horizon, bool) or not isinstance(horizon, int) or horizon < 1:

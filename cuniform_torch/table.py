@@ -47,6 +47,7 @@ _OPTIONAL_ARRAYS: dict[str, tuple[np.dtype, int]] = {
     "transition_frac": (np.dtype(np.float64), 1),
 }
 _OPTIONAL_STRINGS = ("method", "build_info")
+_KNOWN_KEYS = {"format", *_REQUIRED, *_OPTIONAL_ARRAYS, *_OPTIONAL_STRINGS}
 
 _ROW_SUM_TOL = 1e-4  # float32 rows
 _LEVEL_SUM_TOL = 1e-6  # float64 cell probabilities per level
@@ -130,6 +131,8 @@ def read_table(path: str | os.PathLike, *, check_system: bool = True) -> Table:
         npz = np.load(path, allow_pickle=False)
     except (zipfile.BadZipFile, ValueError, OSError, EOFError) as exc:
         raise TableError(f"{path}: not a readable .npz table ({type(exc).__name__}: {exc})") from None
+    if not isinstance(npz, np.lib.npyio.NpzFile):
+        raise TableError(f"{path}: a single .npy array, not an .npz table")
     with npz:
         names = set(npz.files)
         arrays: dict[str, np.ndarray] = {}
@@ -138,6 +141,10 @@ def read_table(path: str | os.PathLike, *, check_system: bool = True) -> Table:
                 arrays[key] = npz[key]
             except Exception as exc:  # zlib.error, ValueError (pickled objects), EOFError (truncated), ...
                 raise TableError(f"{path}: array {key!r} is corrupt or truncated ({type(exc).__name__}: {exc})") from None
+            if not isinstance(arrays[key], np.ndarray):  # a zip member without the .npy suffix: raw bytes
+                if key in _KNOWN_KEYS:
+                    raise TableError(f"{path}: entry {key!r} is not a .npy array")
+                del arrays[key]
     if "format" not in arrays:
         raise TableError(f"{path}: no 'format' key; this is not a cuniform table")
     fmt = _string(arrays["format"], "format", path)

@@ -76,6 +76,27 @@ def make_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _check_output_path(out: Path) -> None:
+    if out.is_dir():
+        raise ValueError(f"--out {out} is a folder; give a file path such as {out / 'table.npz'}")
+    for parent in out.parents:
+        if parent.exists():
+            if not parent.is_dir():
+                raise ValueError(f"--out {out}: {parent} is a file, not a folder")
+            break
+
+
+def _check_device(device: str) -> None:
+    import torch
+
+    try:
+        dev = torch.device(device)
+    except RuntimeError:
+        raise ValueError(f"--device {device!r} is not a torch device (cpu, cuda, cuda:1, ...)") from None
+    if dev.type == "cuda" and not torch.cuda.is_available():
+        raise ValueError(f"--device {device}: CUDA is not available on this machine")
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     parser = make_parser()
     args = parser.parse_args(argv)
@@ -99,6 +120,10 @@ def _run(args: argparse.Namespace) -> int:
     horizon = 10 if args.horizon is None else args.horizon
     config = BuildConfig(horizon=horizon, points=args.points, points_per_cell=args.points_per_cell, seed=args.seed)
     out: Path = args.out or Path("out") / f"{args.system}.npz"
+    _check_output_path(out)
+    if args.rollouts is not None and args.rollouts < 1:
+        raise ValueError(f"--rollouts must be positive, got {args.rollouts}")
+    _check_device(args.device)
     ckpt = out.with_name(out.name + ".partial")
     if ckpt.exists() and not args.resume:
         shutil.rmtree(ckpt)
@@ -153,6 +178,7 @@ def _run(args: argparse.Namespace) -> int:
         summary["report_seconds"] = time.perf_counter() - t0
         summary["uniformity"] = report.to_dict()
         say(format_report(report))
+        say(f"report: {report.num_rollouts} rollouts in {summary['report_seconds']:.2f}s")
     write_json(report_path, summary)
     say(f"wrote {report_path}")
     return 0

@@ -94,7 +94,7 @@ class StepResult:
 class BuildStats:
     """Timings (seconds) and per-step facts of a build."""
 
-    seconds: dict[str, float] = field(default_factory=lambda: {"levels": 0.0, "maxflow": 0.0, "probabilities": 0.0, "write": 0.0})
+    seconds: dict[str, float] = field(default_factory=lambda: {"levels": 0.0, "arcs": 0.0, "maxflow": 0.0, "probabilities": 0.0, "write": 0.0})
     resumed_steps: int = 0
     kept_fraction: list[float] = field(default_factory=list)
     zero_outflow: list[int] = field(default_factory=list)
@@ -126,7 +126,8 @@ def _solve_step(system: System, cells: np.ndarray, config: BuildConfig, t: int, 
     t2 = time.perf_counter()
     probs, zero = action_probs_from_flow(n, A, lvl.src, lvl.act, arc_index, lvl.frac, flow)
     t3 = time.perf_counter()
-    stats.seconds["levels"] += t1 - t0
+    stats.seconds["levels"] += lvl.seconds[0]
+    stats.seconds["arcs"] += (t1 - t0) - lvl.seconds[0]
     stats.seconds["maxflow"] += t2 - t1
     stats.seconds["probabilities"] += t3 - t2
     return StepResult(lvl.next_cells, probs, lvl.src, lvl.act, lvl.dst, lvl.frac, flow.arc_src, flow.arc_dst,

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import enum
 import itertools
+import time
 from dataclasses import dataclass
 
 import numpy as np
@@ -68,6 +69,8 @@ class LevelStep:
     """``[K]`` float64: fraction of the kept points of (src, act) that land in dst"""
     kept_fraction: float
     """share of all stepped (point, action) pairs that landed in L_{t+1}"""
+    seconds: tuple[float, float] = (0.0, 0.0)
+    """time spent building the level set, then the transitions (arcs)"""
 
 
 def cell_sample_offsets(grid: Grid, mode: PointMode, n: int, points_per_cell: int, generator: torch.Generator | None) -> Tensor:
@@ -125,6 +128,7 @@ def next_level(
         return grid.wrap(centres[lo:hi].unsqueeze(1) + off)
 
     # Pass 1: the next level, from the centres (or every lattice point).
+    t0 = time.perf_counter()
     level_pts = P if mode is PointMode.LATTICE else 1
     found = []
     for lo, hi in _chunks(n, level_pts * A):
@@ -140,6 +144,7 @@ def next_level(
     m = len(next_keys)
 
     # Pass 2: every sample point under every action; keep those that land in L_{t+1}.
+    t1 = time.perf_counter()
     trans_keys, trans_counts = [], []
     kept_total = 0
     for lo, hi in _chunks(n, P * A):
@@ -165,4 +170,5 @@ def next_level(
         dst=dst,
         frac=frac,
         kept_fraction=kept_total / float(n * P * A),
+        seconds=(t1 - t0, time.perf_counter() - t1),
     )

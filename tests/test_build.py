@@ -181,7 +181,7 @@ def test_cli_builds_table_and_report(tmp_path, capsys):
     assert table.level_sizes == [1, 5, 9, 13, 17]
     report = json.loads((tmp_path / "walk.report.json").read_text())
     assert [lv["cells"] for lv in report["uniformity"]["levels"]] == table.level_sizes
-    assert set(report["seconds"]) >= {"levels", "maxflow", "probabilities", "write", "total"}
+    assert set(report["seconds"]) >= {"levels", "arcs", "maxflow", "probabilities", "write", "total"}
     assert not (tmp_path / "walk.npz.partial").exists()
     assert load_table(out).num_actions == 5
 
