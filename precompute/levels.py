@@ -36,6 +36,7 @@ LATTICE_SCALE = 1.0 / 2.01
 """lattice points sit at {-1, 0, +1} x delta x LATTICE_SCALE around the centre (delta/2.01, as the reference)"""
 
 _CHUNK_POINTS = 1 << 21  # state-action pairs stepped at once (bounds memory on big levels)
+_REUSE_LIMIT = 1 << 25  # int64 cell entries (256 MiB) kept between the two passes in lattice mode
 
 
 class PointMode(str, enum.Enum):
@@ -130,10 +131,15 @@ def next_level(
     # Pass 1: the next level, from the centres (or every lattice point).
     t0 = time.perf_counter()
     level_pts = P if mode is PointMode.LATTICE else 1
-    found = []
+    # lattice mode steps every point in pass 1 already: keep those cells for pass 2 when they fit in memory
+    reuse = mode is PointMode.LATTICE and n * P * A * grid.dim <= _REUSE_LIMIT
+    found, stepped = [], []
     for lo, hi in _chunks(n, level_pts * A):
         pts = points(lo, hi) if mode is PointMode.LATTICE else centres[lo:hi].unsqueeze(1)
-        reached = _step_cells(system, grid, pts, actions).reshape(-1, grid.dim)
+        reached = _step_cells(system, grid, pts, actions)  # [c, P or 1, A, d]
+        if reuse:
+            stepped.append(reached)
+        reached = reached.reshape(-1, grid.dim)
         keys = CellKeys.covering(reached)
         found.append(keys.unpack(torch.unique(keys.pack(reached))))
     reached = torch.cat(found)
@@ -147,8 +153,9 @@ def next_level(
     t1 = time.perf_counter()
     trans_keys, trans_counts = [], []
     kept_total = 0
-    for lo, hi in _chunks(n, P * A):
-        rows = next_set.lookup(_step_cells(system, grid, points(lo, hi), actions))  # [c, P, A]
+    for k, (lo, hi) in enumerate(_chunks(n, P * A)):
+        reached = stepped[k] if reuse else _step_cells(system, grid, points(lo, hi), actions)
+        rows = next_set.lookup(reached)  # [c, P, A]
         src = torch.arange(lo, hi).view(-1, 1, 1).expand_as(rows)
         act = torch.arange(A).view(1, 1, A).expand_as(rows)
         ok = rows >= 0
