@@ -8,7 +8,7 @@ action realizes (capacity m); each cell of L' -> sink (capacity n). The lemma: t
 the level pair admits exactly C-Uniform action probabilities.
 
 Nodes: 0 = source, 1..n = L, n+1..n+m = L', n+m+1 = sink. Capacities are divided by gcd(n, m) before solving
-(an exact rescaling that keeps scipy's int32 capacities and flow sums small); flows are reported unscaled.
+(an exact rescaling that keeps scipy's int32 capacities and arc flows small); flows are reported unscaled.
 """
 
 from __future__ import annotations
@@ -69,10 +69,8 @@ def flow_network(n: int, m: int, arc_src: np.ndarray, arc_dst: np.ndarray, scale
 def solve_maxflow(n: int, m: int, arc_src: np.ndarray, arc_dst: np.ndarray) -> FlowResult:
     """Exact integer max flow (scipy's Dinic) of the network on distinct arcs ``arc_src, arc_dst [E]``."""
     g = math.gcd(n, m)
-    if n * m // g > _INT32_MAX:
-        raise ValueError(
-            f"level pair too large for scipy's int32 max-flow: n={n}, m={m}, n*m/gcd={n * m // g} > {_INT32_MAX}"
-        )
+    if max(n, m) > _INT32_MAX:  # scipy keeps capacities and arc flows in int32 (its total flow is int64)
+        raise ValueError(f"level pair too large for scipy's int32 capacities: n={n}, m={m}")
     net = flow_network(n, m, arc_src, arc_dst, scale=g)
     res = maximum_flow(net, 0, n + m + 1, method="dinic")
     flow = res.flow.tocoo()

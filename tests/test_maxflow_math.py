@@ -143,3 +143,14 @@ def test_stored_arc_flows_are_a_valid_flow(dubins_table):
         inn = np.bincount(arcs[:, 1] - table.level_offsets[t + 1], weights=f, minlength=m)
         assert (out <= m).all() and (inn <= n).all() and (f <= m).all()
         assert out.sum() == inn.sum() == table.flow_value[t]
+
+
+def test_total_flow_beyond_int32_is_exact():
+    """n*m/gcd(n, m) > 2^31: scipy's capacities stay int32 but the total must not overflow."""
+    n, k = 50_001, 2
+    m = n + 2 * k  # gcd(n, m) = 1, n*m ~ 2.5e9
+    src, _, dst = _random_walk_arcs(n, k)
+    arc_src, arc_dst, _ = unique_arcs(src, dst, m)
+    flow = solve_maxflow(n, m, arc_src, arc_dst)
+    assert n * m > 2**31 and flow.value == n * m
+    assert np.bincount(flow.arc_dst, weights=flow.arc_flow, minlength=m).min() == n
