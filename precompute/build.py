@@ -36,8 +36,20 @@ def _system_fields() -> dict[str, dataclasses.Field]:
     return out
 
 
-def _systems_with(field: str) -> list[str]:
-    return [n for n, f in sorted(_REGISTRY.items()) if dataclasses.is_dataclass(f) and field in {x.name for x in dataclasses.fields(f)}]
+def _defaults_of(field: str) -> str:
+    """``"dubins: 0.2; random_walk_1d: 1.0"``: the field's default in each system that has it."""
+    parts = []
+    for name, factory in sorted(_REGISTRY.items()):
+        if dataclasses.is_dataclass(factory):
+            for f in dataclasses.fields(factory):
+                if f.name == field:
+                    default = f.default if f.default is not dataclasses.MISSING else "required"
+                    if isinstance(default, tuple):
+                        default = " ".join(f"{v:.6g}" for v in default)
+                    elif isinstance(default, float):
+                        default = f"{default:.6g}"
+                    parts.append(f"{name}: {default}")
+    return "; ".join(parts)
 
 
 def make_parser() -> argparse.ArgumentParser:
@@ -61,9 +73,8 @@ def make_parser() -> argparse.ArgumentParser:
     group = parser.add_argument_group("system parameters (each applies to the systems that have it)")
     for name, f in _system_fields().items():
         flag = "--" + name.replace("_", "-")
-        doc = (getattr(f, "__doc__", None) or "").strip()
         default = f.default if f.default is not dataclasses.MISSING else None
-        kwargs: dict[str, Any] = {"default": None, "dest": f"sys_{name}"}
+        kwargs: dict[str, Any] = {"default": None, "dest": f"sys_{name}", "metavar": name.upper()}
         if isinstance(default, tuple):
             kwargs.update(nargs="+", type=float, metavar="X")
         elif isinstance(default, bool):
@@ -72,7 +83,7 @@ def make_parser() -> argparse.ArgumentParser:
             kwargs.update(type=int)
         else:
             kwargs.update(type=float)
-        group.add_argument(flag, help=f"({', '.join(_systems_with(name))}) default {default}", **kwargs)
+        group.add_argument(flag, help=f"default {_defaults_of(name)}".replace("%", "%%"), **kwargs)
     return parser
 
 
