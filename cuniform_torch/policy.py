@@ -1,58 +1,135 @@
 """Table policy: p(u | cell, t) looked up from a C-Uniform table by packed keys, on any device.
 
-Shapes: N states, d state dimensions, A actions, q action dimensions, C table cells.
+Shapes: N states, d state dimensions, A actions, q action dimensions, C table cells, H halo cells.
 
-The table's cells of every level are packed together with the level index into one sorted int64 key array
-when the policy is made, so a lookup is pure tensor ops (``torch.searchsorted``). A state whose cell is not in
-the level set L_t is a *miss*; it gets uniform probabilities over the actions (documented fallback) and is
-counted in ``misses``.
+When the policy is made, every (level, cell) of the table is packed into one int64 key, together with a
+*halo*: every cell within one cell (the 3^d - 1 neighbours, angles wrapped) of a level set that is not itself
+in that level set, mapped to its nearest cell of the level set (smallest grid distance between cell indices;
+ties go to the lower table row). The keys are sorted once, so a lookup is pure tensor ops
+(``torch.searchsorted``), the same on CPU and GPU.
+
+Fallback for a state whose cell is not in L_t (``fallback=``):
+
+* ``"nearest"`` (default): the action row of the nearest cell of L_t when the state's cell is within one cell
+  of L_t (counted in ``nearest_hits``), else uniform over the actions (counted in ``misses``);
+* ``"uniform"``: uniform over the actions (counted in ``misses``).
+
+Tables are built from the origin. For an SE(2)-invariant system (``system.se2_invariant``), states given to
+``action_probs`` are in the frame of the start pose; :func:`~cuniform_torch.rollout.rollout` does that change
+of frame, so one table serves every start pose (``start_relative = True``).
 """
 
 from __future__ import annotations
 
+import enum
+import itertools
 import os
 
 import numpy as np
 import torch
 from torch import Tensor
 
-from .grid import CellSet, Grid
+from .grid import CellKeys, CellSet, Grid
 from .systems import System
 from .table import Table, read_table
 
-__all__ = ["TablePolicy", "load_table"]
+__all__ = ["Fallback", "TablePolicy", "load_table"]
+
+
+class Fallback(str, enum.Enum):
+    """What a :class:`TablePolicy` does for a state outside the level set."""
+
+    NEAREST = "nearest"
+    UNIFORM = "uniform"
+
+    @classmethod
+    def parse(cls, value: "str | Fallback") -> "Fallback":
+        try:
+            return cls(value)
+        except ValueError:
+            raise ValueError(f"unknown fallback {value!r}; choose one of: {', '.join(f.value for f in cls)}") from None
+
+
+def _halo(keyed: Tensor, grid: Grid) -> tuple[Tensor, Tensor]:
+    """Neighbour cells of each level not in it, with the row of their nearest cell: ``([H, 1+d], [H])``."""
+    d = grid.dim
+    offsets = torch.tensor([o for o in itertools.product((-1, 0, 1), repeat=d) if any(o)], dtype=torch.int64)  # [O, d]
+    dist2 = (offsets**2).sum(dim=1)  # [O] squared grid distance
+    C, O = keyed.shape[0], offsets.shape[0]
+    nb = keyed[:, None, 1:] + offsets[None]  # [C, O, d]
+    k = grid.num_angle_cells
+    for dim, kk in enumerate(k):
+        if kk:
+            nb[..., dim] = torch.remainder(nb[..., dim], kk)
+    nb = torch.cat((keyed[:, None, :1].expand(C, O, 1), nb), dim=2).reshape(-1, 1 + d)  # [C*O, 1+d]
+    src = torch.arange(C).repeat_interleave(O)  # [C*O]
+    dist = dist2.repeat(C)
+    keys = CellKeys.covering(torch.cat((keyed, nb)))
+    own = CellSet.build(keyed, keys)
+    outside = own.lookup(nb) < 0
+    nb, src, dist = nb[outside], src[outside], dist[outside]
+    packed = keys.pack(nb)
+    # order by (key, distance, source row); keep the first entry of each key
+    order = torch.sort(src, stable=True).indices
+    order = order[torch.sort(dist[order], stable=True).indices]
+    order = order[torch.sort(packed[order], stable=True).indices]
+    packed, src, nb = packed[order], src[order], nb[order]
+    first = torch.ones_like(packed, dtype=torch.bool)
+    first[1:] = packed[1:] != packed[:-1]
+    return nb[first], src[first]
 
 
 class TablePolicy:
     """The Policy interface over a table: ``actions [A, q]`` and ``action_probs(x [N, d], t) -> [N, A]``."""
 
-    def __init__(self, table: Table, device: torch.device | str = "cpu", dtype: torch.dtype = torch.float32):
+    start_relative = True
+    """for SE(2)-invariant systems, states are relative to the start pose (the table is built at the origin)"""
+
+    def __init__(
+        self,
+        table: Table,
+        device: torch.device | str = "cpu",
+        dtype: torch.dtype = torch.float32,
+        fallback: str | Fallback = Fallback.NEAREST,
+    ):
         self.table = table
         self.system: System = table.make_system()
         self.grid = Grid.of(self.system)
         self.horizon = table.horizon
+        self.fallback = Fallback.parse(fallback)
         self.device = torch.device(device)
+        self.dtype = dtype
         self.actions = torch.from_numpy(table.actions).to(device=self.device, dtype=dtype)  # [A, q]
         self.probs = torch.from_numpy(table.action_probs).to(device=self.device, dtype=dtype)  # [C, A]
-        self.level_offsets = torch.from_numpy(table.level_offsets).to(self.device)  # [T+2]
         level = np.repeat(np.arange(table.horizon + 1), np.diff(table.level_offsets))
-        keyed = np.concatenate((level[:, None], table.cells), axis=1)  # [C, 1+d]: (t, cell)
-        self.index = CellSet.build(torch.from_numpy(keyed)).to(self.device)
+        keyed = torch.from_numpy(np.concatenate((level[:, None], table.cells), axis=1))  # [C, 1+d]: (t, cell)
+        C = keyed.shape[0]
+        entries, rows = keyed, torch.arange(C)
+        if self.fallback is Fallback.NEAREST:
+            halo_cells, halo_rows = _halo(keyed, self.grid)
+            entries, rows = torch.cat((keyed, halo_cells)), torch.cat((rows, halo_rows))
+        self.index = CellSet.build(entries).to(self.device)  # entry id = position in `entries`
+        self.entry_row = rows.to(self.device)  # [C + H] table row of each entry
+        self.num_cells = C
+        self.num_halo = int(entries.shape[0] - C)
         self._uniform = torch.full((1, self.num_actions), 1.0 / self.num_actions, device=self.device, dtype=dtype)
-        self.misses = torch.zeros((), dtype=torch.int64, device=self.device)
-        self.queries = torch.zeros((), dtype=torch.int64, device=self.device)
+        self.reset_counters()
 
     @property
     def num_actions(self) -> int:
         return int(self.actions.shape[0])
 
+    def reset_counters(self) -> None:
+        """Zero ``queries``, ``nearest_hits`` and ``misses`` (device tensors: counting never syncs the host)."""
+        zero = lambda: torch.zeros((), dtype=torch.int64, device=self.device)  # noqa: E731
+        self.queries, self.nearest_hits, self.misses = zero(), zero(), zero()
+
     def level_size(self, t: int) -> int:
         return int(self.table.level_offsets[t + 1] - self.table.level_offsets[t])
 
-    def rows(self, x: Tensor, t: int) -> Tensor:
-        """Table row of each state's cell in level ``t``: ``x [N, d]`` -> ``[N]`` int64 (-1: not in L_t)."""
+    def _entries(self, x: Tensor, t: int) -> Tensor:
         if isinstance(t, bool) or not isinstance(t, int) or not 0 <= t <= self.horizon:
-            raise ValueError(f"level t={t} is outside the table's levels 0..{self.horizon}")
+            raise ValueError(f"level t={t!r} is outside the table's levels 0..{self.horizon} (an integer)")
         d = self.grid.dim
         if x.ndim != 2 or x.shape[1] != d:
             raise ValueError(f"states must have shape [N, {d}], got {list(x.shape)}")
@@ -60,24 +137,41 @@ class TablePolicy:
             raise ValueError(f"states are on {x.device} but the policy is on {self.device}")
         cells = self.grid.cells(x)  # [N, d]
         keyed = torch.cat((torch.full_like(cells[:, :1], t), cells), dim=1)  # [N, 1+d]
-        return self.index.lookup(keyed)
+        return self.index.lookup(keyed)  # [N] entry id, -1 if neither in L_t nor in its halo
+
+    def rows(self, x: Tensor, t: int) -> Tensor:
+        """Table row of each state's cell in level ``t``: ``x [N, d]`` -> ``[N]`` int64 (-1: not in L_t)."""
+        entry = self._entries(x, t)
+        return torch.where((entry >= 0) & (entry < self.num_cells), entry, torch.full_like(entry, -1))
 
     def action_probs(self, x: Tensor, t: int) -> Tensor:
-        """p(u | cell of x, t): ``x [N, d]`` -> ``[N, A]``; a state outside L_t gets uniform probabilities."""
-        rows = self.rows(x, t)  # [N]
-        hit = rows >= 0
-        self.misses += (~hit).sum()
-        self.queries += rows.numel()
-        probs = self.probs[rows.clamp(min=0)]  # [N, A]
-        return torch.where(hit.unsqueeze(1), probs, self._uniform)
+        """p(u | cell of x, t): ``x [N, d]`` -> ``[N, A]``, with the fallback for states outside L_t."""
+        entry = self._entries(x, t)  # [N]
+        found = entry >= 0
+        self.queries += entry.numel()
+        self.misses += (~found).sum()
+        self.nearest_hits += (entry >= self.num_cells).sum()
+        probs = self.probs[self.entry_row[entry.clamp(min=0)]]  # [N, A]
+        return torch.where(found.unsqueeze(1), probs, self._uniform)
 
     @property
     def miss_rate(self) -> float:
-        """Fraction of lookups so far whose state was outside the level set."""
+        """Share of lookups so far that fell back to uniform probabilities (syncs the device)."""
         q = int(self.queries)
         return int(self.misses) / q if q else 0.0
 
+    @property
+    def nearest_rate(self) -> float:
+        """Share of lookups so far answered by the nearest cell of the level set (syncs the device)."""
+        q = int(self.queries)
+        return int(self.nearest_hits) / q if q else 0.0
 
-def load_table(path: str | os.PathLike, device: torch.device | str = "cpu", dtype: torch.dtype = torch.float32) -> TablePolicy:
+
+def load_table(
+    path: str | os.PathLike,
+    device: torch.device | str = "cpu",
+    dtype: torch.dtype = torch.float32,
+    fallback: str | Fallback = Fallback.NEAREST,
+) -> TablePolicy:
     """Read and validate a table file, and return its :class:`TablePolicy` on ``device``."""
-    return TablePolicy(read_table(path), device=device, dtype=dtype)
+    return TablePolicy(read_table(path), device=device, dtype=dtype, fallback=fallback)

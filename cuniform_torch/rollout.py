@@ -1,20 +1,32 @@
-"""Batched rollouts of a policy through a system: one batched step per time step, no loop over samples.
+"""Batched rollouts of a policy or a noise sampler through a system: one batched step per time step.
 
 Shapes: N samples, T horizon, d state dimensions, q action dimensions, A actions.
+
+Two kinds of proposal sources drive the same :func:`rollout`:
+
+* a discrete :class:`Policy` (``actions [A, q]`` and ``action_probs(x, t) -> [N, A]``): a table or an MLP;
+  actions are drawn by categorical sampling;
+* a continuous :class:`ActionSampler` (``sample(x, t, generator) -> [N, q]``): Gaussian (MPPI) or
+  normal x log-normal (log-MPPI) noise around a nominal sequence, see :mod:`cuniform_torch.samplers`.
+
+A policy with ``start_relative = True`` (tables and MLPs, built at the origin) on an SE(2)-invariant system is
+rolled out from the origin and its states are moved to the start pose by a rigid transform.
 """
 
 from __future__ import annotations
 
-from typing import Protocol
+from typing import Protocol, runtime_checkable
 
 import torch
 from torch import Tensor
 
+from .frames import se2_to_world
 from .systems import System
 
-__all__ = ["Policy", "rollout"]
+__all__ = ["Policy", "ActionSampler", "rollout"]
 
 
+@runtime_checkable
 class Policy(Protocol):
     """Anything with a discrete action set and per-state action probabilities."""
 
@@ -26,19 +38,16 @@ class Policy(Protocol):
         ...
 
 
-def rollout(
-    system: System,
-    policy: Policy,
-    x0: Tensor,
-    num_samples: int,
-    horizon: int,
-    generator: torch.Generator | None = None,
-) -> tuple[Tensor, Tensor]:
-    """Sample ``num_samples`` trajectories of ``horizon`` steps from ``x0 [d]`` (or ``[N, d]``).
+@runtime_checkable
+class ActionSampler(Protocol):
+    """Anything that draws continuous actions for a batch of states."""
 
-    Returns ``states [N, T+1, d]`` (start included) and ``actions [N, T, q]``. The dtype and device are those of
-    ``x0``; pass a seeded ``generator`` on that device for reproducible samples.
-    """
+    def sample(self, x: Tensor, t: int, generator: torch.Generator | None) -> Tensor:
+        """``x [N, d]`` at step ``t`` -> actions ``[N, q]``."""
+        ...
+
+
+def _check_args(system: System, x0: Tensor, num_samples: int, horizon: int) -> int:
     d = len(system.periodic)
     for name, value, least in (("num_samples", num_samples, 1), ("horizon", horizon, 0)):
         if isinstance(value, bool) or not isinstance(value, int) or value < least:
@@ -47,24 +56,51 @@ def rollout(
         raise ValueError(f"x0 must be a floating-point tensor, got {getattr(x0, 'dtype', type(x0).__name__)}")
     if x0.shape != (d,) and x0.shape != (num_samples, d):
         raise ValueError(f"x0 must have shape [{d}] or [{num_samples}, {d}], got {list(x0.shape)}")
-    if x0.ndim == 1:
-        x0 = x0.unsqueeze(0).expand(num_samples, d)
     if not bool(torch.isfinite(x0).all()):
         raise ValueError("x0 contains NaN or infinite values")
+    return d
+
+
+def rollout(
+    system: System,
+    policy: Policy | ActionSampler,
+    x0: Tensor,
+    num_samples: int,
+    horizon: int,
+    generator: torch.Generator | None = None,
+) -> tuple[Tensor, Tensor]:
+    """Sample ``num_samples`` trajectories of ``horizon`` steps from ``x0 [d]`` (or ``[N, d]``).
+
+    Returns ``states [N, T+1, d]`` (start included) and ``actions [N, T, q]``, in the dtype and on the device
+    of ``x0``; pass a seeded ``generator`` on that device for reproducible samples.
+    """
+    d = _check_args(system, x0, num_samples, horizon)
     table_horizon = getattr(policy, "horizon", None)
     if table_horizon is not None and horizon > table_horizon:
         raise ValueError(f"horizon {horizon} is longer than the policy's table ({table_horizon} steps)")
-    actions = policy.actions.to(dtype=x0.dtype)  # [A, q]
-    states = [x0]
-    taken = []
-    x = x0
+    policy_device = getattr(policy, "device", None)
+    if policy_device is not None and torch.device(policy_device) != x0.device:
+        raise ValueError(f"x0 is on {x0.device} but the policy is on {policy_device}")
+    discrete = not isinstance(policy, ActionSampler)
+    if discrete and not isinstance(policy, Policy):
+        raise ValueError(f"{type(policy).__name__} is neither a Policy (actions, action_probs) nor an ActionSampler (sample)")
+    start = x0.unsqueeze(0).expand(num_samples, d) if x0.ndim == 1 else x0  # [N, d]
+    relative = bool(getattr(policy, "start_relative", False)) and system.se2_invariant
+    x = torch.zeros_like(start) if relative else start
+    actions = policy.actions.to(dtype=x0.dtype) if discrete else None  # [A, q]
+    states, taken = [x], []
     for t in range(horizon):
-        probs = policy.action_probs(x, t)  # [N, A]
-        idx = torch.multinomial(probs, 1, generator=generator).squeeze(1)  # [N]
-        u = actions[idx]  # [N, q]
+        if discrete:
+            probs = policy.action_probs(x, t)  # [N, A]
+            u = actions[torch.multinomial(probs, 1, generator=generator).squeeze(1)]  # [N, q]
+        else:
+            u = policy.sample(x, t, generator)  # [N, q]
         x = system.step(x, u)
         states.append(x)
         taken.append(u)
     states_t = torch.stack(states, dim=1)  # [N, T+1, d]
-    actions_t = torch.stack(taken, dim=1) if taken else x0.new_zeros((num_samples, 0, actions.shape[1]))
+    if relative:
+        states_t = se2_to_world(states_t, start.unsqueeze(1))
+    q = taken[0].shape[1] if taken else (actions.shape[1] if discrete else 0)
+    actions_t = torch.stack(taken, dim=1) if taken else x0.new_zeros((num_samples, 0, q))  # [N, T, q]
     return states_t, actions_t

@@ -3,8 +3,8 @@
 For every level t: its cells n_t; the flow ratio of the step into it (max flow / n_{t-1} n_t; 1 means the
 flow network admits exact C-Uniformity); the total-variation (TV) distance from uniform of the exact cell
 distribution ``cell_probs``; and the TV of *real* rollouts: N trajectories sampled by the table policy on true
-continuous states from the origin (a state outside L_t counts as mass outside the level set and takes the
-policy's uniform fallback). That TV is set against the noise floor: the TV of N perfectly uniform draws over
+continuous states from the origin, with the runtime's default fallback (a state outside L_t counts as mass
+outside the level set; it takes the action row of the nearest cell of L_t when within one cell, else uniform). That TV is set against the noise floor: the TV of N perfectly uniform draws over
 the n_t cells (mean and std over repeated draws), which no sampler can beat with N samples.
 
 ``TV = 1/2 (sum over cells of L_t |count/N - 1/n_t| + outside/N)``.
@@ -47,11 +47,13 @@ class UniformityReport:
     seed: int
     levels: list[LevelReport]
     miss_rate: float
-    """share of all policy lookups during the rollouts that missed the table"""
+    """share of all policy lookups during the rollouts that fell back to uniform probabilities"""
+    nearest_rate: float
+    """share of all policy lookups answered by the nearest cell of the level set"""
 
     def to_dict(self) -> dict:
         return {"num_rollouts": self.num_rollouts, "seed": self.seed, "miss_rate": self.miss_rate,
-                "levels": [asdict(lv) for lv in self.levels]}
+                "nearest_rate": self.nearest_rate, "levels": [asdict(lv) for lv in self.levels]}
 
 
 def tv_from_uniform(counts: torch.Tensor, total: int, outside: int | torch.Tensor = 0) -> float:
@@ -108,7 +110,8 @@ def uniformity_report(
                 outside_fraction=outside / N,
             )
         )
-    return UniformityReport(num_rollouts=N, seed=seed, levels=levels, miss_rate=policy.miss_rate)
+    return UniformityReport(num_rollouts=N, seed=seed, levels=levels, miss_rate=policy.miss_rate,
+                            nearest_rate=policy.nearest_rate)
 
 
 def format_report(report: UniformityReport) -> str:
@@ -123,5 +126,6 @@ def format_report(report: UniformityReport) -> str:
             f"{lv.level:>5} {lv.cells:>7} {flow:>8} {lv.tv_exact:>9.4f} {lv.tv_rollout:>11.4f} "
             f"{lv.tv_floor:>7.4f}+-{lv.tv_floor_std:.4f} {lv.outside_fraction:>8.2%}"
         )
-    lines.append(f"table lookups that missed the level set (uniform fallback): {report.miss_rate:.2%}")
+    lines.append(f"table lookups outside the level set: {report.nearest_rate:.2%} answered by the nearest cell, "
+                 f"{report.miss_rate:.2%} uniform fallback")
     return "\n".join(lines)

@@ -1,0 +1,473 @@
+"""2-D obstacles and the environment that holds them: batched containment and signed distance, any device.
+
+Shapes used in this module: ``...`` any batch shape (e.g. ``[N, T]``), V polygon vertices (= edges),
+H x W occupancy grid cells.
+
+Every obstacle has ``contains(xy [..., 2]) -> bool [...]`` and an ``appear_time`` (s): an obstacle is
+physically present from the start, but the robot only *senses* it from ``appear_time`` on (the paper's
+suddenly-appearing obstacle). :meth:`Environment.in_collision` with ``time=None`` is the physical truth; with a
+time it is what the robot knows then. Circles, rectangles and polygons also have
+``signed_distance(xy [..., 2]) -> [...]`` (Euclidean, negative inside).
+
+Queries are pure tensor ops in the dtype and on the device of ``xy``: geometry given as Python numbers is
+used as scalars, and polygon vertices are copied once per (dtype, device) and cached. An occupancy grid keeps
+the user's tensor and requires ``xy`` on its device (see :meth:`OccupancyGrid.to`).
+
+Boundaries: circles and rectangles are closed (a point on the boundary is inside). A polygon uses the
+even-odd crossing rule, which is half-open: a point exactly on a polygon edge may go either way.
+"""
+
+from __future__ import annotations
+
+import enum
+import math
+from dataclasses import dataclass, field
+from typing import Any, Protocol, Sequence, runtime_checkable
+
+import torch
+from torch import Tensor
+
+__all__ = [
+    "Obstacle",
+    "Circle",
+    "Rect",
+    "Polygon",
+    "OccupancyGrid",
+    "Opening",
+    "u_shape",
+    "Environment",
+]
+
+
+@runtime_checkable
+class Obstacle(Protocol):
+    """What an :class:`Environment` needs from an obstacle."""
+
+    appear_time: float
+    """time (s) from which the robot senses the obstacle; it is physically there from the start"""
+
+    def contains(self, xy: Tensor) -> Tensor:
+        """``xy [..., 2]`` (floating point) -> ``bool [...]``."""
+        ...
+
+
+# ------------------------------------------------------------------------------------------------ checks
+
+def _check_xy(xy: Any, who: str) -> None:
+    if not isinstance(xy, torch.Tensor):
+        raise ValueError(f"{who}: xy must be a torch.Tensor of shape [..., 2], got {type(xy).__name__}")
+    if not xy.is_floating_point():
+        raise ValueError(f"{who}: xy must be a floating-point tensor, got dtype {xy.dtype}")
+    if xy.ndim < 1 or xy.shape[-1] != 2:
+        raise ValueError(f"{who}: xy must have shape [..., 2], got {list(xy.shape)}")
+
+
+def _number(value: Any, what: str, who: str) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+        raise ValueError(f"{who}: {what} must be a finite number, got {value!r}")
+    return float(value)
+
+
+def _point(value: Any, what: str, who: str) -> tuple[float, float]:
+    try:
+        out = tuple(float(v) for v in value)
+    except (TypeError, ValueError):
+        raise ValueError(f"{who}: {what} must be a pair of numbers (x, y), got {value!r}") from None
+    if len(out) != 2 or not all(math.isfinite(v) for v in out):
+        raise ValueError(f"{who}: {what} must be a pair of finite numbers (x, y), got {value!r}")
+    return out  # type: ignore[return-value]
+
+
+def _appear_time(value: Any, who: str) -> float:
+    """``appear_time`` is a number >= 0; ``math.inf`` means never sensed."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or math.isnan(value) or value < 0:
+        raise ValueError(f"{who}: appear_time must be a number >= 0 (inf: never sensed), got {value!r}")
+    return float(value)
+
+
+# ------------------------------------------------------------------------------------------------ shapes
+
+@dataclass(frozen=True)
+class Circle:
+    """A disc of ``radius`` around ``center``."""
+
+    center: tuple[float, float]
+    """(x, y) in m"""
+    radius: float
+    """m, > 0"""
+    appear_time: float = 0.0
+    """time (s) from which the robot senses it"""
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "center", _point(self.center, "center", "Circle"))
+        r = _number(self.radius, "radius", "Circle")
+        if r <= 0:
+            raise ValueError(f"Circle: radius must be > 0, got {self.radius!r}")
+        object.__setattr__(self, "radius", r)
+        object.__setattr__(self, "appear_time", _appear_time(self.appear_time, "Circle"))
+
+    def signed_distance(self, xy: Tensor) -> Tensor:
+        """``xy [..., 2]`` -> ``[...]``: distance to the circle, negative inside."""
+        _check_xy(xy, "Circle.signed_distance")
+        return torch.hypot(xy[..., 0] - self.center[0], xy[..., 1] - self.center[1]) - self.radius
+
+    def contains(self, xy: Tensor) -> Tensor:
+        """``xy [..., 2]`` -> ``bool [...]`` (closed disc)."""
+        _check_xy(xy, "Circle.contains")
+        dx = xy[..., 0] - self.center[0]
+        dy = xy[..., 1] - self.center[1]
+        return dx * dx + dy * dy <= self.radius * self.radius
+
+
+@dataclass(frozen=True)
+class Rect:
+    """An axis-aligned rectangle ``[xmin, xmax] x [ymin, ymax]`` (closed)."""
+
+    xmin: float
+    ymin: float
+    xmax: float
+    ymax: float
+    appear_time: float = 0.0
+    """time (s) from which the robot senses it"""
+
+    def __post_init__(self) -> None:
+        for name in ("xmin", "ymin", "xmax", "ymax"):
+            object.__setattr__(self, name, _number(getattr(self, name), name, "Rect"))
+        if not self.xmin < self.xmax:
+            raise ValueError(f"Rect: need xmin < xmax, got xmin={self.xmin}, xmax={self.xmax}")
+        if not self.ymin < self.ymax:
+            raise ValueError(f"Rect: need ymin < ymax, got ymin={self.ymin}, ymax={self.ymax}")
+        object.__setattr__(self, "appear_time", _appear_time(self.appear_time, "Rect"))
+
+    def signed_distance(self, xy: Tensor) -> Tensor:
+        """``xy [..., 2]`` -> ``[...]``: exact Euclidean distance to the rectangle, negative inside."""
+        _check_xy(xy, "Rect.signed_distance")
+        cx, cy = 0.5 * (self.xmin + self.xmax), 0.5 * (self.ymin + self.ymax)
+        hx, hy = 0.5 * (self.xmax - self.xmin), 0.5 * (self.ymax - self.ymin)
+        qx = (xy[..., 0] - cx).abs() - hx  # [...] > 0 outside the slab |x - cx| <= hx
+        qy = (xy[..., 1] - cy).abs() - hy
+        outside = torch.hypot(qx.clamp(min=0), qy.clamp(min=0))
+        inside = torch.maximum(qx, qy).clamp(max=0)
+        return outside + inside
+
+    def contains(self, xy: Tensor) -> Tensor:
+        """``xy [..., 2]`` -> ``bool [...]`` (closed rectangle)."""
+        _check_xy(xy, "Rect.contains")
+        x, y = xy[..., 0], xy[..., 1]
+        return (x >= self.xmin) & (x <= self.xmax) & (y >= self.ymin) & (y <= self.ymax)
+
+
+def _orient(a: Tensor, b: Tensor, c: Tensor) -> Tensor:
+    """Twice the signed area of (a, b, c): ``[..., 2]`` x3 -> ``[...]`` (> 0 counter-clockwise)."""
+    return (b[..., 0] - a[..., 0]) * (c[..., 1] - a[..., 1]) - (b[..., 1] - a[..., 1]) * (c[..., 0] - a[..., 0])
+
+
+def _on_segment(a: Tensor, b: Tensor, p: Tensor) -> Tensor:
+    """Whether collinear point ``p`` lies within the bounding box of segment ``ab`` (all ``[..., 2]``)."""
+    lo, hi = torch.minimum(a, b), torch.maximum(a, b)
+    return ((p >= lo) & (p <= hi)).all(dim=-1)
+
+
+def _first_crossing(v: Tensor, chunk: int = 256) -> tuple[int, int] | None:
+    """The first pair of non-adjacent edges of the closed polygon ``v [V, 2]`` (float64) that touch, if any."""
+    V = v.shape[0]
+    a, b = v, torch.roll(v, -1, dims=0)  # [V, 2] edge i runs a[i] -> b[i]
+    idx = torch.arange(V)
+    for start in range(0, V, chunk):
+        i = idx[start:start + chunk, None]  # [c, 1]
+        ai, bi = a[start:start + chunk, None], b[start:start + chunk, None]  # [c, 1, 2]
+        aj, bj = a[None], b[None]  # [1, V, 2]
+        o1, o2 = _orient(ai, bi, aj), _orient(ai, bi, bj)  # [c, V]
+        o3, o4 = _orient(aj, bj, ai), _orient(aj, bj, bi)
+        hit = (o1 * o2 < 0) & (o3 * o4 < 0)  # [c, V] proper crossing
+        hit |= (o1 == 0) & _on_segment(ai, bi, aj)  # an endpoint of one edge lies on the other
+        hit |= (o2 == 0) & _on_segment(ai, bi, bj)
+        hit |= (o3 == 0) & _on_segment(aj, bj, ai)
+        hit |= (o4 == 0) & _on_segment(aj, bj, bi)
+        gap = torch.remainder(idx[None] - i, V)  # [c, V]
+        hit &= (gap > 1) & (gap < V - 1)  # not the same edge, not neighbours (they share a vertex)
+        if bool(hit.any()):
+            k, j = (int(t) for t in hit.nonzero()[0])
+            return start + k, j
+    return None
+
+
+@dataclass(frozen=True, eq=False)
+class Polygon:
+    """A simple (not self-intersecting), possibly non-convex polygon.
+
+    ``vertices`` ``[V, 2]`` in order (either orientation), V >= 3, not closed (a repeated first vertex at the
+    end is dropped). Checked at construction: finite, no repeated consecutive vertices, non-zero area, and no two
+    non-adjacent edges touching. Containment is the even-odd crossing rule, vectorized over points and edges
+    (memory ``[..., V]``).
+    """
+
+    vertices: Any
+    """``[V, 2]`` sequence or tensor of (x, y); stored as a float64 CPU tensor"""
+    appear_time: float = 0.0
+    """time (s) from which the robot senses it"""
+    _cache: dict = field(default_factory=dict, init=False, repr=False, compare=False)
+
+    def __post_init__(self) -> None:
+        try:
+            v = torch.as_tensor(
+                self.vertices.detach().cpu() if isinstance(self.vertices, Tensor) else self.vertices,
+                dtype=torch.float64,
+            )
+        except (TypeError, ValueError, RuntimeError):
+            raise ValueError(f"Polygon: vertices must be a [V, 2] sequence of numbers, got {self.vertices!r}") from None
+        if v.ndim != 2 or v.shape[1] != 2:
+            raise ValueError(f"Polygon: vertices must have shape [V, 2], got {list(v.shape)}")
+        if not bool(torch.isfinite(v).all()):
+            raise ValueError("Polygon: vertices must be finite")
+        if v.shape[0] >= 2 and torch.equal(v[0], v[-1]):
+            v = v[:-1]  # closed ring given: drop the repeated first vertex
+        V = v.shape[0]
+        if V < 3:
+            raise ValueError(f"Polygon: needs at least 3 vertices, got {V}")
+        nxt = torch.roll(v, -1, dims=0)
+        repeated = (v == nxt).all(dim=1)
+        if bool(repeated.any()):
+            k = int(repeated.nonzero()[0])
+            raise ValueError(f"Polygon: vertices {k} and {(k + 1) % V} are equal, {v[k].tolist()}")
+        area2 = float((v[:, 0] * nxt[:, 1] - nxt[:, 0] * v[:, 1]).sum())
+        scale = float((v - v.mean(dim=0)).abs().max()) ** 2
+        if abs(area2) <= 1e-12 * scale:
+            raise ValueError("Polygon: the vertices enclose zero area (all collinear?)")
+        crossing = _first_crossing(v)
+        if crossing is not None:
+            raise ValueError(f"Polygon: not simple, edges {crossing[0]} and {crossing[1]} intersect")
+        object.__setattr__(self, "vertices", v)
+        object.__setattr__(self, "appear_time", _appear_time(self.appear_time, "Polygon"))
+
+    def __eq__(self, other: object) -> bool:
+        if not isinstance(other, Polygon):
+            return NotImplemented
+        return torch.equal(self.vertices, other.vertices) and self.appear_time == other.appear_time
+
+    __hash__ = None  # type: ignore[assignment]
+
+    @property
+    def area(self) -> float:
+        """Enclosed area (m^2)."""
+        v, nxt = self.vertices, torch.roll(self.vertices, -1, dims=0)
+        return 0.5 * abs(float((v[:, 0] * nxt[:, 1] - nxt[:, 0] * v[:, 1]).sum()))
+
+    def _edges(self, like: Tensor) -> tuple[Tensor, Tensor]:
+        """Edge starts and ends ``([V, 2], [V, 2])`` in the dtype and on the device of ``like`` (cached)."""
+        key = (like.dtype, like.device)
+        if key not in self._cache:
+            a = self.vertices.to(dtype=like.dtype, device=like.device)
+            self._cache[key] = (a, torch.roll(a, -1, dims=0))
+        return self._cache[key]
+
+    def contains(self, xy: Tensor) -> Tensor:
+        """``xy [..., 2]`` -> ``bool [...]``: even-odd rule (a ray towards +x crosses an odd number of edges)."""
+        _check_xy(xy, "Polygon.contains")
+        a, b = self._edges(xy)  # [V, 2]
+        px, py = xy[..., 0, None], xy[..., 1, None]  # [..., 1]
+        ax, ay, bx, by = a[:, 0], a[:, 1], b[:, 0], b[:, 1]  # [V]
+        straddles = (ay > py) != (by > py)  # [..., V] the edge spans the ray's height (half-open)
+        dy = by - ay
+        safe_dy = torch.where(dy == 0, torch.ones_like(dy), dy)  # horizontal edges never straddle
+        x_cross = ax + (py - ay) * (bx - ax) / safe_dy  # [..., V]
+        crossings = (straddles & (px < x_cross)).sum(dim=-1)  # [...]
+        return (crossings % 2) == 1
+
+    def boundary_distance(self, xy: Tensor) -> Tensor:
+        """``xy [..., 2]`` -> ``[...]``: unsigned distance to the nearest edge."""
+        _check_xy(xy, "Polygon.boundary_distance")
+        a, b = self._edges(xy)  # [V, 2]
+        ab = b - a  # [V, 2]
+        ap = xy[..., None, :] - a  # [..., V, 2]
+        s = ((ap * ab).sum(dim=-1) / (ab * ab).sum(dim=-1)).clamp(0.0, 1.0)  # [..., V] projection parameter
+        closest = ap - s[..., None] * ab  # [..., V, 2] offset from the nearest point of each edge
+        return torch.linalg.vector_norm(closest, dim=-1).amin(dim=-1)
+
+    def signed_distance(self, xy: Tensor) -> Tensor:
+        """``xy [..., 2]`` -> ``[...]``: distance to the boundary, negative inside (memory ``[..., V, 2]``)."""
+        _check_xy(xy, "Polygon.signed_distance")
+        dist = self.boundary_distance(xy)
+        return torch.where(self.contains(xy), -dist, dist)
+
+
+@dataclass(frozen=True, eq=False)
+class OccupancyGrid:
+    """A boolean occupancy grid: cell ``(i, j)`` (row i, column j) covers
+    ``x in [x0 + j res, x0 + (j+1) res)`` and ``y in [y0 + i res, y0 + (i+1) res)``. Points outside are free.
+
+    ``contains`` needs ``xy`` on the device of ``occupied``; use :meth:`to` for a copy on another device.
+    """
+
+    occupied: Tensor
+    """``bool [H, W]``; row index i is y, column index j is x"""
+    origin: tuple[float, float] = (0.0, 0.0)
+    """(x0, y0): the lower-left corner of cell (0, 0), m"""
+    resolution: float = 1.0
+    """cell side, m, > 0"""
+    appear_time: float = 0.0
+    """time (s) from which the robot senses it"""
+
+    def __post_init__(self) -> None:
+        occ = self.occupied
+        if not isinstance(occ, torch.Tensor):
+            raise ValueError(f"OccupancyGrid: occupied must be a bool torch.Tensor [H, W], got {type(occ).__name__}")
+        if occ.dtype != torch.bool:
+            raise ValueError(f"OccupancyGrid: occupied must have dtype torch.bool, got {occ.dtype}")
+        if occ.ndim != 2 or occ.shape[0] < 1 or occ.shape[1] < 1:
+            raise ValueError(f"OccupancyGrid: occupied must have shape [H, W] with H, W >= 1, got {list(occ.shape)}")
+        object.__setattr__(self, "origin", _point(self.origin, "origin", "OccupancyGrid"))
+        res = _number(self.resolution, "resolution", "OccupancyGrid")
+        if res <= 0:
+            raise ValueError(f"OccupancyGrid: resolution must be > 0, got {self.resolution!r}")
+        object.__setattr__(self, "resolution", res)
+        object.__setattr__(self, "appear_time", _appear_time(self.appear_time, "OccupancyGrid"))
+
+    def to(self, device: torch.device | str) -> "OccupancyGrid":
+        """The same grid with ``occupied`` on ``device``."""
+        return OccupancyGrid(self.occupied.to(device), self.origin, self.resolution, self.appear_time)
+
+    def cell_index(self, xy: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """``xy [..., 2]`` -> ``(i, j, inside)``: int64 row and column ``[...]`` (0 where outside) and ``bool [...]``."""
+        _check_xy(xy, "OccupancyGrid.cell_index")
+        H, W = self.occupied.shape
+        fx = (xy[..., 0] - self.origin[0]) / self.resolution  # [...] column coordinate
+        fy = (xy[..., 1] - self.origin[1]) / self.resolution  # [...] row coordinate
+        inside = (fx >= 0) & (fx < W) & (fy >= 0) & (fy < H)  # NaN -> outside
+        j = torch.where(inside, fx, torch.zeros_like(fx)).floor().long().clamp(0, W - 1)
+        i = torch.where(inside, fy, torch.zeros_like(fy)).floor().long().clamp(0, H - 1)
+        return i, j, inside
+
+    def contains(self, xy: Tensor) -> Tensor:
+        """``xy [..., 2]`` -> ``bool [...]``: whether the cell under each point is occupied."""
+        _check_xy(xy, "OccupancyGrid.contains")
+        if xy.device != self.occupied.device:
+            raise ValueError(
+                f"OccupancyGrid.contains: xy is on {xy.device} but the grid is on {self.occupied.device}; "
+                f"use grid.to({str(xy.device)!r})"
+            )
+        i, j, inside = self.cell_index(xy)
+        W = self.occupied.shape[1]
+        return self.occupied.reshape(-1)[i * W + j] & inside
+
+
+# ------------------------------------------------------------------------------------------------ U-shape
+
+class Opening(str, enum.Enum):
+    """Which way the pocket of a :func:`u_shape` opens."""
+
+    POS_X = "+x"
+    NEG_X = "-x"
+    POS_Y = "+y"
+    NEG_Y = "-y"
+
+    @classmethod
+    def parse(cls, value: "str | Opening") -> "Opening":
+        try:
+            return cls(value)
+        except ValueError:
+            raise ValueError(f"unknown opening {value!r}; choose one of: {', '.join(o.value for o in cls)}") from None
+
+
+def u_shape(
+    center: Sequence[float],
+    width: float,
+    depth: float,
+    thickness: float,
+    opening: str | Opening = "+x",
+    appear_time: float = 0.0,
+) -> Polygon:
+    """A U-shaped trap as one 8-vertex :class:`Polygon`.
+
+    Geometry, for ``opening="+x"`` (the other openings are the same shape turned by 90, 180 or 270 degrees
+    about ``center``): the outer outline is the ``depth`` (along x) by ``width`` (along y) rectangle centred at
+    ``center = (cx, cy)``. Its base wall is the strip ``x in [cx - depth/2, cx - depth/2 + thickness]``; the two
+    side walls are the strips ``y in [cy - width/2, cy - width/2 + thickness]`` and
+    ``y in [cy + width/2 - thickness, cy + width/2]``, running the full depth. The free pocket is
+    ``x in (cx - depth/2 + thickness, cx + depth/2]``, ``y in (cy - width/2 + thickness, cy + width/2 - thickness)``,
+    open towards +x. A robot that approaches from the +x side and aims at a goal beyond the base (at -x) drives
+    into the pocket: the paper's U-shaped trap.
+
+    Needs ``width > 2 thickness`` and ``depth > thickness`` (so the pocket is not empty).
+    """
+    cx, cy = _point(center, "center", "u_shape")
+    w = _number(width, "width", "u_shape")
+    dpt = _number(depth, "depth", "u_shape")
+    t = _number(thickness, "thickness", "u_shape")
+    if w <= 0 or dpt <= 0 or t <= 0:
+        raise ValueError(f"u_shape: width, depth and thickness must be > 0, got {width!r}, {depth!r}, {thickness!r}")
+    if not w > 2 * t:
+        raise ValueError(f"u_shape: width ({w}) must exceed twice the thickness ({t}) to leave a pocket")
+    if not dpt > t:
+        raise ValueError(f"u_shape: depth ({dpt}) must exceed the thickness ({t}) to leave a pocket")
+    a, b = 0.5 * dpt, 0.5 * w
+    local = [  # opening towards +x, counter-clockwise
+        (a, b), (-a, b), (-a, -b), (a, -b),
+        (a, -b + t), (-a + t, -b + t), (-a + t, b - t), (a, b - t),
+    ]
+    turn = {  # exact quarter turns of the local frame
+        Opening.POS_X: lambda x, y: (x, y),
+        Opening.POS_Y: lambda x, y: (-y, x),
+        Opening.NEG_X: lambda x, y: (-x, -y),
+        Opening.NEG_Y: lambda x, y: (y, -x),
+    }[Opening.parse(opening)]
+    verts = [(cx + px, cy + py) for px, py in (turn(x, y) for x, y in local)]
+    return Polygon(verts, appear_time=appear_time)
+
+
+# ------------------------------------------------------------------------------------------------ environment
+
+@dataclass
+class Environment:
+    """Obstacles and optional workspace bounds.
+
+    ``bounds = (xmin, ymin, xmax, ymax)``: points outside (strictly) count as collisions.
+    """
+
+    obstacles: list = field(default_factory=list)
+    """objects with ``contains(xy [..., 2]) -> bool [...]`` and ``appear_time`` (see :class:`Obstacle`)"""
+    bounds: tuple[float, float, float, float] | None = None
+    """(xmin, ymin, xmax, ymax) of the workspace, or None for an unbounded plane"""
+
+    def __post_init__(self) -> None:
+        if isinstance(self.obstacles, (str, bytes)) or not isinstance(self.obstacles, (list, tuple)):
+            raise ValueError(f"Environment: obstacles must be a list, got {type(self.obstacles).__name__}")
+        self.obstacles = list(self.obstacles)
+        for k, obs in enumerate(self.obstacles):
+            if not callable(getattr(obs, "contains", None)) or not hasattr(obs, "appear_time"):
+                raise ValueError(
+                    f"Environment: obstacle {k} ({type(obs).__name__}) needs a contains(xy) method and an appear_time"
+                )
+            _appear_time(obs.appear_time, f"Environment: obstacle {k}")
+        if self.bounds is not None:
+            try:
+                b = tuple(float(v) for v in self.bounds)
+            except (TypeError, ValueError):
+                raise ValueError(f"Environment: bounds must be (xmin, ymin, xmax, ymax), got {self.bounds!r}") from None
+            if len(b) != 4 or not all(math.isfinite(v) for v in b):
+                raise ValueError(f"Environment: bounds must be 4 finite numbers (xmin, ymin, xmax, ymax), got {self.bounds!r}")
+            if not (b[0] < b[2] and b[1] < b[3]):
+                raise ValueError(f"Environment: bounds need xmin < xmax and ymin < ymax, got {b}")
+            self.bounds = b  # type: ignore[assignment]
+
+    def visible(self, time: float | None = None) -> list:
+        """The obstacles sensed at ``time`` (``appear_time <= time``); all of them for ``time=None``."""
+        if time is None:
+            return list(self.obstacles)
+        if isinstance(time, bool) or not isinstance(time, (int, float)) or math.isnan(time):
+            raise ValueError(f"Environment: time must be a number or None, got {time!r}")
+        return [obs for obs in self.obstacles if obs.appear_time <= time]
+
+    def in_collision(self, xy: Tensor, time: float | None = None) -> Tensor:
+        """``xy [..., 2]`` -> ``bool [...]``: inside an obstacle sensed at ``time`` (all for None), or outside
+        ``bounds``. Non-finite points count as collisions."""
+        _check_xy(xy, "Environment.in_collision")
+        obstacles = self.visible(time)
+        hit = ~torch.isfinite(xy).all(dim=-1)  # [...]
+        if self.bounds is not None:
+            xmin, ymin, xmax, ymax = self.bounds
+            x, y = xy[..., 0], xy[..., 1]
+            hit |= (x < xmin) | (x > xmax) | (y < ymin) | (y > ymax)
+        for obs in obstacles:
+            hit |= obs.contains(xy)
+        return hit

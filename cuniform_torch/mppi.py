@@ -1,0 +1,291 @@
+"""The MPPI family on one core: MPPI, log-MPPI, C-Uniform MPPI and CU-MPPI.
+
+Shapes: K samples (proposals), T horizon, d state dimensions, q action dimensions.
+
+Every controller does the same three things per command, and differs only in how it proposes trajectories:
+
+1. propose K trajectories ``states [K, T+1, d]``, ``actions [K, T, q]`` from the current state;
+2. cost each one, ``cost_fn(states, actions) -> [K]`` (+ ``terminal_cost(states[:, -1]) -> [K]``); NaN and
+   +-inf (e.g. the paper's infinite collision cost) become a large finite penalty, so weights never go NaN;
+3. weight them, ``w = softmax(-(cost - min cost) / lambda)`` (``lambda = 0``: all weight on the best one), and
+   return the weighted average of the proposals' first actions.
+
+* :class:`MPPI` samples Gaussian noise around a nominal sequence, updates the nominal to the weighted average
+  of the sampled sequences, and warm-starts the next command by shifting it one step.
+* :class:`LogMPPI` is MPPI with normal x log-normal noise (Mohamed et al.).
+* :class:`CUniformMPPI` (the C-Uniform paper) proposes C-Uniform rollouts of a policy (a table or an MLP)
+  from the robot's pose; optionally from a *proposal bank* of pre-sampled rollouts at the origin, so that a
+  command is a random subset + a rigid transform + cost + weights.
+* :class:`CUMPPI` (arXiv 2503.05819) makes the lowest-cost C-Uniform rollout the nominal of one local MPPI or
+  log-MPPI pass and applies that pass's first control.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Callable, Protocol
+
+import torch
+from torch import Tensor
+
+from .frames import se2_to_world
+from .rollout import Policy, rollout
+from .samplers import GaussianSampler, NormalLogNormalSampler
+from .systems import System
+
+__all__ = ["CostFn", "MPPIResult", "mppi_weights", "MPPI", "LogMPPI", "CUniformMPPI", "CUMPPI", "COST_CAP"]
+
+COST_CAP = 1e10
+"""NaN / inf costs are replaced by this finite value before weighting"""
+
+
+class CostFn(Protocol):
+    """Trajectory cost: ``states [K, T+1, d]``, ``actions [K, T, q]`` -> ``[K]`` (may be inf for collisions)."""
+
+    def __call__(self, states: Tensor, actions: Tensor) -> Tensor: ...
+
+
+@dataclass
+class MPPIResult:
+    """One command's work (returned, not kept as controller state)."""
+
+    command: Tensor
+    """``[q]`` the control to apply now"""
+    nominal: Tensor
+    """``[T, q]`` the weighted action sequence (before the warm-start shift)"""
+    states: Tensor
+    """``[K, T+1, d]`` the proposals"""
+    actions: Tensor
+    """``[K, T, q]``"""
+    costs: Tensor
+    """``[K]`` finite costs"""
+    weights: Tensor
+    """``[K]`` sum to 1"""
+
+    @property
+    def best(self) -> Tensor:
+        """Index of the lowest-cost proposal (a 0-d tensor; no host sync)."""
+        return torch.argmin(self.costs)
+
+
+def mppi_weights(costs: Tensor, lambda_: float) -> Tensor:
+    """``softmax(-(cost - min) / lambda)`` over ``costs [K]``; ``lambda_ = 0`` puts all weight on the argmin."""
+    c = torch.nan_to_num(costs, nan=COST_CAP, posinf=COST_CAP, neginf=-COST_CAP).clamp(max=COST_CAP)
+    if lambda_ == 0:
+        return torch.nn.functional.one_hot(torch.argmin(c), c.shape[0]).to(c.dtype)
+    return torch.softmax(-(c - c.min()) / lambda_, dim=0)
+
+
+def _check_lambda(lambda_: float) -> float:
+    if not (isinstance(lambda_, (int, float)) and math.isfinite(lambda_) and lambda_ >= 0):
+        raise ValueError(f"lambda_ must be a finite number >= 0, got {lambda_!r}")
+    return float(lambda_)
+
+
+def _check_positive_int(name: str, value: int) -> int:
+    if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+        raise ValueError(f"{name} must be a positive integer, got {value!r}")
+    return value
+
+
+class _Core:
+    """Shared settings and the cost -> weights step."""
+
+    def __init__(self, system: System, cost_fn: CostFn, num_samples: int, horizon: int, lambda_: float,
+                 terminal_cost: Callable[[Tensor], Tensor] | None, device: torch.device | str,
+                 dtype: torch.dtype, seed: int | None):
+        self.system = system
+        self.cost_fn = cost_fn
+        self.terminal_cost = terminal_cost
+        self.num_samples = _check_positive_int("num_samples", num_samples)
+        self.horizon = _check_positive_int("horizon", horizon)
+        self.lambda_ = _check_lambda(lambda_)
+        self.device = torch.device(device)
+        self.dtype = dtype
+        self.state_dim = len(system.periodic)
+        actions = system.action_set(dtype=dtype, device=self.device)  # [A, q]
+        self.low, self.high = actions.min(dim=0).values, actions.max(dim=0).values  # [q] action bounds
+        self.generator = torch.Generator(device=self.device)
+        self.generator.manual_seed(seed) if seed is not None else self.generator.seed()
+
+    def _check_state(self, state: Tensor) -> Tensor:
+        if not isinstance(state, Tensor) or state.shape != (self.state_dim,):
+            raise ValueError(f"state must be a tensor of shape [{self.state_dim}], got {getattr(state, 'shape', state)!r}")
+        if state.device != self.device:
+            raise ValueError(f"state is on {state.device} but the controller is on {self.device}")
+        if not bool(torch.isfinite(state).all()):
+            raise ValueError(f"state contains NaN or infinite values: {state.tolist()}")
+        return state.to(self.dtype)
+
+    def _evaluate(self, states: Tensor, actions: Tensor) -> tuple[Tensor, Tensor]:
+        costs = self.cost_fn(states, actions)  # [K]
+        if costs.shape != (states.shape[0],):
+            raise ValueError(f"cost_fn must return one cost per rollout, shape [{states.shape[0]}], got {list(costs.shape)}")
+        if self.terminal_cost is not None:
+            costs = costs + self.terminal_cost(states[:, -1])
+        costs = torch.nan_to_num(costs, nan=COST_CAP, posinf=COST_CAP, neginf=-COST_CAP).clamp(max=COST_CAP)
+        return costs, mppi_weights(costs, self.lambda_)
+
+
+class MPPI(_Core):
+    """MPPI with Gaussian noise (std ``noise_std``, scalar or ``[q]``) around a warm-started nominal sequence."""
+
+    sampler_class = GaussianSampler
+
+    def __init__(self, system: System, cost_fn: CostFn, num_samples: int = 1000, horizon: int = 15,
+                 lambda_: float = 0.567, noise_std: float | Tensor = 0.3,
+                 terminal_cost: Callable[[Tensor], Tensor] | None = None, device: torch.device | str = "cpu",
+                 dtype: torch.dtype = torch.float32, seed: int | None = None, **sampler_kwargs):
+        super().__init__(system, cost_fn, num_samples, horizon, lambda_, terminal_cost, device, dtype, seed)
+        self.noise_std = noise_std
+        self.sampler_kwargs = sampler_kwargs
+        self.reset()
+
+    def reset(self) -> None:
+        """Zero nominal sequence (the start of an episode)."""
+        self.nominal = torch.zeros((self.horizon, self.low.shape[0]), dtype=self.dtype, device=self.device)  # [T, q]
+        self._sampler()  # validates the noise settings now, not at the first command
+
+    def _sampler(self) -> GaussianSampler:
+        return self.sampler_class(self.nominal, self.noise_std, self.low, self.high, **self.sampler_kwargs)
+
+    def plan(self, state: Tensor) -> MPPIResult:
+        """One MPPI iteration from ``state [d]`` (does not shift the nominal)."""
+        state = self._check_state(state)
+        states, actions = rollout(self.system, self._sampler(), state, self.num_samples, self.horizon, self.generator)
+        costs, weights = self._evaluate(states, actions)
+        nominal = torch.einsum("k,ktq->tq", weights, actions)  # [T, q]
+        return MPPIResult(nominal[0], nominal, states, actions, costs, weights)
+
+    def command(self, state: Tensor) -> Tensor:
+        """The control ``[q]`` to apply at ``state [d]``; warm-starts the next call by shifting the nominal."""
+        result = self.plan(state)
+        self.nominal = torch.cat((result.nominal[1:], result.nominal[-1:]))  # shift, repeat the last action
+        return result.command
+
+
+class LogMPPI(MPPI):
+    """MPPI with normal x log-normal noise; ``lognormal_mean`` / ``lognormal_var`` set the log-normal factor."""
+
+    sampler_class = NormalLogNormalSampler
+
+    def __init__(self, system: System, cost_fn: CostFn, num_samples: int = 1000, horizon: int = 15,
+                 lambda_: float = 0.567, noise_std: float | Tensor = 0.3, lognormal_mean: float = 1.0,
+                 lognormal_var: float = 1.0, **kwargs):
+        super().__init__(system, cost_fn, num_samples, horizon, lambda_, noise_std,
+                         lognormal_mean=lognormal_mean, lognormal_var=lognormal_var, **kwargs)
+
+
+def _as_policy(policy, device):
+    """A Policy object, or a policy checkpoint dict (``format`` "cuniform-policy/1") loaded onto ``device``."""
+    if isinstance(policy, dict):
+        from . import load_policy  # the distilled MLP checkpoint loader (issue 5)
+
+        return load_policy(policy, device=device)
+    if not isinstance(policy, Policy):
+        raise ValueError(f"policy must have actions [A, q] and action_probs(x, t); got {type(policy).__name__}")
+    return policy
+
+
+class CUniformMPPI(_Core):
+    """C-Uniform MPPI: C-Uniform rollouts of ``policy`` from the robot's pose, softmax-weighted (paper 1).
+
+    ``lambda_ = 0`` commands the best proposal's first action (as the reference robot code does). With
+    ``bank_size`` set, ``bank_size`` rollouts are pre-sampled at the origin (SE(2)-invariant systems only); each
+    command takes a fresh random subset of ``num_samples`` of them and moves it to the pose by a rigid
+    transform; ``resample_bank()`` draws a new bank (also every ``bank_refresh`` commands when set).
+    """
+
+    def __init__(self, policy, cost_fn: CostFn, num_samples: int = 1000, lambda_: float = 0.567,
+                 horizon: int | None = None, bank_size: int | None = None, bank_refresh: int | None = None,
+                 terminal_cost: Callable[[Tensor], Tensor] | None = None, device: torch.device | str | None = None,
+                 seed: int | None = None):
+        device = torch.device(device) if device is not None else getattr(policy, "device", torch.device("cpu"))
+        self.policy = _as_policy(policy, device)
+        horizon = horizon if horizon is not None else getattr(self.policy, "horizon", None)
+        if horizon is None:
+            raise ValueError("horizon is required for a policy without a table horizon")
+        dtype = getattr(self.policy, "dtype", torch.float32)
+        super().__init__(self.policy.system, cost_fn, num_samples, horizon, lambda_, terminal_cost, device, dtype, seed)
+        self.bank_size = bank_size
+        self.bank_refresh = bank_refresh
+        self._commands = 0
+        if bank_size is not None:
+            _check_positive_int("bank_size", bank_size)
+            if not self.system.se2_invariant:
+                raise ValueError(f"a proposal bank needs an SE(2)-invariant system; {self.system.name} is not")
+            if bank_size < num_samples:
+                raise ValueError(f"bank_size ({bank_size}) must be at least num_samples ({num_samples})")
+            self.resample_bank()
+
+    def reset(self) -> None:
+        self._commands = 0
+
+    def resample_bank(self) -> None:
+        """Draw ``bank_size`` fresh rollouts at the origin."""
+        origin = torch.zeros(self.state_dim, dtype=self.dtype, device=self.device)
+        self.bank_states, self.bank_actions = rollout(self.system, self.policy, origin, self.bank_size, self.horizon,
+                                                      self.generator)  # [M, T+1, d], [M, T, q]
+
+    def propose(self, state: Tensor) -> tuple[Tensor, Tensor]:
+        """``num_samples`` C-Uniform proposals from ``state [d]``: ``[K, T+1, d]``, ``[K, T, q]``."""
+        if self.bank_size is None:
+            return rollout(self.system, self.policy, state, self.num_samples, self.horizon, self.generator)
+        idx = torch.randperm(self.bank_size, generator=self.generator, device=self.device)[: self.num_samples]
+        return se2_to_world(self.bank_states[idx], state), self.bank_actions[idx]
+
+    def plan(self, state: Tensor) -> MPPIResult:
+        state = self._check_state(state)
+        states, actions = self.propose(state)
+        costs, weights = self._evaluate(states, actions)
+        nominal = torch.einsum("k,ktq->tq", weights, actions)  # [T, q]
+        return MPPIResult(nominal[0], nominal, states, actions, costs, weights)
+
+    def command(self, state: Tensor) -> Tensor:
+        self._commands += 1
+        if self.bank_refresh and self.bank_size is not None and self._commands % self.bank_refresh == 0:
+            self.resample_bank()
+        return self.plan(state).command
+
+
+class CUMPPI:
+    """CU-MPPI: the best C-Uniform rollout seeds one local MPPI (or log-MPPI) pass; its first control is applied.
+
+    ``num_samples`` is split: ``round(cuniform_fraction * num_samples)`` C-Uniform proposals, the rest for the
+    local pass (Gaussian noise of std ``noise_std`` around the best C-Uniform action sequence).
+    """
+
+    def __init__(self, policy, cost_fn: CostFn, num_samples: int = 1000, cuniform_fraction: float = 0.5,
+                 lambda_: float = 0.567, noise_std: float | Tensor = 0.1, local: str = "mppi",
+                 horizon: int | None = None, bank_size: int | None = None,
+                 terminal_cost: Callable[[Tensor], Tensor] | None = None, device: torch.device | str | None = None,
+                 seed: int | None = None, **local_kwargs):
+        _check_positive_int("num_samples", num_samples)
+        if not 0 < cuniform_fraction < 1:
+            raise ValueError(f"cuniform_fraction must be in (0, 1), got {cuniform_fraction!r}")
+        k_cu = max(1, min(num_samples - 1, round(cuniform_fraction * num_samples)))
+        if num_samples < 2:
+            raise ValueError("CU-MPPI needs num_samples >= 2 (C-Uniform proposals + a local pass)")
+        self.cuniform = CUniformMPPI(policy, cost_fn, k_cu, lambda_=0.0, horizon=horizon, bank_size=bank_size,
+                                     terminal_cost=terminal_cost, device=device, seed=seed)
+        local_cls = {"mppi": MPPI, "log_mppi": LogMPPI}.get(local)
+        if local_cls is None:
+            raise ValueError(f"unknown local pass {local!r}; choose mppi or log_mppi")
+        self.local = local_cls(self.cuniform.system, cost_fn, num_samples - k_cu, self.cuniform.horizon, lambda_,
+                               noise_std, terminal_cost=terminal_cost, device=self.cuniform.device,
+                               dtype=self.cuniform.dtype, seed=None if seed is None else seed + 1, **local_kwargs)
+        self.system = self.cuniform.system
+
+    def reset(self) -> None:
+        self.cuniform.reset()
+        self.local.reset()
+
+    def plan(self, state: Tensor) -> MPPIResult:
+        """C-Uniform stage, then a local pass around its best trajectory; returns the local pass's result."""
+        seed_result = self.cuniform.plan(state)
+        self.local.nominal = seed_result.actions[seed_result.best]  # [T, q]
+        return self.local.plan(state)
+
+    def command(self, state: Tensor) -> Tensor:
+        return self.plan(state).command
