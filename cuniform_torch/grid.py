@@ -172,10 +172,9 @@ class CellSet:
 
     def lookup_keys(self, packed: Tensor) -> Tensor:
         """Row of each packed key ``[...]`` (-1 where the key is not in the set)."""
-        pos = torch.searchsorted(self.sorted_keys, packed.contiguous())
-        pos = pos.clamp(max=max(len(self) - 1, 0))
-        hit = (self.sorted_keys[pos] == packed) & (packed >= 0)
-        return torch.where(hit, self.rows[pos], torch.full_like(packed, -1))
+        pos = torch.searchsorted(self.sorted_keys, packed.contiguous()).clamp_(max=max(len(self) - 1, 0))
+        hit = self.sorted_keys[pos] == packed  # stored keys are >= 0, so a -1 (outside the box) never hits
+        return torch.where(hit, self.rows[pos], -1)
 
     def lookup(self, cells: Tensor) -> Tensor:
         """Row of each cell ``[..., d]`` -> ``[...]`` int64 (-1 where the cell is not in the set)."""

@@ -24,11 +24,12 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Callable, Protocol
+from typing import Callable
 
 import torch
 from torch import Tensor
 
+from .envs.costs import TrajectoryCost
 from .frames import se2_to_world
 from .rollout import Policy, rollout
 from .samplers import GaussianSampler, NormalLogNormalSampler
@@ -40,10 +41,8 @@ COST_CAP = 1e10
 """NaN / inf costs are replaced by this finite value before weighting"""
 
 
-class CostFn(Protocol):
-    """Trajectory cost: ``states [K, T+1, d]``, ``actions [K, T, q]`` -> ``[K]`` (may be inf for collisions)."""
-
-    def __call__(self, states: Tensor, actions: Tensor) -> Tensor: ...
+CostFn = TrajectoryCost
+"""Trajectory cost: ``states [K, T+1, d]``, ``actions [K, T, q]`` -> ``[K]`` (may be inf for collisions)."""
 
 
 @dataclass

@@ -80,7 +80,12 @@ def _halo(keyed: Tensor, grid: Grid) -> tuple[Tensor, Tensor]:
 
 
 class TablePolicy:
-    """The Policy interface over a table: ``actions [A, q]`` and ``action_probs(x [N, d], t) -> [N, A]``."""
+    """The Policy interface over a table: ``actions [A, q]`` and ``action_probs(x [N, d], t) -> [N, A]``.
+
+    Also an :class:`~cuniform_torch.rollout.ActionSampler`: ``sample(x, t, generator)`` draws the actions by
+    inverse-CDF sampling (what :func:`~cuniform_torch.rollout.rollout` uses). ``compile=True`` wraps that
+    per-step kernel in ``torch.compile`` (a one-off compilation of tens of seconds, then faster steps).
+    """
 
     start_relative = True
     """for SE(2)-invariant systems, states are relative to the start pose (the table is built at the origin)"""
@@ -91,6 +96,7 @@ class TablePolicy:
         device: torch.device | str = "cpu",
         dtype: torch.dtype = torch.float32,
         fallback: str | Fallback = Fallback.NEAREST,
+        compile: bool = False,
     ):
         self.table = table
         self.system: System = table.make_system()
@@ -108,26 +114,70 @@ class TablePolicy:
         if self.fallback is Fallback.NEAREST:
             halo_cells, halo_rows = _halo(keyed, self.grid)
             entries, rows = torch.cat((keyed, halo_cells)), torch.cat((rows, halo_rows))
-        self.index = CellSet.build(entries).to(self.device)  # entry id = position in `entries`
         self.entry_row = rows.to(self.device)  # [C + H] table row of each entry
         self.num_cells = C
         self.num_halo = int(entries.shape[0] - C)
-        self._uniform = torch.full((1, self.num_actions), 1.0 / self.num_actions, device=self.device, dtype=dtype)
+        self._build_lookup(entries)
+        # one row per entry plus a last uniform row, which entry -1 (not found) selects by negative indexing
+        uniform = torch.full((1, self.num_actions), 1.0 / self.num_actions, device=self.device, dtype=dtype)
+        self._entry_probs = torch.cat((self.probs[self.entry_row], uniform))  # [C + H + 1, A]
+        cdf = torch.cumsum(self._entry_probs.double(), dim=1)
+        cdf[:, -1] = 1.0
+        self._cdf = cdf.to(dtype)  # [C + H + 1, A]
+        self._sample = torch.compile(self._sample_kernel, dynamic=False) if compile else self._sample_kernel
         self.reset_counters()
+
+    def _build_lookup(self, entries: Tensor) -> None:
+        """Settle the lookup kernel's constants once (see :meth:`_entries`).
+
+        Keys pack (level, cell) over a box that spans every angle index and, on the other dimensions, one cell
+        more than the entries on each side. Scaled states are clamped into that box before rounding, so a
+        state far outside lands on a border cell that holds no entry: a miss, never a wrong cell.
+        """
+        grid = self.grid
+        covering = CellKeys.covering(entries)
+        lo, span = covering.lo.clone(), covering.span.clone()
+        lo[1:] -= 1
+        span[1:] += 2
+        k = grid.num_angle_cells
+        for dim, kk in enumerate(k):
+            if kk:
+                lo[1 + dim], span[1 + dim] = 0, kk
+        keys = CellKeys(lo, span)
+        index = CellSet.build(entries, keys)
+        big = torch.tensor([torch.iinfo(torch.int64).max])
+        self._sorted_keys = torch.cat((index.sorted_keys, big)).to(self.device)  # [E+1], sentinel last
+        self._sorted_entry = torch.cat((index.rows, torch.tensor([-1]))).to(self.device)  # [E+1]
+        self._strides = keys.strides[1:].to(self.device)  # [d]
+        self._level_base = ((torch.arange(self.horizon + 1) - lo[0]) * keys.strides[0]).to(self.device)  # [T+1]
+        f64 = dict(dtype=torch.float64)
+        inv = 1.0 / torch.tensor(grid.cell_size, **f64)
+        shift = torch.tensor(grid.offset, **f64) - lo[1:].to(torch.float64)  # scaled coordinate relative to lo
+        periodic = torch.tensor([bool(kk) for kk in k])
+        inf = torch.tensor(float("inf"), **f64)
+        cast = dict(dtype=self.dtype, device=self.device)
+        self._scale, self._shift = inv.to(**cast), shift.to(**cast)  # [d]
+        self._clamp_lo = torch.where(periodic, -inf, torch.zeros((), **f64)).to(**cast)  # [d]
+        self._clamp_hi = torch.where(periodic, inf, (span[1:] - 1).to(torch.float64)).to(**cast)  # [d]
+        self._angle_k = [(dim, kk) for dim, kk in enumerate(k) if kk]
 
     @property
     def num_actions(self) -> int:
         return int(self.actions.shape[0])
 
     def reset_counters(self) -> None:
-        """Zero ``queries``, ``nearest_hits`` and ``misses`` (device tensors: counting never syncs the host)."""
+        """Zero ``queries`` (a host int), ``nearest_hits`` and ``misses`` (device tensors: counting never syncs)."""
         zero = lambda: torch.zeros((), dtype=torch.int64, device=self.device)  # noqa: E731
-        self.queries, self.nearest_hits, self.misses = zero(), zero(), zero()
+        self.queries, self.nearest_hits, self.misses = 0, zero(), zero()
 
     def level_size(self, t: int) -> int:
         return int(self.table.level_offsets[t + 1] - self.table.level_offsets[t])
 
     def _entries(self, x: Tensor, t: int) -> Tensor:
+        self._check(x, t)
+        return self._entry_kernel(x, self._level_base[t])
+
+    def _check(self, x: Tensor, t: int) -> None:
         if isinstance(t, bool) or not isinstance(t, int) or not 0 <= t <= self.horizon:
             raise ValueError(f"level t={t!r} is outside the table's levels 0..{self.horizon} (an integer)")
         d = self.grid.dim
@@ -135,9 +185,27 @@ class TablePolicy:
             raise ValueError(f"states must have shape [N, {d}], got {list(x.shape)}")
         if x.device != self.device:
             raise ValueError(f"states are on {x.device} but the policy is on {self.device}")
-        cells = self.grid.cells(x)  # [N, d]
-        keyed = torch.cat((torch.full_like(cells[:, :1], t), cells), dim=1)  # [N, 1+d]
-        return self.index.lookup(keyed)  # [N] entry id, -1 if neither in L_t nor in its halo
+        if not x.is_floating_point():
+            raise ValueError(f"states must be a floating-point tensor, got {x.dtype}")
+        if x.dtype != self.dtype:
+            raise ValueError(f"states are {x.dtype} but the policy is {self.dtype}")
+
+    def _entry_kernel(self, x: Tensor, base: Tensor) -> Tensor:
+        """Pure tensor kernel: states ``[N, d]`` and the level's key base (0-d) -> entry ids ``[N]`` (-1: none)."""
+        # cell = round(x / delta + offset) - lo, clamped into the key box; angles mod K; packed with the level
+        scaled = torch.addcmul(self._shift, x, self._scale).clamp(self._clamp_lo, self._clamp_hi)  # [N, d]
+        cells = torch.round(scaled).long()  # [N, d]
+        for dim, k in self._angle_k:  # wrap angle indices to [0, K) (other dimensions are clamped in range)
+            cells[:, dim] = torch.remainder(cells[:, dim], k)
+        packed = cells @ self._strides + base  # [N]
+        pos = torch.searchsorted(self._sorted_keys, packed)  # [N]; the sentinel keeps pos in range
+        return torch.where(self._sorted_keys[pos] == packed, self._sorted_entry[pos], -1)  # [N] entry, -1: none
+
+    def _sample_kernel(self, x: Tensor, base: Tensor, r: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """Pure tensor kernel: ``x [N, d]``, level key base, uniforms ``r [N, 1]`` -> actions ``[N, q]`` and counts."""
+        entry = self._entry_kernel(x, base)  # [N]
+        idx = (self._cdf[entry] < r).sum(dim=1)  # [N]; entry -1 -> uniform row; r < 1 = cdf[:, -1]
+        return self.actions[idx], (entry < 0).sum(), (entry >= self.num_cells).sum()
 
     def rows(self, x: Tensor, t: int) -> Tensor:
         """Table row of each state's cell in level ``t``: ``x [N, d]`` -> ``[N]`` int64 (-1: not in L_t)."""
@@ -146,24 +214,35 @@ class TablePolicy:
 
     def action_probs(self, x: Tensor, t: int) -> Tensor:
         """p(u | cell of x, t): ``x [N, d]`` -> ``[N, A]``, with the fallback for states outside L_t."""
-        entry = self._entries(x, t)  # [N]
-        found = entry >= 0
-        self.queries += entry.numel()
-        self.misses += (~found).sum()
+        entry = self._count(self._entries(x, t))  # [N]
+        return self._entry_probs[entry]  # [N, A]; entry -1 -> the uniform row
+
+    def _count(self, entry: Tensor) -> Tensor:
+        self.queries += entry.numel()  # a host int
+        self.misses += (entry < 0).sum()
         self.nearest_hits += (entry >= self.num_cells).sum()
-        probs = self.probs[self.entry_row[entry.clamp(min=0)]]  # [N, A]
-        return torch.where(found.unsqueeze(1), probs, self._uniform)
+        return entry
+
+    def sample(self, x: Tensor, t: int, generator: torch.Generator | None = None) -> Tensor:
+        """Draw one action per state by inverse-CDF sampling of its row: ``x [N, d]`` -> ``[N, q]``."""
+        self._check(x, t)
+        r = torch.rand((x.shape[0], 1), generator=generator, device=self.device, dtype=self.dtype)  # [N, 1]
+        u, misses, nearest = self._sample(x, self._level_base[t], r)
+        self.queries += x.shape[0]
+        self.misses += misses
+        self.nearest_hits += nearest
+        return u
 
     @property
     def miss_rate(self) -> float:
         """Share of lookups so far that fell back to uniform probabilities (syncs the device)."""
-        q = int(self.queries)
+        q = self.queries
         return int(self.misses) / q if q else 0.0
 
     @property
     def nearest_rate(self) -> float:
         """Share of lookups so far answered by the nearest cell of the level set (syncs the device)."""
-        q = int(self.queries)
+        q = self.queries
         return int(self.nearest_hits) / q if q else 0.0
 
 
@@ -172,6 +251,7 @@ def load_table(
     device: torch.device | str = "cpu",
     dtype: torch.dtype = torch.float32,
     fallback: str | Fallback = Fallback.NEAREST,
+    compile: bool = False,
 ) -> TablePolicy:
     """Read and validate a table file, and return its :class:`TablePolicy` on ``device``."""
-    return TablePolicy(read_table(path), device=device, dtype=dtype, fallback=fallback)
+    return TablePolicy(read_table(path), device=device, dtype=dtype, fallback=fallback, compile=compile)

@@ -230,13 +230,13 @@ class Polygon:
         if bool(repeated.any()):
             k = int(repeated.nonzero()[0])
             raise ValueError(f"Polygon: vertices {k} and {(k + 1) % V} are equal, {v[k].tolist()}")
+        crossing = _first_crossing(v)
+        if crossing is not None:
+            raise ValueError(f"Polygon: not simple, edges {crossing[0]} and {crossing[1]} intersect")
         area2 = float((v[:, 0] * nxt[:, 1] - nxt[:, 0] * v[:, 1]).sum())
         scale = float((v - v.mean(dim=0)).abs().max()) ** 2
         if abs(area2) <= 1e-12 * scale:
             raise ValueError("Polygon: the vertices enclose zero area (all collinear?)")
-        crossing = _first_crossing(v)
-        if crossing is not None:
-            raise ValueError(f"Polygon: not simple, edges {crossing[0]} and {crossing[1]} intersect")
         object.__setattr__(self, "vertices", v)
         object.__setattr__(self, "appear_time", _appear_time(self.appear_time, "Polygon"))
 
@@ -328,7 +328,7 @@ class OccupancyGrid:
         return OccupancyGrid(self.occupied.to(device), self.origin, self.resolution, self.appear_time)
 
     def cell_index(self, xy: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-        """``xy [..., 2]`` -> ``(i, j, inside)``: int64 row and column ``[...]`` (0 where outside) and ``bool [...]``."""
+        """``xy [..., 2]`` -> ``(i, j, inside)``: int64 row and column ``[...]`` (0 outside), ``bool [...]``."""
         _check_xy(xy, "OccupancyGrid.cell_index")
         H, W = self.occupied.shape
         fx = (xy[..., 0] - self.origin[0]) / self.resolution  # [...] column coordinate
@@ -445,7 +445,9 @@ class Environment:
             except (TypeError, ValueError):
                 raise ValueError(f"Environment: bounds must be (xmin, ymin, xmax, ymax), got {self.bounds!r}") from None
             if len(b) != 4 or not all(math.isfinite(v) for v in b):
-                raise ValueError(f"Environment: bounds must be 4 finite numbers (xmin, ymin, xmax, ymax), got {self.bounds!r}")
+                raise ValueError(
+                    f"Environment: bounds must be 4 finite numbers (xmin, ymin, xmax, ymax), got {self.bounds!r}"
+                )
             if not (b[0] < b[2] and b[1] < b[3]):
                 raise ValueError(f"Environment: bounds need xmin < xmax and ymin < ymax, got {b}")
             self.bounds = b  # type: ignore[assignment]

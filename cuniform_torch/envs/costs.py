@@ -1,0 +1,142 @@
+"""The paper's navigation cost (l_state + l_obs) for batches of rollouts.
+
+Shapes used in this module: N rollouts, T horizon, d state dimensions (the first two are x, y), q action
+dimensions.
+
+Paper: ``l(x) = l_state(x) + l_obs(x)`` with ``l_state = |x_p - x_goal|^2`` and ``l_obs = inf`` inside an
+obstacle. Here, per rollout:
+
+* goal cost: ``|xy_t - goal|^2`` summed over steps ``t = 1..T`` *until the rollout first comes within
+  ``goal_tolerance`` of the goal*, and zero from that step on (a constant-speed car cannot stop, so without the
+  cut-off the cheapest rollouts would orbit the goal);
+* collision cost: a large finite ``collision_penalty``, once, if any state at steps ``1..T`` is in collision
+  with the obstacles sensed at the cost's ``time`` (finite, so MPPI weights ``softmax(-cost / lambda)`` never
+  become NaN when every rollout collides).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any, Protocol, Sequence
+
+import torch
+from torch import Tensor
+
+from .shapes import Environment
+
+__all__ = ["TrajectoryCost", "NavigationCost", "goal_cost", "collision_mask"]
+
+
+class TrajectoryCost(Protocol):
+    """A cost of whole rollouts: ``states [N, T+1, d]``, ``actions [N, T, q]`` -> ``[N]``."""
+
+    def __call__(self, states: Tensor, actions: Tensor) -> Tensor: ...
+
+
+def _check_states(states: Any, who: str) -> None:
+    if not isinstance(states, torch.Tensor) or not states.is_floating_point():
+        raise ValueError(f"{who}: states must be a floating-point tensor [N, T+1, d], got "
+                         f"{getattr(states, 'dtype', type(states).__name__)}")
+    if states.ndim != 3 or states.shape[1] < 1 or states.shape[2] < 2:
+        raise ValueError(f"{who}: states must have shape [N, T+1, d] with T+1 >= 1 and d >= 2 (x, y first), "
+                         f"got {list(states.shape)}")
+
+
+def _goal_xy(goal: Any, states: Tensor, who: str) -> Tensor | tuple[float, float]:
+    """The goal as Python floats, or as a ``[2]`` tensor on the states' device and in their dtype."""
+    if isinstance(goal, torch.Tensor):
+        if goal.shape != (2,):
+            raise ValueError(f"{who}: goal must have shape [2], got {list(goal.shape)}")
+        if goal.device != states.device:
+            raise ValueError(f"{who}: goal is on {goal.device} but states are on {states.device}")
+        return goal.to(states.dtype)
+    return _goal_pair(goal, who)
+
+
+def _goal_pair(goal: Any, who: str) -> tuple[float, float]:
+    if isinstance(goal, torch.Tensor):
+        goal = goal.detach().cpu().reshape(-1).tolist()
+    try:
+        gx, gy = (float(v) for v in goal)
+    except (TypeError, ValueError):
+        raise ValueError(f"{who}: goal must be a pair of numbers (x, y), got {goal!r}") from None
+    if not (math.isfinite(gx) and math.isfinite(gy)):
+        raise ValueError(f"{who}: goal must be finite, got {goal!r}")
+    return gx, gy
+
+
+def _tolerance(tol: Any, who: str) -> float:
+    if isinstance(tol, bool) or not isinstance(tol, (int, float)) or not math.isfinite(tol) or tol < 0:
+        raise ValueError(f"{who}: goal_tolerance must be a finite number >= 0, got {tol!r}")
+    return float(tol)
+
+
+def goal_cost(states: Tensor, goal: Sequence[float] | Tensor, tol: float) -> Tensor:
+    """``states [N, T+1, d]`` -> ``[N]``: squared xy distance to ``goal`` summed over steps ``1..T``, stopping
+    (zero from then on) at the first step within ``tol`` of the goal. The dtype and device of ``states``."""
+    _check_states(states, "goal_cost")
+    tol = _tolerance(tol, "goal_cost")
+    g = _goal_xy(goal, states, "goal_cost")
+    dx = states[:, 1:, 0] - g[0]  # [N, T]
+    dy = states[:, 1:, 1] - g[1]
+    dist2 = dx * dx + dy * dy  # [N, T]
+    reached = dist2 <= tol * tol  # [N, T]
+    before = reached.to(torch.int32).cumsum(dim=1) == 0  # [N, T] steps before the first arrival
+    return torch.where(before, dist2, torch.zeros_like(dist2)).sum(dim=1)
+
+
+def collision_mask(states: Tensor, env: Environment, time: float | None = None) -> Tensor:
+    """``states [N, T+1, d]`` -> ``bool [N]``: whether any state at steps ``1..T`` collides with the obstacles
+    sensed at ``time`` (all of them for ``None``) or leaves ``env.bounds``. The start state is not checked."""
+    _check_states(states, "collision_mask")
+    return env.in_collision(states[:, 1:, :2], time).any(dim=1)  # [N, T] -> [N]
+
+
+@dataclass
+class NavigationCost:
+    """The paper's cost as a :class:`TrajectoryCost`: goal cost + ``collision_penalty`` for a colliding rollout.
+
+    Call ``set_time(t)`` each control cycle so that the collision term sees only the obstacles sensed by time
+    ``t`` (``time=None``: all obstacles, whatever their ``appear_time``).
+    """
+
+    env: Environment
+    """obstacles and bounds"""
+    goal: tuple[float, float]
+    """(x, y) of the goal, m"""
+    goal_tolerance: float = 0.2
+    """a rollout within this xy distance (m) of the goal has reached it: no goal cost from then on"""
+    collision_penalty: float = 1e6
+    """cost added once to a rollout that collides (finite stand-in for the paper's inf)"""
+    time: float | None = 0.0
+    """current time (s): obstacles with ``appear_time <= time`` are seen; None: all"""
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.env, Environment):
+            raise ValueError(f"NavigationCost: env must be an Environment, got {type(self.env).__name__}")
+        self.goal = _goal_pair(self.goal, "NavigationCost")
+        self.goal_tolerance = _tolerance(self.goal_tolerance, "NavigationCost")
+        p = self.collision_penalty
+        if isinstance(p, bool) or not isinstance(p, (int, float)) or not math.isfinite(p) or p <= 0:
+            raise ValueError(f"NavigationCost: collision_penalty must be a finite number > 0, got {p!r}")
+        self.collision_penalty = float(p)
+        self.set_time(self.time)
+
+    def set_time(self, t: float | None) -> None:
+        """See the obstacles sensed by time ``t`` (s); None: all obstacles."""
+        if t is not None and (isinstance(t, bool) or not isinstance(t, (int, float)) or math.isnan(t)):
+            raise ValueError(f"NavigationCost: time must be a number or None, got {t!r}")
+        self.time = None if t is None else float(t)
+
+    def __call__(self, states: Tensor, actions: Tensor) -> Tensor:
+        """``states [N, T+1, d]``, ``actions [N, T, q]`` -> ``[N]`` (dtype of ``states``, finite for finite
+        states). Actions are not used by this cost; their shape is checked."""
+        _check_states(states, "NavigationCost")
+        N, T1 = states.shape[0], states.shape[1]
+        if not isinstance(actions, torch.Tensor) or actions.ndim != 3 or actions.shape[:2] != (N, T1 - 1):
+            raise ValueError(f"NavigationCost: actions must have shape [{N}, {T1 - 1}, q] to match states "
+                             f"{list(states.shape)}, got {list(getattr(actions, 'shape', []))}")
+        cost = goal_cost(states, self.goal, self.goal_tolerance)  # [N]
+        hit = collision_mask(states, self.env, self.time)  # [N]
+        return cost + hit.to(cost.dtype) * self.collision_penalty
