@@ -1,8 +1,15 @@
-"""cuniform_torch: the runtime library of C-Uniform trajectory sampling (systems, grid, tables, policies, rollouts)."""
+"""cuniform_torch: the runtime library of C-Uniform trajectory sampling.
 
+Systems, grid, table files, the table policy, batched rollouts, noise samplers, the MPPI family and
+navigation environments. See the README for a tour.
+"""
+
+from .frames import se2_to_local, se2_to_world
 from .grid import CellKeys, CellSet, Grid
-from .policy import TablePolicy, load_table
-from .rollout import Policy, rollout
+from .mppi import COST_CAP, CUMPPI, MPPI, CostFn, CUniformMPPI, LogMPPI, MPPIResult, mppi_weights
+from .policy import Fallback, TablePolicy, load_table
+from .rollout import ActionSampler, Policy, rollout
+from .samplers import GaussianSampler, NormalLogNormalSampler, lognormal_params
 from .systems import (
     Dubins,
     RandomWalk1D,
@@ -17,8 +24,11 @@ from .systems import (
 from .table import TABLE_FORMAT, Table, TableError, read_table, write_table
 
 __all__ = [
-    "CellKeys", "CellSet", "Grid", "TablePolicy", "load_table", "Policy", "rollout", "Dubins", "RandomWalk1D",
-    "System", "UnknownSystemError", "known_systems", "make_system", "register_system", "system_from_json",
-    "system_to_json", "TABLE_FORMAT", "Table", "TableError", "read_table", "write_table",
+    "se2_to_local", "se2_to_world", "CellKeys", "CellSet", "Grid",
+    "COST_CAP", "CUMPPI", "MPPI", "CostFn", "CUniformMPPI", "LogMPPI", "MPPIResult", "mppi_weights",
+    "Fallback", "TablePolicy", "load_table", "ActionSampler", "Policy", "rollout",
+    "GaussianSampler", "NormalLogNormalSampler", "lognormal_params",
+    "Dubins", "RandomWalk1D", "System", "UnknownSystemError", "known_systems", "make_system", "register_system",
+    "system_from_json", "system_to_json", "TABLE_FORMAT", "Table", "TableError", "read_table", "write_table",
 ]
 __version__ = "0.1.0"

@@ -177,11 +177,9 @@ class LogMPPI(MPPI):
 
 
 def _as_policy(policy, device):
-    """A Policy object, or a policy checkpoint dict (``format`` "cuniform-policy/1") loaded onto ``device``."""
+    """A Policy object (a table policy, or any object with ``actions`` and ``action_probs``)."""
     if isinstance(policy, dict):
-        from . import load_policy  # the distilled MLP checkpoint loader (issue 5)
-
-        return load_policy(policy, device=device)
+        raise ValueError("got a dict: pass a policy object (e.g. load_table(path)); checkpoint dicts are not loaded here")
     if not isinstance(policy, Policy):
         raise ValueError(f"policy must have actions [A, q] and action_probs(x, t); got {type(policy).__name__}")
     return policy
