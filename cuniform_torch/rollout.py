@@ -88,9 +88,14 @@ def rollout(
     relative = bool(getattr(policy, "start_relative", False)) and system.se2_invariant
     x = torch.zeros_like(start) if relative else start
     actions = policy.actions.to(dtype=x0.dtype) if discrete else None  # [A, q]
+    planned = None
+    if not discrete and hasattr(policy, "sample_sequences"):  # open-loop noise: draw it all at once
+        planned = policy.sample_sequences(num_samples, horizon, generator)  # [N, T, q]
     states, taken = [x], []
     for t in range(horizon):
-        if discrete:
+        if planned is not None:
+            u = planned[:, t]
+        elif discrete:
             probs = policy.action_probs(x, t)  # [N, A]
             u = actions[torch.multinomial(probs, 1, generator=generator).squeeze(1)]  # [N, q]
         else:
@@ -102,5 +107,8 @@ def rollout(
     if relative:
         states_t = se2_to_world(states_t, start.unsqueeze(1))
     q = taken[0].shape[1] if taken else (actions.shape[1] if discrete else 0)
-    actions_t = torch.stack(taken, dim=1) if taken else x0.new_zeros((num_samples, 0, q))  # [N, T, q]
+    if planned is not None:
+        actions_t = planned  # [N, T, q]
+    else:
+        actions_t = torch.stack(taken, dim=1) if taken else x0.new_zeros((num_samples, 0, q))  # [N, T, q]
     return states_t, actions_t

@@ -65,6 +65,12 @@ class GaussianSampler:
         """``x [N, d]`` at step ``t`` -> ``[N, q]`` actions."""
         return torch.clamp(self.nominal[t] + self.noise(x.shape[0], generator), self.low, self.high)
 
+    def sample_sequences(self, n: int, horizon: int, generator: torch.Generator | None) -> Tensor:
+        """The whole open-loop action sequences at once: ``[n, horizon, q]`` (noise does not depend on the state)."""
+        q = self.nominal.shape[1]
+        noise = self.noise(n * horizon, generator).reshape(n, horizon, q)
+        return torch.clamp(self.nominal[:horizon] + noise, self.low, self.high)
+
 
 @dataclass
 class NormalLogNormalSampler(GaussianSampler):

@@ -1,0 +1,148 @@
+"""Per-command time of the MPPI family, side by side with pytorch_mppi, and bare rollout times.
+
+    python -m eval.bench                         # K in {500, 1000, 10000}, T = 15 and the table's T
+    python -m eval.bench --samples 1000 --repeats 50 --json out/bench.json
+
+Every controller runs on the same Dubins dynamics and the same cost (squared distance to a goal summed over the
+horizon), from the same state; each figure is the median of ``--repeats`` timed commands after ``--warmup``
+untimed ones (on CUDA, synchronized). pytorch_mppi (``pip install pytorch-mppi``, the ``[bench]`` extra) is
+timed in the same run when installed; ratios are ours / theirs. The bare-rollout section times a C-Uniform
+table rollout against a Gaussian one at N = 10000 (eager, and with ``--compile`` the compiled table kernel).
+Writes JSON to ``--json`` (default out/bench.json).
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import sys
+import time
+from pathlib import Path
+from typing import Callable
+
+import torch
+
+from cuniform_torch import (CUMPPI, MPPI, CUniformMPPI, Dubins, GaussianSampler, LogMPPI, load_table, rollout,
+                            write_table)
+from cuniform_torch.fileio import write_json
+
+
+def _timer(fn: Callable[[], object], repeats: int, warmup: int, device: torch.device) -> float:
+    sync = torch.cuda.synchronize if device.type == "cuda" else (lambda: None)
+    for _ in range(warmup):
+        fn()
+    sync()
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        fn()
+        sync()
+        times.append(time.perf_counter() - t0)
+    return statistics.median(times)
+
+
+def _table(path: Path, horizon: int):
+    """The default Dubins table with at least ``horizon`` steps (built in about a second when missing)."""
+    if not path.exists():
+        from precompute.builder import BuildConfig, build_table
+
+        print(f"building {path} (dubins, horizon {horizon})", flush=True)
+        table, _ = build_table(Dubins(), BuildConfig(horizon=horizon))
+        write_table(path, table)
+    return path
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(prog="python -m eval.bench", description=__doc__.split("\n\n")[0])
+    p.add_argument("--samples", type=int, nargs="+", default=[500, 1000, 10000])
+    p.add_argument("--horizons", type=int, nargs="+", default=[15, 10], help="15 and the default table's 10")
+    p.add_argument("--table15", type=Path, default=Path("out/dubins_h15.npz"), help="a horizon-15 Dubins table")
+    p.add_argument("--table", type=Path, default=Path("out/dubins.npz"), help="the default (horizon-10) table")
+    p.add_argument("--repeats", type=int, default=20)
+    p.add_argument("--warmup", type=int, default=3)
+    p.add_argument("--device", default="cpu")
+    p.add_argument("--compile", action="store_true", help="also time the compiled table kernel (slow to compile)")
+    p.add_argument("--json", type=Path, default=Path("out/bench.json"))
+    args = p.parse_args(argv)
+    device = torch.device(args.device)
+    if device.type == "cuda" and not torch.cuda.is_available():
+        print("error: --device cuda but CUDA is not available", file=sys.stderr)
+        return 2
+    try:
+        import pytorch_mppi  # noqa: F401
+        have_peer = True
+    except ImportError:
+        have_peer = False
+        print("pytorch_mppi is not installed (pip install pytorch-mppi): peer columns skipped")
+
+    system = Dubins()
+    goal = torch.tensor([3.0, 1.0], device=device)
+
+    def cost(states, actions):  # [K, T+1, d] -> [K]
+        return ((states[:, 1:, :2] - goal) ** 2).sum(dim=(1, 2))
+
+    def running_cost(state, action):  # pytorch_mppi: [K, d] -> [K]
+        return ((state[:, :2] - goal) ** 2).sum(dim=1)
+
+    state = torch.tensor([0.0, 0.0, 0.3], device=device)
+    tables = {15: _table(args.table15, 15), 10: _table(args.table, 10)}
+    rows = []
+    print(f"per-command time (ms), median of {args.repeats}, device {device}, torch threads {torch.get_num_threads()}")
+    header = f"{'T':>3} {'K':>6} {'MPPI':>8} {'logMPPI':>8} {'CU-MPPI':>8} {'CU bank':>8} {'CUMPPI':>8}"
+    print(header + (f" {'peer':>8} {'MPPI/peer':>10}" if have_peer else ""))
+    for T in args.horizons:
+        if T not in tables:
+            tables[T] = _table(Path(f"out/dubins_h{T}.npz"), T)
+        policy = load_table(tables[T], device=device)
+        for K in args.samples:
+            ctrls = {
+                "mppi": MPPI(system, cost, K, T, noise_std=0.3, device=device, seed=0),
+                "log_mppi": LogMPPI(system, cost, K, T, noise_std=0.3, device=device, seed=0),
+                "cuniform": CUniformMPPI(policy, cost, K, horizon=T, seed=0),
+                "cuniform_bank": CUniformMPPI(policy, cost, K, horizon=T, bank_size=2 * K, seed=0),
+                "cumppi": CUMPPI(policy, cost, K, horizon=T, seed=0),
+            }
+            ms = {name: 1e3 * _timer(lambda c=c: c.command(state), args.repeats, args.warmup, device)
+                  for name, c in ctrls.items()}
+            line = f"{T:>3} {K:>6} " + " ".join(f"{ms[n]:>8.2f}" for n in ctrls)
+            if have_peer:
+                from pytorch_mppi import MPPI as PeerMPPI
+
+                peer = PeerMPPI(system.step, running_cost, 3, noise_sigma=torch.eye(1, device=device) * 0.3**2,
+                                num_samples=K, horizon=T, device=device, lambda_=0.567,
+                                u_min=torch.tensor([-system.max_omega], device=device),
+                                u_max=torch.tensor([system.max_omega], device=device))
+                ms["pytorch_mppi"] = 1e3 * _timer(lambda: peer.command(state), args.repeats, args.warmup, device)
+                line += f" {ms['pytorch_mppi']:>8.2f} {ms['mppi'] / ms['pytorch_mppi']:>10.2f}"
+            print(line, flush=True)
+            rows.append({"horizon": T, "samples": K, "ms_per_command": ms})
+
+    # bare rollouts: C-Uniform table vs Gaussian noise, N = 10000, T = 15
+    N, T = 10000, 15
+    policy = load_table(tables[15], device=device)
+    gauss = GaussianSampler(torch.zeros(T, 1, device=device), 0.3, -torch.full((1,), system.max_omega, device=device),
+                            torch.full((1,), system.max_omega, device=device))
+    gen = torch.Generator(device=device).manual_seed(0)
+    x0 = torch.zeros(3, device=device)
+    bare = {
+        "table": _timer(lambda: rollout(system, policy, x0, N, T, gen), args.repeats, args.warmup, device),
+        "gaussian": _timer(lambda: rollout(system, gauss, x0, N, T, gen), args.repeats, args.warmup, device),
+    }
+    if args.compile:
+        compiled = load_table(tables[15], device=device, compile=True)
+        t0 = time.perf_counter()
+        rollout(system, compiled, x0, N, T, gen)
+        bare["compile_seconds"] = time.perf_counter() - t0
+        bare["table_compiled"] = _timer(lambda: rollout(system, compiled, x0, N, T, gen), args.repeats, args.warmup, device)
+    print(f"bare rollout N={N} T={T}: table {1e3 * bare['table']:.2f} ms, gaussian {1e3 * bare['gaussian']:.2f} ms, "
+          f"ratio {bare['table'] / bare['gaussian']:.2f}x"
+          + (f"; compiled table {1e3 * bare['table_compiled']:.2f} ms ({bare['table_compiled'] / bare['gaussian']:.2f}x, "
+             f"compiled in {bare['compile_seconds']:.1f} s)" if args.compile else ""))
+    write_json(args.json, {"device": str(device), "threads": torch.get_num_threads(), "repeats": args.repeats,
+                           "commands": rows, "bare_rollout_seconds": bare, "torch": torch.__version__})
+    print(f"wrote {args.json}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
