@@ -113,9 +113,11 @@ class _Core:
             raise ValueError(f"state must be a tensor of shape [{self.state_dim}], got {getattr(state, 'shape', state)!r}")
         if state.device != self.device:
             raise ValueError(f"state is on {state.device} but the controller is on {self.device}")
+        if state.dtype != self.dtype:
+            raise ValueError(f"state is {state.dtype} but the controller is {self.dtype}")
         if not bool(torch.isfinite(state).all()):
             raise ValueError(f"state contains NaN or infinite values: {state.tolist()}")
-        return state.to(self.dtype)
+        return state
 
     def _evaluate(self, states: Tensor, actions: Tensor) -> tuple[Tensor, Tensor]:
         costs = self.cost_fn(states, actions)  # [K]
@@ -200,11 +202,18 @@ class CUniformMPPI(_Core):
                  seed: int | None = None):
         device = torch.device(device) if device is not None else getattr(policy, "device", torch.device("cpu"))
         self.policy = _as_policy(policy, device)
-        horizon = horizon if horizon is not None else getattr(self.policy, "horizon", None)
+        table_horizon = getattr(self.policy, "horizon", None)
+        horizon = horizon if horizon is not None else table_horizon
         if horizon is None:
             raise ValueError("horizon is required for a policy without a table horizon")
+        if table_horizon is not None and horizon > table_horizon:
+            raise ValueError(f"horizon {horizon} is longer than the policy's table ({table_horizon} steps)")
         dtype = getattr(self.policy, "dtype", torch.float32)
         super().__init__(self.policy.system, cost_fn, num_samples, horizon, lambda_, terminal_cost, device, dtype, seed)
+        if bank_refresh is not None:
+            _check_positive_int("bank_refresh", bank_refresh)
+            if bank_size is None:
+                raise ValueError("bank_refresh needs a proposal bank: set bank_size too")
         self.bank_size = bank_size
         self.bank_refresh = bank_refresh
         self._commands = 0

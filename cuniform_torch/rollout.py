@@ -56,8 +56,6 @@ def _check_args(system: System, x0: Tensor, num_samples: int, horizon: int) -> i
         raise ValueError(f"x0 must be a floating-point tensor, got {getattr(x0, 'dtype', type(x0).__name__)}")
     if x0.shape != (d,) and x0.shape != (num_samples, d):
         raise ValueError(f"x0 must have shape [{d}] or [{num_samples}, {d}], got {list(x0.shape)}")
-    if not bool(torch.isfinite(x0).all()):
-        raise ValueError("x0 contains NaN or infinite values")
     return d
 
 
@@ -81,6 +79,14 @@ def rollout(
     policy_device = getattr(policy, "device", None)
     if policy_device is not None and torch.device(policy_device) != x0.device:
         raise ValueError(f"x0 is on {x0.device} but the policy is on {policy_device}")
+    if not bool(torch.isfinite(x0).all()):
+        raise ValueError("x0 contains NaN or infinite values")
+    nominal = getattr(policy, "nominal", None)  # noise samplers: an action sequence [T', q]
+    if nominal is not None:
+        if nominal.shape[0] < horizon:
+            raise ValueError(f"the sampler's nominal sequence has {nominal.shape[0]} steps, fewer than horizon {horizon}")
+        if nominal.dtype != x0.dtype or nominal.device != x0.device:
+            raise ValueError(f"the sampler is {nominal.dtype} on {nominal.device} but x0 is {x0.dtype} on {x0.device}")
     discrete = not isinstance(policy, ActionSampler)
     if discrete and not isinstance(policy, Policy):
         raise ValueError(f"{type(policy).__name__} is neither a Policy (actions, action_probs) nor an ActionSampler (sample)")
@@ -106,7 +112,7 @@ def rollout(
     states_t = torch.stack(states, dim=1)  # [N, T+1, d]
     if relative:
         states_t = se2_to_world(states_t, start.unsqueeze(1))
-    q = taken[0].shape[1] if taken else (actions.shape[1] if discrete else 0)
+    q = policy.actions.shape[1] if hasattr(policy, "actions") else (nominal.shape[1] if nominal is not None else 0)
     if planned is not None:
         actions_t = planned  # [N, T, q]
     else:
