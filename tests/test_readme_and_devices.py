@@ -19,11 +19,14 @@ def test_readme_python_example_runs(tmp_path, dubins_table, monkeypatch):
     assert blocks, "the README has no python example"
     write_table(tmp_path / "out" / "dubins.npz", dubins_table)
     monkeypatch.chdir(tmp_path)
+    namespaces = []
     for code in blocks:
         namespace: dict = {}
         exec(compile(code, "README.md", "exec"), namespace)
-    states = namespace["states"]
-    assert states.shape == (1000, 11, 3)
+        namespaces.append(namespace)
+    assert namespaces[0]["states"].shape == (1000, 11, 3)
+    # the closed-loop example: every controller reaches the goal around the obstacle
+    assert namespaces[-1]["result"].outcome == "goal"
 
 
 @pytest.mark.gpu
