@@ -6,6 +6,7 @@ navigation environments. See the README for a tour.
 
 from .frames import se2_to_local, se2_to_world
 from .grid import CellKeys, CellSet, Grid
+from .mlp import POLICY_FORMAT, MLPConfig, MLPPolicy, PolicyCheckpointError, load_policy, save_policy
 from .mppi import COST_CAP, CUMPPI, MPPI, CostFn, CUniformMPPI, LogMPPI, MPPIResult, mppi_weights
 from .policy import Fallback, TablePolicy, load_table
 from .rollout import ActionSampler, Policy, rollout
@@ -24,7 +25,8 @@ from .systems import (
 from .table import TABLE_FORMAT, Table, TableError, read_table, write_table
 
 __all__ = [
-    "se2_to_local", "se2_to_world", "CellKeys", "CellSet", "Grid",
+    "se2_to_local", "se2_to_world", "POLICY_FORMAT", "MLPConfig", "MLPPolicy", "PolicyCheckpointError",
+    "load_policy", "save_policy", "CellKeys", "CellSet", "Grid",
     "COST_CAP", "CUMPPI", "MPPI", "CostFn", "CUniformMPPI", "LogMPPI", "MPPIResult", "mppi_weights",
     "Fallback", "TablePolicy", "load_table", "ActionSampler", "Policy", "rollout",
     "GaussianSampler", "NormalLogNormalSampler", "lognormal_params",

@@ -179,9 +179,11 @@ class LogMPPI(MPPI):
 
 
 def _as_policy(policy, device):
-    """A Policy object (a table policy, or any object with ``actions`` and ``action_probs``)."""
+    """A Policy object, or a distilled-policy checkpoint dict (``torch.load(path, weights_only=True)``)."""
     if isinstance(policy, dict):
-        raise ValueError("got a dict: pass a policy object (e.g. load_table(path)); checkpoint dicts are not loaded here")
+        from .mlp import load_policy
+
+        return load_policy(policy, device=device)
     if not isinstance(policy, Policy):
         raise ValueError(f"policy must have actions [A, q] and action_probs(x, t); got {type(policy).__name__}")
     return policy

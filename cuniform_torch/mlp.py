@@ -1,0 +1,213 @@
+"""The distilled policy: a small MLP pi(u | x, t) with the Policy interface, and its checkpoint file.
+
+Shapes: N states, d state dimensions, F input features, A actions, q action dimensions, T horizon.
+
+Input features of a state ``x`` at step ``t`` (documented scales, settled from the table at distillation):
+
+* every non-periodic dimension i: ``x_i / scale_i`` (``scale_i`` = the largest |cell centre| of the table in
+  that dimension, so features lie in about [-1, 1]);
+* every angle dimension: ``cos x_i`` and ``sin x_i``;
+* the time ``t / T``.
+
+For Dubins that is ``(x / sx, y / sy, cos theta, sin theta, t / T)``. The network is ``layers`` hidden layers of
+``hidden`` units with SiLU activations, then a linear layer to A logits; ``action_probs`` is their softmax.
+
+Checkpoint (``.pt``, format ``cuniform-policy/1``): a dict of plain types and tensors that
+``torch.load(path, weights_only=True)`` reads: ``format``, ``state_dict``, ``config`` (this module's
+:class:`MLPConfig` as a dict), ``system`` (the table's system JSON), ``actions`` ``[A, q]``, ``source`` (the
+table's path and sha256) and ``metrics`` (free-form numbers from the distillation).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import io
+import os
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import torch
+from torch import Tensor, nn
+
+from .fileio import write_bytes
+from .grid import Grid
+from .systems import System, system_from_json
+
+__all__ = ["POLICY_FORMAT", "MLPConfig", "MLPPolicy", "PolicyCheckpointError", "policy_checkpoint", "save_policy",
+           "load_policy", "file_sha256", "default_feature_scale"]
+
+POLICY_FORMAT = "cuniform-policy/1"
+
+
+class PolicyCheckpointError(ValueError):
+    """A policy checkpoint that is missing, corrupt, of an unknown format, or does not match its network."""
+
+
+@dataclass
+class MLPConfig:
+    """Sizes and input features of an :class:`MLPPolicy` (stored in the checkpoint as a plain dict)."""
+
+    state_dim: int
+    num_actions: int
+    horizon: int
+    periodic: list[bool]
+    feature_scale: list[float]
+    """divisor of each non-periodic dimension (ignored on angle dimensions)"""
+    hidden: int = 256
+    layers: int = 3
+
+    def __post_init__(self) -> None:
+        for name in ("state_dim", "num_actions", "horizon", "hidden", "layers"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+                raise ValueError(f"MLPConfig.{name} must be a positive integer, got {value!r}")
+        if len(self.periodic) != self.state_dim or len(self.feature_scale) != self.state_dim:
+            raise ValueError(f"MLPConfig: periodic and feature_scale need {self.state_dim} entries each")
+        if any(not (s > 0) for s in self.feature_scale):
+            raise ValueError(f"MLPConfig: feature_scale must be positive, got {self.feature_scale}")
+
+    @property
+    def num_features(self) -> int:
+        return sum(2 if p else 1 for p in self.periodic) + 1
+
+    def to_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+
+class MLPPolicy(nn.Module):
+    """pi(u | x, t): ``action_probs(x [N, d], t) -> [N, A]``; works in ``rollout`` and every controller."""
+
+    start_relative = True
+    """like a table, it is trained on states relative to the start pose (SE(2)-invariant systems)"""
+
+    def __init__(self, config: MLPConfig, system: System, actions: Tensor):
+        super().__init__()
+        if actions.ndim != 2 or actions.shape[0] != config.num_actions:
+            raise ValueError(f"actions must be [{config.num_actions}, q], got {list(actions.shape)}")
+        if len(system.periodic) != config.state_dim:
+            raise ValueError(f"system {system.name} has {len(system.periodic)} state dims, config says {config.state_dim}")
+        self.config = config
+        self.system = system
+        self.horizon = config.horizon
+        self.register_buffer("actions", actions.detach().clone().float())  # [A, q]
+        scale = torch.tensor(config.feature_scale, dtype=torch.float32)
+        self.register_buffer("inv_scale", 1.0 / scale)  # [d]
+        self._angle = [i for i, p in enumerate(config.periodic) if p]
+        self._linear = [i for i, p in enumerate(config.periodic) if not p]
+        layers: list[nn.Module] = []
+        width = config.num_features
+        for _ in range(config.layers):
+            layers += [nn.Linear(width, config.hidden), nn.SiLU()]
+            width = config.hidden
+        layers.append(nn.Linear(width, config.num_actions))
+        self.net = nn.Sequential(*layers)
+
+    @property
+    def device(self) -> torch.device:
+        return self.actions.device
+
+    @property
+    def dtype(self) -> torch.dtype:
+        return self.actions.dtype
+
+    def features(self, x: Tensor, t: int | Tensor) -> Tensor:
+        """``x [N, d]``, ``t`` (int or ``[N]``) -> ``[N, F]`` network inputs (see the module docstring)."""
+        d = self.config.state_dim
+        if x.ndim != 2 or x.shape[1] != d:
+            raise ValueError(f"states must have shape [N, {d}], got {list(x.shape)}")
+        if x.device != self.device:
+            raise ValueError(f"states are on {x.device} but the policy is on {self.device}")
+        if not x.is_floating_point():
+            raise ValueError(f"states must be a floating-point tensor, got {x.dtype}")
+        x = x.to(self.dtype)
+        parts = [x[:, self._linear] * self.inv_scale[self._linear]]
+        if self._angle:
+            ang = x[:, self._angle]
+            parts += [torch.cos(ang), torch.sin(ang)]
+        tt = torch.as_tensor(t, dtype=x.dtype, device=x.device)
+        parts.append((tt / self.config.horizon).expand(x.shape[0]).unsqueeze(1) if tt.ndim == 0 else (tt / self.config.horizon).unsqueeze(1))
+        return torch.cat(parts, dim=1)
+
+    def forward(self, x: Tensor, t: int | Tensor) -> Tensor:
+        """Logits ``[N, A]``."""
+        return self.net(self.features(x, t))
+
+    def action_probs(self, x: Tensor, t: int) -> Tensor:
+        """Softmax of the logits: ``x [N, d]`` -> ``[N, A]`` (no fallback needed: every state has an answer)."""
+        with torch.no_grad():
+            return torch.softmax(self(x, t), dim=1)
+
+
+def file_sha256(path: str | os.PathLike) -> str:
+    digest = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for chunk in iter(lambda: fh.read(1 << 20), b""):
+            digest.update(chunk)
+    return digest.hexdigest()
+
+
+def policy_checkpoint(policy: MLPPolicy, system_json: str, source: dict[str, str] | None = None,
+                      metrics: dict[str, Any] | None = None) -> dict[str, Any]:
+    """The checkpoint dict of DESIGN.md (plain types and CPU tensors; ``weights_only`` loadable)."""
+    return {
+        "format": POLICY_FORMAT,
+        "state_dict": {k: v.detach().cpu() for k, v in policy.state_dict().items()},
+        "config": policy.config.to_dict(),
+        "system": system_json,
+        "actions": policy.actions.detach().cpu(),
+        "source": dict(source or {}),
+        "metrics": dict(metrics or {}),
+    }
+
+
+def save_policy(path: str | os.PathLike, checkpoint: dict[str, Any]) -> None:
+    """Write a checkpoint dict atomically."""
+    buf = io.BytesIO()
+    torch.save(checkpoint, buf)
+    write_bytes(path, buf.getvalue())
+
+
+def load_policy(source: str | os.PathLike | dict, device: torch.device | str = "cpu") -> MLPPolicy:
+    """A ready :class:`MLPPolicy` from a checkpoint path or an already loaded dict; errors are clear."""
+    where = str(source) if not isinstance(source, dict) else "checkpoint dict"
+    if isinstance(source, dict):
+        ckpt = source
+    else:
+        path = Path(source)
+        if not path.is_file():
+            raise PolicyCheckpointError(f"{path}: no checkpoint file there")
+        try:
+            ckpt = torch.load(path, map_location="cpu", weights_only=True)
+        except Exception as exc:  # corrupt, truncated, or holding objects that need arbitrary unpickling
+            raise PolicyCheckpointError(f"{path}: not a readable policy checkpoint ({type(exc).__name__}: {exc})") from None
+    if not isinstance(ckpt, dict):
+        raise PolicyCheckpointError(f"{where}: a checkpoint must be a dict, got {type(ckpt).__name__}")
+    fmt = ckpt.get("format")
+    if fmt != POLICY_FORMAT:
+        raise PolicyCheckpointError(f"{where}: unknown policy format {fmt!r}; this reader knows {POLICY_FORMAT!r}")
+    missing = [k for k in ("state_dict", "config", "system", "actions") if k not in ckpt]
+    if missing:
+        raise PolicyCheckpointError(f"{where}: missing key(s) {', '.join(missing)}")
+    try:
+        config = MLPConfig(**ckpt["config"])
+        system, _ = system_from_json(ckpt["system"])
+        actions = torch.as_tensor(ckpt["actions"])
+        policy = MLPPolicy(config, system, actions)
+    except (TypeError, ValueError) as exc:
+        raise PolicyCheckpointError(f"{where}: config, system or actions do not describe a policy ({exc})") from None
+    expect = system.action_set(dtype=torch.float32)
+    if expect.shape != actions.shape or not torch.allclose(expect, actions.float(), atol=1e-6):
+        raise PolicyCheckpointError(f"{where}: actions do not match the system {system.name!r}")
+    try:
+        policy.load_state_dict(ckpt["state_dict"], strict=True)
+    except (RuntimeError, TypeError, AttributeError) as exc:
+        raise PolicyCheckpointError(f"{where}: state_dict does not match the network of its config ({str(exc)[:300]})") from None
+    return policy.to(device).eval()
+
+
+def default_feature_scale(cells_centres: Tensor, grid: Grid) -> list[float]:
+    """``max |centre|`` per non-periodic dimension (1.0 where that is 0, and on angle dimensions)."""
+    scale = cells_centres.abs().amax(dim=0).tolist()
+    return [1.0 if (p or s == 0) else float(s) for s, p in zip(scale, grid.periodic)]
