@@ -65,7 +65,16 @@ def make_parser() -> argparse.ArgumentParser:
                              "lattice), lattice (level sets from all lattice points), random (centre + K random points)")
     parser.add_argument("--points-per-cell", type=int, default=8, help="K random points per cell for --points random")
     parser.add_argument("--seed", type=int, default=0, help="seed of --points random and of the report's rollouts")
-    parser.add_argument("--resume", action="store_true", help="continue an interrupted build from its checkpoints")
+    parser.add_argument("--method", default="maxflow", choices=["maxflow", "coverage"],
+                        help="maxflow: the paper's flow network (default); coverage: maximize the expected coverage "
+                             "of real rollouts over the reachable states (see precompute/coverage_method.py)")
+    parser.add_argument("--target-samples", type=int, default=2000,
+                        help="coverage method: N whose expected coverage is maximized")
+    parser.add_argument("--merge-resolution", type=int, default=32,
+                        help="coverage method: sub-cell bins per cell and dimension for merging reachable states")
+    parser.add_argument("--steps", type=int, default=300, help="coverage method: gradient-ascent iterations")
+    parser.add_argument("--lr", type=float, default=0.2, help="coverage method: Adam learning rate")
+    parser.add_argument("--resume", action="store_true", help="continue an interrupted build from its checkpoints (maxflow)")
     parser.add_argument("--rollouts", type=int, default=None, help="rollouts for the report (default: 10 x largest level)")
     parser.add_argument("--no-report", action="store_true", help="skip the uniformity report")
     parser.add_argument("--device", default="cpu", help="device for the report's rollouts (cpu, cuda)")
@@ -108,6 +117,27 @@ def _check_device(device: str) -> None:
         raise ValueError(f"--device {device}: CUDA is not available on this machine")
 
 
+def _build_coverage(system, horizon: int, args: argparse.Namespace, bar):
+    """The coverage method (precompute/coverage_method.py), with the bar counting levels, then iterations."""
+    from .builder import BuildStats
+    from .coverage_method import CoverageConfig, build_coverage_table
+
+    config = CoverageConfig(horizon=horizon, target_samples=args.target_samples,
+                            merge_resolution=args.merge_resolution, steps=args.steps, lr=args.lr)
+    if bar is not None:
+        bar.reset(total=horizon + config.steps)
+        bar.set_description("levels, then ascent")
+
+    def progress(stage: str, i: int, value: float) -> None:
+        if bar is not None:
+            bar.set_postfix({"states" if stage == "enumerate" else "objective": f"{value:.0f}"})
+            bar.update(1)
+
+    table, facts = build_coverage_table(system, config, progress)
+    stats = BuildStats(seconds={**facts["seconds"], "write": 0.0})
+    return table, stats, {"coverage_method": {k: v for k, v in facts.items() if k != "seconds"}}
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     parser = make_parser()
     args = parser.parse_args(argv)
@@ -140,7 +170,8 @@ def _run(args: argparse.Namespace) -> int:
         shutil.rmtree(ckpt)
     ckpt.mkdir(parents=True, exist_ok=True)
     say = (lambda *a: None) if args.quiet else (lambda *a: print(*a, flush=True))
-    say(f"building {system.name} table: {system.params()} horizon={horizon} points={config.points.value}")
+    detail = f"points={config.points.value}" if args.method == "maxflow" else f"target N={args.target_samples}"
+    say(f"building {system.name} table ({args.method}): {system.params()} horizon={horizon} {detail}")
 
     bar = None
     if not args.quiet:
@@ -154,8 +185,12 @@ def _run(args: argparse.Namespace) -> int:
             bar.update(1)
 
     t_start = time.perf_counter()
+    extra: dict[str, Any] = {}
     try:
-        table, stats = build_table(system, config, checkpoint_dir=ckpt, resume=args.resume, progress=progress)
+        if args.method == "coverage":
+            table, stats, extra = _build_coverage(system, horizon, args, bar)
+        else:
+            table, stats = build_table(system, config, checkpoint_dir=ckpt, resume=args.resume, progress=progress)
     finally:
         if bar is not None:
             bar.close()
@@ -166,7 +201,8 @@ def _run(args: argparse.Namespace) -> int:
     total = time.perf_counter() - t_start
     if stats.resumed_steps:
         say(f"resumed {stats.resumed_steps} of {horizon} levels from checkpoints")
-    say(f"level sizes: {table.level_sizes}  ({len(table.cells)} cells, {len(table.arcs)} arcs)")
+    graph = f"{len(table.arcs)} arcs" if table.arcs is not None else f"{len(table.transitions)} transitions"
+    say(f"level sizes: {table.level_sizes}  ({len(table.cells)} cells, {graph})")
     say("stage times: " + ", ".join(f"{k} {v:.2f}s" for k, v in stats.seconds.items()) + f"; total {total:.2f}s")
     say(f"wrote {out}")
 
@@ -178,10 +214,12 @@ def _run(args: argparse.Namespace) -> int:
         "horizon": horizon,
         "points": config.points.value,
         "level_sizes": table.level_sizes,
-        "flow_ratio": (table.flow_value / table.flow_target).tolist(),
+        "flow_ratio": (table.flow_value / table.flow_target).tolist() if args.method == "maxflow" else None,
         "seconds": {**stats.seconds, "total": total},
+        "method": args.method,
         "zero_outflow_cells": stats.zero_outflow,
         "kept_point_fraction": stats.kept_fraction,
+        **extra,
     }
     if not args.no_report:
         t0 = time.perf_counter()

@@ -102,7 +102,8 @@ def uniformity_report(
             LevelReport(
                 level=t,
                 cells=n,
-                flow_ratio=None if t == 0 else float(table.flow_value[t - 1] / table.flow_target[t - 1]),
+                flow_ratio=None if (t == 0 or table.method not in (None, "maxflow"))
+                else float(table.flow_value[t - 1] / table.flow_target[t - 1]),
                 tv_exact=float(0.5 * np.abs(exact - 1.0 / n).sum()),
                 tv_rollout=tv_from_uniform(counts, N, outside),
                 tv_floor=floor_mean,

@@ -1,0 +1,244 @@
+"""The coverage method: C-Uniform-style tables that make *real* rollouts cover the reachable cells.
+
+Shapes: M_t merged reachable states at level t, n_t reachable cells of level t, A actions, d state dims, T horizon.
+
+The paper's flow network treats each cell as one point with deterministic arcs, while a controller executes
+real actions from real states: one action from one cell lands in several next cells, and states leave the
+level sets. This method works on the states that real rollouts can reach:
+
+1. **Enumerate** the states reachable from the origin level by level under every action, merging states that
+   fall in the same sub-cell bin (``merge_resolution`` bins per cell and dimension; each bin keeps its first
+   state as the representative, so the approximation error is below 1/merge_resolution of a cell per step).
+   The level set L_t is the set of cells of these states: exactly the cells real rollouts reach.
+2. **Propagate** the state distribution exactly: a state in cell c takes action u with probability
+   ``softmax(theta[t, c])[u]`` and moves deterministically to its successor state.
+3. **Maximize** the expected number of distinct cells that N samples cover at every level,
+   ``sum_t sum_c 1 - (1 - P_t(c))^N`` (``target_samples`` = N), over the logits theta by gradient ascent (Adam,
+   autograd through the propagation). Perfect uniformity over L_t is the optimum when N is large; a finite N
+   trades uniformity for reaching more cells.
+
+The table has the same format as the max-flow tables (``method`` = "coverage"): its level sets are the reachable
+cells, ``cell_probs`` the exact propagated cell masses, ``transitions`` the mass-weighted fraction of each
+(cell, action)'s states landing in each next cell (so ``cell_probs`` is again their exact propagation), and
+``flow_value`` is 0 (there is no flow network; the report shows "-").
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+import torch
+
+from cuniform_torch.grid import CellKeys, Grid
+from cuniform_torch.systems import System, system_to_json
+from cuniform_torch.table import Table
+
+__all__ = ["CoverageConfig", "ReachableLevels", "enumerate_reachable", "optimize_coverage", "build_coverage_table"]
+
+
+@dataclass(frozen=True)
+class CoverageConfig:
+    """Settings of the coverage method."""
+
+    horizon: int = 10
+    target_samples: int = 2000
+    """N in the objective: the number of rollouts whose expected coverage is maximized"""
+    merge_resolution: int = 32
+    """sub-cell bins per cell and dimension used to merge reachable states"""
+    steps: int = 300
+    """gradient-ascent iterations"""
+    lr: float = 0.2
+    """Adam learning rate on the logits"""
+    entropy_weight: float = 10.0
+    """adds ``entropy_weight * sum_t H(P_t) / log n_t`` (normalized entropy of each level's cell distribution): a
+    tie-breaker towards uniformity on levels that N samples already cover completely"""
+    max_states: int = 20_000_000
+    """refuse to enumerate a level with more merged states than this (raise merge_resolution's cost instead)"""
+
+    def __post_init__(self) -> None:
+        for name in ("horizon", "target_samples", "merge_resolution", "steps", "max_states"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+                raise ValueError(f"{name} must be a positive integer, got {value!r}")
+        if not (self.lr > 0 and math.isfinite(self.lr)):
+            raise ValueError(f"lr must be positive, got {self.lr!r}")
+
+
+@dataclass
+class ReachableLevels:
+    """The merged reachable states of every level and their successors."""
+
+    cells: list[torch.Tensor] = field(default_factory=list)
+    """per level: ``[n_t, d]`` int64 reachable cells, ascending packed-key order"""
+    state_cell: list[torch.Tensor] = field(default_factory=list)
+    """per level: ``[M_t]`` index of each state's cell in ``cells[t]``"""
+    successor: list[torch.Tensor] = field(default_factory=list)
+    """per level t < T: ``[M_t, A]`` index of the successor state in level t+1"""
+    num_states: list[int] = field(default_factory=list)
+
+
+def _index_cells(cells: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Distinct cells (ascending key order) and each row's index among them."""
+    keys = CellKeys.covering(cells)
+    uniq, inverse = torch.unique(keys.pack(cells), return_inverse=True)
+    return keys.unpack(uniq), inverse
+
+
+def enumerate_reachable(system: System, horizon: int, merge_resolution: int = 32, max_states: int = 20_000_000,
+                        progress: Callable[[int, int, int], None] | None = None) -> ReachableLevels:
+    """Reachable states from the origin, merged per sub-cell bin, with their cells and successors."""
+    grid = Grid.of(system)
+    actions = system.action_set(dtype=torch.float64)  # [A, q]
+    A = actions.shape[0]
+    sub = torch.tensor(grid.cell_size, dtype=torch.float64) / merge_resolution  # [d]
+    x = torch.zeros((1, grid.dim), dtype=torch.float64)
+    levels = ReachableLevels()
+    cells, inv = _index_cells(grid.cells(x))
+    levels.cells.append(cells)
+    levels.state_cell.append(inv)
+    levels.num_states.append(1)
+    for t in range(horizon):
+        M = x.shape[0]
+        nxt = system.step(x.repeat_interleave(A, dim=0), actions.repeat(M, 1))  # [M*A, d]
+        binned = torch.round(nxt / sub).long()
+        keys = CellKeys.covering(binned)
+        uniq, inverse = torch.unique(keys.pack(binned), return_inverse=True)
+        if len(uniq) > max_states:
+            raise ValueError(f"level {t + 1} has {len(uniq)} merged states (> max_states={max_states}); "
+                             f"lower --merge-resolution")
+        first = torch.full((len(uniq),), M * A, dtype=torch.int64).scatter_reduce(
+            0, inverse, torch.arange(M * A), reduce="amin")
+        x = nxt[first]  # representatives [M', d]
+        levels.successor.append(inverse.view(M, A))
+        cells, inv = _index_cells(grid.cells(x))
+        levels.cells.append(cells)
+        levels.state_cell.append(inv)
+        levels.num_states.append(len(uniq))
+        if progress is not None:
+            progress(t, len(uniq), len(cells))
+    return levels
+
+
+def _propagate(levels: ReachableLevels, logits: list[torch.Tensor]) -> list[torch.Tensor]:
+    """Cell masses ``[n_t]`` of every level for per-level logits ``[n_t, A]`` (differentiable)."""
+    mass = torch.ones(1, dtype=torch.float64)
+    out = []
+    for t in range(len(levels.cells)):
+        n = len(levels.cells[t])
+        out.append(torch.zeros(n, dtype=torch.float64).index_add(0, levels.state_cell[t], mass))
+        if t < len(levels.successor):
+            probs = torch.softmax(logits[t], dim=1)[levels.state_cell[t]]  # [M_t, A]
+            succ = levels.successor[t]
+            mass = torch.zeros(levels.num_states[t + 1], dtype=torch.float64).index_add(
+                0, succ.reshape(-1), (mass.unsqueeze(1) * probs).reshape(-1))
+    return out
+
+
+def expected_coverage(cell_mass: torch.Tensor, num_samples: int) -> torch.Tensor:
+    """``sum_c 1 - (1 - P(c))^N``: expected distinct cells hit by N independent draws."""
+    return (1.0 - torch.exp(num_samples * torch.log1p(-cell_mass.clamp(max=1.0 - 1e-12)))).sum()
+
+
+def normalized_entropy(cell_mass: torch.Tensor) -> torch.Tensor:
+    """``H(P) / log n`` in [0, 1] (1 = uniform over the n cells)."""
+    p = cell_mass.clamp(min=1e-300)
+    return -(cell_mass * torch.log(p)).sum() / math.log(len(cell_mass))
+
+
+def optimize_coverage(levels: ReachableLevels, num_actions: int, config: CoverageConfig,
+                      progress: Callable[[int, float], None] | None = None) -> tuple[list[torch.Tensor], list[float]]:
+    """Logits ``[n_t, A]`` per level t < T maximizing the summed expected coverage; and the history of the objective."""
+    logits = [torch.zeros((len(c), num_actions), dtype=torch.float64, requires_grad=True) for c in levels.cells[:-1]]
+    opt = torch.optim.Adam(logits, lr=config.lr)
+    history = []
+    for step in range(config.steps):
+        opt.zero_grad()
+        masses = _propagate(levels, logits)
+        objective = sum(expected_coverage(m, config.target_samples) for m in masses[1:])
+        if config.entropy_weight:
+            objective = objective + config.entropy_weight * sum(
+                normalized_entropy(m) for m in masses[1:] if len(m) > 1)
+        (-objective).backward()
+        opt.step()
+        history.append(float(objective.detach()))
+        if progress is not None:
+            progress(step, history[-1])
+    return [l.detach() for l in logits], history
+
+
+def build_coverage_table(system: System, config: CoverageConfig = CoverageConfig(),
+                         progress: Callable[[str, int, float], None] | None = None) -> tuple[Table, dict]:
+    """Enumerate, optimize and assemble the table; returns it with build facts (timings, predicted coverage)."""
+    t0 = time.perf_counter()
+    levels = enumerate_reachable(system, config.horizon, config.merge_resolution, config.max_states,
+                                 None if progress is None else (lambda t, m, n: progress("enumerate", t, m)))
+    t1 = time.perf_counter()
+    A = system.action_set().shape[0]
+    logits, history = optimize_coverage(levels, A, config,
+                                        None if progress is None else (lambda s, v: progress("optimize", s, v)))
+    t2 = time.perf_counter()
+    with torch.no_grad():
+        masses = _propagate(levels, logits)
+    probs = [torch.softmax(l, dim=1) for l in logits] + [torch.full((len(levels.cells[-1]), A), 1.0 / A, dtype=torch.float64)]
+    sizes = np.array([len(c) for c in levels.cells], dtype=np.int64)
+    offsets = np.concatenate(([0], np.cumsum(sizes))).astype(np.int64)
+    transitions, fracs, trans_counts = [], [], []
+    state_mass = torch.ones(1, dtype=torch.float64)
+    for t in range(config.horizon):
+        sc, succ = levels.state_cell[t], levels.successor[t]  # [M], [M, A]
+        n, m = len(levels.cells[t]), len(levels.cells[t + 1])
+        src = sc.unsqueeze(1).expand_as(succ).reshape(-1)
+        act = torch.arange(A).repeat(len(sc))
+        dst = levels.state_cell[t + 1][succ.reshape(-1)]
+        weight = state_mass[sc].unsqueeze(1).expand_as(succ).reshape(-1)  # mass of the state before acting
+        key = (src * A + act) * m + dst
+        uniq, inv = torch.unique(key, return_inverse=True)
+        w = torch.zeros(len(uniq), dtype=torch.float64).index_add(0, inv, weight)
+        cnt = torch.zeros(len(uniq), dtype=torch.float64).index_add(0, inv, torch.ones_like(weight))
+        sa, d_ = uniq // m, uniq % m
+        s_, a_ = sa // A, sa % A
+        # fraction of the (cell, action)'s mass landing in each next cell; states without mass count equally
+        tot_w = torch.zeros(n * A, dtype=torch.float64).index_add(0, sa, w)
+        tot_c = torch.zeros(n * A, dtype=torch.float64).index_add(0, sa, cnt)
+        frac = torch.where(tot_w[sa] > 0, w / tot_w[sa].clamp(min=1e-300), cnt / tot_c[sa])
+        transitions.append(torch.stack((s_ + offsets[t], a_, d_ + offsets[t + 1]), 1))
+        fracs.append(frac)
+        trans_counts.append(len(uniq))
+        p_state = probs[t][sc]  # [M, A]
+        state_mass = torch.zeros(levels.num_states[t + 1], dtype=torch.float64).index_add(
+            0, succ.reshape(-1), (state_mass.unsqueeze(1) * p_state).reshape(-1))
+    predicted = {str(N): [float(expected_coverage(mm, N)) for mm in masses] for N in (250, 1000, 10000)}
+    facts = {
+        "seconds": {"enumerate": t1 - t0, "optimize": t2 - t1, "assemble": time.perf_counter() - t2},
+        "merged_states": levels.num_states,
+        "objective_first_last": [history[0], history[-1]] if history else [],
+        "predicted_coverage_per_level": predicted,
+    }
+    build_info = {"method": "coverage", "target_samples": config.target_samples,
+                  "merge_resolution": config.merge_resolution, "steps": config.steps, "lr": config.lr,
+                  "merged_states": levels.num_states}
+    cell_probs = torch.cat(masses).numpy()
+    table = Table(
+        system=system_to_json(system, config.horizon),
+        actions=system.action_set(dtype=torch.float32).numpy(),
+        cell_size=np.asarray(system.cell_size, dtype=np.float64),
+        periodic=np.asarray(system.periodic, dtype=bool),
+        cell_offset=np.asarray(system.cell_offset, dtype=np.float64),
+        level_offsets=offsets,
+        cells=torch.cat(levels.cells).numpy().astype(np.int64),
+        action_probs=torch.cat(probs).numpy().astype(np.float32),
+        cell_probs=cell_probs / np.add.reduceat(cell_probs, offsets[:-1]).repeat(sizes),
+        flow_value=np.zeros(config.horizon, dtype=np.int64),
+        flow_target=(sizes[:-1] * sizes[1:]).astype(np.int64),
+        method="coverage",
+        build_info=json.dumps(build_info, sort_keys=True),
+        transition_offsets=np.concatenate(([0], np.cumsum(trans_counts))).astype(np.int64),
+        transitions=torch.cat(transitions).numpy().astype(np.int64),
+        transition_frac=torch.cat(fracs).numpy(),
+    )
+    return table, facts
