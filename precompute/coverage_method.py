@@ -195,7 +195,7 @@ def build_coverage_table(system: System, config: CoverageConfig = CoverageConfig
         src = sc.unsqueeze(1).expand_as(succ).reshape(-1)
         act = torch.arange(A).repeat(len(sc))
         dst = levels.state_cell[t + 1][succ.reshape(-1)]
-        weight = state_mass[sc].unsqueeze(1).expand_as(succ).reshape(-1)  # mass of the state before acting
+        weight = state_mass.unsqueeze(1).expand_as(succ).reshape(-1)  # mass of each state before acting
         key = (src * A + act) * m + dst
         uniq, inv = torch.unique(key, return_inverse=True)
         w = torch.zeros(len(uniq), dtype=torch.float64).index_add(0, inv, weight)

@@ -1,0 +1,102 @@
+"""The coverage method: uniform where uniformity is feasible, more coverage than max-flow on real rollouts."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from cuniform_torch import TablePolicy, make_system, read_table, rollout, write_table
+from cuniform_torch.coverage import coverage, uniform_ceiling
+from precompute import build as build_cli
+from precompute.builder import BuildConfig, build_table, propagate_cell_probs
+from precompute.coverage_method import CoverageConfig, build_coverage_table, enumerate_reachable
+
+
+@pytest.fixture(scope="module")
+def small_dubins():
+    system = make_system("dubins")
+    cov, facts = build_coverage_table(system, CoverageConfig(horizon=6, steps=150, target_samples=500))
+    flow, _ = build_table(system, BuildConfig(horizon=6))
+    return cov, facts, flow
+
+
+def test_random_walk_is_uniform():
+    table, _ = build_coverage_table(make_system("random_walk_1d"), CoverageConfig(horizon=4, steps=400, target_samples=50))
+    assert table.level_sizes == [1, 5, 9, 13, 17]
+    for t in range(1, table.horizon + 1):
+        p = table.cell_probs[table.level(t)]
+        assert 0.5 * np.abs(p - 1 / len(p)).sum() < 0.01, (t, p)
+
+
+def test_level_sets_are_the_reachable_cells(small_dubins):
+    cov, facts, _ = small_dubins
+    system = make_system("dubins")
+    levels = enumerate_reachable(system, 6)
+    assert cov.level_sizes == [len(c) for c in levels.cells]
+    # real rollouts stay in the level sets (up to the sub-cell merging)
+    policy = TablePolicy(cov)
+    states, _ = rollout(system, policy, torch.zeros(3), 2000, 6, torch.Generator().manual_seed(0))
+    for t in range(7):
+        assert (policy.rows(states[:, t], t) >= 0).float().mean() > 0.99
+
+
+def test_table_is_valid_and_cell_probs_are_the_exact_propagation(small_dubins, tmp_path):
+    cov, _, _ = small_dubins
+    write_table(tmp_path / "cov.npz", cov)
+    table = read_table(tmp_path / "cov.npz")
+    assert table.method == "coverage"
+    dist = np.ones(1)
+    for t in range(table.horizon):
+        sl = slice(table.transition_offsets[t], table.transition_offsets[t + 1])
+        tr = table.transitions[sl]
+        probs = table.action_probs[table.level(t)].astype(np.float64)
+        dist = propagate_cell_probs(dist, probs, tr[:, 0] - table.level_offsets[t], tr[:, 1],
+                                    tr[:, 2] - table.level_offsets[t + 1], table.transition_frac[sl],
+                                    table.level_sizes[t + 1])
+        np.testing.assert_allclose(dist, table.cell_probs[table.level(t + 1)], atol=1e-5)
+
+
+def test_real_rollouts_cover_more_than_maxflow(small_dubins):
+    cov, _, flow = small_dubins
+    system = make_system("dubins")
+    totals = {}
+    for name, table in (("coverage", cov), ("maxflow", flow)):
+        policy = TablePolicy(table)
+        states, _ = rollout(system, policy, torch.zeros(3), 500, 6, torch.Generator().manual_seed(1))
+        totals[name] = coverage(states, policy.grid).total
+    assert totals["coverage"] > 1.2 * totals["maxflow"], totals
+
+
+def test_predicted_coverage_matches_sampled(small_dubins):
+    cov, facts, _ = small_dubins
+    system = make_system("dubins")
+    policy = TablePolicy(cov)
+    N = 1000
+    predicted = facts["predicted_coverage_per_level"][str(N)]
+    states, _ = rollout(system, policy, torch.zeros(3), N, 6, torch.Generator().manual_seed(2))
+    sampled = coverage(states, policy.grid, policy).in_level_set
+    for t in range(1, 7):
+        n = cov.level_sizes[t]
+        tol = 4 * np.sqrt(n) + 2  # binomial-like spread of a count of n cells
+        assert abs(sampled[t] - predicted[t]) <= tol, (t, sampled[t], predicted[t])
+        assert sampled[t] <= uniform_ceiling(n, N) + tol
+
+
+def test_cli_coverage_method(tmp_path):
+    out = tmp_path / "c.npz"
+    assert build_cli.main(["--system", "dubins", "--method", "coverage", "--horizon", "4", "--steps", "30",
+                           "--out", str(out), "--quiet"]) == 0
+    report = json.loads((tmp_path / "c.report.json").read_text())
+    assert report["method"] == "coverage" and report["flow_ratio"] is None
+    assert report["coverage_method"]["merged_states"][0] == 1
+    assert read_table(out).method == "coverage"
+
+
+def test_bad_settings_are_clear_errors():
+    with pytest.raises(ValueError, match="target_samples"):
+        CoverageConfig(target_samples=0)
+    with pytest.raises(ValueError, match="max_states"):
+        enumerate_reachable(make_system("dubins"), 6, max_states=10)
