@@ -1,0 +1,484 @@
+"""Distil a C-Uniform table into an MLP policy pi(u | x, t):  python -m training.distill --tables out/dubins.npz
+
+The file reads top to bottom: config, seeding, data, model, loop, checkpoint, final comparison.
+Shapes: C cells (all levels, all tables), N samples of an epoch, B of a batch, V validation points, d state
+dimensions, A actions, G (table, level) groups.
+
+* **Data.** For every level t of every table: the centre of every cell of L_t plus ``--jitter`` points drawn
+  uniformly inside each cell (+-0.5 cell on every dimension, angles wrapped to [-pi, pi)), drawn afresh every
+  epoch; the target of a point is its cell's row of ``action_probs``, its time feature is t. Validation uses
+  ``--val-points`` jittered points per cell drawn once from a fixed seed (``seed + 1``).
+* **Loss.** KL(table || model) = sum_u p (log p - log q) (0 log 0 = 0), level-weighted: a sample's weight is
+  1 / (samples of its level), averaged over the levels (of all tables), so a level of 30 000 cells counts as
+  much as a level of 10. A minibatch's loss is its weighted sum scaled by (epoch samples / batch samples), an
+  unbiased estimate of the epoch's loss; ``losses/train_kl`` is the epoch's exact weighted sum.
+* **Optimiser.** Adam; the learning rate starts at ``--lr`` and follows a cosine per epoch down to lr / 100 at
+  ``--epochs``. Early stopping: training ends when the validation KL has not improved for ``--patience``
+  epochs; the weights of the best validation epoch are the ones saved.
+* **TensorBoard** (``<logdir>/<table stem>__distill__<seed>__<unix time>``; global step = epoch):
+  ``losses/train_kl``, ``losses/val_kl`` (level-weighted KL), ``charts/val_argmax_accuracy`` (level-weighted share of
+  validation points whose most likely model action is one of the table row's most likely actions),
+  ``charts/learning_rate``, ``charts/epoch_seconds``; every ``--eval-every`` epochs ``eval/kl_level_<t>`` (mean KL
+  at the cell centres of level t) and two figures: ``rollouts`` (200 rollouts from the origin, table vs MLP, fixed
+  seed) and ``coverage`` (cells of L_t reached by N = first ``--eval-samples`` rollouts, MLP vs table vs |L_t|).
+  The config is logged once as a markdown table (``hyperparameters``).
+* **Outputs.** The policy checkpoint ``--out`` (``cuniform-policy/1``, see :mod:`cuniform_torch.mlp`; written
+  atomically); ``<out>.train.pt``, the training state after every epoch (``--resume`` continues from it and ends
+  at the same weights as an uninterrupted run); ``<out stem>.comparison.json``, the final comparison of
+  :func:`training.evaluate.compare` with sizes and wall times, also printed.
+
+``main(argv)`` returns 0, or 2 after printing ``error: ...`` for bad flags, unreadable tables and refused resumes.
+"""
+
+from __future__ import annotations
+
+import argparse
+import ast
+import dataclasses
+import inspect
+import io
+import json
+import math
+import sys
+import time
+import typing
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Optional, Sequence
+
+import matplotlib.pyplot as plt
+import torch
+from torch.utils.tensorboard import SummaryWriter
+from tqdm import tqdm
+
+from cuniform_torch.coverage import coverage, uniform_ceiling
+from cuniform_torch.fileio import write_bytes, write_json
+from cuniform_torch.grid import Grid
+from cuniform_torch.mlp import MLPConfig, MLPPolicy, default_feature_scale, file_sha256, policy_checkpoint, save_policy
+from cuniform_torch.policy import TablePolicy
+from cuniform_torch.rollout import rollout
+from cuniform_torch.table import Table, TableError, read_table
+
+from .evaluate import cell_centres, cell_levels, compare, jitter_cells, kl_per_level, kl_rows, sizes
+
+plt.switch_backend("Agg")  # figures are only rendered into TensorBoard
+TRAIN_STATE_FORMAT = "cuniform-distill-state/1"
+
+
+@dataclass
+class DistillConfig:
+    """Settings of one distillation; every field is a flag (``--batch-size``, ...)."""
+
+    tables: list[str] = field(default_factory=list)
+    """table files (.npz) to distil; several must share the system JSON and actions (their cells are pooled)"""
+    hidden: int = 256
+    """hidden units per layer"""
+    layers: int = 3
+    """hidden layers"""
+    epochs: int = 1500
+    """passes over the data, each with fresh jitter (on out/dubins.npz: 1500 epochs took 6 minutes on 2 CPU cores)"""
+    lr: float = 3e-3
+    """Adam's initial learning rate, cosine-annealed per epoch to lr / 100 at the last epoch"""
+    batch_size: int = 4096
+    """samples per optimiser step"""
+    seed: int = 0
+    """seed of the initial weights, the jitter, the shuffling, the validation points and the evaluation rollouts"""
+    device: str = "cpu"
+    """torch device to train and evaluate on (cpu, cuda, cuda:1, ...)"""
+    threads: int = 1
+    """torch CPU threads (0: torch's choice, one per core). 1 by default: on 2 idle cores a second thread makes
+    a 4096-sample step of the default network about 1.6x faster, but when other processes keep the cores busy it
+    makes it about 10x slower (OpenMP hand-offs between oversubscribed threads)"""
+    out: Optional[str] = None
+    """checkpoint to write (default: out/<first table stem>.policy.pt)"""
+    jitter: int = 4
+    """jittered points per cell per epoch, on top of the cell centre (also per cell in the final jittered KL;
+    4 there when 0)"""
+    val_points: int = 2
+    """held-out jittered points per cell for the validation KL (drawn once)"""
+    patience: int = 300
+    """stop when the validation KL has not improved for this many epochs"""
+    logdir: str = "runs"
+    """folder of the TensorBoard runs"""
+    quiet: bool = False
+    """no progress bar"""
+    resume: bool = False
+    """continue from <out>.train.pt (refused when the settings or the tables differ)"""
+    eval_samples: list[int] = field(default_factory=lambda: [1000, 10000])
+    """rollout counts N of the final coverage comparison (the first also sets the coverage figure's N)"""
+    eval_every: int = 100
+    """epochs between the eval/kl_level_<t> scalars and the figures"""
+
+
+# the settings a training state must share with the run that resumes it (the others change no weight)
+RESUME_KEYS = ("hidden", "layers", "epochs", "lr", "batch_size", "seed", "jitter", "val_points", "patience")
+
+
+class UsageError(ValueError):
+    """A bad flag, an inconsistent set of tables, or a refused resume: reported as ``error: ...``, exit code 2."""
+
+
+class _Parser(argparse.ArgumentParser):
+    def error(self, message: str) -> typing.NoReturn:
+        raise UsageError(message)
+
+
+def _field_docs(cls: type) -> dict[str, str]:
+    """The docstring under each field of a dataclass (read from its source)."""
+    body = ast.parse(inspect.getsource(cls)).body[0].body
+    return {a.target.id: b.value.value for a, b in zip(body, body[1:])
+            if isinstance(a, ast.AnnAssign) and isinstance(b, ast.Expr) and isinstance(b.value, ast.Constant)}
+
+
+def parse_args(argv: Sequence[str] | None = None) -> DistillConfig:
+    """Flags -> a checked :class:`DistillConfig` with its derived fields filled; :class:`UsageError` when bad."""
+    parser = _Parser(prog="python -m training.distill", description=__doc__.splitlines()[0])
+    docs, hints = _field_docs(DistillConfig), typing.get_type_hints(DistillConfig)
+    for f in dataclasses.fields(DistillConfig):
+        flag, kind, doc = "--" + f.name.replace("_", "-"), hints[f.name], docs[f.name]
+        default = f.default_factory() if f.default_factory is not dataclasses.MISSING else f.default
+        helptext = doc if ("default" in doc or kind is bool or f.name == "tables") else f"{doc} (default: {default})"
+        if kind is bool:
+            parser.add_argument(flag, action="store_true", help=helptext)
+        elif typing.get_origin(kind) is list:
+            parser.add_argument(flag, nargs="+", type=typing.get_args(kind)[0], default=default,
+                                required=f.name == "tables", help=helptext)
+        else:
+            base = next((a for a in typing.get_args(kind) if a is not type(None)), kind)
+            parser.add_argument(flag, type=base, default=default, help=helptext)
+    cfg = DistillConfig(**vars(parser.parse_args(argv)))
+    for name in ("hidden", "layers", "epochs", "batch_size", "val_points", "patience", "eval_every"):
+        if getattr(cfg, name) < 1:
+            raise UsageError(f"--{name.replace('_', '-')} must be a positive integer, got {getattr(cfg, name)}")
+    if cfg.threads < 0:
+        raise UsageError(f"--threads must be >= 0, got {cfg.threads}")
+    if cfg.jitter < 0:
+        raise UsageError(f"--jitter must be >= 0, got {cfg.jitter}")
+    if not (math.isfinite(cfg.lr) and cfg.lr > 0):
+        raise UsageError(f"--lr must be a positive number, got {cfg.lr}")
+    if any(n < 1 for n in cfg.eval_samples):
+        raise UsageError(f"--eval-samples must be positive integers, got {cfg.eval_samples}")
+    try:
+        device = torch.device(cfg.device)
+    except RuntimeError as exc:
+        raise UsageError(f"--device {cfg.device!r}: {exc}") from None
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise UsageError(f"--device {cfg.device}: CUDA is not available here")
+    for path in cfg.tables:
+        if not Path(path).is_file():
+            raise UsageError(f"--tables: no table file at {path}")
+    if cfg.out is None:
+        cfg.out = str(Path("out") / f"{Path(cfg.tables[0]).stem}.policy.pt")
+    return cfg
+
+
+def read_tables(paths: Sequence[str]) -> list[Table]:
+    """Read every table (:class:`TableError` when one is bad) and check they share the system and the actions."""
+    tables = [read_table(p) for p in paths]
+    for path, table in zip(paths[1:], tables[1:]):
+        if json.loads(table.system) != json.loads(tables[0].system):
+            raise UsageError(f"{path} was built for {table.system}, but {paths[0]} for {tables[0].system}; "
+                             "tables distilled together must share the system JSON")
+        if table.actions.shape != tables[0].actions.shape or (table.actions != tables[0].actions).any():
+            raise UsageError(f"{path} and {paths[0]} have different action sets")
+    return tables
+
+
+def make_samples(centres: torch.Tensor, grid: Grid, jitter: int, with_centres: bool,
+                 generator: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
+    """Sample rows (cells) and states of one pass: the centres (when asked) + ``jitter`` points per cell.
+
+    Returns ``rows [N]`` and ``x [N, d]`` float64; every cell gets the same number k of samples.
+    """
+    C = centres.shape[0]
+    jittered = torch.arange(C).repeat(jitter)  # [C * jitter]
+    x = jitter_cells(centres, grid, jittered, generator)
+    if with_centres:
+        return torch.cat((torch.arange(C), jittered)), torch.cat((centres, x))
+    return jittered, x
+
+
+def level_weights(sample_group: torch.Tensor, num_groups: int) -> torch.Tensor:
+    """Weight of each sample ``[N]``: 1 / (samples of its (table, level) group) / (number of groups); sums to 1."""
+    per_group = torch.bincount(sample_group, minlength=num_groups).double()  # [G]
+    return 1.0 / (per_group[sample_group] * num_groups)
+
+
+def trajectory_figure(table_states: torch.Tensor, mlp_states: torch.Tensor, title: str) -> plt.Figure:
+    """xy paths (or x against t for a 1-D system) of table rollouts and MLP rollouts, side by side."""
+    fig, axes = plt.subplots(1, 2, figsize=(10, 4.5))
+    for ax, states, name in zip(axes, (table_states, mlp_states), ("table", "MLP")):
+        s = states.detach().cpu().numpy()  # [N, T+1, d]
+        if s.shape[2] >= 2:
+            color = "tab:blue" if name == "table" else "tab:orange"
+            ax.plot(s[:, :, 0].T, s[:, :, 1].T, lw=0.5, alpha=0.35, color=color)
+            ax.set_xlabel("x")
+            ax.set_ylabel("y")
+            ax.set_aspect("equal", adjustable="box")
+        else:
+            ax.plot(s[:, :, 0].T, lw=0.5, alpha=0.35)
+            ax.set_xlabel("t")
+            ax.set_ylabel("x")
+        ax.set_title(f"{name}: {s.shape[0]} rollouts")
+    axes[1].set_xlim(axes[0].get_xlim())  # the same view on both sides
+    axes[1].set_ylim(axes[0].get_ylim())
+    fig.suptitle(title)
+    fig.tight_layout()
+    return fig
+
+
+def coverage_figure(table_cov: list[int], mlp_cov: list[int], level_sizes: list[int], n: int, title: str) -> plt.Figure:
+    """Cells of L_t reached at step t by n rollouts, table vs MLP, with |L_t| and the uniform-draw ceiling."""
+    fig, ax = plt.subplots(figsize=(7, 4.5))
+    t = range(len(level_sizes))
+    ax.plot(t, level_sizes, "k:", label="|L_t|")
+    ax.plot(t, [uniform_ceiling(m, n) for m in level_sizes], "k--", lw=0.8, label=f"{n} uniform draws over L_t")
+    ax.plot(t, table_cov, "o-", label=f"table ({sum(table_cov)})")
+    ax.plot(t, mlp_cov, "s--", label=f"MLP ({sum(mlp_cov)})")
+    ax.set_yscale("log")
+    ax.set_xlabel("level t")
+    ax.set_ylabel(f"cells of L_t reached by {n} rollouts")
+    ax.set_title(title)
+    ax.legend()
+    fig.tight_layout()
+    return fig
+
+
+def save_train_state(path: Path, state: dict[str, Any]) -> None:
+    """Write the training state atomically (a dict of plain types and tensors: ``weights_only`` loadable)."""
+    buf = io.BytesIO()
+    torch.save(state, buf)
+    write_bytes(path, buf.getvalue())
+
+
+def load_train_state(path: Path, fingerprint: dict[str, Any]) -> dict[str, Any]:
+    """The saved training state, after checking it belongs to this config and these tables (:class:`UsageError`)."""
+    if not path.is_file():
+        raise UsageError(f"--resume: no training state at {path} (run without --resume first)")
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as exc:  # truncated or foreign file
+        raise UsageError(f"--resume: {path} is not a readable training state ({type(exc).__name__}: {exc})") from None
+    if not isinstance(state, dict) or state.get("format") != TRAIN_STATE_FORMAT:
+        raise UsageError(f"--resume: {path} is not a training state of format {TRAIN_STATE_FORMAT!r}")
+    saved = state.get("fingerprint", {})
+    differ = [k for k in fingerprint if saved.get(k) != fingerprint[k]]
+    if differ:
+        detail = "; ".join(f"{k}: saved {saved.get(k)!r}, now {fingerprint[k]!r}" for k in differ)
+        raise UsageError(f"--resume: {path} was written by a different run ({detail})")
+    return state
+
+
+def distill(cfg: DistillConfig) -> int:
+    """Train, checkpoint and compare (see the module docstring)."""
+    wall_start = time.perf_counter()
+    assert cfg.out is not None
+    out = Path(cfg.out)
+    state_path = out.with_name(out.name + ".train.pt")
+    comparison_path = out.with_name(out.stem + ".comparison.json")
+    device = torch.device(cfg.device)
+
+    # ---- tables
+    tables = read_tables(cfg.tables)
+    table = tables[0]
+    system, T = table.make_system(), table.horizon
+    grid = Grid.of(system)
+    table_shas = [file_sha256(p) for p in cfg.tables]
+    fingerprint = {**{k: getattr(cfg, k) for k in RESUME_KEYS}, "tables_sha256": table_shas}
+
+    # ---- seeding
+    if cfg.threads:
+        torch.set_num_threads(cfg.threads)
+    torch.manual_seed(cfg.seed)
+    data_gen = torch.Generator().manual_seed(cfg.seed)  # jitter and shuffling, saved with the training state
+    val_gen = torch.Generator().manual_seed(cfg.seed + 1)  # the fixed validation points
+
+    # ---- data: every cell of every (table, level) group; the group of a cell sets its weight
+    centres = torch.cat([cell_centres(tb) for tb in tables])  # [C, d] float64
+    probs = torch.cat([torch.from_numpy(tb.action_probs) for tb in tables]).to(device)  # [C, A]
+    levels = torch.cat([cell_levels(tb) for tb in tables])  # [C]
+    group = torch.cat([cell_levels(tb) + i * (T + 1) for i, tb in enumerate(tables)])  # [C]
+    G = len(tables) * (T + 1)
+    best_rows = probs >= probs.max(dim=1, keepdim=True).values - 1e-6  # [C, A] the table's most likely actions
+    val_rows, val_x = make_samples(centres, grid, cfg.val_points, False, val_gen)
+    val_x = val_x.to(device=device, dtype=torch.float32)  # [V, d]
+    val_t, val_w = levels[val_rows].to(device), level_weights(group[val_rows], G).to(device)
+    val_rows = val_rows.to(device)
+
+    # ---- model and optimiser
+    mlp_config = MLPConfig(state_dim=grid.dim, num_actions=table.actions.shape[0], horizon=T,
+                           periodic=list(grid.periodic), feature_scale=default_feature_scale(centres, grid),
+                           hidden=cfg.hidden, layers=cfg.layers)
+    model = MLPPolicy(mlp_config, system, torch.from_numpy(table.actions)).to(device)
+    optimizer = torch.optim.Adam(model.parameters(), lr=cfg.lr)
+    scheduler = torch.optim.lr_scheduler.CosineAnnealingLR(optimizer, T_max=cfg.epochs, eta_min=cfg.lr / 100)
+
+    # ---- resume
+    epochs_run, best_val, best_epoch, bad_epochs, train_seconds, finished = 0, math.inf, 0, 0, 0.0, False
+    best_state = {k: v.detach().clone() for k, v in model.state_dict().items()}
+    run_name = f"{Path(cfg.tables[0]).stem}__distill__{cfg.seed}__{int(time.time())}"
+    if cfg.resume:
+        state = load_train_state(state_path, fingerprint)
+        model.load_state_dict(state["model"])
+        optimizer.load_state_dict(state["optimizer"])
+        scheduler.load_state_dict(state["scheduler"])
+        torch.set_rng_state(state["rng_torch"])
+        data_gen.set_state(state["rng_data"])
+        best_state = {k: v.to(device) for k, v in state["best_model"].items()}
+        epochs_run, best_val, best_epoch = state["epoch"], state["best_val"], state["best_epoch"]
+        bad_epochs, train_seconds, finished = state["bad_epochs"], state["train_seconds"], state["finished"]
+        run_name = state["run_name"]  # the resumed run logs on into the same TensorBoard folder
+
+    # ---- TensorBoard
+    writer = SummaryWriter(str(Path(cfg.logdir) / run_name), purge_step=epochs_run + 1 if cfg.resume else None)
+    try:
+        if not cfg.resume:
+            writer.add_text("hyperparameters", "|param|value|\n|-|-|\n" + "\n".join(
+                f"|{k}|{v}|" for k, v in dataclasses.asdict(cfg).items()))
+        table_policy = TablePolicy(table, device=device)
+        x0 = torch.zeros(grid.dim, device=device)
+        figure_n = cfg.eval_samples[0]
+        table_paths, _ = rollout(system, table_policy, x0, 200, T, torch.Generator(device).manual_seed(cfg.seed))
+        table_states, _ = rollout(system, table_policy, x0, figure_n, T, torch.Generator(device).manual_seed(cfg.seed))
+        table_cov = coverage(table_states, grid, table_policy).in_level_set
+
+        # ---- training loop
+        bar = tqdm(range(epochs_run, cfg.epochs), initial=epochs_run, total=cfg.epochs, disable=cfg.quiet or finished,
+                   desc="distill", unit="epoch")
+        for epoch in bar:
+            if finished:
+                break
+            epoch_start = time.perf_counter()
+            model.train()
+            rows, x = make_samples(centres, grid, cfg.jitter, True, data_gen)
+            w = level_weights(group[rows], G).to(device)  # [N], sums to 1
+            N = rows.shape[0]
+            perm = torch.randperm(N, generator=data_gen).to(device)
+            x, t, rows = x.to(device=device, dtype=torch.float32), levels[rows].to(device), rows.to(device)
+            train_kl = 0.0
+            for lo in range(0, N, cfg.batch_size):
+                idx = perm[lo:lo + cfg.batch_size]
+                log_q = torch.log_softmax(model(x[idx], t[idx]), dim=1)  # [B, A]
+                weighted = (w[idx] * kl_rows(probs[rows[idx]], log_q)).sum()
+                loss = weighted * (N / idx.shape[0])  # unbiased estimate of the epoch's level-weighted KL
+                optimizer.zero_grad(set_to_none=True)
+                loss.backward()
+                optimizer.step()
+                train_kl += float(weighted.detach())
+            lr = optimizer.param_groups[0]["lr"]
+            scheduler.step()
+
+            # validation: level-weighted KL and argmax agreement on the fixed jittered points
+            model.eval()
+            with torch.no_grad():
+                logits = model(val_x, val_t)  # [V, A]
+                val_kl = float((val_w * kl_rows(probs[val_rows], torch.log_softmax(logits, dim=1))).sum())
+                hit = best_rows[val_rows].gather(1, logits.argmax(dim=1, keepdim=True)).squeeze(1)  # [V]
+                val_acc = float((val_w * hit).sum())
+            if val_kl < best_val:
+                best_val, best_epoch, bad_epochs = val_kl, epoch + 1, 0
+                best_state = {k: v.detach().clone() for k, v in model.state_dict().items()}
+            else:
+                bad_epochs += 1
+            finished = bad_epochs >= cfg.patience or epoch + 1 == cfg.epochs
+            train_seconds += time.perf_counter() - epoch_start
+
+            step = epochs_run = epoch + 1
+            writer.add_scalar("losses/train_kl", train_kl, step)
+            writer.add_scalar("losses/val_kl", val_kl, step)
+            writer.add_scalar("charts/val_argmax_accuracy", val_acc, step)
+            writer.add_scalar("charts/learning_rate", lr, step)
+            writer.add_scalar("charts/epoch_seconds", time.perf_counter() - epoch_start, step)
+            if step % cfg.eval_every == 0 or finished:
+                for level, kl in enumerate(kl_per_level(model, table, device=device)):
+                    writer.add_scalar(f"eval/kl_level_{level}", kl, step)
+                gen = torch.Generator(device).manual_seed(cfg.seed)
+                mlp_paths, _ = rollout(system, model, x0, 200, T, gen)
+                writer.add_figure("rollouts", trajectory_figure(table_paths, mlp_paths, f"epoch {step}"), step)
+                mlp_states, _ = rollout(system, model, x0, figure_n, T, torch.Generator(device).manual_seed(cfg.seed))
+                mlp_cov = coverage(mlp_states, grid, table_policy).in_level_set
+                writer.add_figure("coverage", coverage_figure(table_cov, mlp_cov, table.level_sizes, figure_n,
+                                                              f"epoch {step}"), step)
+            bar.set_postfix(train_kl=f"{train_kl:.4f}", val_kl=f"{val_kl:.4f}", best=best_epoch)
+
+            save_train_state(state_path, {
+                "format": TRAIN_STATE_FORMAT, "fingerprint": fingerprint, "run_name": run_name, "epoch": step,
+                "model": model.state_dict(), "optimizer": optimizer.state_dict(), "scheduler": scheduler.state_dict(),
+                "best_model": best_state, "best_val": best_val, "best_epoch": best_epoch, "bad_epochs": bad_epochs,
+                "train_seconds": train_seconds, "finished": finished,
+                "rng_torch": torch.get_rng_state(), "rng_data": data_gen.get_state(),
+            })
+        bar.close()
+
+        # ---- checkpoint: the best validation state, with the final comparison as its metrics
+        model.load_state_dict(best_state)
+        model.eval()
+        report = compare(model, table, cfg.eval_samples, seed=cfg.seed, jitter_per_cell=cfg.jitter or 4, device=device)
+        metrics: dict[str, Any] = {
+            "best_epoch": best_epoch, "best_val_kl": best_val, "train_seconds": train_seconds,
+            "kl_centres_mean": report["kl_centres"]["mean"], "kl_jitter_mean": report["kl_jitter"]["mean"],
+            "kl_centres_per_level": report["kl_centres"]["per_level"],
+        }
+        for n, cov in report["coverage"].items():
+            metrics[f"coverage_ratio_total_{n}"] = cov["ratio"]["total"]
+            metrics[f"coverage_ratio_in_level_set_{n}"] = cov["ratio"]["in_level_set_sum"]
+            metrics[f"coverage_ratio_min_level_{n}"] = cov["ratio"]["min_level"]
+        source = {"path": str(cfg.tables[0]), "sha256": table_shas[0]}
+        if len(cfg.tables) > 1:
+            source["all_tables"] = json.dumps([{"path": str(p), "sha256": s} for p, s in zip(cfg.tables, table_shas)])
+        save_policy(out, policy_checkpoint(model, table.system, source=source, metrics=metrics))
+
+        # ---- final comparison: sizes, KL, coverage, fallbacks, wall time
+        comparison = {
+            "tables": [{"path": str(p), "sha256": s} for p, s in zip(cfg.tables, table_shas)],
+            "checkpoint": str(out), "run": str(Path(cfg.logdir) / run_name), "config": dataclasses.asdict(cfg),
+            "epochs_run": epochs_run, "best_epoch": best_epoch, "best_val_kl": best_val,
+            "wall_seconds": {"train": train_seconds, "total_this_call": time.perf_counter() - wall_start},
+            "sizes": sizes(table, cfg.tables[0], out), **report,
+        }
+        write_json(comparison_path, comparison)
+        summary = format_comparison(comparison)
+        writer.add_text("comparison", "```\n" + summary + "\n```", epochs_run)
+    finally:
+        writer.close()
+    print(summary)
+    print(f"wrote {out}, {comparison_path} and {state_path}; TensorBoard: {comparison['run']}")
+    return 0
+
+
+def format_comparison(c: dict[str, Any]) -> str:
+    """A short human-readable summary of the comparison dict."""
+    s = c["sizes"]
+    lines = [
+        f"distilled in {c['wall_seconds']['train']:.1f}s of training ({c['epochs_run']} epochs, best "
+        f"{c['best_epoch']}, val KL {c['best_val_kl']:.4f})",
+        f"sizes: table arrays {s['table_arrays_bytes']:,} B (file {s['table_file_bytes']:,} B), checkpoint "
+        f"{s['checkpoint_bytes']:,} B: ratio {s['compression_ratio']:.2f}x (file {s['file_ratio']:.2f}x)",
+        "level   cells  KL centres  KL jitter",
+    ]
+    for t, (n, a, b) in enumerate(zip(c["coverage"][next(iter(c["coverage"]))]["level_sizes"],
+                                      c["kl_centres"]["per_level"], c["kl_jitter"]["per_level"])):
+        lines.append(f"{t:5d} {n:7d} {a:11.4f} {b:10.4f}")
+    lines.append(f" mean         {c['kl_centres']['mean']:11.4f} {c['kl_jitter']['mean']:10.4f}")
+    for n, cov in c["coverage"].items():
+        mlp, tab, ratio = cov["policy"], cov["table"], cov["ratio"]
+        lines.append(f"coverage of {n} rollouts: total cells MLP {mlp['total']} / table {tab['total']} = "
+                     f"{ratio['total']:.3f}; cells of L_t MLP {mlp['in_level_set_sum']} / table "
+                     f"{tab['in_level_set_sum']} = {ratio['in_level_set_sum']:.3f}; "
+                     f"worst level {ratio['min_level']:.3f}")
+        lines.append("  per level (MLP/table): " + " ".join(f"{r:.2f}" for r in cov["ratio"]["in_level_set"]))
+        lines.append(f"  table fallbacks: nearest {cov['table']['nearest_rate']:.2%}, "
+                     f"uniform {cov['table']['miss_rate']:.2%} (MLP: 0, 0)")
+    return "\n".join(lines)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    try:
+        return distill(parse_args(argv))
+    except (UsageError, TableError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())
