@@ -33,6 +33,7 @@ from torch import Tensor, nn
 
 from .fileio import write_bytes
 from .grid import Grid
+from .rollout import check_states
 from .systems import System, system_from_json
 
 __all__ = ["POLICY_FORMAT", "MLPConfig", "MLPPolicy", "PolicyCheckpointError", "policy_checkpoint", "save_policy",
@@ -114,13 +115,7 @@ class MLPPolicy(nn.Module):
 
     def features(self, x: Tensor, t: int | Tensor) -> Tensor:
         """``x [N, d]``, ``t`` (int or ``[N]``) -> ``[N, F]`` network inputs (see the module docstring)."""
-        d = self.config.state_dim
-        if x.ndim != 2 or x.shape[1] != d:
-            raise ValueError(f"states must have shape [N, {d}], got {list(x.shape)}")
-        if x.device != self.device:
-            raise ValueError(f"states are on {x.device} but the policy is on {self.device}")
-        if not x.is_floating_point():
-            raise ValueError(f"states must be a floating-point tensor, got {x.dtype}")
+        check_states(x, self.config.state_dim, self.device)
         x = x.to(self.dtype)
         parts = [x[:, self._linear] * self.inv_scale[self._linear]]
         if self._angle:

@@ -30,6 +30,7 @@ import torch
 from torch import Tensor
 
 from .grid import CellKeys, CellSet, Grid
+from .rollout import check_states
 from .systems import System
 from .table import Table, read_table
 
@@ -180,13 +181,7 @@ class TablePolicy:
     def _check(self, x: Tensor, t: int) -> None:
         if isinstance(t, bool) or not isinstance(t, int) or not 0 <= t <= self.horizon:
             raise ValueError(f"level t={t!r} is outside the table's levels 0..{self.horizon} (an integer)")
-        d = self.grid.dim
-        if x.ndim != 2 or x.shape[1] != d:
-            raise ValueError(f"states must have shape [N, {d}], got {list(x.shape)}")
-        if x.device != self.device:
-            raise ValueError(f"states are on {x.device} but the policy is on {self.device}")
-        if not x.is_floating_point():
-            raise ValueError(f"states must be a floating-point tensor, got {x.dtype}")
+        check_states(x, self.grid.dim, self.device)
         if x.dtype != self.dtype:
             raise ValueError(f"states are {x.dtype} but the policy is {self.dtype}")
 

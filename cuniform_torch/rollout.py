@@ -23,7 +23,7 @@ from torch import Tensor
 from .frames import se2_to_world
 from .systems import System
 
-__all__ = ["Policy", "ActionSampler", "rollout"]
+__all__ = ["Policy", "ActionSampler", "rollout", "check_states"]
 
 
 @runtime_checkable
@@ -45,6 +45,16 @@ class ActionSampler(Protocol):
     def sample(self, x: Tensor, t: int, generator: torch.Generator | None) -> Tensor:
         """``x [N, d]`` at step ``t`` -> actions ``[N, q]``."""
         ...
+
+
+def check_states(x: Tensor, dim: int, device: torch.device, who: str = "the policy") -> None:
+    """Raise ValueError unless ``x`` is a floating-point ``[N, dim]`` tensor on ``device``."""
+    if not isinstance(x, Tensor) or x.ndim != 2 or x.shape[1] != dim:
+        raise ValueError(f"states must have shape [N, {dim}], got {list(getattr(x, 'shape', []))}")
+    if x.device != device:
+        raise ValueError(f"states are on {x.device} but {who} is on {device}")
+    if not x.is_floating_point():
+        raise ValueError(f"states must be a floating-point tensor, got {x.dtype}")
 
 
 def _check_args(system: System, x0: Tensor, num_samples: int, horizon: int) -> int:

@@ -17,9 +17,9 @@ import numpy as np
 import torch
 
 from .fileio import write_npz
-from .systems import System, system_from_json
+from .systems import System, system_from_json, system_to_json
 
-__all__ = ["TABLE_FORMAT", "Table", "TableError", "write_table", "read_table"]
+__all__ = ["TABLE_FORMAT", "Table", "TableError", "write_table", "read_table", "system_fields"]
 
 TABLE_FORMAT = "cuniform-table/1"
 
@@ -114,6 +114,17 @@ class Table:
             arrays[f.name] = np.array(value) if isinstance(value, str) else value
         arrays.update(self.extra)
         return arrays
+
+
+def system_fields(system: System, horizon: int) -> dict[str, Any]:
+    """The table keys that describe the system (``system`` JSON, actions, grid), for table builders."""
+    return {
+        "system": system_to_json(system, horizon),
+        "actions": system.action_set(dtype=torch.float32).numpy(),
+        "cell_size": np.asarray(system.cell_size, dtype=np.float64),
+        "periodic": np.asarray(system.periodic, dtype=bool),
+        "cell_offset": np.asarray(system.cell_offset, dtype=np.float64),
+    }
 
 
 def write_table(path: str | os.PathLike, table: Table) -> None:

@@ -25,7 +25,7 @@ import torch
 from cuniform_torch.fileio import write_npz
 from cuniform_torch.grid import Grid
 from cuniform_torch.systems import System, system_to_json
-from cuniform_torch.table import Table
+from cuniform_torch.table import Table, system_fields
 
 from .levels import LevelStep, PointMode, next_level
 from .maxflow import action_probs_from_flow, solve_maxflow, unique_arcs
@@ -202,11 +202,7 @@ def _assemble(system: System, config: BuildConfig, level_cells: list[np.ndarray]
                      "torch": torch.__version__.split("+")[0]},
     }
     return Table(
-        system=system_to_json(system, config.horizon),
-        actions=system.action_set(dtype=torch.float32).numpy(),
-        cell_size=np.asarray(system.cell_size, dtype=np.float64),
-        periodic=np.asarray(system.periodic, dtype=bool),
-        cell_offset=np.asarray(system.cell_offset, dtype=np.float64),
+        **system_fields(system, config.horizon),
         level_offsets=offsets,
         cells=np.concatenate(level_cells).astype(np.int64),
         action_probs=np.concatenate(probs).astype(np.float32),

@@ -35,8 +35,8 @@ import numpy as np
 import torch
 
 from cuniform_torch.grid import CellKeys, Grid
-from cuniform_torch.systems import System, system_to_json
-from cuniform_torch.table import Table
+from cuniform_torch.systems import System
+from cuniform_torch.table import Table, system_fields
 
 __all__ = ["CoverageConfig", "ReachableLevels", "enumerate_reachable", "optimize_coverage", "build_coverage_table"]
 
@@ -229,11 +229,7 @@ def build_coverage_table(system: System, config: CoverageConfig = CoverageConfig
                   "merged_states": levels.num_states}
     cell_probs = torch.cat(masses).numpy()
     table = Table(
-        system=system_to_json(system, config.horizon),
-        actions=system.action_set(dtype=torch.float32).numpy(),
-        cell_size=np.asarray(system.cell_size, dtype=np.float64),
-        periodic=np.asarray(system.periodic, dtype=bool),
-        cell_offset=np.asarray(system.cell_offset, dtype=np.float64),
+        **system_fields(system, config.horizon),
         level_offsets=offsets,
         cells=torch.cat(levels.cells).numpy().astype(np.int64),
         action_probs=torch.cat(probs).numpy().astype(np.float32),
