@@ -21,7 +21,7 @@ of frame, so one table serves every start pose (``start_relative = True``).
 
 from __future__ import annotations
 
-import enum
+from .options import Option, option_label
 import itertools
 import os
 
@@ -37,18 +37,13 @@ from .table import Table, read_table
 __all__ = ["Fallback", "TablePolicy", "load_table"]
 
 
-class Fallback(str, enum.Enum):
+@option_label('fallback')
+class Fallback(Option):
     """What a :class:`TablePolicy` does for a state outside the level set."""
 
     NEAREST = "nearest"
     UNIFORM = "uniform"
 
-    @classmethod
-    def parse(cls, value: "str | Fallback") -> "Fallback":
-        try:
-            return cls(value)
-        except ValueError:
-            raise ValueError(f"unknown fallback {value!r}; choose one of: {', '.join(f.value for f in cls)}") from None
 
 
 def _halo(keyed: Tensor, grid: Grid) -> tuple[Tensor, Tensor]:

@@ -18,7 +18,7 @@ Point modes (:class:`PointMode`):
 
 from __future__ import annotations
 
-import enum
+from cuniform_torch.options import Option, option_label
 import itertools
 import time
 from dataclasses import dataclass
@@ -39,19 +39,14 @@ _CHUNK_POINTS = 1 << 21  # state-action pairs stepped at once (bounds memory on 
 _REUSE_LIMIT = 1 << 25  # int64 cell entries (256 MiB) kept between the two passes in lattice mode
 
 
-class PointMode(str, enum.Enum):
+@option_label('point mode')
+class PointMode(Option):
     """How sample points of a cell are chosen (see the module docstring)."""
 
     CENTERS = "centers"
     LATTICE = "lattice"
     RANDOM = "random"
 
-    @classmethod
-    def parse(cls, value: "str | PointMode") -> "PointMode":
-        try:
-            return cls(value)
-        except ValueError:
-            raise ValueError(f"unknown point mode {value!r}; choose one of: {', '.join(m.value for m in cls)}") from None
 
 
 @dataclass

@@ -19,7 +19,7 @@ even-odd crossing rule, which is half-open: a point exactly on a polygon edge ma
 
 from __future__ import annotations
 
-import enum
+from ..options import Option, option_label
 import math
 from dataclasses import dataclass, field
 from typing import Any, Protocol, Sequence, runtime_checkable
@@ -353,7 +353,8 @@ class OccupancyGrid:
 
 # ------------------------------------------------------------------------------------------------ U-shape
 
-class Opening(str, enum.Enum):
+@option_label('opening')
+class Opening(Option):
     """Which way the pocket of a :func:`u_shape` opens."""
 
     POS_X = "+x"
@@ -361,12 +362,6 @@ class Opening(str, enum.Enum):
     POS_Y = "+y"
     NEG_Y = "-y"
 
-    @classmethod
-    def parse(cls, value: "str | Opening") -> "Opening":
-        try:
-            return cls(value)
-        except ValueError:
-            raise ValueError(f"unknown opening {value!r}; choose one of: {', '.join(o.value for o in cls)}") from None
 
 
 def u_shape(
