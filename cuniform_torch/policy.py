@@ -21,7 +21,6 @@ of frame, so one table serves every start pose (``start_relative = True``).
 
 from __future__ import annotations
 
-from .options import Option, option_label
 import itertools
 import os
 
@@ -30,6 +29,7 @@ import torch
 from torch import Tensor
 
 from .grid import CellKeys, CellSet, Grid
+from .options import Option, option_label
 from .rollout import check_states
 from .systems import System
 from .table import Table, read_table

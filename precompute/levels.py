@@ -18,7 +18,6 @@ Point modes (:class:`PointMode`):
 
 from __future__ import annotations
 
-from cuniform_torch.options import Option, option_label
 import itertools
 import time
 from dataclasses import dataclass
@@ -28,6 +27,7 @@ import torch
 from torch import Tensor
 
 from cuniform_torch.grid import CellKeys, CellSet, Grid
+from cuniform_torch.options import Option, option_label
 from cuniform_torch.systems import System
 
 __all__ = ["PointMode", "LevelStep", "cell_sample_offsets", "next_level", "LATTICE_SCALE"]

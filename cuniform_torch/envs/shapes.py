@@ -19,13 +19,14 @@ even-odd crossing rule, which is half-open: a point exactly on a polygon edge ma
 
 from __future__ import annotations
 
-from ..options import Option, option_label
 import math
 from dataclasses import dataclass, field
 from typing import Any, Protocol, Sequence, runtime_checkable
 
 import torch
 from torch import Tensor
+
+from ..options import Option, option_label
 
 __all__ = [
     "Obstacle",
