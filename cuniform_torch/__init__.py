@@ -8,7 +8,7 @@ from .frames import se2_to_local, se2_to_world
 from .grid import CellKeys, CellSet, Grid
 from .mlp import POLICY_FORMAT, MLPConfig, MLPPolicy, PolicyCheckpointError, load_policy, save_policy
 from .mppi import COST_CAP, CUMPPI, MPPI, CostFn, CUniformMPPI, LogMPPI, MPPIResult, mppi_weights
-from .policy import Fallback, TablePolicy, load_table
+from .policy import Fallback, TablePolicy, UniformPolicy, load_table
 from .rollout import ActionSampler, Policy, rollout
 from .samplers import GaussianSampler, NormalLogNormalSampler, lognormal_params
 from .systems import (
@@ -28,7 +28,7 @@ __all__ = [
     "se2_to_local", "se2_to_world", "POLICY_FORMAT", "MLPConfig", "MLPPolicy", "PolicyCheckpointError",
     "load_policy", "save_policy", "CellKeys", "CellSet", "Grid",
     "COST_CAP", "CUMPPI", "MPPI", "CostFn", "CUniformMPPI", "LogMPPI", "MPPIResult", "mppi_weights",
-    "Fallback", "TablePolicy", "load_table", "ActionSampler", "Policy", "rollout",
+    "Fallback", "TablePolicy", "UniformPolicy", "load_table", "ActionSampler", "Policy", "rollout",
     "GaussianSampler", "NormalLogNormalSampler", "lognormal_params",
     "Dubins", "RandomWalk1D", "System", "UnknownSystemError", "known_systems", "make_system", "register_system",
     "system_from_json", "system_to_json", "TABLE_FORMAT", "Table", "TableError", "read_table", "write_table",

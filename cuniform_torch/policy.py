@@ -34,7 +34,7 @@ from .rollout import check_states
 from .systems import System
 from .table import Table, read_table
 
-__all__ = ["Fallback", "TablePolicy", "load_table"]
+__all__ = ["Fallback", "TablePolicy", "UniformPolicy", "load_table"]
 
 
 @option_label('fallback')
@@ -245,3 +245,27 @@ def load_table(
 ) -> TablePolicy:
     """Read and validate a table file, and return its :class:`TablePolicy` on ``device``."""
     return TablePolicy(read_table(path), device=device, dtype=dtype, fallback=fallback, compile=compile)
+
+
+class UniformPolicy:
+    """Uniform random discrete actions: ``action_probs`` is ``1/A`` everywhere (the paper's "uniform" baseline).
+
+    Has the Policy interface, so it drives :func:`~cuniform_torch.rollout.rollout` and
+    :class:`~cuniform_torch.mppi.CUniformMPPI` like a table does; ``horizon=None`` means any horizon.
+    """
+
+    start_relative = False
+
+    def __init__(self, system: System, horizon: int | None = None, device: torch.device | str = "cpu",
+                 dtype: torch.dtype = torch.float32):
+        self.system = system
+        self.horizon = horizon
+        self.device = torch.device(device)
+        self.dtype = dtype
+        self.actions = system.action_set(dtype=dtype, device=self.device)  # [A, q]
+
+    def action_probs(self, x: Tensor, t: int) -> Tensor:
+        """``x [N, d]`` -> ``[N, A]`` all ``1/A``."""
+        check_states(x, len(self.system.periodic), self.device)
+        A = self.actions.shape[0]
+        return torch.full((x.shape[0], A), 1.0 / A, dtype=self.dtype, device=self.device)
