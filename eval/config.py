@@ -21,12 +21,12 @@ TABLE = OUT / "dubins.npz"
 """the default Dubins table (T = 10 steps = 2 s): coverage and uniformity experiments"""
 COVERAGE_TABLE = OUT / "dubins_cov.npz"
 """the same preset built by ``--method coverage`` (issue 7's method)"""
-POLICY = OUT / "dubins.policy.pt"
-"""the MLP distilled from TABLE"""
 TABLE_15 = OUT / "dubins15.npz"
 """horizon 15 (3 s, the paper's controller horizon): closed-loop experiments"""
 COVERAGE_TABLE_15 = OUT / "dubins15_cov.npz"
 POLICY_15 = OUT / "dubins15.policy.pt"
+"""the MLP distilled from TABLE_15 (its first 10 levels are TABLE's): every experiment's ``cu_mlp``"""
+POLICY = POLICY_15
 
 PAPER_COVERAGE = {  # Table I: N -> method -> distinct cells (2 s trajectories)
     250: {"mppi_low": 21, "mppi_medium": 86, "mppi_high": 329, "log_mppi_low": 74, "log_mppi_medium": 271,
