@@ -23,6 +23,7 @@ Every controller does the same three things per command, and differs only in how
 from __future__ import annotations
 
 import math
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Callable
 
@@ -195,13 +196,17 @@ class CUniformMPPI(_Core):
     ``lambda_ = 0`` commands the best proposal's first action (as the reference robot code does). With
     ``bank_size`` set, ``bank_size`` rollouts are pre-sampled at the origin (SE(2)-invariant systems only); each
     command takes a fresh random subset of ``num_samples`` of them and moves it to the pose by a rigid
-    transform; ``resample_bank()`` draws a new bank (also every ``bank_refresh`` commands when set).
+    transform; ``resample_bank()`` draws a new bank (also every ``bank_refresh`` commands when set). With
+    ``bank_background=True`` that refresh runs in a worker thread while commands go on with the current bank;
+    the new bank replaces it at the first command after it is ready (``wait_for_bank()`` blocks until then).
+    Which command first sees a background bank depends on timing, so runs with it are not bit-reproducible;
+    call ``close()`` to stop the worker.
     """
 
     def __init__(self, policy, cost_fn: CostFn, num_samples: int = 1000, lambda_: float = 0.567,
                  horizon: int | None = None, bank_size: int | None = None, bank_refresh: int | None = None,
-                 terminal_cost: Callable[[Tensor], Tensor] | None = None, device: torch.device | str | None = None,
-                 seed: int | None = None):
+                 bank_background: bool = False, terminal_cost: Callable[[Tensor], Tensor] | None = None,
+                 device: torch.device | str | None = None, seed: int | None = None):
         device = torch.device(device) if device is not None else getattr(policy, "device", torch.device("cpu"))
         self.policy = _as_policy(policy, device)
         table_horizon = getattr(self.policy, "horizon", None)
@@ -216,9 +221,20 @@ class CUniformMPPI(_Core):
             _check_positive_int("bank_refresh", bank_refresh)
             if bank_size is None:
                 raise ValueError("bank_refresh needs a proposal bank: set bank_size too")
+        if bank_background and bank_refresh is None:
+            raise ValueError("bank_background refreshes the bank every bank_refresh commands: set bank_refresh too")
         self.bank_size = bank_size
         self.bank_refresh = bank_refresh
+        self.bank_background = bool(bank_background)
         self._commands = 0
+        self._pending: Future | None = None
+        self._executor: ThreadPoolExecutor | None = None
+        self.banks_swapped = 0
+        """background banks put in use so far"""
+        if self.bank_background:
+            self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="cuniform-bank")
+            self._bank_generator = torch.Generator(device=self.device)  # the worker's own stream of random numbers
+            self._bank_generator.manual_seed(seed + 1) if seed is not None else self._bank_generator.seed()
         if bank_size is not None:
             _check_positive_int("bank_size", bank_size)
             if not self.system.se2_invariant:
@@ -230,11 +246,33 @@ class CUniformMPPI(_Core):
     def reset(self) -> None:
         self._commands = 0
 
-    def resample_bank(self) -> None:
-        """Draw ``bank_size`` fresh rollouts at the origin."""
+    def _draw_bank(self, generator: torch.Generator) -> tuple[Tensor, Tensor]:
         origin = torch.zeros(self.state_dim, dtype=self.dtype, device=self.device)
-        self.bank_states, self.bank_actions = rollout(self.system, self.policy, origin, self.bank_size, self.horizon,
-                                                      self.generator)  # [M, T+1, d], [M, T, q]
+        return rollout(self.system, self.policy, origin, self.bank_size, self.horizon, generator)
+
+    def resample_bank(self) -> None:
+        """Draw ``bank_size`` fresh rollouts at the origin, now."""
+        self.bank_states, self.bank_actions = self._draw_bank(self.generator)  # [M, T+1, d], [M, T, q]
+
+    def _swap_if_ready(self, wait: bool = False) -> bool:
+        if self._pending is None or not (wait or self._pending.done()):
+            return False
+        self.bank_states, self.bank_actions = self._pending.result()
+        self._pending = None
+        self.banks_swapped += 1
+        return True
+
+    def wait_for_bank(self) -> bool:
+        """Block until a background refresh in flight is done and use its bank; False when none was pending."""
+        return self._swap_if_ready(wait=True)
+
+    def close(self) -> None:
+        """Stop the background worker (a pending refresh is finished first)."""
+        if self._executor is not None:
+            self._swap_if_ready(wait=True)
+            self._executor.shutdown(wait=True)
+            self._executor = None
+            self.bank_background = False
 
     def propose(self, state: Tensor) -> tuple[Tensor, Tensor]:
         """``num_samples`` C-Uniform proposals from ``state [d]``: ``[K, T+1, d]``, ``[K, T, q]``."""
@@ -252,8 +290,14 @@ class CUniformMPPI(_Core):
 
     def command(self, state: Tensor) -> Tensor:
         self._commands += 1
-        if self.bank_refresh and self.bank_size is not None and self._commands % self.bank_refresh == 0:
-            self.resample_bank()
+        if self.bank_refresh and self.bank_size is not None:
+            due = self._commands % self.bank_refresh == 0
+            if self.bank_background:
+                self._swap_if_ready()
+                if due and self._pending is None:
+                    self._pending = self._executor.submit(self._draw_bank, self._bank_generator)
+            elif due:
+                self.resample_bank()
         return self.plan(state).command
 
 

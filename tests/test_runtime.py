@@ -797,3 +797,29 @@ class TestGPU:
         all_inf = CUniformMPPI(gpu, lambda s, a: torch.full((s.shape[0],), float("inf"), device=s.device),
                                num_samples=512, bank_size=bank_size, seed=0)
         assert bool(torch.isfinite(all_inf.command(state)).all())
+
+
+class TestBackgroundBank:
+    def test_background_refresh_swaps_in_a_new_bank_without_blocking_commands(self, dubins_policy):
+        cost = lambda s, a: (s[:, :, :2] ** 2).sum(dim=(1, 2))  # noqa: E731
+        ctrl = CUniformMPPI(dubins_policy, cost, num_samples=64, bank_size=256, bank_refresh=1,
+                            bank_background=True, seed=0)
+        try:
+            first = ctrl.bank_states.clone()
+            x = torch.zeros(3)
+            ctrl.command(x)  # submits a refresh and keeps using the current bank
+            assert ctrl.wait_for_bank() is True
+            assert ctrl.banks_swapped == 1
+            assert ctrl.bank_states.shape == first.shape and not torch.equal(ctrl.bank_states, first)
+            assert ctrl.wait_for_bank() is False  # nothing pending any more
+            for _ in range(3):
+                u = ctrl.command(x)
+                assert u.shape == (1,) and bool(torch.isfinite(u).all())
+        finally:
+            ctrl.close()
+        assert ctrl._executor is None
+
+    def test_background_needs_a_refresh_period(self, dubins_policy):
+        cost = lambda s, a: s[:, -1, 0]  # noqa: E731
+        with pytest.raises(ValueError, match="bank_refresh"):
+            CUniformMPPI(dubins_policy, cost, num_samples=64, bank_size=128, bank_background=True)
