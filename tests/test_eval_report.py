@@ -1,0 +1,146 @@
+"""eval: the open-loop experiments' numbers, the graph sampler, and `python -m eval.report --quick` end to end."""
+
+from __future__ import annotations
+
+import json
+
+import matplotlib.image
+import numpy as np
+import pytest
+import torch
+
+from cuniform_torch import TableError, UniformPolicy, make_system, read_table, rollout
+from cuniform_torch.coverage import coverage
+from cuniform_torch.graph import GraphSampler
+from eval import coverage as coverage_exp
+from eval import uniformity as uniformity_exp
+from eval.methods import METHODS, Sources, make_controller, parse_methods, sample_states
+from eval.reachable import reachable
+
+
+@pytest.fixture(scope="module")
+def dubins_table_path(dubins_table, tmp_path_factory):
+    from cuniform_torch import write_table
+
+    path = tmp_path_factory.mktemp("tables") / "dubins.npz"
+    write_table(path, dubins_table)
+    return path
+
+
+@pytest.fixture(scope="module")
+def sources(dubins_table_path, tmp_path_factory):
+    return Sources(table=dubins_table_path, coverage_table=dubins_table_path, policy=tmp_path_factory.mktemp("x") / "none.pt")
+
+
+class TestGraphSampler:
+    def test_sequences_follow_arcs_with_flow(self, dubins_table_path):
+        table = read_table(dubins_table_path)
+        g = GraphSampler(table)
+        rows = g.sample_rows(2000, generator=torch.Generator().manual_seed(0))  # [N, T+1]
+        assert rows.shape == (2000, table.horizon + 1)
+        out_flow = np.bincount(table.arcs[:, 0], weights=table.arc_flow, minlength=len(table.cells))
+        # an arc that carries flow, or any arc of a cell whose arcs all carry none
+        allowed = {(int(a), int(b)) for (a, b), f in zip(table.arcs, table.arc_flow) if f > 0 or out_flow[a] == 0}
+        steps = {(int(a), int(b)) for a, b in zip(rows[:, :-1].reshape(-1), rows[:, 1:].reshape(-1))}
+        assert steps <= allowed
+        assert any(out_flow[a] > 0 for a, _ in steps)
+        for t in range(table.horizon + 1):  # each sequence is at level t at step t
+            lo, hi = table.level_offsets[t], table.level_offsets[t + 1]
+            assert bool(((rows[:, t] >= lo) & (rows[:, t] < hi)).all())
+
+    def test_first_step_frequencies_match_the_flow(self, dubins_table_path):
+        table = read_table(dubins_table_path)
+        rows = GraphSampler(table).sample_rows(20000, horizon=1, generator=torch.Generator().manual_seed(1))
+        first = table.arcs[:, 0] == 0
+        expected = table.arc_flow[first] / table.arc_flow[first].sum()
+        seen = np.array([(rows[:, 1] == int(to)).float().mean().item() for to in table.arcs[first, 1]])
+        assert np.allclose(seen, expected, atol=0.015)
+
+    def test_a_table_without_arcs_is_refused(self, dubins_table_path):
+        table = read_table(dubins_table_path)
+        table.arcs = None
+        with pytest.raises(TableError, match="flow graph"):
+            GraphSampler(table)
+
+
+def test_uniform_policy_rows_are_uniform():
+    system = make_system("dubins")
+    p = UniformPolicy(system)
+    probs = p.action_probs(torch.zeros(7, 3), 0)
+    assert torch.allclose(probs, torch.full((7, 5), 0.2))
+    states, actions = rollout(system, p, torch.zeros(3), 4000, 3, torch.Generator().manual_seed(0))
+    counts = torch.bincount(torch.round(actions[:, 0, 0] / (torch.pi / 8)).long() + 2, minlength=5).double() / 4000
+    assert torch.allclose(counts, torch.full((5,), 0.2, dtype=torch.float64), atol=0.03)
+
+
+def test_every_method_samples_and_every_closed_loop_method_commands(sources):
+    for m in parse_methods([k for k in METHODS if k != "cu_mlp" and METHODS[k].open_loop]):
+        states = sample_states(m, sources, 50, 4, torch.Generator().manual_seed(0))
+        assert states.shape == (50, 5, 3) and bool(torch.isfinite(states).all())
+    cost = lambda s, a: ((s[:, :, :2] - torch.tensor([1.0, 0.0])) ** 2).sum(dim=(1, 2))  # noqa: E731
+    for m in parse_methods([k for k in METHODS if k != "cu_mlp" and METHODS[k].closed_loop], closed_loop=True):
+        u = make_controller(m, sources, cost, 64, 5, seed=0).command(torch.zeros(3))
+        assert u.shape == (1,)
+    with pytest.raises(ValueError, match="unknown method"):
+        parse_methods(["mppi_huge"])
+
+
+def test_coverage_experiment_orders_the_methods_as_the_paper_does(sources):
+    cfg = coverage_exp.CoverageConfig(methods=["mppi_low", "mppi_high", "uniform", "cu_graph"], samples=[500], seeds=2)
+    result = coverage_exp.run(cfg, sources, progress=False)
+    cells = {r["method"]: r["cells_mean"] for r in result["results"]}
+    assert cells["mppi_low"] < cells["mppi_high"] < cells["uniform"] < cells["cu_graph"]
+    reach = result["reachable"]["total"]
+    for r in result["results"]:
+        assert 0 < r["pct_reachable"] == pytest.approx(100 * r["cells_mean"] / reach)
+        assert len(r["per_level_mean"]) == result["horizon"] + 1
+    assert result["results"][0]["paper"] == 23  # Table I, N = 500, MPPI low
+    assert "| 500 |" in coverage_exp.markdown(result)
+
+
+def test_reachable_cells_are_what_rollouts_reach(dubins_table_path):
+    system = read_table(dubins_table_path).make_system()
+    reach = reachable(system, 4)
+    from cuniform_torch.grid import Grid
+
+    grid = Grid.of(system)
+    states, _ = rollout(system, UniformPolicy(system), torch.zeros(3, dtype=torch.float64), 3000, 4,
+                        torch.Generator().manual_seed(0))
+    for t in range(5):
+        seen = torch.unique(grid.cells(states[:, t]), dim=0)
+        ref = {tuple(c) for c in reach.level_cells[t].tolist()}
+        assert {tuple(c) for c in seen.tolist()} <= ref  # rollouts never leave the enumerated set
+        assert len(seen) >= 0.9 * len(ref) or len(ref) > 3000 // 2
+
+
+def test_uniformity_stats_of_exact_uniform_draws_and_of_a_point_mass():
+    ref = torch.stack([torch.arange(10), torch.zeros(10, dtype=torch.long)], dim=1)  # 10 cells
+    uniform = ref.repeat(100, 1)  # every cell exactly 100 times
+    s = uniformity_exp.level_stats(uniform, ref, torch.Generator().manual_seed(0))
+    assert s["tv"] == pytest.approx(0.0) and s["entropy"] == pytest.approx(1.0) and s["outside"] == 0.0
+    point = torch.tensor([[0, 0]] * 500 + [[99, 0]] * 500)  # half in one cell, half outside
+    s = uniformity_exp.level_stats(point, ref)
+    assert s["outside"] == pytest.approx(0.5)
+    expected_tv = 0.5 * (abs(0.5 - 0.1) + 9 * 0.1) + 0.5 * 0.5
+    assert s["tv"] == pytest.approx(expected_tv)
+
+
+def test_report_quick_runs_end_to_end(tmp_path):
+    from eval.report import main
+
+    assert main(["--quick", "--out", str(tmp_path / "out"), "--runs", str(tmp_path / "runs")]) == 0
+    root = tmp_path / "out" / "quick"
+    text = (root / "report.md").read_text()
+    for heading in ("## Coverage", "## Uniformity", "## Figures", "Machine:"):
+        assert heading in text
+    figures = sorted((root / "figures").glob("*.png"))
+    assert {"coverage_vs_n.png", "trajectory_fans.png", "uniformity_per_level.png"} <= {f.name for f in figures}
+    for f in figures:
+        image = matplotlib.image.imread(f)
+        assert image.ndim == 3 and image.shape[0] > 100
+    for name in ("coverage", "uniformity"):
+        json.loads((root / "eval" / f"{name}.json").read_text())
+    events = list((tmp_path / "runs" / "quick").rglob("events.out.tfevents.*"))
+    assert {p.parent.name for p in events} >= {"cu_table", "mppi_high", "figures"}
+    # a second run reuses every stage's result
+    assert main(["--quick", "--out", str(tmp_path / "out"), "--runs", str(tmp_path / "runs")]) == 0
