@@ -11,7 +11,9 @@ obstacle. Here, per rollout:
   cut-off the cheapest rollouts would orbit the goal);
 * collision cost: a large finite ``collision_penalty``, once, if any state at steps ``1..T`` is in collision
   with the obstacles sensed at the cost's ``time`` (finite, so MPPI weights ``softmax(-cost / lambda)`` never
-  become NaN when every rollout collides).
+  become NaN when every rollout collides); with ``per_state=True``, once for every such state (the paper's
+  per-state ``l_obs`` summed over the horizon, so that when every rollout collides the ones that spend fewer
+  steps in collision still weigh more).
 """
 
 from __future__ import annotations
@@ -111,6 +113,8 @@ class NavigationCost:
     """cost added once to a rollout that collides (finite stand-in for the paper's inf)"""
     time: float | None = 0.0
     """current time (s): obstacles with ``appear_time <= time`` are seen; None: all"""
+    per_state: bool = False
+    """charge ``collision_penalty`` for every colliding state at steps 1..T instead of once per rollout"""
 
     def __post_init__(self) -> None:
         if not isinstance(self.env, Environment):
@@ -121,6 +125,8 @@ class NavigationCost:
         if isinstance(p, bool) or not isinstance(p, (int, float)) or not math.isfinite(p) or p <= 0:
             raise ValueError(f"NavigationCost: collision_penalty must be a finite number > 0, got {p!r}")
         self.collision_penalty = float(p)
+        if not isinstance(self.per_state, bool):
+            raise ValueError(f"NavigationCost: per_state must be a bool, got {self.per_state!r}")
         self.set_time(self.time)
 
     def set_time(self, t: float | None) -> None:
@@ -138,5 +144,8 @@ class NavigationCost:
             raise ValueError(f"NavigationCost: actions must have shape [{N}, {T1 - 1}, q] to match states "
                              f"{list(states.shape)}, got {list(getattr(actions, 'shape', []))}")
         cost = goal_cost(states, self.goal, self.goal_tolerance)  # [N]
-        hit = collision_mask(states, self.env, self.time)  # [N]
+        if self.per_state:
+            hit = self.env.in_collision(states[:, 1:, :2], self.time).sum(dim=1)  # [N] colliding states
+        else:
+            hit = collision_mask(states, self.env, self.time)  # [N]
         return cost + hit.to(cost.dtype) * self.collision_penalty

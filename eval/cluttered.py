@@ -1,0 +1,293 @@
+"""Cluttered environments (the paper's Table III): a U-shaped trap and a field of rectangles.
+
+Geometry (fixed in :data:`ENVIRONMENTS`, printed by :func:`markdown`; the paper gives none):
+
+* ``u_shape``: a 12 m x 12 m walled arena ``[-6, 6]^2``; a U of outer size 2.5 m (x) by 3 m (y), walls 0.25 m
+  thick, centred at the origin and open towards +x (pocket 2.25 m deep, 2.5 m wide); the goal (-0.4, 0) is
+  inside the pocket, 0.6 m from its base ("a U-shaped obstacle with a goal point inside of the U"). A robot
+  that starts behind or beside the U is pulled by the squared-distance cost against the base or a side wall:
+  the trap.
+* ``rectangles``: a 12 m x 10 m walled arena ``[0, 12] x [-5, 5]``; eight 0.6 m x 1.4 m rectangles in three
+  staggered columns (x = 4, 6, 8 m) between a start strip on the left (x <= 3 m) and the goal (10.5, 0);
+  gaps between rectangles are 1.6 m to 2.0 m wide (1.3 m to 2.6 m to the walls), and the middle rectangles
+  of the first and last columns sit on the straight line to the goal.
+
+Starts: ``starts`` = 10 random poses per environment, drawn once from ``numpy.random.default_rng([seed,
+env index])`` in the environment's start box with a uniform heading, kept only when at least ``clearance``
+= 1.5 m from every obstacle and the arena walls (more than the 1.27 m turning radius, so that a robot can
+turn away from whatever it faces) and at least ``min_goal_distance`` from the goal. The same starts for every
+method and N.
+
+Runs: every closed-loop method of ``eval.methods`` with N in {500, 1000, 2500}, horizon 15 steps (3 s),
+lambda = 0.567, the paper's cost (squared xy distance to the goal summed over the horizon, cut off at the
+goal tolerance, + 1e6 per rollout state in collision, walls included), goal tolerance 0.3 m. The time limit
+comes from the environment size: ``(width + height) / v`` (24 s for the U arena, 22 s for the rectangles),
+i.e. the time to drive half the arena's perimeter. Success = goal reached with no collision within the
+limit. Controller seed ``seed + 1 + 1000 * env index + start``: the same for every method and N. No knob
+differs between methods beyond what defines the method (see ``eval.sudden_obstacle`` for the cost).
+
+``python -m eval.cluttered [--methods ...] [--samples 500 1000 2500] [--starts 10] [--envs u_shape rectangles]
+[--device cpu] [--json PATH] [--figures DIR] [--quick]``
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import time
+from dataclasses import asdict, dataclass, replace
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from cuniform_torch.envs import Environment, Rect, u_shape
+
+from . import config
+from .closed_loop import (Episode, add_common_args, aggregate, finish_cli, plot_paths, run_episodes,
+                          sources_from_args, success_markdown, usable_methods)
+from .methods import METHODS, Sources
+
+__all__ = ["EnvSpec", "ENVIRONMENTS", "ClutteredConfig", "QUICK", "make_env", "start_poses", "time_limit",
+           "episodes", "run", "markdown", "figures", "main"]
+
+
+@dataclass(frozen=True)
+class EnvSpec:
+    """One cluttered environment: obstacles, arena, goal and where starts are drawn."""
+
+    name: str
+    bounds: tuple[float, float, float, float]
+    """arena (xmin, ymin, xmax, ymax); leaving it is a collision"""
+    goal: tuple[float, float]
+    rects: tuple[tuple[float, float, float, float], ...] = ()
+    """axis-aligned rectangles (xmin, ymin, xmax, ymax)"""
+    u: tuple | None = None
+    """u_shape arguments (center, width, depth, thickness, opening)"""
+    start_box: tuple[float, float, float, float] | None = None
+    """(xmin, ymin, xmax, ymax) where start positions are drawn; None: the arena"""
+    min_goal_distance: float = 3.0
+    """m, between a start and the goal"""
+
+    def describe(self) -> str:
+        parts = [f"arena {self.bounds}", f"goal {self.goal}"]
+        if self.u is not None:
+            c, w, d, t, o = self.u
+            parts.append(f"U-shape centre {c}, width {w} m, depth {d} m, wall {t} m, open {o}")
+        if self.rects:
+            parts.append("rectangles " + ", ".join(str(r) for r in self.rects))
+        parts.append(f"starts in {self.start_box or self.bounds}, >= {self.min_goal_distance} m from the goal")
+        return "; ".join(parts)
+
+
+ENVIRONMENTS: dict[str, EnvSpec] = {
+    "u_shape": EnvSpec(
+        "u_shape", bounds=(-6.0, -6.0, 6.0, 6.0), goal=(-0.4, 0.0),
+        u=((0.0, 0.0), 3.0, 2.5, 0.25, "+x"), min_goal_distance=3.0),
+    "rectangles": EnvSpec(
+        "rectangles", bounds=(0.0, -5.0, 12.0, 5.0), goal=(10.5, 0.0),
+        rects=((4.0, -3.7, 4.6, -2.3), (4.0, -0.7, 4.6, 0.7), (4.0, 2.3, 4.6, 3.7),
+               (6.0, -2.4, 6.6, -1.0), (6.0, 1.0, 6.6, 2.4),
+               (8.0, -3.7, 8.6, -2.3), (8.0, -0.7, 8.6, 0.7), (8.0, 2.3, 8.6, 3.7)),
+        start_box=(0.0, -5.0, 3.0, 5.0), min_goal_distance=6.0),
+}
+
+
+@dataclass(frozen=True)
+class ClutteredConfig:
+    """Parameters and seeds of the cluttered-environment experiment (geometry: :data:`ENVIRONMENTS`)."""
+
+    environments: tuple[str, ...] = ("u_shape", "rectangles")
+    starts: int = 10
+    """random start poses per environment (the paper: 10)"""
+    samples: tuple[int, ...] = (500, 1000, 2500)
+    """N, trajectories per control cycle"""
+    clearance: float = 1.5
+    """m, from a start to every obstacle and wall"""
+    goal_tolerance: float = 0.3
+    """m"""
+    time_limit_factor: float = 1.0
+    """time limit = factor * (arena width + height) / speed"""
+    horizon: int = 15
+    """controller horizon in steps (3 s)"""
+    lambda_: float = config.LAMBDA
+    collision_penalty: float = 1e6
+    """added for every rollout state in collision"""
+    per_state: bool = True
+    """penalty per colliding state (True) or once per colliding rollout"""
+    seed: int = 0
+    """draws the starts; controller seeds derive from it"""
+    methods: tuple[str, ...] | None = None
+    """method keys; None: every closed-loop method whose files exist"""
+
+
+QUICK = ClutteredConfig(starts=1, samples=(100,), time_limit_factor=0.25)
+"""--quick: one start per environment, N = 100, a quarter of the time limit (a few seconds)"""
+
+
+def make_env(name: str) -> Environment:
+    spec = ENVIRONMENTS[name]
+    obstacles = [Rect(*r) for r in spec.rects]
+    if spec.u is not None:
+        c, w, d, t, o = spec.u
+        obstacles.append(u_shape(c, w, d, t, o))
+    return Environment(obstacles, bounds=spec.bounds)
+
+
+def _clearance(env: Environment, xy: torch.Tensor) -> float:
+    """Distance (m) from ``xy [2]`` to the nearest obstacle or wall (negative inside)."""
+    d = [float(obs.signed_distance(xy)) for obs in env.obstacles]
+    xmin, ymin, xmax, ymax = env.bounds
+    x, y = float(xy[0]), float(xy[1])
+    d.append(min(x - xmin, xmax - x, y - ymin, ymax - y))
+    return min(d)
+
+
+def start_poses(cfg: ClutteredConfig, name: str) -> list[tuple[float, float, float]]:
+    """``cfg.starts`` collision-free start poses (x, y, theta) in ``name``, fixed by ``cfg.seed``."""
+    spec = ENVIRONMENTS[name]
+    env = make_env(name)
+    rng = np.random.default_rng([cfg.seed, list(ENVIRONMENTS).index(name)])
+    xmin, ymin, xmax, ymax = spec.start_box or spec.bounds
+    out = []
+    for _ in range(100000):
+        if len(out) == cfg.starts:
+            return out
+        x, y, th = rng.uniform(xmin, xmax), rng.uniform(ymin, ymax), rng.uniform(-math.pi, math.pi)
+        xy = torch.tensor([x, y], dtype=torch.float64)
+        if math.hypot(x - spec.goal[0], y - spec.goal[1]) < spec.min_goal_distance:
+            continue
+        if _clearance(env, xy) < cfg.clearance:
+            continue
+        out.append((round(x, 4), round(y, 4), round(th, 4)))
+    raise RuntimeError(f"could not draw {cfg.starts} starts in {name} with clearance {cfg.clearance} m")
+
+
+def time_limit(cfg: ClutteredConfig, name: str, speed: float) -> float:
+    """``factor * (width + height) / speed`` of the arena (s)."""
+    xmin, ymin, xmax, ymax = ENVIRONMENTS[name].bounds
+    return cfg.time_limit_factor * ((xmax - xmin) + (ymax - ymin)) / speed
+
+
+def episodes(cfg: ClutteredConfig, methods: list[str], speed: float) -> list[Episode]:
+    out = []
+    for name in cfg.environments:
+        ei = list(ENVIRONMENTS).index(name)
+        env, spec, limit = make_env(name), ENVIRONMENTS[name], time_limit(cfg, name, speed)
+        for s, pose in enumerate(start_poses(cfg, name)):
+            for n in cfg.samples:
+                for m in methods:
+                    out.append(Episode(m, n, env, pose, spec.goal, cfg.goal_tolerance, limit,
+                                       seed=cfg.seed + 1 + 1000 * ei + s, horizon=cfg.horizon,
+                                       tags={"env": name, "start": s}))
+    return out
+
+
+def run(cfg: ClutteredConfig, sources: Sources, progress: bool = True, record_paths: bool = True) -> dict:
+    """Run the experiment; a JSON-ready dict (config, geometry, starts, per-episode records, summary)."""
+    t0 = time.perf_counter()
+    unknown = [e for e in cfg.environments if e not in ENVIRONMENTS]
+    if unknown:
+        raise ValueError(f"unknown environment(s) {unknown}; choose from {list(ENVIRONMENTS)}")
+    methods = [m.key for m in usable_methods(cfg.methods, sources, requested=cfg.methods is not None)]
+    speed = float(getattr(sources.system, "speed", 1.0))
+    records = run_episodes(episodes(cfg, methods, speed), sources, lambda_=cfg.lambda_,
+                           collision_penalty=cfg.collision_penalty, per_state=cfg.per_state,
+                           record_paths=record_paths, progress=progress, desc="cluttered")
+    return {
+        "experiment": "cluttered",
+        "config": asdict(cfg),
+        "geometry": {e: ENVIRONMENTS[e].describe() for e in cfg.environments},
+        "time_limits": {e: time_limit(cfg, e, speed) for e in cfg.environments},
+        "starts": {e: start_poses(cfg, e) for e in cfg.environments},
+        "methods": methods,
+        "records": records,
+        "summary": aggregate(records, ("env", "num_samples", "method")),
+        "seconds": round(time.perf_counter() - t0, 2),
+    }
+
+
+def _config(results: dict) -> ClutteredConfig:
+    c = dict(results["config"])
+    for k in ("environments", "samples", "methods"):
+        if c.get(k) is not None:
+            c[k] = tuple(c[k])
+    return ClutteredConfig(**c)
+
+
+def _fmt(v: float | None, unit: str) -> str:
+    return "-" if v is None else f"{v:.1f} {unit}"
+
+
+def markdown(results: dict) -> str:
+    """Per environment: success rates (rows = methods, columns = N) beside the paper's, then the mean time to
+    goal and path length of the successful runs."""
+    cfg = _config(results)
+    rows = results["summary"]
+    out = ["### Cluttered environments (Table III)", "",
+           f"{cfg.starts} random start poses per environment (seed {cfg.seed}, >= {cfg.clearance} m from obstacles "
+           f"and walls), goal tolerance {cfg.goal_tolerance} m, horizon {cfg.horizon} steps, lambda {cfg.lambda_}. "
+           "Success rate with its 95% Wilson interval; the paper's MPPI / log-MPPI columns do not name a noise "
+           "level; its C-Uniform column is our `cu_table`.", ""]
+    for name in cfg.environments:
+        paper = {n: {fam: v.get(n) for fam, v in config.PAPER_CLUTTERED.get(name, {}).items()} for n in cfg.samples}
+        starts = ", ".join(f"({x:.2f}, {y:.2f}, {th:.2f})" for x, y, th in results["starts"][name])
+        out += [f"**{name}**: {results['geometry'][name]}; time limit {results['time_limits'][name]:g} s; "
+                f"starts (x, y, theta): {starts}", ""]
+        out.append(success_markdown(rows, results["methods"], "num_samples", list(cfg.samples),
+                                    [f"N = {n}" for n in cfg.samples], paper, where={"env": name}))
+        out += ["", f"Mean time to goal / path length over the successful runs ({name}):", ""]
+        head = ["method"] + [f"N = {n}" for n in cfg.samples]
+        lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+        for m in results["methods"]:
+            cells = []
+            for n in cfg.samples:
+                r = next((r for r in rows if r["env"] == name and r["num_samples"] == n and r["method"] == m), None)
+                cells.append("-" if r is None else
+                             f"{_fmt(r['mean_time'], 's')} / {_fmt(r['mean_path_length'], 'm')}")
+            lines.append(f"| {METHODS[m].label} | " + " | ".join(cells) + " |")
+        out += ["\n".join(lines), ""]
+    out.append(f"Run time: {results['seconds']:.0f} s for {len(results['records'])} episodes.")
+    return "\n".join(out)
+
+
+def figures(results: dict, outdir: Path) -> list[Path]:
+    """Closed-loop paths per method, one PNG per environment (N = 1000 as in the paper's figure, when run)."""
+    cfg = _config(results)
+    recs = results["records"]
+    if not recs or "path" not in recs[0]:
+        return []
+    n = 1000 if 1000 in cfg.samples else max(cfg.samples)
+    paths = []
+    for name in cfg.environments:
+        env = make_env(name)
+        xmin, ymin, xmax, ymax = env.bounds
+        panels = {METHODS[m].label: [r for r in recs if r["method"] == m and r["env"] == name
+                                     and r["num_samples"] == n] for m in results["methods"]}
+        paths.append(plot_paths(panels, env, Path(outdir) / f"cluttered_{name}_N{n}.png",
+                                title=f"{name}: closed-loop paths from {cfg.starts} starts, N = {n}",
+                                xlim=(xmin - 0.2, xmax + 0.2), ylim=(ymin - 0.2, ymax + 0.2)))
+    return paths
+
+
+def main(argv: list[str] | None = None) -> dict:
+    parser = argparse.ArgumentParser(prog="python -m eval.cluttered", description=__doc__.splitlines()[0])
+    add_common_args(parser)
+    parser.add_argument("--samples", type=int, nargs="+", default=None)
+    parser.add_argument("--starts", type=int, default=None)
+    parser.add_argument("--envs", nargs="+", default=None, choices=list(ENVIRONMENTS))
+    args = parser.parse_args(argv)
+    torch.set_num_threads(1)
+    cfg = QUICK if args.quick else ClutteredConfig()
+    overrides = {k: v for k, v in dict(samples=args.samples and tuple(args.samples), starts=args.starts, horizon=args.horizon,
+                                           environments=args.envs and tuple(args.envs),
+                                           methods=args.methods and tuple(args.methods), seed=args.seed).items()
+                 if v is not None}
+    cfg = replace(cfg, **overrides)
+    results = run(cfg, sources_from_args(args), progress=not args.quiet)
+    finish_cli(args, results, markdown, figures)
+    return results
+
+
+if __name__ == "__main__":
+    main()

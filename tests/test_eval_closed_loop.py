@@ -1,0 +1,219 @@
+"""The closed-loop experiments (eval.closed_loop, eval.sudden_obstacle, eval.cluttered) on tiny sizes.
+
+Every run here uses the session's horizon-10 Dubins table written to a temporary file, N = 16 samples and
+one or two scenarios, so each test takes a second or two.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import replace
+
+import pytest
+import torch
+
+from cuniform_torch.envs import Circle, Environment, NavigationCost
+from cuniform_torch.table import write_table
+from eval import cluttered, sudden_obstacle
+from eval.closed_loop import aggregate, success_markdown, usable_methods, wilson_interval
+from eval.methods import Sources
+
+METHODS = ("mppi_high", "cu_table")
+
+
+@pytest.fixture(scope="module")
+def sources(dubins_table, tmp_path_factory):
+    path = tmp_path_factory.mktemp("tables") / "dubins10.npz"
+    write_table(path, dubins_table)
+    missing = path.parent / "missing.npz"
+    return Sources(table=path, coverage_table=missing, policy=path.parent / "missing.pt")
+
+
+def _so(**overrides) -> sudden_obstacle.SuddenObstacleConfig:
+    base = sudden_obstacle.SuddenObstacleConfig(positions=2, appear=(0.0, 1.0), samples=(16,), horizon=10,
+                                                methods=METHODS, time_limit=6.0)
+    return replace(base, **overrides)
+
+
+def _cl(**overrides) -> cluttered.ClutteredConfig:
+    base = cluttered.ClutteredConfig(environments=("u_shape",), starts=1, samples=(16,), horizon=10,
+                                     methods=METHODS, time_limit_factor=0.25)
+    return replace(base, **overrides)
+
+
+def _strip(records):
+    return [{k: v for k, v in r.items() if k != "wall_s"} for r in records]
+
+
+# ------------------------------------------------------------------------------------------------ statistics
+
+@pytest.mark.parametrize("k, n, lo, hi", [
+    (0, 10, 0.0, 0.2775), (10, 10, 0.7225, 1.0), (5, 10, 0.2366, 0.7634), (19, 20, 0.7639, 0.9911),
+    (1, 1, 0.2065, 1.0),
+])
+def test_wilson_interval_values(k, n, lo, hi):
+    got = wilson_interval(k, n)
+    assert got == pytest.approx((lo, hi), abs=1e-4)
+
+
+def test_wilson_interval_edges():
+    assert wilson_interval(0, 0) == (0.0, 1.0)
+    lo, hi = wilson_interval(3, 7, z=2.576)  # wider at 99%
+    lo95, hi95 = wilson_interval(3, 7)
+    assert lo < lo95 and hi > hi95
+    for bad in [(-1, 3), (4, 3), (1, -1)]:
+        with pytest.raises(ValueError):
+            wilson_interval(*bad)
+
+
+def test_aggregate_and_markdown():
+    recs = [dict(method="cu_table", num_samples=16, appear=0.0, success=s, outcome="goal" if s else "collision",
+                 time=t, path_length=2 * t) for s, t in [(True, 4.0), (True, 6.0), (False, 1.0)]]
+    (row,) = aggregate(recs, ("appear", "num_samples", "method"))
+    assert (row["n"], row["successes"], row["collisions"], row["timeouts"]) == (3, 2, 1, 0)
+    assert row["success_rate"] == pytest.approx(2 / 3)
+    assert (row["ci_low"], row["ci_high"]) == pytest.approx(wilson_interval(2, 3))
+    assert row["mean_time"] == 5.0 and row["mean_path_length"] == 10.0  # successful runs only
+    md = success_markdown([row], ["cu_table"], "appear", [0.0], ["visible"], {0.0: {"cuniform": 1.0}})
+    assert "0.67 [" in md and "paper: C-Uniform" in md and "| 1.00 |" in md
+
+
+def test_per_state_collision_cost():
+    env = Environment([Circle((1.0, 0.0), 0.25)])
+    xs = torch.linspace(0.0, 2.0, 11)
+    states = torch.stack([torch.stack((xs, torch.zeros(11), torch.zeros(11)), 1),
+                          torch.stack((xs, torch.full((11,), 1.0), torch.zeros(11)), 1)])  # [2, 11, 3]
+    actions = torch.zeros(2, 10, 1)
+    once = NavigationCost(env, (5.0, 0.0), collision_penalty=100.0)(states, actions)
+    per = NavigationCost(env, (5.0, 0.0), collision_penalty=100.0, per_state=True)(states, actions)
+    free = NavigationCost(Environment([]), (5.0, 0.0))(states, actions)
+    assert once - free == pytest.approx(torch.tensor([100.0, 0.0]))
+    assert per - free == pytest.approx(torch.tensor([300.0, 0.0]))  # x = 0.8, 1.0, 1.2 are inside
+    with pytest.raises(ValueError):
+        NavigationCost(env, (5.0, 0.0), per_state=1)
+
+
+def test_missing_sources_are_skipped_with_a_note(sources, capsys):
+    kept = [m.key for m in usable_methods(None, sources, requested=False)]
+    assert "cu_table" in kept and "cu_coverage" not in kept and "cu_mlp" not in kept
+    assert "skipping cu_coverage" in capsys.readouterr().out
+    with pytest.raises(FileNotFoundError):
+        usable_methods(["cu_mlp"], sources, requested=True)
+
+
+# ------------------------------------------------------------------------------------------------ sudden obstacle
+
+def test_sudden_obstacle_scenario():
+    cfg = sudden_obstacle.SuddenObstacleConfig()
+    offs = sudden_obstacle.offsets(cfg)
+    assert len(offs) == 20 and all(-cfg.radius <= o <= cfg.radius for o in offs)
+    assert offs == sudden_obstacle.offsets(cfg) and offs != sudden_obstacle.offsets(replace(cfg, seed=1))
+    env = sudden_obstacle.make_env(cfg, 0.1, 0.5)
+    (obs,) = env.obstacles
+    assert obs.center == (2.0, 0.1) and obs.radius == 0.5 and obs.appear_time == 0.5
+    assert len(env.visible(0.4)) == 0 and len(env.visible(0.5)) == 1
+
+
+def test_sudden_obstacle_oracle(sources):
+    cfg = sudden_obstacle.SuddenObstacleConfig()
+    system = sources.system
+    assert sudden_obstacle.oracle_feasible(cfg, system, 0.0, 0.0)  # visible from the start: easy
+    assert not sudden_obstacle.oracle_feasible(cfg, system, 0.0, 1.6)  # sensed 0.1 m before its edge
+
+
+def test_sudden_obstacle_run_markdown_figures(sources, tmp_path):
+    res = sudden_obstacle.run(_so(), sources, progress=False)
+    assert res["methods"] == list(METHODS)
+    assert len(res["records"]) == 2 * 2 * len(METHODS)
+    assert {r["outcome"] for r in res["records"]} <= {"goal", "collision", "timeout"}
+    assert len(res["summary"]) == 2 * len(METHODS)
+    json.loads(json.dumps(res))  # JSON-ready
+    md = sudden_obstacle.markdown(res)
+    assert "Sudden obstacle" in md and "paper: C-Uniform" in md and "oracle" in md and "N = 16" in md
+    paths = sudden_obstacle.figures(res, tmp_path)
+    assert len(paths) == 2 and all(p.exists() and p.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" for p in paths)
+
+
+def test_sudden_obstacle_is_deterministic(sources):
+    cfg = _so(appear=(0.5,), positions=1)
+    a = sudden_obstacle.run(cfg, sources, progress=False)
+    b = sudden_obstacle.run(cfg, sources, progress=False)
+    assert _strip(a["records"]) == _strip(b["records"])
+
+
+def test_sudden_obstacle_paper_values_shown(sources):
+    res = sudden_obstacle.run(_so(samples=(500,), positions=1, appear=(0.5,), methods=("mppi_high",),
+                                  time_limit=0.4), sources, progress=False)
+    md = sudden_obstacle.markdown(res)
+    assert "| **paper: MPPI** | MPPI | 0.55 |" in md and "| **paper: C-Uniform** | C-Uniform | 1.00 |" in md
+
+
+def test_sudden_obstacle_cli(sources, tmp_path, capsys):
+    out = tmp_path / "so.json"
+    sudden_obstacle.main(["--quick", "--quiet", "--horizon", "10", "--samples", "16", "--methods", "cu_table",
+                          "--table", str(sources.table), "--json", str(out), "--figures", str(tmp_path / "f")])
+    assert "Sudden obstacle" in capsys.readouterr().out
+    res = json.loads(out.read_text())
+    assert res["config"]["horizon"] == 10 and res["methods"] == ["cu_table"]
+    assert sorted(p.name for p in (tmp_path / "f").iterdir()) == ["sudden_obstacle_1s_N16.png",
+                                                                  "sudden_obstacle_visible_N16.png"]
+
+
+# ------------------------------------------------------------------------------------------------ cluttered
+
+@pytest.mark.parametrize("name", list(cluttered.ENVIRONMENTS))
+def test_cluttered_starts_are_free_and_fixed(name):
+    cfg = cluttered.ClutteredConfig()
+    starts = cluttered.start_poses(cfg, name)
+    assert len(starts) == 10 and starts == cluttered.start_poses(cfg, name)
+    assert starts != cluttered.start_poses(replace(cfg, seed=1), name)
+    env, spec = cluttered.make_env(name), cluttered.ENVIRONMENTS[name]
+    for x, y, th in starts:
+        xy = torch.tensor([x, y], dtype=torch.float64)
+        assert not bool(env.in_collision(xy))
+        assert all(float(o.signed_distance(xy)) >= cfg.clearance - 1e-6 for o in env.obstacles)
+        assert math.hypot(x - spec.goal[0], y - spec.goal[1]) >= spec.min_goal_distance
+        assert -math.pi <= th <= math.pi
+    assert not bool(env.in_collision(torch.tensor(spec.goal, dtype=torch.float64)))
+
+
+def test_u_shape_goal_is_inside_the_pocket():
+    env = cluttered.make_env("u_shape")
+    gx, gy = cluttered.ENVIRONMENTS["u_shape"].goal
+    walls = [(gx - 1.0, gy), (gx, gy + 1.5), (gx, gy - 1.5)]  # behind and beside the goal: walls in between
+    for wx, wy in walls:
+        seg = torch.stack((torch.linspace(gx, wx, 200), torch.linspace(gy, wy, 200)), 1).double()
+        assert bool(env.in_collision(seg).any())
+    ahead = torch.stack((torch.linspace(gx, gx + 3.0, 200), torch.full((200,), gy)), 1).double()
+    assert not bool(env.in_collision(ahead).any())  # open towards +x
+
+
+def test_cluttered_run_markdown_figures_deterministic(sources, tmp_path):
+    cfg = _cl(environments=("u_shape", "rectangles"))
+    res = cluttered.run(cfg, sources, progress=False)
+    assert len(res["records"]) == 2 * len(METHODS)
+    assert res["time_limits"] == {"u_shape": 6.0, "rectangles": 5.5}
+    json.loads(json.dumps(res))
+    md = cluttered.markdown(res)
+    assert "U-shape centre" in md and "rectangles (4.0, -3.7, 4.6, -2.3)" in md and "paper: log-MPPI" in md
+    paths = cluttered.figures(res, tmp_path)
+    assert [p.name for p in paths] == ["cluttered_u_shape_N16.png", "cluttered_rectangles_N16.png"]
+    again = cluttered.run(cfg, sources, progress=False)
+    assert _strip(res["records"]) == _strip(again["records"])
+
+
+def test_cluttered_paper_values_shown(sources):
+    res = cluttered.run(_cl(samples=(500,), methods=("mppi_high",), time_limit_factor=0.02), sources,
+                        progress=False)
+    md = cluttered.markdown(res)
+    assert "| **paper: C-Uniform** | C-Uniform | 0.80 |" in md
+
+
+def test_cluttered_cli(sources, tmp_path, capsys):
+    out = tmp_path / "cl.json"
+    cluttered.main(["--quick", "--quiet", "--horizon", "10", "--samples", "16", "--methods", "mppi_low",
+                    "--envs", "rectangles", "--table", str(sources.table), "--json", str(out)])
+    assert "Cluttered environments" in capsys.readouterr().out
+    res = json.loads(out.read_text())
+    assert res["config"]["environments"] == ["rectangles"] and len(res["records"]) == 1
