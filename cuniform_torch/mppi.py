@@ -239,6 +239,9 @@ class CUniformMPPI(_Core):
             _check_positive_int("bank_size", bank_size)
             if not self.system.se2_invariant:
                 raise ValueError(f"a proposal bank needs an SE(2)-invariant system; {self.system.name} is not")
+            if self.state_dim > 3:  # the bank starts at rest; a state's speed etc. is not a change of frame
+                raise ValueError(f"a proposal bank needs the state (x, y, theta) only; {self.system.name} has "
+                                 f"{self.state_dim} dimensions, whose rollouts depend on the start's other dimensions")
             if bank_size < num_samples:
                 raise ValueError(f"bank_size ({bank_size}) must be at least num_samples ({num_samples})")
             self.resample_bank()

@@ -102,7 +102,8 @@ def rollout(
         raise ValueError(f"{type(policy).__name__} is neither a Policy (actions, action_probs) nor an ActionSampler (sample)")
     start = x0.unsqueeze(0).expand(num_samples, d) if x0.ndim == 1 else x0  # [N, d]
     relative = bool(getattr(policy, "start_relative", False)) and system.se2_invariant
-    x = torch.zeros_like(start) if relative else start
+    # in the start pose's frame the start is (0, 0, 0, *rest): the frame change leaves speeds etc. unchanged
+    x = torch.cat((torch.zeros_like(start[:, :3]), start[:, 3:]), dim=1) if relative else start
     actions = policy.actions.to(dtype=x0.dtype) if discrete else None  # [A, q]
     planned = None
     if not discrete and hasattr(policy, "sample_sequences"):  # open-loop noise: draw it all at once

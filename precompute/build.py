@@ -1,16 +1,25 @@
 """Build a C-Uniform table:  python -m precompute.build --system dubins --out out/dubins.npz
 
-Every parameter of the chosen system is a flag (``--horizon 15``, ``--num-actions 21``,
-``--cell-size 0.1 0.1 0.1571``, ...). Prints a progress bar per level, per-stage times and the uniformity
-report; writes the table (atomically) and ``<out stem>.report.json`` beside it. Each finished level is
-checkpointed in ``<out>.partial/``; after an interrupt, ``--resume`` continues from there and writes a
-byte-identical table.
+Every parameter of a registered dataclass system is a flag (``--horizon 15``, ``--num-actions 21``,
+``--cell-size 0.1 0.1 0.1571``, ...); ``--param KEY=VALUE`` (a JSON value) sets any parameter of any system.
+Prints a progress bar per level, per-stage times and the uniformity report; writes the table (atomically) and
+``<out stem>.report.json`` beside it. Each finished level is checkpointed in ``<out>.partial/``; after an
+interrupt, ``--resume`` continues from there and writes a byte-identical table.
+
+User systems: ``--system-module my_robots`` imports a module that calls ``register_system`` (its dataclass
+fields then become flags too), and ``--system my_robots:Unicycle`` imports and registers a factory directly.
+
+Size guidance: from level 4 on, the build prints the projected size of the remaining levels and its projected
+peak memory, and warns (naming ``--horizon`` and ``--cell-size``) when that exceeds the available memory
+(``--max-memory GB`` sets the budget).
 """
 
 from __future__ import annotations
 
 import argparse
 import dataclasses
+import importlib
+import json
 import shutil
 import sys
 import time
@@ -18,10 +27,10 @@ from pathlib import Path
 from typing import Any, Sequence
 
 from cuniform_torch.fileio import write_json
-from cuniform_torch.systems import _REGISTRY, known_systems, make_system
+from cuniform_torch.systems import _REGISTRY, DEFAULT_HORIZON, known_systems, make_system, resolve_system, system_horizon
 from cuniform_torch.table import write_table
 
-from .builder import BuildConfig, build_table
+from .builder import BuildConfig, SizeGuide, available_memory_bytes, build_table
 from .levels import PointMode
 from .report import format_report, uniformity_report
 
@@ -32,7 +41,8 @@ def _system_fields() -> dict[str, dataclasses.Field]:
     for factory in _REGISTRY.values():
         if dataclasses.is_dataclass(factory):
             for f in dataclasses.fields(factory):
-                out.setdefault(f.name, f)
+                if f.init:
+                    out.setdefault(f.name, f)
     return out
 
 
@@ -57,9 +67,17 @@ def make_parser() -> argparse.ArgumentParser:
         prog="python -m precompute.build",
         description="Build a C-Uniform action-probability table (level sets + exact max-flow) and report its uniformity.",
     )
-    parser.add_argument("--system", default="dubins", help=f"system name (known: {', '.join(known_systems())})")
+    parser.add_argument("--system", default="dubins",
+                        help=f"system name (known: {', '.join(known_systems())}) or module:factory of a user system")
+    parser.add_argument("--system-module", action="append", default=[], metavar="MODULE",
+                        help="import MODULE first (repeatable); it registers user systems with register_system")
+    parser.add_argument("--param", action="append", default=[], metavar="KEY=VALUE",
+                        help="a system parameter as JSON (repeatable), e.g. --param speed=0.5 --param 'cell_size=[0.1, 0.1, 0.2]'")
+    parser.add_argument("--max-memory", type=float, default=None, metavar="GB",
+                        help="memory budget of the size guidance (default: the available memory)")
     parser.add_argument("--out", type=Path, default=None, help="table file to write (default: out/<system>.npz)")
-    parser.add_argument("--horizon", type=int, default=None, help="number of steps T (default: 10)")
+    parser.add_argument("--horizon", type=int, default=None,
+                        help=f"number of steps T (default: the system's default_horizon, else {DEFAULT_HORIZON})")
     parser.add_argument("--points", default=PointMode.CENTERS.value, choices=[m.value for m in PointMode],
                         help="sample points per cell: centers (level sets from cell centres, transitions from the 3^d "
                              "lattice), lattice (level sets from all lattice points), random (centre + K random points)")
@@ -90,6 +108,8 @@ def make_parser() -> argparse.ArgumentParser:
             kwargs.update(type=lambda s: s.lower() in ("1", "true", "yes"))
         elif isinstance(default, int):
             kwargs.update(type=int)
+        elif isinstance(default, str):
+            kwargs.update(type=str)
         else:
             kwargs.update(type=float)
         group.add_argument(flag, help=f"default {_defaults_of(name)}".replace("%", "%%"), **kwargs)
@@ -138,7 +158,42 @@ def _build_coverage(system, horizon: int, args: argparse.Namespace, bar):
     return table, stats, {"coverage_method": {k: v for k, v in facts.items() if k != "seconds"}}
 
 
+def load_user_systems(argv: Sequence[str] | None) -> None:
+    """Import every ``--system-module`` and resolve a ``--system module:factory`` (registering it), so that the
+    full parser lists the user systems' flags. ValueError when a module or factory cannot be loaded."""
+    pre = argparse.ArgumentParser(add_help=False)
+    pre.add_argument("--system", default="dubins")
+    pre.add_argument("--system-module", action="append", default=[])
+    known, _ = pre.parse_known_args(argv)
+    for module in known.system_module:
+        try:
+            importlib.import_module(module)
+        except ImportError as exc:
+            raise ValueError(f"--system-module {module}: cannot import it ({type(exc).__name__}: {exc})") from None
+    if ":" in known.system:
+        resolve_system(known.system)
+
+
+def _parse_params(items: list[str]) -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for item in items:
+        key, sep, value = item.partition("=")
+        if not sep or not key:
+            raise ValueError(f"--param needs KEY=VALUE, got {item!r}")
+        try:
+            out[key.replace("-", "_")] = json.loads(value)
+        except json.JSONDecodeError:
+            out[key.replace("-", "_")] = value  # a plain string
+    return out
+
+
 def main(argv: Sequence[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else list(argv)
+    try:
+        load_user_systems(argv)
+    except ValueError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
     parser = make_parser()
     args = parser.parse_args(argv)
     try:
@@ -154,13 +209,21 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 def _run(args: argparse.Namespace) -> int:
     params = {k[4:]: v for k, v in vars(args).items() if k.startswith("sys_") and v is not None}
-    for key in ("cell_size", "cell_offset"):
-        if key in params:
-            params[key] = tuple(params[key])
-    system = make_system(args.system, **params)
-    horizon = 10 if args.horizon is None else args.horizon
+    for key, value in params.items():
+        if isinstance(value, list):
+            params[key] = tuple(value)
+    extra_params = _parse_params(args.param)
+    both = sorted(set(params) & set(extra_params))
+    if both:
+        raise ValueError(f"parameter(s) {', '.join(both)} given both as a flag and as --param")
+    params.update({k: tuple(v) if isinstance(v, list) else v for k, v in extra_params.items()})
+    name = resolve_system(args.system)
+    system = make_system(name, **params)
+    horizon = system_horizon(system) if args.horizon is None else args.horizon
     config = BuildConfig(horizon=horizon, points=args.points, points_per_cell=args.points_per_cell, seed=args.seed)
-    out: Path = args.out or Path("out") / f"{args.system}.npz"
+    out: Path = args.out or Path("out") / f"{name}.npz"
+    if args.max_memory is not None and not args.max_memory > 0:
+        raise ValueError(f"--max-memory must be a positive number of GB, got {args.max_memory}")
     _check_output_path(out)
     if args.rollouts is not None and args.rollouts < 1:
         raise ValueError(f"--rollouts must be positive, got {args.rollouts}")
@@ -179,7 +242,14 @@ def _run(args: argparse.Namespace) -> int:
 
         bar = tqdm(total=horizon, desc="levels", unit="level", file=sys.stdout)
 
+    budget = args.max_memory * 1e9 if args.max_memory is not None else available_memory_bytes()
+    guide = SizeGuide(horizon, system.action_set().shape[0], len(system.periodic), budget, report=not args.no_report)
+
     def progress(t: int, step) -> None:
+        for line in guide.update(step):
+            stream = sys.stderr if line.startswith("warning") else sys.stdout
+            if line.startswith("warning") or not args.quiet:
+                (bar.write(line, file=stream) if bar is not None else print(line, file=stream, flush=True))
         if bar is not None:
             bar.set_postfix(cells=len(step.next_cells), flow=f"{step.flow_value / (len(step.probs) * len(step.next_cells)):.4f}")
             bar.update(1)
@@ -219,6 +289,8 @@ def _run(args: argparse.Namespace) -> int:
         "method": args.method,
         "zero_outflow_cells": stats.zero_outflow,
         "kept_point_fraction": stats.kept_fraction,
+        "size_guide": {"projected_level_sizes": guide.projection, "estimated_peak_bytes": guide.estimate_bytes,
+                       "budget_bytes": budget, "warned": guide.warned},
         **extra,
     }
     if not args.no_report:
