@@ -5,8 +5,9 @@ Shapes: N states, d state dimensions, A actions, q action dimensions, C table ce
 When the policy is made, every (level, cell) of the table is packed into one int64 key, together with a
 *halo*: every cell within one cell (the 3^d - 1 neighbours, angles wrapped) of a level set that is not itself
 in that level set, mapped to its nearest cell of the level set (smallest grid distance between cell indices;
-ties go to the lower table row). The keys are sorted once, so a lookup is pure tensor ops
-(``torch.searchsorted``), the same on CPU and GPU.
+ties go to the lower table row). The keys go once into a static hash table
+(:class:`~cuniform_torch.grid.KeyHash`, one probe per lookup), so a lookup is pure tensor ops (a few gathers),
+the same on CPU and GPU; sampling uses per-slot alias tables (Walker's method: one uniform, two gathers).
 
 Fallback for a state whose cell is not in L_t (``fallback=``):
 
@@ -22,13 +23,14 @@ of frame, so one table serves every start pose (``start_relative = True``).
 from __future__ import annotations
 
 import itertools
+import math
 import os
 
 import numpy as np
 import torch
 from torch import Tensor
 
-from .grid import CellKeys, CellSet, Grid
+from .grid import CellKeys, CellSet, Grid, KeyHash
 from .options import Option, option_label
 from .rollout import check_states
 from .systems import System
@@ -75,6 +77,38 @@ def _halo(keyed: Tensor, grid: Grid) -> tuple[Tensor, Tensor]:
     return nb[first], src[first]
 
 
+def _wrap(value: int, bits: int) -> int:
+    """``value`` modulo 2^bits, read as a signed ``bits``-bit integer (what wrapping tensor arithmetic gives)."""
+    value &= (1 << bits) - 1
+    return value - (1 << bits) if value >= 1 << (bits - 1) else value
+
+
+def _alias_tables(probs: Tensor) -> tuple[Tensor, Tensor]:
+    """Walker alias tables of probability rows ``[R, A]`` (float64): thresholds ``[R, A]`` in [0, 1], aliases ``[R, A]``.
+
+    Drawing column ``j`` uniformly, then keeping it with probability ``thr[j]`` and else taking ``alias[j]``, draws
+    column ``a`` with probability ``probs[a]``. Vectorized over rows (Vose): each of the ``A - 1`` passes settles, in
+    every row, the open column of least mass against the open column of most; a column of zero probability gets
+    threshold 0 and a positive-probability alias, so it is never drawn.
+    """
+    R, A = probs.shape
+    q = probs * A / probs.sum(dim=1, keepdim=True)  # [R, A] mass per column, mean 1
+    thr = torch.ones_like(q)
+    alias = torch.arange(A).expand(R, A).clone()  # [R, A]
+    open_ = torch.ones_like(q, dtype=torch.bool)
+    rows = torch.arange(R)
+    for _ in range(A - 1):
+        small = torch.where(open_, q, torch.inf).argmin(dim=1)  # [R]
+        large = torch.where(open_, q, -torch.inf).argmax(dim=1)  # [R]
+        qs = q[rows, small]
+        settle = qs < 1.0  # rows whose open columns are all ~1 keep threshold 1
+        thr[rows, small] = torch.where(settle, qs.clamp(min=0.0), 1.0)
+        alias[rows, small] = torch.where(settle, large, small)
+        q[rows, large] -= torch.where(settle, 1.0 - qs, 0.0)
+        open_[rows, small] = False
+    return thr, alias
+
+
 class TablePolicy:
     """The Policy interface over a table: ``actions [A, q]`` and ``action_probs(x [N, d], t) -> [N, A]``.
 
@@ -117,18 +151,19 @@ class TablePolicy:
         # one row per entry plus a last uniform row, which entry -1 (not found) selects by negative indexing
         uniform = torch.full((1, self.num_actions), 1.0 / self.num_actions, device=self.device, dtype=dtype)
         self._entry_probs = torch.cat((self.probs[self.entry_row], uniform))  # [C + H + 1, A]
-        cdf = torch.cumsum(self._entry_probs.double(), dim=1)
-        cdf[:, -1] = 1.0
-        self._cdf = cdf.to(dtype)  # [C + H + 1, A]
+        self._build_alias()
         self._sample = torch.compile(self._sample_kernel, dynamic=False) if compile else self._sample_kernel
         self.reset_counters()
 
     def _build_lookup(self, entries: Tensor) -> None:
-        """Settle the lookup kernel's constants once (see :meth:`_entries`).
+        """Settle the lookup kernel's constants once (see :meth:`_slot_kernel`).
 
         Keys pack (level, cell) over a box that spans every angle index and, on the other dimensions, one cell
         more than the entries on each side. Scaled states are clamped into that box before rounding, so a
-        state far outside lands on a border cell that holds no entry: a miss, never a wrong cell.
+        state far outside lands on a border cell that holds no entry: a miss, never a wrong cell. The keys go
+        into a :class:`~cuniform_torch.grid.KeyHash` (one probe per lookup); each of its slots, plus one last
+        slot for "not found", carries what sampling needs: an alias table of its row (Walker's method, so a
+        draw is two gathers and a compare whatever the number of actions), its entry, and a fallback code.
         """
         grid = self.grid
         covering = CellKeys.covering(entries)
@@ -140,22 +175,43 @@ class TablePolicy:
             if kk:
                 lo[1 + dim], span[1 + dim] = 0, kk
         keys = CellKeys(lo, span)
-        index = CellSet.build(entries, keys)
-        big = torch.tensor([torch.iinfo(torch.int64).max])
-        self._sorted_keys = torch.cat((index.sorted_keys, big)).to(self.device)  # [E+1], sentinel last
-        self._sorted_entry = torch.cat((index.rows, torch.tensor([-1]))).to(self.device)  # [E+1]
-        self._strides = keys.strides[1:].to(self.device)  # [d]
-        self._level_base = ((torch.arange(self.horizon + 1) - lo[0]) * keys.strides[0]).to(self.device)  # [T+1]
-        f64 = dict(dtype=torch.float64)
-        inv = 1.0 / torch.tensor(grid.cell_size, **f64)
-        shift = torch.tensor(grid.offset, **f64) - lo[1:].to(torch.float64)  # scaled coordinate relative to lo
-        periodic = torch.tensor([bool(kk) for kk in k])
-        inf = torch.tensor(float("inf"), **f64)
-        cast = dict(dtype=self.dtype, device=self.device)
-        self._scale, self._shift = inv.to(**cast), shift.to(**cast)  # [d]
-        self._clamp_lo = torch.where(periodic, -inf, torch.zeros((), **f64)).to(**cast)  # [d]
-        self._clamp_hi = torch.where(periodic, inf, (span[1:] - 1).to(torch.float64)).to(**cast)  # [d]
-        self._angle_k = [(dim, kk) for dim, kk in enumerate(k) if kk]
+        total = math.prod(span.tolist())  # every query key is below this (clamped into the box)
+        self._hash = KeyHash.build(keys.pack(entries), key_limit=total).to(self.device)
+        S, bits = self._hash.num_slots, 32 if self._hash.dtype == torch.int32 else 64
+        spans, strides = span.tolist(), keys.strides.tolist()
+        # the cell part of a key, below prod(spans[1:]), in exact integer arithmetic: float32 below 2^24, else float64
+        cell_keys = math.prod(spans[1:])
+        self._key_dtype = self.dtype if cell_keys < (2**24 if self.dtype == torch.float32 else 2**53) else torch.float64
+        if cell_keys >= 2**53:
+            raise ValueError(f"the table's key box {spans[1:]} is too large for exact float64 keys")
+        # the level part is folded into the hash: h = (level_key + cell_key) * m = level_key * m + cell_key * m
+        m = self._hash.multiplier
+        level_hash = [_wrap(((t - int(lo[0])) * strides[0]) * m, bits) for t in range(self.horizon + 1)]
+        self._level_base = torch.tensor(level_hash, dtype=self._hash.dtype, device=self.device)  # [T+1]
+        # per dimension: scaled = x * scale + shift (relative to lo); angles mod K, others clamped into the box
+        self._key_dims = []
+        for dim in range(grid.dim):
+            shift = torch.tensor(grid.offset[dim] - float(lo[1 + dim]), dtype=self.dtype, device=self.device)
+            self._key_dims.append((dim, 1.0 / grid.cell_size[dim], shift, k[dim], float(spans[1 + dim] - 1),
+                                   spans[1 + dim]))
+        # per slot (S of them, then the "not found" slot S): entry, fallback code, alias table
+        slot_entry = torch.cat((self._hash.slot_rows.cpu(), torch.tensor([-1])))  # [S+1]; -1: empty or not found
+        self._slot_entry = slot_entry.to(self.device)
+        code = torch.zeros(S + 1, dtype=torch.int64)
+        code[:S] = (slot_entry[:S] >= self.num_cells).long()  # nearest-cell fallback: 1
+        code[slot_entry < 0] = 1 << 32  # not found (and empty slots, which no query reaches): a miss, high word
+        self._slot_code = code.to(self.device)
+        self._miss_slot = S
+
+    def _build_alias(self) -> None:
+        """Walker alias tables per slot: ``[(S+1) * A]`` thresholds ``j + p`` and alias actions (see :meth:`sample`)."""
+        A = self.num_actions
+        slot_entry = self._slot_entry.cpu()
+        probs = self._entry_probs.cpu().double()[slot_entry]  # [S+1, A]; empty and not-found slots: uniform row
+        thr, alias = _alias_tables(probs)
+        cols = torch.arange(A, dtype=torch.float64)
+        self._alias_thr = (cols + thr).to(self.dtype).reshape(-1).to(self.device)  # [(S+1) * A]
+        self._alias_idx = alias.to(torch.int32).reshape(-1).to(self.device)  # [(S+1) * A]
 
     @property
     def num_actions(self) -> int:
@@ -164,14 +220,14 @@ class TablePolicy:
     def reset_counters(self) -> None:
         """Zero ``queries`` (a host int), ``nearest_hits`` and ``misses`` (device tensors: counting never syncs)."""
         zero = lambda: torch.zeros((), dtype=torch.int64, device=self.device)  # noqa: E731
-        self.queries, self.nearest_hits, self.misses = 0, zero(), zero()
+        self.queries, self._hits, self._misses, self._packed, self._packed_queries = 0, zero(), zero(), zero(), 0
 
     def level_size(self, t: int) -> int:
         return int(self.table.level_offsets[t + 1] - self.table.level_offsets[t])
 
-    def _entries(self, x: Tensor, t: int) -> Tensor:
+    def _slots(self, x: Tensor, t: int) -> Tensor:
         self._check(x, t)
-        return self._entry_kernel(x, self._level_base[t])
+        return self._slot_kernel(x, self._level_base[t])
 
     def _check(self, x: Tensor, t: int) -> None:
         if isinstance(t, bool) or not isinstance(t, int) or not 0 <= t <= self.horizon:
@@ -180,47 +236,86 @@ class TablePolicy:
         if x.dtype != self.dtype:
             raise ValueError(f"states are {x.dtype} but the policy is {self.dtype}")
 
-    def _entry_kernel(self, x: Tensor, base: Tensor) -> Tensor:
-        """Pure tensor kernel: states ``[N, d]`` and the level's key base (0-d) -> entry ids ``[N]`` (-1: none)."""
-        # cell = round(x / delta + offset) - lo, clamped into the key box; angles mod K; packed with the level
-        scaled = torch.addcmul(self._shift, x, self._scale).clamp(self._clamp_lo, self._clamp_hi)  # [N, d]
-        cells = torch.round(scaled).long()  # [N, d]
-        for dim, k in self._angle_k:  # wrap angle indices to [0, K) (other dimensions are clamped in range)
-            cells[:, dim] = torch.remainder(cells[:, dim], k)
-        packed = cells @ self._strides + base  # [N]
-        pos = torch.searchsorted(self._sorted_keys, packed)  # [N]; the sentinel keeps pos in range
-        return torch.where(self._sorted_keys[pos] == packed, self._sorted_entry[pos], -1)  # [N] entry, -1: none
+    def _slot_kernel(self, x: Tensor, base: Tensor) -> Tensor:
+        """Pure tensor kernel: states ``[N, d]`` and the level's hash base (0-d) -> hash slot ``[N]`` (S: not found).
 
-    def _sample_kernel(self, x: Tensor, base: Tensor, r: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-        """Pure tensor kernel: ``x [N, d]``, level key base, uniforms ``r [N, 1]`` -> actions ``[N, q]`` and counts."""
-        entry = self._entry_kernel(x, base)  # [N]
-        idx = (self._cdf[entry] < r).sum(dim=1)  # [N]; entry -1 -> uniform row; r < 1 = cdf[:, -1]
-        return self.actions[idx], (entry < 0).sum(), (entry >= self.num_cells).sum()
+        One dimension at a time (ops on a ``[N]`` column beat ops on ``[N, d]`` broadcast over a short last axis):
+        cell = round(x / delta + offset) - lo, angles mod K, other dimensions clamped into the key box; the cell
+        key accumulates by Horner's rule in exact integer arithmetic, then one hash probe.
+        """
+        key = None
+        for dim, scale, shift, k, hi, span in self._key_dims:
+            c = torch.add(shift, x[:, dim], alpha=scale).round_()  # [N] cell index relative to lo
+            c = c.remainder_(k) if k else c.clamp_(0.0, hi)
+            key = c if key is None else c.add_(key, alpha=span)  # [N]
+        h = torch.add(base, key.to(self._hash.dtype), alpha=self._hash.multiplier)  # [N] hash of level + cell key
+        slot = self._hash.slots(h)  # [N]
+        found = self._hash.slot_hash.index_select(0, slot) == h  # [N]
+        return torch.where(found, slot, self._miss_slot)  # [N]
+
+    def _sample_kernel(self, x: Tensor, base: Tensor, r: Tensor) -> tuple[Tensor, Tensor]:
+        """Pure tensor kernel: ``x [N, d]``, level key base, uniforms ``r [N]`` in ``[0, A)`` -> actions ``[N, q]`` and
+        the fallback count of the batch (nearest-cell hits + 2^32 x misses).
+
+        Walker's alias method with one uniform: column ``j = floor(r)`` of the state's slot keeps ``j`` when
+        ``r < j + p_j`` (stored as one threshold), else takes its alias.
+        """
+        slot = self._slot_kernel(x, base)  # [N]
+        j = r.to(torch.int32)  # [N] floor, r >= 0
+        ix = torch.add(j, slot, alpha=self.num_actions)  # [N]
+        a = torch.where(r < self._alias_thr.index_select(0, ix), j, self._alias_idx.index_select(0, ix))  # [N]
+        if self.actions.shape[1] == 1:  # a flat vector gathers faster than rows of one
+            u = self.actions.view(-1).index_select(0, a).unsqueeze(1)  # [N, 1]
+        else:
+            u = self.actions.index_select(0, a)  # [N, q]
+        return u, self._slot_code.index_select(0, slot).sum()
 
     def rows(self, x: Tensor, t: int) -> Tensor:
         """Table row of each state's cell in level ``t``: ``x [N, d]`` -> ``[N]`` int64 (-1: not in L_t)."""
-        entry = self._entries(x, t)
-        return torch.where((entry >= 0) & (entry < self.num_cells), entry, torch.full_like(entry, -1))
+        entry = self._slot_entry.index_select(0, self._slots(x, t))  # [N]
+        return torch.where(entry < self.num_cells, entry, -1)  # entries below C are table rows; -1 stays
 
     def action_probs(self, x: Tensor, t: int) -> Tensor:
         """p(u | cell of x, t): ``x [N, d]`` -> ``[N, A]``, with the fallback for states outside L_t."""
-        entry = self._count(self._entries(x, t))  # [N]
+        slot = self._slots(x, t)  # [N]
+        self._count(x.shape[0], self._slot_code.index_select(0, slot).sum())
+        entry = self._slot_entry.index_select(0, slot)  # [N]
         return self._entry_probs[entry]  # [N, A]; entry -1 -> the uniform row
 
-    def _count(self, entry: Tensor) -> Tensor:
-        self.queries += entry.numel()  # a host int
-        self.misses += (entry < 0).sum()
-        self.nearest_hits += (entry >= self.num_cells).sum()
-        return entry
+    def _count(self, n: int, code: Tensor) -> None:
+        """Add a batch of ``n`` lookups with fallback count ``code`` (nearest hits + 2^32 x misses, a device tensor).
+
+        One add into a packed counter; it is split into the two counters before its low word could overflow.
+        """
+        if self._packed_queries + n >= 2**32:
+            self._fold()
+        self.queries += n  # a host int
+        self._packed_queries += n
+        self._packed += code
+
+    def _fold(self) -> None:
+        self._hits += self._packed & 0xFFFFFFFF
+        self._misses += self._packed >> 32
+        self._packed.zero_()
+        self._packed_queries = 0
+
+    @property
+    def nearest_hits(self) -> Tensor:
+        """Lookups answered by the nearest cell of the level set (a 0-d device tensor)."""
+        return self._hits + (self._packed & 0xFFFFFFFF)
+
+    @property
+    def misses(self) -> Tensor:
+        """Lookups that fell back to uniform probabilities (a 0-d device tensor)."""
+        return self._misses + (self._packed >> 32)
 
     def sample(self, x: Tensor, t: int, generator: torch.Generator | None = None) -> Tensor:
-        """Draw one action per state by inverse-CDF sampling of its row: ``x [N, d]`` -> ``[N, q]``."""
+        """Draw one action per state from its row (alias method, one uniform each): ``x [N, d]`` -> ``[N, q]``."""
         self._check(x, t)
-        r = torch.rand((x.shape[0], 1), generator=generator, device=self.device, dtype=self.dtype)  # [N, 1]
-        u, misses, nearest = self._sample(x, self._level_base[t], r)
-        self.queries += x.shape[0]
-        self.misses += misses
-        self.nearest_hits += nearest
+        r = torch.empty(x.shape[0], device=self.device, dtype=self.dtype).uniform_(0, self.num_actions,
+                                                                                    generator=generator)  # [N]
+        u, code = self._sample(x, self._level_base[t], r)
+        self._count(x.shape[0], code)
         return u
 
     @property

@@ -15,12 +15,12 @@ rolled out from the origin and its states are moved to the start pose by a rigid
 
 from __future__ import annotations
 
+import math
 from typing import Protocol, runtime_checkable
 
 import torch
 from torch import Tensor
 
-from .frames import se2_to_world
 from .systems import System
 
 __all__ = ["Policy", "ActionSampler", "rollout", "check_states"]
@@ -69,6 +69,35 @@ def _check_args(system: System, x0: Tensor, num_samples: int, horizon: int) -> i
     return d
 
 
+class _SE2Placer:
+    """Moves states from the frame of a start pose to the world, column by column into a given ``[N, d]`` view.
+
+    Same maths as :func:`~cuniform_torch.frames.se2_to_world`, but each step's states go straight into the
+    rollout's buffer (no ``[N, T+1, d]`` temporaries); ``pose [d]`` (one start for all) or ``[N, d]``.
+    """
+
+    def __init__(self, pose: Tensor):
+        theta = pose[..., 2]
+        self.c, self.s = torch.cos(theta), torch.sin(theta)  # 0-d or [N]
+        self.px, self.py = pose[..., 0], pose[..., 1]
+        self.theta_pi = theta + math.pi
+
+    def __call__(self, local: Tensor, out: Tensor) -> None:
+        lx, ly = local[:, 0], local[:, 1]
+        torch.addcmul(self.px, lx, self.c, out=out[:, 0]).addcmul_(ly, self.s, value=-1.0)
+        torch.addcmul(self.py, lx, self.s, out=out[:, 1]).addcmul_(ly, self.c)
+        torch.add(local[:, 2], self.theta_pi, out=out[:, 2]).remainder_(2.0 * math.pi).sub_(math.pi)
+        if local.shape[1] > 3:
+            out[:, 3:] = local[:, 3:]
+
+
+def _put(place: _SE2Placer | None, x: Tensor, out: Tensor) -> None:
+    if place is None:
+        out.copy_(x)
+    else:
+        place(x, out)
+
+
 def rollout(
     system: System,
     policy: Policy | ActionSampler,
@@ -108,7 +137,11 @@ def rollout(
     planned = None
     if not discrete and hasattr(policy, "sample_sequences"):  # open-loop noise: draw it all at once
         planned = policy.sample_sequences(num_samples, horizon, generator)  # [N, T, q]
-    states, taken = [x], []
+    # states are written step by step into one buffer; a start-relative rollout writes them moved to the start pose
+    states_t = torch.empty((num_samples, horizon + 1, d), dtype=x0.dtype, device=x0.device)  # [N, T+1, d]
+    place = _SE2Placer(x0 if x0.ndim == 1 else start) if relative else None
+    _put(place, x, states_t[:, 0])
+    taken = []
     for t in range(horizon):
         if planned is not None:
             u = planned[:, t]
@@ -118,11 +151,8 @@ def rollout(
         else:
             u = policy.sample(x, t, generator)  # [N, q]
         x = system.step(x, u)
-        states.append(x)
+        _put(place, x, states_t[:, t + 1])
         taken.append(u)
-    states_t = torch.stack(states, dim=1)  # [N, T+1, d]
-    if relative:
-        states_t = se2_to_world(states_t, start.unsqueeze(1))
     q = policy.actions.shape[1] if hasattr(policy, "actions") else (nominal.shape[1] if nominal is not None else 0)
     if planned is not None:
         actions_t = planned  # [N, T, q]

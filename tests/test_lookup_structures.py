@@ -1,0 +1,188 @@
+"""The fast lookup structures of the table policy against slow references.
+
+Shapes: N queries, E keys, R probability rows, A actions, d state dimensions.
+
+* :class:`~cuniform_torch.grid.KeyHash` (one-probe static hash) answers exactly what a sorted-key
+  ``searchsorted`` answers, hits and misses alike, for int32 and int64 keys and tiny tables;
+* ``TablePolicy`` slots (hash of the packed (level, cell) key) give the row a dictionary over the table gives,
+  the nearest level cell for halo cells, and a miss elsewhere, and count them;
+* the per-slot alias tables reproduce every probability row exactly (zero-probability actions get no mass).
+"""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from cuniform_torch import TablePolicy
+from cuniform_torch.grid import CellKeys, CellSet, KeyHash
+from cuniform_torch.policy import _alias_tables, _halo
+
+CUDA = torch.cuda.is_available()
+
+
+def _searchsorted_rows(keys: torch.Tensor, queries: torch.Tensor) -> torch.Tensor:
+    """Slow reference: position of each query in ``keys`` (-1 if absent), by sorted search."""
+    srt, order = torch.sort(keys)
+    pos = torch.searchsorted(srt, queries).clamp(max=keys.numel() - 1)
+    return torch.where(srt[pos] == queries, order[pos], -1)
+
+
+def _distinct(n: int, high: int, seed: int) -> torch.Tensor:
+    g = torch.Generator().manual_seed(seed)
+    if high < 2**24:
+        return torch.randperm(high, generator=g)[:n]
+    keys = torch.unique(torch.randint(0, high, (2 * n,), generator=g))
+    return keys[torch.randperm(keys.numel(), generator=g)[:n]]
+
+
+class TestKeyHash:
+    @pytest.mark.parametrize(
+        "n, high",
+        [(1, 1), (1, 10), (7, 20), (300, 1000), (5000, 2**31 - 1), (20000, 3_000_000), (20000, 2**40), (3000, 2**62)],
+    )
+    def test_lookup_equals_searchsorted_on_hits_and_misses(self, n, high):
+        keys = _distinct(n, high, seed=n)
+        table = KeyHash.build(keys)
+        assert table.dtype == (torch.int32 if int(keys.max()) < 2**31 else torch.int64)
+        assert table.num_slots >= 2 * n and table.num_slots <= 8 * max(n, 4)  # about 2-4x the keys, no dense box
+        g = torch.Generator().manual_seed(1)
+        misses = torch.randint(0, min(high + 10, 2**63 - 1), (4000,), generator=g)
+        edge = torch.tensor([-1, -(2**31), -(2**63), 0, high - 1, high, 2**31 - 1, 2**31, 2**32, 2**62, 2**63 - 1])
+        queries = torch.cat((keys, misses, edge, keys.flip(0)))
+        assert torch.equal(table.lookup_keys(queries), _searchsorted_rows(keys, queries))
+
+    def test_lookup_keeps_the_query_shape_and_accepts_int32(self):
+        keys = _distinct(50, 500, seed=0)
+        table = KeyHash.build(keys)
+        q = torch.arange(500, dtype=torch.int32).reshape(20, 25)
+        assert torch.equal(table.lookup_keys(q), _searchsorted_rows(keys, q.long().reshape(-1)).reshape(20, 25))
+
+    def test_every_query_below_the_key_limit_probes_a_non_empty_slot_only_when_stored(self):
+        keys = _distinct(100, 300, seed=2)
+        table = KeyHash.build(keys, key_limit=1000)
+        q = torch.arange(1000)
+        h = table.hash(q.to(table.dtype))
+        hit = table.slot_hash[table.slots(h)] == h  # what a kernel checks (no row lookup)
+        assert torch.equal(hit, _searchsorted_rows(keys, q) >= 0)
+        with pytest.raises(ValueError):
+            KeyHash.build(keys, key_limit=int(keys.max()))
+
+    def test_every_key_has_its_own_slot(self):
+        keys = _distinct(10000, 10**6, seed=3)
+        table = KeyHash.build(keys)
+        slots = table.slots(table.hash(keys.to(table.dtype)))
+        assert torch.unique(slots).numel() == keys.numel()
+        assert torch.equal(table.slot_rows[slots], torch.arange(keys.numel()))
+
+    def test_build_is_deterministic(self):
+        keys = _distinct(2000, 10**5, seed=4)
+        a, b = KeyHash.build(keys), KeyHash.build(keys)
+        assert torch.equal(a.slot_hash, b.slot_hash) and torch.equal(a.disp, b.disp)
+
+    @pytest.mark.parametrize("bad", [torch.tensor([1, 2, 2]), torch.tensor([-1, 3]), torch.tensor([1.0, 2.0])])
+    def test_bad_keys_are_value_errors(self, bad):
+        with pytest.raises(ValueError):
+            KeyHash.build(bad)
+
+    @pytest.mark.gpu
+    @pytest.mark.skipif(not CUDA, reason="needs a CUDA device")
+    def test_cuda_lookup_equals_cpu(self):
+        keys = _distinct(20000, 3_000_000, seed=5)
+        table = KeyHash.build(keys)
+        q = torch.cat((keys, torch.randint(-10, 3_000_010, (5000,))))
+        assert torch.equal(table.to("cuda").lookup_keys(q.cuda()).cpu(), table.lookup_keys(q))
+
+
+class TestPolicySlots:
+    """Random states around every level: the hash-slot lookup against CellSet lookups of the level and its halo."""
+
+    @pytest.mark.parametrize("table_name", ["dubins_table", "walk_table"])
+    def test_rows_probs_and_counts_match_a_sorted_lookup_with_halo(self, request, table_name):
+        table = request.getfixturevalue(table_name)
+        policy = TablePolicy(table)
+        grid = policy.grid
+        d = grid.dim
+        g = torch.Generator().manual_seed(0)
+        level_of = torch.repeat_interleave(torch.arange(table.horizon + 1),
+                                           torch.from_numpy(table.level_offsets).diff())
+        keyed = torch.cat((level_of[:, None], torch.from_numpy(table.cells)), dim=1)  # [C, 1+d]
+        halo_cells, halo_rows = _halo(keyed, grid)
+        keys = CellKeys.covering(torch.cat((keyed, halo_cells)))
+        own, halo = CellSet.build(keyed, keys), CellSet.build(halo_cells, keys)
+        probs = torch.from_numpy(table.action_probs)
+        total_hits = total_misses = total = 0
+        for t in range(table.horizon + 1):
+            lo, hi = int(table.level_offsets[t]), int(table.level_offsets[t + 1])
+            # states in level cells, in cells up to 3 cells away (halo and beyond), and far away
+            base = torch.from_numpy(table.cells[lo:hi])[torch.randint(0, hi - lo, (3000,), generator=g)]
+            cells = base + torch.randint(-3, 4, (3000, d), generator=g) * (torch.rand(3000, 1, generator=g) < 0.7)
+            x = grid.centers(cells) + (torch.rand(3000, d, generator=g, dtype=torch.float64) - 0.5) * 0.9 * torch.tensor(
+                grid.cell_size, dtype=torch.float64)
+            x = torch.cat((x, torch.tensor([[1e6] * d, [-1e6] * d], dtype=torch.float64))).float()
+            want = grid.cells(x.double())
+            tagged = torch.cat((torch.full((x.shape[0], 1), t), want), dim=1)
+            in_level, in_halo = own.lookup(tagged), halo.lookup(tagged)
+            expect_row = torch.where(in_level >= 0, in_level, -1)
+            assert torch.equal(policy.rows(x, t), expect_row)
+            expect_probs = torch.full((x.shape[0], probs.shape[1]), 1.0 / probs.shape[1])
+            expect_probs[in_level >= 0] = probs[in_level[in_level >= 0]]
+            expect_probs[in_halo >= 0] = probs[halo_rows[in_halo[in_halo >= 0]]]
+            torch.testing.assert_close(policy.action_probs(x, t), expect_probs, atol=0, rtol=0)
+            total += x.shape[0]
+            total_hits += int((in_halo >= 0).sum())
+            total_misses += int(((in_level < 0) & (in_halo < 0)).sum())
+        assert total_hits > 0 and total_misses > 0
+        assert policy.queries == total
+        assert int(policy.nearest_hits) == total_hits and int(policy.misses) == total_misses
+
+    def test_sample_counts_like_action_probs(self, dubins_table):
+        policy = TablePolicy(dubins_table)
+        x = policy.grid.centers(torch.tensor([[0, 0, 0], [1, 0, 0], [0, 0, 1], [40, 40, 0]])).float()
+        policy.action_probs(x, 0)
+        hits, misses = int(policy.nearest_hits), int(policy.misses)
+        assert (hits, misses) == (2, 1)
+        policy.sample(x, 0, torch.Generator().manual_seed(0))
+        assert (int(policy.nearest_hits), int(policy.misses), policy.queries) == (4, 2, 8)
+
+    def test_packed_counter_folds_before_its_low_word_overflows(self, dubins_table):
+        policy = TablePolicy(dubins_table)
+        x = policy.grid.centers(torch.tensor([[1, 0, 0], [40, 40, 0]])).float()
+        policy._packed_queries = 2**32 - 1  # as if 4 billion lookups had been counted
+        policy.action_probs(x, 0)  # folds first, then counts
+        assert policy._packed_queries == 2
+        assert int(policy.nearest_hits) == 1 and int(policy.misses) == 1
+        policy.action_probs(x, 0)
+        assert int(policy.nearest_hits) == 2 and int(policy.misses) == 2
+
+
+class TestAlias:
+    @pytest.mark.parametrize("A", [1, 2, 5, 9])
+    def test_alias_tables_reproduce_every_row(self, A):
+        g = torch.Generator().manual_seed(A)
+        p = torch.rand(500, A, generator=g, dtype=torch.float64) ** 3
+        p[torch.rand(500, A, generator=g) < 0.3] = 0.0  # zero-probability actions
+        p[:, 0] += 1e-3  # every row has some mass
+        p[0] = 0.0
+        p[0, -1] = 1.0  # one certain action
+        p /= p.sum(dim=1, keepdim=True)
+        thr, alias = _alias_tables(p)
+        assert bool(((thr >= 0) & (thr <= 1)).all())
+        mass = torch.zeros_like(p)
+        mass.scatter_add_(1, torch.arange(A).expand(500, A), thr / A)
+        mass.scatter_add_(1, alias, (1 - thr) / A)
+        torch.testing.assert_close(mass, p, atol=1e-12, rtol=0)
+        # a zero-probability column keeps nothing and is nobody's alias with positive weight
+        assert bool((thr[p == 0] == 0).all())
+        assert bool((p.gather(1, alias)[thr < 1] > 0).all())
+
+    def test_policy_thresholds_encode_the_column(self, dubins_table):
+        policy = TablePolicy(dubins_table)
+        A = policy.num_actions
+        thr = policy._alias_thr.reshape(-1, A)
+        cols = torch.arange(A, dtype=thr.dtype)
+        assert bool(((thr >= cols) & (thr <= cols + 1)).all())
+        assert policy._alias_thr.numel() == (policy._hash.num_slots + 1) * A
+        assert math.isclose(float(thr[-1].sub(cols).min()), 1.0)  # the not-found slot is uniform
