@@ -38,7 +38,8 @@ from .methods import METHODS, Method, Sources, make_controller, parse_methods
 
 __all__ = [
     "Episode", "run_episodes", "wilson_interval", "aggregate", "usable_methods", "paper_label",
-    "success_markdown", "fmt_rate", "plot_paths", "PAPER_FAMILY_OF", "OUTCOME_COLORS",
+    "success_markdown", "fmt_rate", "plot_paths", "SLOW_METHODS", "add_common_args", "sources_from_args",
+    "finish_cli", "PAPER_FAMILY_OF", "OUTCOME_COLORS",
 ]
 
 PAPER_FAMILY_OF = {"mppi": "MPPI", "log_mppi": "log-MPPI", "cuniform": "C-Uniform"}
@@ -72,14 +73,26 @@ class Episode:
     """scenario labels copied to the record (e.g. ``{"appear": 0.5, "position": 3}``)"""
 
 
-def usable_methods(keys: Sequence[str] | None, sources: Sources, requested: bool) -> list[Method]:
-    """The closed-loop methods among ``keys`` (None: all) whose source files exist.
+SLOW_METHODS = ("cu_mlp",)
+"""left out of a default run (``keys=None``) unless asked for: on a 2-core CPU the distilled MLP costs about
+10x the table lookup per control cycle (about 280 s of the cluttered run and 150 s of the sudden-obstacle run)"""
+
+
+def usable_methods(keys: Sequence[str] | None, sources: Sources, requested: bool,
+                   include_slow: bool = False) -> list[Method]:
+    """The closed-loop methods among ``keys`` (None: all but :data:`SLOW_METHODS`, unless ``include_slow``)
+    whose source files exist.
 
     Every method needs the table (the system comes from it); ``cu_coverage`` and ``cu_mlp`` need their own file
     too. A method whose file is missing is dropped with a printed note, unless the user named it
     (``requested``): then it raises ``FileNotFoundError``.
     """
     methods = parse_methods(list(keys) if keys is not None else None, closed_loop=True)
+    if keys is None and not include_slow:
+        slow = [m.key for m in methods if m.key in SLOW_METHODS]
+        if slow:
+            print(f"note: leaving out {', '.join(slow)} (slow on CPU; ask for it with --mlp or --methods)")
+        methods = [m for m in methods if m.key not in SLOW_METHODS]
     extra = {"cu_coverage": sources.coverage_table, "cu_mlp": sources.policy}
     kept = []
     for m in methods:
@@ -315,6 +328,7 @@ def add_common_args(parser) -> None:
     parser.add_argument("--seed", type=int, default=None, help="override the config's seed")
     parser.add_argument("--horizon", type=int, default=None, help="controller horizon in steps (default 15; at "
                         "most the table's)")
+    parser.add_argument("--mlp", action="store_true", help="also run cu_mlp in a default run (slow on CPU)")
     parser.add_argument("--quick", action="store_true", help="tiny sizes (a few seconds)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
 

@@ -97,7 +97,10 @@ def test_per_state_collision_cost():
 def test_missing_sources_are_skipped_with_a_note(sources, capsys):
     kept = [m.key for m in usable_methods(None, sources, requested=False)]
     assert "cu_table" in kept and "cu_coverage" not in kept and "cu_mlp" not in kept
-    assert "skipping cu_coverage" in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert "skipping cu_coverage" in out and "leaving out cu_mlp" in out
+    usable_methods(None, sources, requested=False, include_slow=True)
+    assert "skipping cu_mlp" in capsys.readouterr().out
     with pytest.raises(FileNotFoundError):
         usable_methods(["cu_mlp"], sources, requested=True)
 
@@ -130,7 +133,7 @@ def test_sudden_obstacle_run_markdown_figures(sources, tmp_path):
     assert len(res["summary"]) == 2 * len(METHODS)
     json.loads(json.dumps(res))  # JSON-ready
     md = sudden_obstacle.markdown(res)
-    assert "Sudden obstacle" in md and "paper: C-Uniform" in md and "oracle" in md and "N = 16" in md
+    assert "Sudden obstacle" in md and "paper: C-Uniform" in md and "oracle: avoidable" in md and "N = 16" in md
     paths = sudden_obstacle.figures(res, tmp_path)
     assert len(paths) == 2 and all(p.exists() and p.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" for p in paths)
 
@@ -181,7 +184,7 @@ def test_cluttered_starts_are_free_and_fixed(name):
 def test_u_shape_goal_is_inside_the_pocket():
     env = cluttered.make_env("u_shape")
     gx, gy = cluttered.ENVIRONMENTS["u_shape"].goal
-    walls = [(gx - 1.0, gy), (gx, gy + 1.5), (gx, gy - 1.5)]  # behind and beside the goal: walls in between
+    walls = [(gx - 1.0, gy), (gx, gy + 2.0), (gx, gy - 2.0)]  # behind and beside the goal: walls in between
     for wx, wy in walls:
         seg = torch.stack((torch.linspace(gx, wx, 200), torch.linspace(gy, wy, 200)), 1).double()
         assert bool(env.in_collision(seg).any())
