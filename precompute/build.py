@@ -9,9 +9,9 @@ interrupt, ``--resume`` continues from there and writes a byte-identical table.
 User systems: ``--system-module my_robots`` imports a module that calls ``register_system`` (its dataclass
 fields then become flags too), and ``--system my_robots:Unicycle`` imports and registers a factory directly.
 
-Size guidance: from level 4 on, the build prints the projected size of the remaining levels and its projected
-peak memory, and warns (naming ``--horizon`` and ``--cell-size``) when that exceeds the available memory
-(``--max-memory GB`` sets the budget).
+Size guidance (maxflow): from level 5 on, the build prints the projected size of the remaining levels and its
+projected peak memory, and warns (naming ``--horizon`` and ``--cell-size``) when that exceeds the available
+memory (``--max-memory GB`` sets the budget).
 """
 
 from __future__ import annotations
@@ -247,8 +247,9 @@ def _run(args: argparse.Namespace) -> int:
 
     def progress(t: int, step) -> None:
         for line in guide.update(step):
-            stream = sys.stderr if line.startswith("warning") else sys.stdout
-            if line.startswith("warning") or not args.quiet:
+            loud = line.startswith(("warning", "the projection now fits"))
+            stream = sys.stderr if loud else sys.stdout
+            if loud or not args.quiet:
                 (bar.write(line, file=stream) if bar is not None else print(line, file=stream, flush=True))
         if bar is not None:
             bar.set_postfix(cells=len(step.next_cells), flow=f"{step.flow_value / (len(step.probs) * len(step.next_cells)):.4f}")
