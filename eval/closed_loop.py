@@ -75,7 +75,8 @@ class Episode:
 
 SLOW_METHODS = ("cu_mlp",)
 """left out of a default run (``keys=None``) unless asked for: on a 2-core CPU the distilled MLP costs about
-10x the table lookup per control cycle (about 280 s of the cluttered run and 150 s of the sudden-obstacle run)"""
+10x the table lookup per control cycle (it took about 280 s of the cluttered run and 200 s of the sudden-obstacle
+run, as much as all other methods together)"""
 
 
 def usable_methods(keys: Sequence[str] | None, sources: Sources, requested: bool,
