@@ -12,6 +12,9 @@ from .policy import Fallback, TablePolicy, UniformPolicy, load_table
 from .rollout import ActionSampler, Policy, rollout
 from .samplers import GaussianSampler, NormalLogNormalSampler, lognormal_params
 from .systems import (
+    KinematicSingleTrack,
+    KinematicSingleTrackSpeed,
+    check_system,
     Dubins,
     RandomWalk1D,
     System,
@@ -30,7 +33,7 @@ __all__ = [
     "COST_CAP", "CUMPPI", "MPPI", "CostFn", "CUniformMPPI", "LogMPPI", "MPPIResult", "mppi_weights",
     "Fallback", "TablePolicy", "UniformPolicy", "load_table", "ActionSampler", "Policy", "rollout",
     "GaussianSampler", "NormalLogNormalSampler", "lognormal_params",
-    "Dubins", "RandomWalk1D", "System", "UnknownSystemError", "known_systems", "make_system", "register_system",
+    "Dubins", "KinematicSingleTrack", "KinematicSingleTrackSpeed", "check_system", "RandomWalk1D", "System", "UnknownSystemError", "known_systems", "make_system", "register_system",
     "system_from_json", "system_to_json", "TABLE_FORMAT", "Table", "TableError", "read_table", "write_table",
 ]
 __version__ = "0.1.0"
