@@ -77,6 +77,9 @@ def _halo(keyed: Tensor, grid: Grid) -> tuple[Tensor, Tensor]:
     return nb[first], src[first]
 
 
+_ANGLE_CLAMP = float(2**22)  # scaled angles are clamped here first (exact integers; far beyond any real angle)
+
+
 def _wrap(value: int, bits: int) -> int:
     """``value`` modulo 2^bits, read as a signed ``bits``-bit integer (what wrapping tensor arithmetic gives)."""
     value &= (1 << bits) - 1
@@ -192,8 +195,14 @@ class TablePolicy:
         self._key_dims = []
         for dim in range(grid.dim):
             shift = torch.tensor(grid.offset[dim] - float(lo[1 + dim]), dtype=self.dtype, device=self.device)
-            self._key_dims.append((dim, 1.0 / grid.cell_size[dim], shift, k[dim], float(spans[1 + dim] - 1),
-                                   spans[1 + dim]))
+            kk = k[dim]
+            if kk:  # (c + 0.5) / K, never within 0.25 / K of an integer for |c| <= 2^22, so its floor is exact
+                half = torch.tensor(0.5 / kk, dtype=self.dtype, device=self.device)
+                self._key_dims.append((dim, 1.0 / grid.cell_size[dim], shift, -_ANGLE_CLAMP, _ANGLE_CLAMP,
+                                       spans[1 + dim], (kk, 1.0 / kk, half)))
+            else:
+                self._key_dims.append((dim, 1.0 / grid.cell_size[dim], shift, 0.0, float(spans[1 + dim] - 1),
+                                       spans[1 + dim], None))
         # per slot (S of them, then the "not found" slot S): entry, fallback code, alias table
         slot_entry = torch.cat((self._hash.slot_rows.cpu(), torch.tensor([-1])))  # [S+1]; -1: empty or not found
         self._slot_entry = slot_entry.to(self.device)
@@ -204,14 +213,17 @@ class TablePolicy:
         self._miss_slot = S
 
     def _build_alias(self) -> None:
-        """Walker alias tables per slot: ``[(S+1) * A]`` thresholds ``j + p`` and alias actions (see :meth:`sample`)."""
+        """Walker alias tables per slot: thresholds ``j + p`` ``[(S+1) A]`` and outcome pairs ``[(S+1) A 2]`` = (alias,
+        j), as action values when q == 1, else as action indices (see :meth:`_sample_kernel`)."""
         A = self.num_actions
-        slot_entry = self._slot_entry.cpu()
-        probs = self._entry_probs.cpu().double()[slot_entry]  # [S+1, A]; empty and not-found slots: uniform row
+        probs = self._entry_probs.cpu().double()[self._slot_entry.cpu()]  # [S+1, A]; empty and not found: uniform
         thr, alias = _alias_tables(probs)
-        cols = torch.arange(A, dtype=torch.float64)
-        self._alias_thr = (cols + thr).to(self.dtype).reshape(-1).to(self.device)  # [(S+1) * A]
-        self._alias_idx = alias.to(torch.int32).reshape(-1).to(self.device)  # [(S+1) * A]
+        cols = torch.arange(A)
+        self._alias_thr = (cols + thr).to(self.dtype).reshape(-1).to(self.device)  # [(S+1) A]
+        pair = torch.stack((alias, cols.expand_as(alias)), dim=2).reshape(-1)  # [(S+1) A 2]: alias, then j
+        if self.actions.shape[1] == 1:
+            pair = self.actions[:, 0].cpu()[pair]
+        self._alias_pair = pair.to(device=self.device, dtype=self.dtype if self.actions.shape[1] == 1 else torch.int32)
 
     @property
     def num_actions(self) -> int:
@@ -240,34 +252,35 @@ class TablePolicy:
         """Pure tensor kernel: states ``[N, d]`` and the level's hash base (0-d) -> hash slot ``[N]`` (S: not found).
 
         One dimension at a time (ops on a ``[N]`` column beat ops on ``[N, d]`` broadcast over a short last axis):
-        cell = round(x / delta + offset) - lo, angles mod K, other dimensions clamped into the key box; the cell
-        key accumulates by Horner's rule in exact integer arithmetic, then one hash probe.
+        cell = round(x / delta + offset) - lo, clamped into the key box (angles: to +-2^22, then mod K by an exact
+        floor); the cell key accumulates by Horner's rule in exact integer arithmetic, then one hash probe.
         """
         key = None
-        for dim, scale, shift, k, hi, span in self._key_dims:
-            c = torch.add(shift, x[:, dim], alpha=scale).round_()  # [N] cell index relative to lo
-            c = c.remainder_(k) if k else c.clamp_(0.0, hi)
+        for dim, scale, shift, lo, hi, span, angle in self._key_dims:
+            c = torch.add(shift, x[:, dim], alpha=scale).clamp_(lo, hi).round_()  # [N] cell index relative to lo
+            if angle is not None:  # c mod K = c - K floor((c + 0.5) / K)
+                k, inv_k, half = angle
+                c = c.add_(torch.add(half, c, alpha=inv_k).floor_(), alpha=-k)
             key = c if key is None else c.add_(key, alpha=span)  # [N]
         h = torch.add(base, key.to(self._hash.dtype), alpha=self._hash.multiplier)  # [N] hash of level + cell key
         slot = self._hash.slots(h)  # [N]
-        found = self._hash.slot_hash.index_select(0, slot) == h  # [N]
-        return torch.where(found, slot, self._miss_slot)  # [N]
+        return slot.masked_fill_(self._hash.slot_hash.index_select(0, slot) != h, self._miss_slot)  # [N]
 
     def _sample_kernel(self, x: Tensor, base: Tensor, r: Tensor) -> tuple[Tensor, Tensor]:
-        """Pure tensor kernel: ``x [N, d]``, level key base, uniforms ``r [N]`` in ``[0, A)`` -> actions ``[N, q]`` and
+        """Pure tensor kernel: ``x [N, d]``, level hash base, uniforms ``r [N]`` in ``[0, A)`` -> actions ``[N, q]`` and
         the fallback count of the batch (nearest-cell hits + 2^32 x misses).
 
         Walker's alias method with one uniform: column ``j = floor(r)`` of the state's slot keeps ``j`` when
-        ``r < j + p_j`` (stored as one threshold), else takes its alias.
+        ``r < j + p_j`` (one stored threshold), else takes its alias; the two outcomes sit side by side, so the
+        comparison picks one by index (``2 (slot A + j) + keep``) instead of a ``where``.
         """
         slot = self._slot_kernel(x, base)  # [N]
-        j = r.to(torch.int32)  # [N] floor, r >= 0
-        ix = torch.add(j, slot, alpha=self.num_actions)  # [N]
-        a = torch.where(r < self._alias_thr.index_select(0, ix), j, self._alias_idx.index_select(0, ix))  # [N]
-        if self.actions.shape[1] == 1:  # a flat vector gathers faster than rows of one
-            u = self.actions.view(-1).index_select(0, a).unsqueeze(1)  # [N, 1]
+        ix = torch.add(r.to(torch.int32), slot, alpha=self.num_actions)  # [N] slot * A + floor(r)
+        pick = torch.add(r < self._alias_thr.index_select(0, ix), ix, alpha=2)  # [N]
+        if self._alias_pair.dtype == self.dtype:  # q == 1: the pairs hold the action values
+            u = self._alias_pair.index_select(0, pick).unsqueeze(1)  # [N, 1]
         else:
-            u = self.actions.index_select(0, a)  # [N, q]
+            u = self.actions.index_select(0, self._alias_pair.index_select(0, pick))  # [N, q]
         return u, self._slot_code.index_select(0, slot).sum()
 
     def rows(self, x: Tensor, t: int) -> Tensor:

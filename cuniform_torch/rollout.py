@@ -69,33 +69,20 @@ def _check_args(system: System, x0: Tensor, num_samples: int, horizon: int) -> i
     return d
 
 
-class _SE2Placer:
-    """Moves states from the frame of a start pose to the world, column by column into a given ``[N, d]`` view.
+def _to_pose(local: Tensor, pose: Tensor) -> Tensor:
+    """States ``[N, T+1, d]`` relative to ``pose`` (``[d]`` or ``[N, 1, d]``) -> world states.
 
-    Same maths as :func:`~cuniform_torch.frames.se2_to_world`, but each step's states go straight into the
-    rollout's buffer (no ``[N, T+1, d]`` temporaries); ``pose [d]`` (one start for all) or ``[N, d]``.
+    The maths of :func:`~cuniform_torch.frames.se2_to_world`, one op per column over the whole rollout (a rigid
+    motion of x, y; the heading wrapped to ``[-pi, pi)``; further dimensions unchanged).
     """
-
-    def __init__(self, pose: Tensor):
-        theta = pose[..., 2]
-        self.c, self.s = torch.cos(theta), torch.sin(theta)  # 0-d or [N]
-        self.px, self.py = pose[..., 0], pose[..., 1]
-        self.theta_pi = theta + math.pi
-
-    def __call__(self, local: Tensor, out: Tensor) -> None:
-        lx, ly = local[:, 0], local[:, 1]
-        torch.addcmul(self.px, lx, self.c, out=out[:, 0]).addcmul_(ly, self.s, value=-1.0)
-        torch.addcmul(self.py, lx, self.s, out=out[:, 1]).addcmul_(ly, self.c)
-        torch.add(local[:, 2], self.theta_pi, out=out[:, 2]).remainder_(2.0 * math.pi).sub_(math.pi)
-        if local.shape[1] > 3:
-            out[:, 3:] = local[:, 3:]
-
-
-def _put(place: _SE2Placer | None, x: Tensor, out: Tensor) -> None:
-    if place is None:
-        out.copy_(x)
-    else:
-        place(x, out)
+    theta = pose[..., 2]
+    c, s = torch.cos(theta), torch.sin(theta)  # 0-d or [N, 1]
+    lx, ly = local[..., 0], local[..., 1]  # [N, T+1]
+    x = torch.addcmul(pose[..., 0], lx, c).addcmul_(ly, s, value=-1.0)
+    y = torch.addcmul(pose[..., 1], lx, s).addcmul_(ly, c)
+    heading = torch.add(local[..., 2], theta + math.pi).remainder_(2.0 * math.pi).sub_(math.pi)
+    world = torch.stack((x, y, heading), dim=-1)  # [N, T+1, 3]
+    return torch.cat((world, local[..., 3:]), dim=-1) if local.shape[-1] > 3 else world
 
 
 def rollout(
@@ -137,11 +124,7 @@ def rollout(
     planned = None
     if not discrete and hasattr(policy, "sample_sequences"):  # open-loop noise: draw it all at once
         planned = policy.sample_sequences(num_samples, horizon, generator)  # [N, T, q]
-    # states are written step by step into one buffer; a start-relative rollout writes them moved to the start pose
-    states_t = torch.empty((num_samples, horizon + 1, d), dtype=x0.dtype, device=x0.device)  # [N, T+1, d]
-    place = _SE2Placer(x0 if x0.ndim == 1 else start) if relative else None
-    _put(place, x, states_t[:, 0])
-    taken = []
+    states, taken = [x], []
     for t in range(horizon):
         if planned is not None:
             u = planned[:, t]
@@ -151,8 +134,11 @@ def rollout(
         else:
             u = policy.sample(x, t, generator)  # [N, q]
         x = system.step(x, u)
-        _put(place, x, states_t[:, t + 1])
+        states.append(x)
         taken.append(u)
+    states_t = torch.stack(states, dim=1)  # [N, T+1, d]
+    if relative and (x0.ndim == 2 or bool(x0[:3].any())):  # the origin pose needs no change of frame
+        states_t = _to_pose(states_t, x0 if x0.ndim == 1 else start.unsqueeze(1))
     q = policy.actions.shape[1] if hasattr(policy, "actions") else (nominal.shape[1] if nominal is not None else 0)
     if planned is not None:
         actions_t = planned  # [N, T, q]

@@ -178,11 +178,56 @@ class TestAlias:
         assert bool((thr[p == 0] == 0).all())
         assert bool((p.gather(1, alias)[thr < 1] > 0).all())
 
-    def test_policy_thresholds_encode_the_column(self, dubins_table):
-        policy = TablePolicy(dubins_table)
+    @pytest.mark.parametrize("table_name", ["dubins_table", "walk_table"])
+    def test_policy_slot_tables_reproduce_the_rows(self, request, table_name):
+        """Every slot's thresholds and outcome pairs give its entry's row (uniform for empty and not-found slots)."""
+        policy = TablePolicy(request.getfixturevalue(table_name))
         A = policy.num_actions
-        thr = policy._alias_thr.reshape(-1, A)
-        cols = torch.arange(A, dtype=thr.dtype)
-        assert bool(((thr >= cols) & (thr <= cols + 1)).all())
-        assert policy._alias_thr.numel() == (policy._hash.num_slots + 1) * A
-        assert math.isclose(float(thr[-1].sub(cols).min()), 1.0)  # the not-found slot is uniform
+        thr = policy._alias_thr.double().reshape(-1, A) - torch.arange(A)  # [S+1, A] in [0, 1]
+        assert bool(((thr >= 0) & (thr <= 1)).all())
+        pair = policy._alias_pair.reshape(-1, A, 2)  # [S+1, A, 2]: alias, j (action values when q == 1)
+        values = policy.actions[:, 0].double()
+        alias, own = (torch.searchsorted(values, pair[..., i].double()) for i in (0, 1))
+        assert torch.equal(own, torch.arange(A).expand_as(own))
+        mass = torch.zeros_like(thr)
+        mass.scatter_add_(1, own, thr / A)
+        mass.scatter_add_(1, alias, (1 - thr) / A)
+        want = policy._entry_probs.double()[policy._slot_entry]  # [S+1, A]
+        torch.testing.assert_close(mass, want, atol=1e-6, rtol=0)
+
+    def test_sampled_frequencies_follow_a_skewed_row(self, walk_table):
+        """A row with zero entries, 400k draws: every frequency within 0.004 of its probability (sd <= 0.0008)."""
+        policy = TablePolicy(walk_table)
+        lo = int(walk_table.level_offsets[3])
+        p = torch.from_numpy(walk_table.action_probs[lo]).double()
+        x = policy.grid.centers(torch.from_numpy(walk_table.cells[lo : lo + 1])).float().expand(400_000, 1)
+        u = policy.sample(x, 3, torch.Generator().manual_seed(9))
+        idx = torch.searchsorted(policy.actions[:, 0].contiguous(), u[:, 0].contiguous())
+        freq = torch.bincount(idx, minlength=policy.num_actions).double() / u.shape[0]
+        assert float((freq - p).abs().max()) < 0.004
+        assert bool((freq[p == 0] == 0).all())
+
+
+class TestAngles:
+    def test_angles_any_number_of_turns_away_get_the_same_row(self, dubins_table):
+        policy = TablePolicy(dubins_table)
+        t = 3
+        lo, hi = int(dubins_table.level_offsets[t]), int(dubins_table.level_offsets[t + 1])
+        x = policy.grid.centers(torch.from_numpy(dubins_table.cells[lo:hi]))  # float64 centres
+        rows = policy.rows(x.float(), t)
+        assert torch.equal(rows, torch.arange(lo, hi))
+        for turns in (-1000, -3, -1, 1, 2, 7, 1000):
+            shifted = x.clone()
+            shifted[:, 2] += 2 * math.pi * turns
+            assert torch.equal(policy.rows(shifted.float(), t), rows), turns
+
+    def test_huge_and_non_finite_states_are_misses_not_errors(self, dubins_table):
+        policy = TablePolicy(dubins_table)
+        x = torch.tensor([[0.0, 0.0, 1e30], [0.0, 0.0, -1e30], [1e30, -1e30, 0.0], [0.0, 0.0, float("inf")],
+                          [0.0, 0.0, float("nan")], [float("nan")] * 3])
+        rows = policy.rows(x, 0)
+        assert bool((rows == -1).all()) or bool((rows < policy.num_cells).all())
+        probs = policy.action_probs(x, 0)
+        torch.testing.assert_close(probs.sum(dim=1), torch.ones(x.shape[0]))
+        u = policy.sample(x, 0, torch.Generator().manual_seed(0))
+        assert bool(torch.isin(u[:, 0], policy.actions[:, 0]).all())
