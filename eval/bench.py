@@ -7,7 +7,11 @@ Every controller runs on the same Dubins dynamics and the same cost (squared dis
 horizon), from the same state; each figure is the median of ``--repeats`` timed commands after ``--warmup``
 untimed ones (on CUDA, synchronized). pytorch_mppi (``pip install pytorch-mppi``, the ``[bench]`` extra) is
 timed in the same run when installed; ratios are ours / theirs. The bare-rollout section times a C-Uniform
-table rollout against a Gaussian one at N = 10000 (eager, and with ``--compile`` the compiled table kernel).
+table rollout against a Gaussian one at N = 10000, T = 15, on the same Dubins dynamics, both eager, calls
+interleaved (table, Gaussian, table, ...) so that load on a shared machine hits both alike: from the origin
+(the benchmark figure; the proposal bank rolls out from there too) and from a pose away from it (adds the
+change of frame), and with ``--compile`` the compiled table kernel. ``--threads 1`` gives steadier CPU
+timings on a loaded machine; ``--rollout-only`` skips the per-command section.
 Writes JSON to ``--json`` (default out/bench.json).
 """
 
@@ -41,6 +45,24 @@ def _timer(fn: Callable[[], object], repeats: int, warmup: int, device: torch.de
     return statistics.median(times)
 
 
+def _interleaved(fns: dict[str, Callable[[], object]], repeats: int, warmup: int,
+                 device: torch.device) -> dict[str, float]:
+    """Median seconds of each function, calls interleaved round by round (fair under a varying machine load)."""
+    sync = torch.cuda.synchronize if device.type == "cuda" else (lambda: None)
+    for _ in range(warmup):
+        for fn in fns.values():
+            fn()
+    sync()
+    times: dict[str, list[float]] = {name: [] for name in fns}
+    for _ in range(repeats):
+        for name, fn in fns.items():
+            t0 = time.perf_counter()
+            fn()
+            sync()
+            times[name].append(time.perf_counter() - t0)
+    return {name: statistics.median(ts) for name, ts in times.items()}
+
+
 def _table(path: Path, horizon: int):
     """The default Dubins table with at least ``horizon`` steps (built in about a second when missing)."""
     if not path.exists():
@@ -62,9 +84,14 @@ def main(argv=None) -> int:
     p.add_argument("--warmup", type=int, default=3)
     p.add_argument("--device", default="cpu")
     p.add_argument("--compile", action="store_true", help="also time the compiled table kernel (slow to compile)")
+    p.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's choice)")
+    p.add_argument("--rollout-only", action="store_true", help="only the bare-rollout section")
+    p.add_argument("--rollout-repeats", type=int, default=None, help="repeats of the bare rollouts (default: --repeats)")
     p.add_argument("--json", type=Path, default=Path("out/bench.json"))
     args = p.parse_args(argv)
     device = torch.device(args.device)
+    if args.threads is not None:
+        torch.set_num_threads(args.threads)
     if device.type == "cuda" and not torch.cuda.is_available():
         print("error: --device cuda but CUDA is not available", file=sys.stderr)
         return 2
@@ -85,12 +112,15 @@ def main(argv=None) -> int:
         return ((state[:, :2] - goal) ** 2).sum(dim=1)
 
     state = torch.tensor([0.0, 0.0, 0.3], device=device)
-    tables = {15: _table(args.table15, 15), 10: _table(args.table, 10)}
+    tables = {15: _table(args.table15, 15)}
+    if not args.rollout_only:
+        tables[10] = _table(args.table, 10)
     rows = []
-    print(f"per-command time (ms), median of {args.repeats}, device {device}, torch threads {torch.get_num_threads()}")
     header = f"{'T':>3} {'K':>6} {'MPPI':>8} {'logMPPI':>8} {'CU-MPPI':>8} {'CU bank':>8} {'CUMPPI':>8}"
-    print(header + (f" {'peer':>8} {'MPPI/peer':>10}" if have_peer else ""))
-    for T in args.horizons:
+    if not args.rollout_only:
+        print(f"per-command time (ms), median of {args.repeats}, device {device}, torch threads {torch.get_num_threads()}")
+        print(header + (f" {'peer':>8} {'MPPI/peer':>10}" if have_peer else ""))
+    for T in [] if args.rollout_only else args.horizons:
         if T not in tables:
             tables[T] = _table(Path(f"out/dubins_h{T}.npz"), T)
         policy = load_table(tables[T], device=device)
@@ -124,22 +154,35 @@ def main(argv=None) -> int:
                             torch.full((1,), system.max_omega, device=device))
     gen = torch.Generator(device=device).manual_seed(0)
     x0 = torch.zeros(3, device=device)
-    bare = {
-        "table": _timer(lambda: rollout(system, policy, x0, N, T, gen), args.repeats, args.warmup, device),
-        "gaussian": _timer(lambda: rollout(system, gauss, x0, N, T, gen), args.repeats, args.warmup, device),
-    }
+    pose = torch.tensor([1.0, -2.0, 0.7], device=device)
+    reps = args.rollout_repeats or args.repeats
+    bare = _interleaved({
+        "table": lambda: rollout(system, policy, x0, N, T, gen),
+        "gaussian": lambda: rollout(system, gauss, x0, N, T, gen),
+        "table_from_pose": lambda: rollout(system, policy, pose, N, T, gen),
+    }, reps, args.warmup, device)
     if args.compile:
         compiled = load_table(tables[15], device=device, compile=True)
         t0 = time.perf_counter()
         rollout(system, compiled, x0, N, T, gen)
         bare["compile_seconds"] = time.perf_counter() - t0
-        bare["table_compiled"] = _timer(lambda: rollout(system, compiled, x0, N, T, gen), args.repeats, args.warmup, device)
+        timed = _interleaved({"table_compiled": lambda: rollout(system, compiled, x0, N, T, gen),
+                              "gaussian": lambda: rollout(system, gauss, x0, N, T, gen)}, reps, args.warmup, device)
+        bare["table_compiled"] = timed["table_compiled"]
+        bare["gaussian_beside_compiled"] = timed["gaussian"]
+    ratios = {"table": bare["table"] / bare["gaussian"], "table_from_pose": bare["table_from_pose"] / bare["gaussian"]}
+    if args.compile:
+        ratios["table_compiled"] = bare["table_compiled"] / bare["gaussian_beside_compiled"]
+    print(f"bare rollouts (median of {reps}, interleaved), device {device}, torch threads {torch.get_num_threads()}")
     print(f"bare rollout N={N} T={T}: table {1e3 * bare['table']:.2f} ms, gaussian {1e3 * bare['gaussian']:.2f} ms, "
-          f"ratio {bare['table'] / bare['gaussian']:.2f}x"
-          + (f"; compiled table {1e3 * bare['table_compiled']:.2f} ms ({bare['table_compiled'] / bare['gaussian']:.2f}x, "
+          f"ratio {ratios['table']:.2f}x"
+          + (f"; compiled table {1e3 * bare['table_compiled']:.2f} ms ({ratios['table_compiled']:.2f}x, "
              f"compiled in {bare['compile_seconds']:.1f} s)" if args.compile else ""))
+    print(f"bare rollout from pose {pose.tolist()} (adds the change of frame): table "
+          f"{1e3 * bare['table_from_pose']:.2f} ms, ratio {ratios['table_from_pose']:.2f}x")
     write_json(args.json, {"device": str(device), "threads": torch.get_num_threads(), "repeats": args.repeats,
-                           "commands": rows, "bare_rollout_seconds": bare, "torch": torch.__version__})
+                           "commands": rows, "bare_rollout_seconds": bare, "bare_rollout_ratios": ratios,
+                           "torch": torch.__version__})
     print(f"wrote {args.json}")
     return 0
 
