@@ -24,7 +24,7 @@ import os
 import platform
 import sys
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Callable
 
@@ -122,7 +122,7 @@ def _cached(path: Path, cfg: dict, force: bool, compute: Callable[[], dict]) -> 
     if path.exists() and not force:
         try:
             old = json.loads(path.read_text())
-            if old.get("config") == cfg:
+            if old.get("config") == json.loads(json.dumps(cfg)):
                 print(f"reusing {path}")
                 return old
         except (OSError, ValueError):
@@ -139,7 +139,8 @@ def machine() -> str:
             f"Python {platform.python_version()}, torch {torch.__version__}")
 
 
-def log_tensorboard(runs: Path, coverage: dict, uniformity: dict, closed_loop: dict[str, dict], figures: dict) -> None:
+def log_tensorboard(runs: Path, coverage: dict, uniformity: dict, closed_loop: dict[str, dict], figures: dict,
+                    images: list[Path] = ()) -> None:
     """One run per method (scalars that line up across methods), a custom-scalars layout, figures, hparams."""
     from torch.utils.tensorboard import SummaryWriter
     from tensorboard.plugins.custom_scalar import layout_pb2  # noqa: F401  (checks the plugin is there)
@@ -167,10 +168,10 @@ def log_tensorboard(runs: Path, coverage: dict, uniformity: dict, closed_loop: d
         per_method.setdefault(r["method"], {})["hparam/mean_tv"] = sum(r["reachable"]["tv"][1:]) / max(1, len(r["reachable"]["tv"]) - 1)
     for exp, result in closed_loop.items():
         for row in result.get("summary", []):
-            tag = f"success/{exp}"
-            step = int(row.get("samples", 0))
-            writer(row["method"]).add_scalar(tag + "/" + str(row.get("scenario", "all")), row["success_rate"], step)
-            per_method.setdefault(row["method"], {})[f"hparam/{exp}_{row.get('scenario', 'all')}_N{step}"] = row["success_rate"]
+            scenario = row["env"] if "env" in row else f"appear_{row['appear']:g}s"
+            step = int(row["num_samples"])
+            writer(row["method"]).add_scalar(f"success/{exp}/{scenario}", row["success_rate"], step)
+            per_method.setdefault(row["method"], {})[f"hparam/{exp}_{scenario}_N{step}"] = row["success_rate"]
     layout = {
         "coverage": {"distinct cells vs N": ["Multiline", ["coverage/cells"]],
                      "% of reachable cells vs N": ["Multiline", ["coverage/pct_reachable"]],
@@ -183,6 +184,10 @@ def log_tensorboard(runs: Path, coverage: dict, uniformity: dict, closed_loop: d
     fig_writer.add_custom_scalars(layout)
     for name, fig in figures.items():
         fig_writer.add_figure(name, fig)
+    import matplotlib.image
+
+    for png in images:  # the closed-loop path figures, saved by their experiments
+        fig_writer.add_image(png.stem, matplotlib.image.imread(png)[..., :3], dataformats="HWC")
     metric_names = sorted({k for m in per_method.values() for k in m})
     for key, metrics in per_method.items():
         method = METHODS.get(key)
@@ -216,6 +221,8 @@ def main(argv=None) -> int:
     p.add_argument("--device", default="cpu")
     p.add_argument("--force", action="store_true", help="rebuild tables and rerun every stage")
     p.add_argument("--skip-closed-loop", action="store_true", help="only the open-loop experiments")
+    p.add_argument("--mlp", action="store_true",
+                   help="also run the distilled MLP in the closed-loop experiments (about 8 more minutes on 2 cores)")
     args = p.parse_args(argv)
     out, runs = (args.out / "quick", args.runs / "quick") if args.quick else (args.out, args.runs)
     paths = Paths(out, runs, args.quick)
@@ -242,12 +249,15 @@ def main(argv=None) -> int:
     if not args.skip_closed_loop:
         from . import cluttered, sudden_obstacle
 
-        for name, module in (("sudden_obstacle", sudden_obstacle), ("cluttered", cluttered)):
-            cfg = module.quick_config() if args.quick else module.default_config()
+        for name, module, default in (("sudden_obstacle", sudden_obstacle, sudden_obstacle.SuddenObstacleConfig()),
+                                      ("cluttered", cluttered, cluttered.ClutteredConfig())):
+            # --quick: the 2 s tables drive the controllers (horizon 10 instead of 15)
+            cfg = replace(module.QUICK, horizon=10) if args.quick else replace(default, include_mlp=args.mlp)
             closed[name] = _stage(name, timings, lambda: _cached(
-                paths.results / f"{name}.json", asdict(cfg), args.force, lambda: module.run(cfg, cl_sources)))
-            closed_md.append((module.TITLE, module.markdown(closed[name])))
-            closed_figs += module.figures(closed[name], paths.figures, cl_sources)
+                paths.results / f"{name}.json", asdict(cfg), args.force,
+                lambda: module.run(cfg, cl_sources, progress=not args.quick)))
+            closed_md.append(module.markdown(closed[name]))
+            closed_figs += module.figures(closed[name], paths.figures)
 
     def make_figures() -> dict:
         figs = {
@@ -255,7 +265,7 @@ def main(argv=None) -> int:
             "uniformity_per_level": uniformity_per_level(uni, paths.figures / "uniformity_per_level.png"),
             "trajectory_fans": trajectory_fans(open_sources, paths.figures / "trajectory_fans.png"),
         }
-        log_tensorboard(runs, cov, uni, closed, figs)
+        log_tensorboard(runs, cov, uni, closed, figs, closed_figs)
         return figs
 
     _stage("figures and TensorBoard", timings, make_figures)
@@ -263,7 +273,7 @@ def main(argv=None) -> int:
     sections = [
         ("Coverage (the paper's Table I)", coverage_exp.markdown(cov) + "\n\n" + config.PAPER_COVERAGE_NOTE + "."),
         ("Uniformity per level", uniformity_exp.markdown(uni)),
-        *closed_md,
+        *([("Closed loop (the paper's Tables II and III)", "\n\n".join(closed_md))] if closed_md else []),
         ("Figures", figure_list),
     ]
     timings["total"] = time.perf_counter() - total
