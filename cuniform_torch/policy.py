@@ -115,9 +115,10 @@ def _alias_tables(probs: Tensor) -> tuple[Tensor, Tensor]:
 class TablePolicy:
     """The Policy interface over a table: ``actions [A, q]`` and ``action_probs(x [N, d], t) -> [N, A]``.
 
-    Also an :class:`~cuniform_torch.rollout.ActionSampler`: ``sample(x, t, generator)`` draws the actions by
-    inverse-CDF sampling (what :func:`~cuniform_torch.rollout.rollout` uses). ``compile=True`` wraps that
-    per-step kernel in ``torch.compile`` (a one-off compilation of tens of seconds, then faster steps).
+    Also an :class:`~cuniform_torch.rollout.ActionSampler`: ``sample(x, t, generator)`` draws the actions with
+    Walker's alias method, one uniform per state (what :func:`~cuniform_torch.rollout.rollout` uses).
+    ``compile=True`` wraps that per-step kernel in ``torch.compile``: a one-off compilation of about ten
+    seconds; on a CPU it then saves mostly the op dispatch (about 30 us per step at N = 10000).
     """
 
     start_relative = True
@@ -190,7 +191,7 @@ class TablePolicy:
         # the level part is folded into the hash: h = (level_key + cell_key) * m = level_key * m + cell_key * m
         m = self._hash.multiplier
         level_hash = [_wrap(((t - int(lo[0])) * strides[0]) * m, bits) for t in range(self.horizon + 1)]
-        self._level_base = torch.tensor(level_hash, dtype=self._hash.dtype, device=self.device)  # [T+1]
+        self._level_base = [torch.tensor(v, dtype=self._hash.dtype, device=self.device) for v in level_hash]  # 0-d
         # per dimension: scaled = x * scale + shift (relative to lo); angles mod K, others clamped into the box
         self._key_dims = []
         for dim in range(grid.dim):
