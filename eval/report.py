@@ -221,8 +221,9 @@ def main(argv=None) -> int:
     p.add_argument("--device", default="cpu")
     p.add_argument("--force", action="store_true", help="rebuild tables and rerun every stage")
     p.add_argument("--skip-closed-loop", action="store_true", help="only the open-loop experiments")
-    p.add_argument("--mlp", action="store_true",
-                   help="also run the distilled MLP in the closed-loop experiments (about 8 more minutes on 2 cores)")
+    p.add_argument("--no-mlp", action="store_true",
+                   help="leave the distilled MLP out of the closed-loop experiments (saves several minutes on a CPU: "
+                        "its forward pass costs about 10x a table lookup per control cycle)")
     args = p.parse_args(argv)
     out, runs = (args.out / "quick", args.runs / "quick") if args.quick else (args.out, args.runs)
     paths = Paths(out, runs, args.quick)
@@ -252,7 +253,7 @@ def main(argv=None) -> int:
         for name, module, default in (("sudden_obstacle", sudden_obstacle, sudden_obstacle.SuddenObstacleConfig()),
                                       ("cluttered", cluttered, cluttered.ClutteredConfig())):
             # --quick: the 2 s tables drive the controllers (horizon 10 instead of 15)
-            cfg = replace(module.QUICK, horizon=10) if args.quick else replace(default, include_mlp=args.mlp)
+            cfg = replace(module.QUICK, horizon=10) if args.quick else replace(default, include_mlp=not args.no_mlp)
             closed[name] = _stage(name, timings, lambda: _cached(
                 paths.results / f"{name}.json", asdict(cfg), args.force,
                 lambda: module.run(cfg, cl_sources, progress=not args.quick)))
