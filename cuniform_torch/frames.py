@@ -22,13 +22,20 @@ def _check(states: Tensor, pose: Tensor) -> None:
 
 
 def se2_to_world(local: Tensor, pose: Tensor) -> Tensor:
-    """States expressed relative to ``pose`` -> world states. ``local [..., d]``, ``pose`` broadcastable ``[..., d]``."""
+    """States expressed relative to ``pose`` -> world states. ``local [..., d]``, ``pose`` broadcastable ``[..., d]``.
+
+    One fused op per column (this runs on every start-relative rollout): ``x, y`` rotated by the pose's heading
+    and translated, the heading added and wrapped to ``[-pi, pi)``, further dimensions unchanged.
+    """
     _check(local, pose)
-    c, s = torch.cos(pose[..., 2:3]), torch.sin(pose[..., 2:3])
-    x = pose[..., 0:1] + c * local[..., 0:1] - s * local[..., 1:2]
-    y = pose[..., 1:2] + s * local[..., 0:1] + c * local[..., 1:2]
-    th = wrap_angle(local[..., 2:3] + pose[..., 2:3])
-    return torch.cat((x, y, th, local[..., 3:]), dim=-1)
+    theta = pose[..., 2]
+    c, s = torch.cos(theta), torch.sin(theta)
+    lx, ly = local[..., 0], local[..., 1]
+    x = torch.addcmul(pose[..., 0], lx, c).addcmul_(ly, s, value=-1.0)
+    y = torch.addcmul(pose[..., 1], lx, s).addcmul_(ly, c)
+    heading = wrap_angle(local[..., 2] + theta)
+    world = torch.stack(torch.broadcast_tensors(x, y, heading), dim=-1)
+    return torch.cat((world, local[..., 3:].expand(*world.shape[:-1], -1)), dim=-1) if local.shape[-1] > 3 else world
 
 
 def se2_to_local(world: Tensor, pose: Tensor) -> Tensor:

@@ -15,12 +15,12 @@ rolled out from the origin and its states are moved to the start pose by a rigid
 
 from __future__ import annotations
 
-import math
 from typing import Protocol, runtime_checkable
 
 import torch
 from torch import Tensor
 
+from .frames import se2_to_world
 from .systems import System
 
 __all__ = ["Policy", "ActionSampler", "rollout", "check_states"]
@@ -67,22 +67,6 @@ def _check_args(system: System, x0: Tensor, num_samples: int, horizon: int) -> i
     if x0.shape != (d,) and x0.shape != (num_samples, d):
         raise ValueError(f"x0 must have shape [{d}] or [{num_samples}, {d}], got {list(x0.shape)}")
     return d
-
-
-def _to_pose(local: Tensor, pose: Tensor) -> Tensor:
-    """States ``[N, T+1, d]`` relative to ``pose`` (``[d]`` or ``[N, 1, d]``) -> world states.
-
-    The maths of :func:`~cuniform_torch.frames.se2_to_world`, one op per column over the whole rollout (a rigid
-    motion of x, y; the heading wrapped to ``[-pi, pi)``; further dimensions unchanged).
-    """
-    theta = pose[..., 2]
-    c, s = torch.cos(theta), torch.sin(theta)  # 0-d or [N, 1]
-    lx, ly = local[..., 0], local[..., 1]  # [N, T+1]
-    x = torch.addcmul(pose[..., 0], lx, c).addcmul_(ly, s, value=-1.0)
-    y = torch.addcmul(pose[..., 1], lx, s).addcmul_(ly, c)
-    heading = torch.add(local[..., 2], theta + math.pi).remainder_(2.0 * math.pi).sub_(math.pi)
-    world = torch.stack((x, y, heading), dim=-1)  # [N, T+1, 3]
-    return torch.cat((world, local[..., 3:]), dim=-1) if local.shape[-1] > 3 else world
 
 
 def rollout(
@@ -138,7 +122,7 @@ def rollout(
         taken.append(u)
     states_t = torch.stack(states, dim=1)  # [N, T+1, d]
     if relative and (x0.ndim == 2 or bool(x0[:3].any())):  # the origin pose needs no change of frame
-        states_t = _to_pose(states_t, x0 if x0.ndim == 1 else start.unsqueeze(1))
+        states_t = se2_to_world(states_t, x0 if x0.ndim == 1 else start.unsqueeze(1))
     q = policy.actions.shape[1] if hasattr(policy, "actions") else (nominal.shape[1] if nominal is not None else 0)
     if planned is not None:
         actions_t = planned  # [N, T, q]

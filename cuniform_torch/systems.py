@@ -210,10 +210,7 @@ class RandomWalk1D:
 
     def action_set(self, dtype: torch.dtype = torch.float32, device: torch.device | str | None = None) -> Tensor:
         """``[A, 1]`` speeds, evenly in ``[-max_speed, max_speed]`` (computed in float64, then cast)."""
-        a = torch.linspace(-self.max_speed, self.max_speed, self.num_actions, dtype=torch.float64)
-        if self.num_actions == 1:
-            a = torch.zeros(1, dtype=torch.float64)
-        return a.to(dtype=dtype, device=device).unsqueeze(1)
+        return _evenly(-self.max_speed, self.max_speed, self.num_actions).to(dtype=dtype, device=device).unsqueeze(1)
 
     def step(self, x: Tensor, u: Tensor) -> Tensor:
         """``x [N, 1]``, ``u [N, 1]`` -> ``[N, 1]``."""
@@ -253,8 +250,7 @@ class Dubins:
 
     def __post_init__(self) -> None:
         _positive(self.name, speed=self.speed, dt=self.dt)
-        if not (isinstance(self.max_omega, (int, float)) and math.isfinite(self.max_omega) and self.max_omega >= 0):
-            raise ValueError(f"{self.name}: max_omega must be a non-negative number, got {self.max_omega!r}")
+        _non_negative(self.name, max_omega=self.max_omega)
         _check_num_actions(self.name, self.num_actions)
         _check_grid(self)
 
@@ -264,10 +260,7 @@ class Dubins:
 
     def action_set(self, dtype: torch.dtype = torch.float32, device: torch.device | str | None = None) -> Tensor:
         """``[A, 1]`` angular velocities, evenly in ``[-max_omega, max_omega]``."""
-        w = torch.linspace(-self.max_omega, self.max_omega, self.num_actions, dtype=torch.float64)
-        if self.num_actions == 1:
-            w = torch.zeros(1, dtype=torch.float64)
-        return w.to(dtype=dtype, device=device).unsqueeze(1)
+        return _evenly(-self.max_omega, self.max_omega, self.num_actions).to(dtype=dtype, device=device).unsqueeze(1)
 
     def step(self, x: Tensor, u: Tensor) -> Tensor:
         """``x [N, 3]``, ``u [N, 1]`` -> ``[N, 3]``: heading first, then position with the new heading."""

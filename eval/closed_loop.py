@@ -25,7 +25,7 @@ from __future__ import annotations
 import math
 import time
 from collections import defaultdict
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Iterable, Sequence
 
@@ -33,13 +33,16 @@ import torch
 
 from cuniform_torch.envs import Circle, Environment, NavigationCost, Polygon, Rect, simulate
 
+from cuniform_torch.fileio import write_json
+
 from . import config
+from .cli import add_source_args
 from .methods import METHODS, Method, Sources, make_controller, parse_methods
 
 __all__ = [
     "Episode", "run_episodes", "wilson_interval", "aggregate", "usable_methods", "paper_label",
-    "success_markdown", "fmt_rate", "plot_paths", "SLOW_METHODS", "add_common_args", "sources_from_args",
-    "finish_cli", "PAPER_FAMILY_OF", "OUTCOME_COLORS",
+    "success_markdown", "fmt_rate", "plot_paths", "SLOW_METHODS", "ControllerSettings", "add_common_args",
+    "config_from_args", "config_from_json", "finish_cli", "PAPER_FAMILY_OF", "OUTCOME_COLORS",
 ]
 
 PAPER_FAMILY_OF = {"mppi": "MPPI", "log_mppi": "log-MPPI", "cuniform": "C-Uniform"}
@@ -47,6 +50,29 @@ PAPER_FAMILY_OF = {"mppi": "MPPI", "log_mppi": "log-MPPI", "cuniform": "C-Unifor
 PAPER_METHOD = "cu_table"
 """our method that is the paper's C-Uniform column (the max-flow table on real rollouts)"""
 OUTCOME_COLORS = {"goal": "tab:green", "collision": "tab:red", "timeout": "tab:orange"}
+
+
+@dataclass(frozen=True)
+class ControllerSettings:
+    """The closed-loop settings both experiments share (each experiment's config adds its scenario)."""
+
+    goal_tolerance: float = 0.3
+    """m: the goal is reached within this xy distance (also the cost's cut-off)"""
+    horizon: int = 15
+    """controller horizon in steps (3 s)"""
+    lambda_: float = config.LAMBDA
+    collision_penalty: float = 1e6
+    """added for every rollout state in a sensed obstacle (``per_state``) or once per colliding rollout"""
+    per_state: bool = True
+    """penalty per colliding state (True) or once per colliding rollout"""
+    seed: int = 0
+    """draws the scenario (obstacle offsets, start poses); controller seeds derive from it"""
+    methods: tuple[str, ...] | None = None
+    """method keys; None: every closed-loop method whose files exist (cu_mlp only with ``include_mlp``)"""
+    include_mlp: bool = False
+    """add cu_mlp to a default run (``methods=None``); it is ~10x slower per cycle than the table on CPU"""
+    samples: tuple[int, ...] = (500, 1000)
+    """N, trajectories per control cycle"""
 
 
 @dataclass
@@ -317,13 +343,11 @@ def plot_paths(panels: dict[str, list[dict]], envs: dict[str, Environment] | Env
 # ------------------------------------------------------------------------------------------------ CLI
 
 def add_common_args(parser) -> None:
-    """The flags both closed-loop modules share."""
+    """The flags both closed-loop modules share (sources default to the 3 s tables)."""
+    add_source_args(parser, horizon15=True)
     parser.add_argument("--methods", nargs="+", default=None,
                         help="method keys (default: every closed-loop method whose files exist)")
-    parser.add_argument("--device", default="cpu")
-    parser.add_argument("--table", type=Path, default=config.TABLE_15, help="max-flow table, horizon 15")
-    parser.add_argument("--coverage-table", type=Path, default=config.COVERAGE_TABLE_15)
-    parser.add_argument("--policy", type=Path, default=config.POLICY_15, help="distilled MLP (cu_mlp)")
+    parser.add_argument("--samples", type=int, nargs="+", default=None, help="N, trajectories per control cycle")
     parser.add_argument("--json", type=Path, default=None, help="write the results here")
     parser.add_argument("--figures", type=Path, default=None, help="write PNG figures into this folder")
     parser.add_argument("--seed", type=int, default=None, help="override the config's seed")
@@ -334,18 +358,24 @@ def add_common_args(parser) -> None:
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
-def sources_from_args(args) -> Sources:
-    return Sources(table=args.table, coverage_table=args.coverage_table, policy=args.policy, device=args.device)
+def config_from_args(cfg: ControllerSettings, args, **experiment_flags) -> ControllerSettings:
+    """``cfg`` with the flags that were given: the common ones plus ``experiment_flags`` (name -> value; lists
+    become tuples, None means "not given")."""
+    given = dict(samples=args.samples, horizon=args.horizon, methods=args.methods, seed=args.seed,
+                 include_mlp=args.mlp or None, **experiment_flags)
+    return replace(cfg, **{k: tuple(v) if isinstance(v, list) else v for k, v in given.items() if v is not None})
+
+
+def config_from_json(cls: type, values: dict):
+    """A config dataclass from its ``asdict`` JSON (lists back to tuples)."""
+    return cls(**{k: tuple(v) if isinstance(v, list) else v for k, v in values.items()})
 
 
 def finish_cli(args, results: dict, markdown_fn, figures_fn) -> None:
-    """Print the markdown, write the JSON and the figures as the flags ask."""
-    import json
-
+    """Print the markdown, write the JSON (atomically) and the figures as the flags ask."""
     print(markdown_fn(results))
     if args.json is not None:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps(results, indent=1))
+        write_json(args.json, results)
         print(f"\nwrote {args.json}")
     if args.figures is not None:
         for p in figures_fn(results, args.figures):

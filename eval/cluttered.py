@@ -39,7 +39,7 @@ from __future__ import annotations
 import argparse
 import math
 import time
-from dataclasses import asdict, dataclass, replace
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
@@ -48,8 +48,9 @@ import torch
 from cuniform_torch.envs import Environment, Rect, u_shape
 
 from . import config
-from .closed_loop import (Episode, add_common_args, aggregate, finish_cli, plot_paths, run_episodes,
-                          sources_from_args, success_markdown, usable_methods)
+from .cli import sources_from_args
+from .closed_loop import (ControllerSettings, Episode, add_common_args, aggregate, config_from_args,
+                          config_from_json, finish_cli, plot_paths, run_episodes, success_markdown, usable_methods)
 from .methods import METHODS, Sources
 
 __all__ = ["EnvSpec", "ENVIRONMENTS", "ClutteredConfig", "QUICK", "make_env", "start_poses", "time_limit",
@@ -98,33 +99,19 @@ ENVIRONMENTS: dict[str, EnvSpec] = {
 
 
 @dataclass(frozen=True)
-class ClutteredConfig:
-    """Parameters and seeds of the cluttered-environment experiment (geometry: :data:`ENVIRONMENTS`)."""
+class ClutteredConfig(ControllerSettings):
+    """Parameters and seeds of the cluttered-environment experiment (geometry: :data:`ENVIRONMENTS`; controller
+    settings: the base class)."""
 
+    samples: tuple[int, ...] = (500, 1000, 2500)
+    """N, trajectories per control cycle"""
     environments: tuple[str, ...] = ("u_shape", "rectangles")
     starts: int = 10
     """random start poses per environment (the paper: 10)"""
-    samples: tuple[int, ...] = (500, 1000, 2500)
-    """N, trajectories per control cycle"""
     clearance: float = 1.5
     """m, from a start to every obstacle and wall"""
-    goal_tolerance: float = 0.3
-    """m"""
     time_limit_factor: float = 1.0
     """time limit = factor * (arena width + height) / speed"""
-    horizon: int = 15
-    """controller horizon in steps (3 s)"""
-    lambda_: float = config.LAMBDA
-    collision_penalty: float = 1e6
-    """added for every rollout state in collision"""
-    per_state: bool = True
-    """penalty per colliding state (True) or once per colliding rollout"""
-    seed: int = 0
-    """draws the starts; controller seeds derive from it"""
-    methods: tuple[str, ...] | None = None
-    """method keys; None: every closed-loop method whose files exist (cu_mlp only with ``include_mlp``)"""
-    include_mlp: bool = False
-    """add cu_mlp to a default run (``methods=None``); it is ~10x slower per cycle than the table on CPU"""
 
 
 QUICK = ClutteredConfig(starts=1, samples=(100,), time_limit_factor=0.25)
@@ -215,11 +202,7 @@ def run(cfg: ClutteredConfig, sources: Sources, progress: bool = True, record_pa
 
 
 def _config(results: dict) -> ClutteredConfig:
-    c = dict(results["config"])
-    for k in ("environments", "samples", "methods"):
-        if c.get(k) is not None:
-            c[k] = tuple(c[k])
-    return ClutteredConfig(**c)
+    return config_from_json(ClutteredConfig, results["config"])
 
 
 def _fmt(v: float | None, unit: str) -> str:
@@ -280,18 +263,12 @@ def figures(results: dict, outdir: Path) -> list[Path]:
 def main(argv: list[str] | None = None) -> dict:
     parser = argparse.ArgumentParser(prog="python -m eval.cluttered", description=__doc__.splitlines()[0])
     add_common_args(parser)
-    parser.add_argument("--samples", type=int, nargs="+", default=None)
     parser.add_argument("--starts", type=int, default=None)
     parser.add_argument("--envs", nargs="+", default=None, choices=list(ENVIRONMENTS))
     args = parser.parse_args(argv)
     torch.set_num_threads(1)
-    cfg = QUICK if args.quick else ClutteredConfig()
-    overrides = {k: v for k, v in dict(samples=args.samples and tuple(args.samples), starts=args.starts, horizon=args.horizon,
-                                           environments=args.envs and tuple(args.envs),
-                                           methods=args.methods and tuple(args.methods), seed=args.seed,
-                                           include_mlp=args.mlp or None).items()
-                 if v is not None}
-    cfg = replace(cfg, **overrides)
+    cfg = config_from_args(QUICK if args.quick else ClutteredConfig(), args, starts=args.starts,
+                           environments=args.envs)
     results = run(cfg, sources_from_args(args), progress=not args.quiet)
     finish_cli(args, results, markdown, figures)
     return results

@@ -24,12 +24,11 @@ from pathlib import Path
 
 import torch
 
-from cuniform_torch import TableError
 from cuniform_torch.coverage import coverage, uniform_ceiling
-from cuniform_torch.fileio import write_json
 
 from . import config
-from .methods import Method, Sources, parse_methods, sample_states
+from .cli import add_source_args, run_experiment
+from .methods import Sources, parse_methods, sample_states
 from .reachable import reachable
 
 
@@ -123,15 +122,6 @@ def print_table(result: dict) -> None:
               f" {r['pct_reachable']:>7.1f}% {r['pct_ceiling']:>8.1f}% {paper:>6}")
 
 
-def add_source_args(p: argparse.ArgumentParser, horizon15: bool = False) -> None:
-    """--table / --coverage-table / --policy / --device flags (defaults from eval.config)."""
-    p.add_argument("--table", type=Path, default=config.TABLE_15 if horizon15 else config.TABLE,
-                   help="max-flow table (also the grid and horizon of the experiment)")
-    p.add_argument("--coverage-table", type=Path, default=config.COVERAGE_TABLE_15 if horizon15 else config.COVERAGE_TABLE)
-    p.add_argument("--policy", type=Path, default=config.POLICY_15 if horizon15 else config.POLICY)
-    p.add_argument("--device", default="cpu")
-
-
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(prog="python -m eval.coverage", description=__doc__.split("\n\n")[0])
     p.add_argument("--methods", nargs="+", default=None, help="method keys (default: every open-loop method)")
@@ -148,17 +138,7 @@ def main(argv=None) -> int:
         cfg.samples = args.samples
     elif args.quick:
         cfg.samples = [250, 1000]
-    sources = Sources(args.table, args.coverage_table, args.policy, args.device)
-    try:
-        result = run(cfg, sources)
-    except (TableError, ValueError, FileNotFoundError) as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
-    print_table(result)
-    if args.json:
-        write_json(args.json, result)
-        print(f"wrote {args.json}")
-    return 0
+    return run_experiment(run, cfg, args, print_table)
 
 
 if __name__ == "__main__":

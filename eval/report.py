@@ -143,7 +143,6 @@ def log_tensorboard(runs: Path, coverage: dict, uniformity: dict, closed_loop: d
                     images: list[Path] = ()) -> None:
     """One run per method (scalars that line up across methods), a custom-scalars layout, figures, hparams."""
     from torch.utils.tensorboard import SummaryWriter
-    from tensorboard.plugins.custom_scalar import layout_pb2  # noqa: F401  (checks the plugin is there)
 
     per_method: dict[str, dict[str, float]] = {}
     writers: dict[str, SummaryWriter] = {}

@@ -42,9 +42,8 @@ a controller can beat it by a position or two.
 from __future__ import annotations
 
 import argparse
-import math
 import time
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
@@ -53,8 +52,9 @@ import torch
 from cuniform_torch.envs import Circle, Environment
 
 from . import config
-from .closed_loop import (Episode, add_common_args, aggregate, finish_cli, plot_paths, run_episodes,
-                          sources_from_args, success_markdown, usable_methods)
+from .cli import sources_from_args
+from .closed_loop import (ControllerSettings, Episode, add_common_args, aggregate, config_from_args,
+                          config_from_json, finish_cli, plot_paths, run_episodes, success_markdown, usable_methods)
 from .methods import METHODS, Sources
 
 __all__ = ["SuddenObstacleConfig", "QUICK", "offsets", "make_env", "oracle_feasible", "episodes", "run",
@@ -62,8 +62,8 @@ __all__ = ["SuddenObstacleConfig", "QUICK", "offsets", "make_env", "oracle_feasi
 
 
 @dataclass(frozen=True)
-class SuddenObstacleConfig:
-    """Geometry, parameters and seeds of the sudden-obstacle experiment."""
+class SuddenObstacleConfig(ControllerSettings):
+    """Geometry, parameters and seeds of the sudden-obstacle experiment (controller settings: the base class)."""
 
     start: tuple[float, float, float] = (0.0, 0.0, 0.0)
     """start pose (x, y, theta)"""
@@ -77,25 +77,8 @@ class SuddenObstacleConfig:
     """number of lateral offsets (the paper: 20)"""
     appear: tuple[float, ...] = (0.0, 0.2, 0.5, 0.8, 1.0)
     """times (s) from which the robot senses the obstacle (0 = visible from the start)"""
-    samples: tuple[int, ...] = (500, 1000)
-    """N, trajectories per control cycle"""
-    goal_tolerance: float = 0.3
-    """m"""
     time_limit: float = 10.0
     """s"""
-    horizon: int = 15
-    """controller horizon in steps (3 s)"""
-    lambda_: float = config.LAMBDA
-    collision_penalty: float = 1e6
-    """added for every rollout state in a sensed obstacle"""
-    per_state: bool = True
-    """penalty per colliding state (True) or once per colliding rollout"""
-    seed: int = 0
-    """draws the offsets; controller seeds derive from it"""
-    methods: tuple[str, ...] | None = None
-    """method keys; None: every closed-loop method whose files exist (cu_mlp only with ``include_mlp``)"""
-    include_mlp: bool = False
-    """add cu_mlp to a default run (``methods=None``); it is ~10x slower per cycle than the table on CPU"""
 
 
 QUICK = SuddenObstacleConfig(positions=2, appear=(0.0, 1.0), samples=(100,))
@@ -175,11 +158,7 @@ def run(cfg: SuddenObstacleConfig, sources: Sources, progress: bool = True, reco
 
 
 def _config(results: dict) -> SuddenObstacleConfig:
-    c = dict(results["config"])
-    for k in ("start", "goal", "appear", "samples", "methods"):
-        if c.get(k) is not None:
-            c[k] = tuple(c[k])
-    return SuddenObstacleConfig(**c)
+    return config_from_json(SuddenObstacleConfig, results["config"])
 
 
 def markdown(results: dict) -> str:
@@ -238,18 +217,12 @@ def figures(results: dict, outdir: Path) -> list[Path]:
 def main(argv: list[str] | None = None) -> dict:
     parser = argparse.ArgumentParser(prog="python -m eval.sudden_obstacle", description=__doc__.splitlines()[0])
     add_common_args(parser)
-    parser.add_argument("--samples", type=int, nargs="+", default=None)
     parser.add_argument("--positions", type=int, default=None)
     parser.add_argument("--appear", type=float, nargs="+", default=None)
     args = parser.parse_args(argv)
     torch.set_num_threads(1)
-    cfg = QUICK if args.quick else SuddenObstacleConfig()
-    overrides = {k: v for k, v in dict(samples=args.samples and tuple(args.samples), positions=args.positions, horizon=args.horizon,
-                                           appear=args.appear and tuple(args.appear),
-                                           methods=args.methods and tuple(args.methods), seed=args.seed,
-                                           include_mlp=args.mlp or None).items()
-                 if v is not None}
-    cfg = replace(cfg, **overrides)
+    cfg = config_from_args(QUICK if args.quick else SuddenObstacleConfig(), args, positions=args.positions,
+                           appear=args.appear)
     results = run(cfg, sources_from_args(args), progress=not args.quiet)
     finish_cli(args, results, markdown, figures)
     return results

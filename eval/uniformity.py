@@ -28,11 +28,9 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
-from cuniform_torch import TableError
-from cuniform_torch.fileio import write_json
 from cuniform_torch.grid import CellKeys
 
-from .coverage import add_source_args
+from .cli import add_source_args, run_experiment
 from .methods import Sources, parse_methods, sample_states
 from .reachable import reachable
 
@@ -136,17 +134,7 @@ def main(argv=None) -> int:
     args = p.parse_args(argv)
     cfg = UniformityConfig(args.methods, 1000 if args.quick else args.samples, 1 if args.quick else args.seeds,
                            args.merge_resolution)
-    sources = Sources(args.table, args.coverage_table, args.policy, args.device)
-    try:
-        result = run(cfg, sources)
-    except (TableError, ValueError, FileNotFoundError) as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
-    print_table(result)
-    if args.json:
-        write_json(args.json, result)
-        print(f"wrote {args.json}")
-    return 0
+    return run_experiment(run, cfg, args, print_table)
 
 
 if __name__ == "__main__":
