@@ -30,8 +30,15 @@ i.e. the time to drive half the arena's perimeter. Success = goal reached with n
 limit. Controller seed ``seed + 1 + 1000 * env index + start``: the same for every method and N. No knob
 differs between methods beyond what defines the method (see ``eval.sudden_obstacle`` for the cost).
 
-``python -m eval.cluttered [--methods ...] [--samples 500 1000 2500] [--starts 10] [--envs u_shape rectangles]
-[--device cpu] [--json PATH] [--figures DIR] [--quick]``
+Repeats: ``seeds_per_start`` = R (``--seeds-per-start``, default 1, the paper's one run per start) runs every
+start under R controller seeds, ``seed + 1 + 1000 * env index + start + 100000 * r`` for r = 0..R-1 (r = 0 is
+the default run's seed, so R = 1 is exactly the default experiment). Success rates then pool the 10 x R runs;
+their Wilson interval measures the controller's randomness on *these* starts (the starts are fixed, so it does
+not shrink the between-start part of the uncertainty: more starts, ``--starts``, do that), and the markdown adds
+a per-start table (successes out of R).
+
+``python -m eval.cluttered [--methods ...] [--samples 500 1000 2500] [--starts 10] [--seeds-per-start 1]
+[--envs u_shape rectangles] [--device cpu] [--json PATH] [--figures DIR] [--quick]``
 """
 
 from __future__ import annotations
@@ -54,7 +61,7 @@ from .closed_loop import (ControllerSettings, Episode, add_common_args, aggregat
 from .methods import METHODS, Sources
 
 __all__ = ["EnvSpec", "ENVIRONMENTS", "ClutteredConfig", "QUICK", "make_env", "start_poses", "time_limit",
-           "episodes", "run", "markdown", "figures", "main"]
+           "SEED_STRIDE", "controller_seed", "episodes", "per_start_markdown", "run", "markdown", "figures", "main"]
 
 
 @dataclass(frozen=True)
@@ -112,6 +119,8 @@ class ClutteredConfig(ControllerSettings):
     """m, from a start to every obstacle and wall"""
     time_limit_factor: float = 1.0
     """time limit = factor * (arena width + height) / speed"""
+    seeds_per_start: int = 1
+    """R: controller seeds per start (1: the paper's one run per start; see the module docstring)"""
 
 
 QUICK = ClutteredConfig(starts=1, samples=(100,), time_limit_factor=0.25)
@@ -162,17 +171,33 @@ def time_limit(cfg: ClutteredConfig, name: str, speed: float) -> float:
     return cfg.time_limit_factor * ((xmax - xmin) + (ymax - ymin)) / speed
 
 
+SEED_STRIDE = 100000
+"""controller seeds of repeat r are ``SEED_STRIDE * r`` above repeat 0's"""
+
+
+def controller_seed(cfg: ClutteredConfig, env_index: int, start: int, rep: int = 0) -> int:
+    """The controller seed of one run: ``seed + 1 + 1000 * env index + start + SEED_STRIDE * rep`` (the same for
+    every method and N; ``rep = 0`` is the default, one-seed-per-start experiment's)."""
+    return cfg.seed + 1 + 1000 * env_index + start + SEED_STRIDE * rep
+
+
 def episodes(cfg: ClutteredConfig, methods: list[str], speed: float) -> list[Episode]:
+    reps = cfg.seeds_per_start
+    if isinstance(reps, bool) or not isinstance(reps, int) or reps < 1:
+        raise ValueError(f"seeds_per_start must be a positive integer, got {reps!r}")
+    if cfg.starts > 1000:
+        raise ValueError(f"at most 1000 starts per environment (controller seeds would repeat), got {cfg.starts}")
     out = []
     for name in cfg.environments:
         ei = list(ENVIRONMENTS).index(name)
         env, spec, limit = make_env(name), ENVIRONMENTS[name], time_limit(cfg, name, speed)
         for s, pose in enumerate(start_poses(cfg, name)):
-            for n in cfg.samples:
-                for m in methods:
-                    out.append(Episode(m, n, env, pose, spec.goal, cfg.goal_tolerance, limit,
-                                       seed=cfg.seed + 1 + 1000 * ei + s, horizon=cfg.horizon,
-                                       tags={"env": name, "start": s}))
+            for r in range(reps):
+                tags = {"env": name, "start": s} if reps == 1 else {"env": name, "start": s, "rep": r}
+                for n in cfg.samples:
+                    for m in methods:
+                        out.append(Episode(m, n, env, pose, spec.goal, cfg.goal_tolerance, limit,
+                                           seed=controller_seed(cfg, ei, s, r), horizon=cfg.horizon, tags=tags))
     return out
 
 
@@ -214,9 +239,13 @@ def markdown(results: dict) -> str:
     goal and path length of the successful runs."""
     cfg = _config(results)
     rows = results["summary"]
+    reps = cfg.seeds_per_start
+    runs = "" if reps == 1 else (f", each run under {reps} controller seeds (success rates pool the "
+                                 f"{cfg.starts} x {reps} runs; the interval is over these fixed starts)")
     out = ["### Cluttered environments (Table III)", "",
            f"{cfg.starts} random start poses per environment (seed {cfg.seed}, >= {cfg.clearance} m from obstacles "
-           f"and walls), goal tolerance {cfg.goal_tolerance} m, horizon {cfg.horizon} steps, lambda {cfg.lambda_}. "
+           f"and walls){runs}, goal tolerance {cfg.goal_tolerance} m, horizon {cfg.horizon} steps, lambda "
+           f"{cfg.lambda_}. "
            "Success rate with its 95% Wilson interval; the paper's MPPI / log-MPPI columns do not name a noise "
            "level; its C-Uniform column is our `cu_table`.", ""]
     for name in cfg.environments:
@@ -237,8 +266,32 @@ def markdown(results: dict) -> str:
                              f"{_fmt(r['mean_time'], 's')} / {_fmt(r['mean_path_length'], 'm')}")
             lines.append(f"| {METHODS[m].label} | " + " | ".join(cells) + " |")
         out += ["\n".join(lines), ""]
+        if reps > 1:
+            out += [f"Per start ({name}): runs that reached the goal out of {reps} controller seeds "
+                    "(c: collisions, t: timeouts):", "", per_start_markdown(results, name), ""]
     out.append(f"Run time: {results['seconds']:.0f} s for {len(results['records'])} episodes.")
     return "\n".join(out)
+
+
+def per_start_markdown(results: dict, name: str) -> str:
+    """A table with one row per (method, N) and one column per start of ``name``: successes out of the runs
+    from that start (``k/R``), with the collisions and timeouts among the failures."""
+    cfg = _config(results)
+    recs = [r for r in results["records"] if r["env"] == name]
+    head = ["method", "N"] + [f"start {s}" for s in range(cfg.starts)]
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for m in results["methods"]:
+        for n in cfg.samples:
+            cells = []
+            for s in range(cfg.starts):
+                rs = [r for r in recs if r["method"] == m and r["num_samples"] == n and r["start"] == s]
+                ok = sum(r["success"] for r in rs)
+                c = sum(r["outcome"] == "collision" for r in rs)
+                t = sum(r["outcome"] == "timeout" for r in rs)
+                cell = f"{ok}/{len(rs)}" + (f" ({c}c {t}t)" if ok < len(rs) else "")
+                cells.append(cell)
+            lines.append(f"| {METHODS[m].label} | {n} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
 
 
 def figures(results: dict, outdir: Path) -> list[Path]:
@@ -255,7 +308,9 @@ def figures(results: dict, outdir: Path) -> list[Path]:
         panels = {METHODS[m].label: [r for r in recs if r["method"] == m and r["env"] == name
                                      and r["num_samples"] == n] for m in results["methods"]}
         paths.append(plot_paths(panels, env, Path(outdir) / f"cluttered_{name}_N{n}.png",
-                                title=f"{name}: closed-loop paths from {cfg.starts} starts, N = {n}",
+                                title=f"{name}: closed-loop paths from {cfg.starts} starts"
+                                      + (f" x {cfg.seeds_per_start} seeds" if cfg.seeds_per_start > 1 else "")
+                                      + f", N = {n}",
                                 xlim=(xmin - 0.2, xmax + 0.2), ylim=(ymin - 0.2, ymax + 0.2)))
     return paths
 
@@ -265,10 +320,15 @@ def main(argv: list[str] | None = None) -> dict:
     add_common_args(parser)
     parser.add_argument("--starts", type=int, default=None)
     parser.add_argument("--envs", nargs="+", default=None, choices=list(ENVIRONMENTS))
+    parser.add_argument("--seeds-per-start", type=int, default=None, metavar="R",
+                        help="controller seeds per start (default 1: one run per start, as the paper); the success "
+                        "rates pool starts x R runs")
     args = parser.parse_args(argv)
+    if args.seeds_per_start is not None and args.seeds_per_start < 1:
+        parser.error(f"--seeds-per-start must be >= 1, got {args.seeds_per_start}")
     torch.set_num_threads(1)
     cfg = config_from_args(QUICK if args.quick else ClutteredConfig(), args, starts=args.starts,
-                           environments=args.envs)
+                           environments=args.envs, seeds_per_start=args.seeds_per_start)
     results = run(cfg, sources_from_args(args), progress=not args.quiet)
     finish_cli(args, results, markdown, figures)
     return results

@@ -220,3 +220,35 @@ def test_cluttered_cli(sources, tmp_path, capsys):
     assert "Cluttered environments" in capsys.readouterr().out
     res = json.loads(out.read_text())
     assert res["config"]["environments"] == ["rectangles"] and len(res["records"]) == 1
+
+
+def test_cluttered_seeds_per_start(sources):
+    one = cluttered.run(_cl(), sources, progress=False)
+    assert all("rep" not in r for r in one["records"])  # the default experiment's records are unchanged
+    three = cluttered.run(_cl(seeds_per_start=3), sources, progress=False)
+    assert len(three["records"]) == 3 * len(one["records"])
+    assert sorted({r["rep"] for r in three["records"]}) == [0, 1, 2]
+    assert len({r["seed"] for r in three["records"]}) == 3  # one seed per repeat, shared by every method and N
+    first = [{k: v for k, v in r.items() if k != "rep"} for r in three["records"] if r["rep"] == 0]
+    assert _strip(first) == _strip(one["records"])  # repeat 0 is the default run
+    (row,) = [r for r in three["summary"] if r["method"] == "cu_table"]
+    assert row["n"] == 3
+    md = cluttered.markdown(three)
+    assert "3 controller seeds" in md and "| start 0 |" in md
+    assert "| start 0 |" not in cluttered.markdown(one)
+    seeds = [cluttered.controller_seed(cluttered.ClutteredConfig(), ei, s, r)
+             for ei in range(2) for s in range(1000) for r in range(5)]
+    assert len(set(seeds)) == len(seeds)
+    with pytest.raises(ValueError):
+        cluttered.run(_cl(seeds_per_start=0), sources, progress=False)
+
+
+def test_cluttered_cli_seeds_per_start(sources, tmp_path, capsys):
+    out = tmp_path / "cl.json"
+    cluttered.main(["--quick", "--quiet", "--horizon", "10", "--samples", "16", "--methods", "mppi_low",
+                    "--envs", "u_shape", "--seeds-per-start", "2", "--table", str(sources.table), "--json", str(out)])
+    assert "| start 0 |" in capsys.readouterr().out
+    res = json.loads(out.read_text())
+    assert res["config"]["seeds_per_start"] == 2 and len(res["records"]) == 2
+    with pytest.raises(SystemExit):
+        cluttered.main(["--quick", "--seeds-per-start", "0", "--table", str(sources.table)])
