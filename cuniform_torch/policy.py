@@ -5,9 +5,11 @@ Shapes: N states, d state dimensions, A actions, q action dimensions, C table ce
 When the policy is made, every (level, cell) of the table is packed into one int64 key, together with a
 *halo*: every cell within one cell (the 3^d - 1 neighbours, angles wrapped) of a level set that is not itself
 in that level set, mapped to its nearest cell of the level set (smallest grid distance between cell indices;
-ties go to the lower table row). The keys go once into a static hash table
-(:class:`~cuniform_torch.grid.KeyHash`, one probe per lookup), so a lookup is pure tensor ops (a few gathers),
-the same on CPU and GPU; sampling uses per-slot alias tables (Walker's method: one uniform, two gathers).
+ties go to the lower table row). The keys go once into a lookup structure (``lookup=``, :class:`Lookup`): a
+dense int32 index over the keys' bounding box when that is small (about 17 MB for the horizon-15 Dubins
+table; one gather per lookup), else a static hash table (:class:`~cuniform_torch.grid.KeyHash`, one probe per
+lookup, memory in proportion to the entries). Either way a lookup is pure tensor ops (a few gathers), the same
+on CPU and GPU; sampling uses per-slot alias tables (Walker's method: one uniform, two gathers).
 
 Fallback for a state whose cell is not in L_t (``fallback=``):
 
@@ -36,7 +38,7 @@ from .rollout import check_states
 from .systems import System
 from .table import Table, read_table
 
-__all__ = ["Fallback", "TablePolicy", "UniformPolicy", "load_table"]
+__all__ = ["Fallback", "Lookup", "TablePolicy", "UniformPolicy", "load_table"]
 
 
 @option_label('fallback')
@@ -46,6 +48,23 @@ class Fallback(Option):
     NEAREST = "nearest"
     UNIFORM = "uniform"
 
+
+@option_label('lookup')
+class Lookup(Option):
+    """How a :class:`TablePolicy` finds a state's (level, cell) among the table's entries."""
+
+    AUTO = "auto"
+    """dense when its index is small (see :data:`DENSE_MIN_CELLS`, :data:`DENSE_CELLS_PER_ENTRY`), else hash"""
+    DENSE = "dense"
+    """an int32 index over the key box of every level: one gather per lookup, 4 bytes per box cell"""
+    HASH = "hash"
+    """a static hash of the entries (:class:`~cuniform_torch.grid.KeyHash`): one probe, about 16 bytes per entry"""
+
+
+DENSE_MIN_CELLS = 2**23
+"""``lookup="auto"`` uses a dense index of up to this many cells (32 MB) whatever the number of entries ..."""
+DENSE_CELLS_PER_ENTRY = 16
+"""... and beyond that while it has at most this many cells per entry (cells and halo of every level)."""
 
 
 def _halo(keyed: Tensor, grid: Grid) -> tuple[Tensor, Tensor]:
@@ -117,6 +136,8 @@ class TablePolicy:
 
     Also an :class:`~cuniform_torch.rollout.ActionSampler`: ``sample(x, t, generator)`` draws the actions with
     Walker's alias method, one uniform per state (what :func:`~cuniform_torch.rollout.rollout` uses).
+    ``lookup`` picks how cells are found (:class:`Lookup`): a dense index over the tables' key box where that is
+    small (the default presets: a few MB), else a static hash; both answer exactly the same.
     ``compile=True`` wraps that per-step kernel in ``torch.compile``: a one-off compilation of about ten
     seconds; on a CPU it then saves mostly the op dispatch (about 30 us per step at N = 10000).
     """
@@ -131,6 +152,7 @@ class TablePolicy:
         dtype: torch.dtype = torch.float32,
         fallback: str | Fallback = Fallback.NEAREST,
         compile: bool = False,
+        lookup: str | Lookup = Lookup.AUTO,
     ):
         self.table = table
         self.system: System = table.make_system()
@@ -151,7 +173,7 @@ class TablePolicy:
         self.entry_row = rows.to(self.device)  # [C + H] table row of each entry
         self.num_cells = C
         self.num_halo = int(entries.shape[0] - C)
-        self._build_lookup(entries)
+        self._build_lookup(entries, Lookup.parse(lookup))
         # one row per entry plus a last uniform row, which entry -1 (not found) selects by negative indexing
         uniform = torch.full((1, self.num_actions), 1.0 / self.num_actions, device=self.device, dtype=dtype)
         self._entry_probs = torch.cat((self.probs[self.entry_row], uniform))  # [C + H + 1, A]
@@ -159,15 +181,17 @@ class TablePolicy:
         self._sample = torch.compile(self._sample_kernel, dynamic=False) if compile else self._sample_kernel
         self.reset_counters()
 
-    def _build_lookup(self, entries: Tensor) -> None:
+    def _build_lookup(self, entries: Tensor, lookup: "Lookup") -> None:
         """Settle the lookup kernel's constants once (see :meth:`_slot_kernel`).
 
         Keys pack (level, cell) over a box that spans every angle index and, on the other dimensions, one cell
         more than the entries on each side. Scaled states are clamped into that box before rounding, so a
-        state far outside lands on a border cell that holds no entry: a miss, never a wrong cell. The keys go
-        into a :class:`~cuniform_torch.grid.KeyHash` (one probe per lookup); each of its slots, plus one last
-        slot for "not found", carries what sampling needs: an alias table of its row (Walker's method, so a
-        draw is two gathers and a compare whatever the number of actions), its entry, and a fallback code.
+        state far outside lands on a border cell that holds no entry: a miss, never a wrong cell. The keys are
+        looked up in a dense index over the box (``Lookup.DENSE``: one gather) or a
+        :class:`~cuniform_torch.grid.KeyHash` (``Lookup.HASH``: one probe, memory in proportion to the entries).
+        Each *slot* (an entry, or a hash slot), plus one last slot for "not found", carries what sampling needs:
+        an alias table of its row (Walker's method, so a draw is two gathers and a compare whatever the number
+        of actions), its entry, and a fallback code.
         """
         grid = self.grid
         covering = CellKeys.covering(entries)
@@ -180,18 +204,39 @@ class TablePolicy:
                 lo[1 + dim], span[1 + dim] = 0, kk
         keys = CellKeys(lo, span)
         total = math.prod(span.tolist())  # every query key is below this (clamped into the box)
-        self._hash = KeyHash.build(keys.pack(entries), key_limit=total).to(self.device)
-        S, bits = self._hash.num_slots, 32 if self._hash.dtype == torch.int32 else 64
         spans, strides = span.tolist(), keys.strides.tolist()
+        E = int(entries.shape[0])
+        if lookup is Lookup.AUTO:
+            lookup = Lookup.DENSE if total <= max(DENSE_MIN_CELLS, DENSE_CELLS_PER_ENTRY * E) else Lookup.HASH
+        if lookup is Lookup.DENSE and total >= 2**31 - 1:
+            raise ValueError(f"lookup='dense': the table's key box has {total} cells, too many for an int32 index; "
+                             "use lookup='hash'")
+        self.lookup = lookup
         # the cell part of a key, below prod(spans[1:]), in exact integer arithmetic: float32 below 2^24, else float64
         cell_keys = math.prod(spans[1:])
         self._key_dtype = self.dtype if cell_keys < (2**24 if self.dtype == torch.float32 else 2**53) else torch.float64
         if cell_keys >= 2**53:
             raise ValueError(f"the table's key box {spans[1:]} is too large for exact float64 keys")
-        # the level part is folded into the hash: h = (level_key + cell_key) * m = level_key * m + cell_key * m
-        m = self._hash.multiplier
-        level_hash = [_wrap(((t - int(lo[0])) * strides[0]) * m, bits) for t in range(self.horizon + 1)]
-        self._level_base = [torch.tensor(v, dtype=self._hash.dtype, device=self.device) for v in level_hash]  # 0-d
+        packed = keys.pack(entries)  # [E] int64
+        if lookup is Lookup.DENSE:
+            # index 1 + key holds the entry of that key (E: none); index 0 is a "not found" sentinel that a key
+            # which is not a number (a NaN state) is clamped onto
+            dense = torch.full((total + 1,), E, dtype=torch.int32)
+            dense[1 + packed] = torch.arange(E, dtype=torch.int32)
+            self._dense = dense.to(self.device)
+            self._hash = None
+            self._level_base = [torch.tensor(1 + (t - int(lo[0])) * strides[0], dtype=torch.int32, device=self.device)
+                                for t in range(self.horizon + 1)]  # 0-d
+            slot_entry = torch.cat((torch.arange(E), torch.tensor([-1])))  # [E+1]: slot = entry; E: not found
+        else:
+            self._dense = None
+            self._hash = KeyHash.build(packed, key_limit=total).to(self.device)
+            bits = 32 if self._hash.dtype == torch.int32 else 64
+            # the level part is folded into the hash: h = (level_key + cell_key) * m = level_key * m + cell_key * m
+            m = self._hash.multiplier
+            level_hash = [_wrap(((t - int(lo[0])) * strides[0]) * m, bits) for t in range(self.horizon + 1)]
+            self._level_base = [torch.tensor(v, dtype=self._hash.dtype, device=self.device) for v in level_hash]  # 0-d
+            slot_entry = torch.cat((self._hash.slot_rows.cpu(), torch.tensor([-1])))  # [S+1]; -1: empty or not found
         # per dimension: scaled = x * scale + shift (relative to lo); angles mod K, others clamped into the box
         self._key_dims = []
         for dim in range(grid.dim):
@@ -205,13 +250,14 @@ class TablePolicy:
                 self._key_dims.append((dim, 1.0 / grid.cell_size[dim], shift, 0.0, float(spans[1 + dim] - 1),
                                        spans[1 + dim], None))
         # per slot (S of them, then the "not found" slot S): entry, fallback code, alias table
-        slot_entry = torch.cat((self._hash.slot_rows.cpu(), torch.tensor([-1])))  # [S+1]; -1: empty or not found
+        S = slot_entry.shape[0] - 1
         self._slot_entry = slot_entry.to(self.device)
         code = torch.zeros(S + 1, dtype=torch.int64)
         code[:S] = (slot_entry[:S] >= self.num_cells).long()  # nearest-cell fallback: 1
         code[slot_entry < 0] = 1 << 32  # not found (and empty slots, which no query reaches): a miss, high word
         self._slot_code = code.to(self.device)
         self._miss_slot = S
+        self._index_top = total  # dense: the largest index
 
     def _build_alias(self) -> None:
         """Walker alias tables per slot: thresholds ``j + p`` ``[(S+1) A]`` and outcome pairs ``[(S+1) A 2]`` = (alias,
@@ -254,22 +300,29 @@ class TablePolicy:
 
         One dimension at a time (ops on a ``[N]`` column beat ops on ``[N, d]`` broadcast over a short last axis):
         cell = round(x / delta + offset) - lo, clamped into the key box (angles: to +-2^22, then mod K by an exact
-        floor); the cell key accumulates by Horner's rule in exact integer arithmetic, then one hash probe.
+        floor); the cell key accumulates by Horner's rule in exact integer arithmetic, then one gather of the
+        dense index or one hash probe.
         """
         key = None
         for dim, scale, shift, lo, hi, span, angle in self._key_dims:
             c = torch.add(shift, x[:, dim], alpha=scale).clamp_(lo, hi).round_()  # [N] cell index relative to lo
+            if c.dtype != self._key_dtype:  # a key box beyond 2^24 cells: exact keys need float64
+                c = c.to(self._key_dtype)
             if angle is not None:  # c mod K = c - K floor((c + 0.5) / K)
                 k, inv_k, half = angle
                 c = c.add_(torch.add(half, c, alpha=inv_k).floor_(), alpha=-k)
             key = c if key is None else c.add_(key, alpha=span)  # [N]
+        if self._dense is not None:  # key -> index of level + key; a NaN key (INT_MIN) is clamped onto the sentinel
+            index = key.to(torch.int32).add_(base).clamp_(0, self._index_top)  # [N]
+            return self._dense.index_select(0, index)  # [N] int32 slot (entry), or the miss slot
         h = torch.add(base, key.to(self._hash.dtype), alpha=self._hash.multiplier)  # [N] hash of level + cell key
         slot = self._hash.slots(h)  # [N]
         return slot.masked_fill_(self._hash.slot_hash.index_select(0, slot) != h, self._miss_slot)  # [N]
 
     def _sample_kernel(self, x: Tensor, base: Tensor, r: Tensor) -> tuple[Tensor, Tensor]:
-        """Pure tensor kernel: ``x [N, d]``, level hash base, uniforms ``r [N]`` in ``[0, A)`` -> actions ``[N, q]`` and
-        the fallback count of the batch (nearest-cell hits + 2^32 x misses).
+        """Pure tensor kernel: ``x [N, d]``, level base, uniforms ``r [N]`` in ``[0, A)`` -> actions ``[N, q]`` and
+        the fallback code of each state ``[N]`` (nearest-cell hit 1, miss 2^32; summed outside the kernel, as
+        torch 2.13's inductor fails to build some int64 sum reductions on one CPU thread).
 
         Walker's alias method with one uniform: column ``j = floor(r)`` of the state's slot keeps ``j`` when
         ``r < j + p_j`` (one stored threshold), else takes its alias; the two outcomes sit side by side, so the
@@ -282,7 +335,7 @@ class TablePolicy:
             u = self._alias_pair.index_select(0, pick).unsqueeze(1)  # [N, 1]
         else:
             u = self.actions.index_select(0, self._alias_pair.index_select(0, pick))  # [N, q]
-        return u, self._slot_code.index_select(0, slot).sum()
+        return u, self._slot_code.index_select(0, slot)
 
     def rows(self, x: Tensor, t: int) -> Tensor:
         """Table row of each state's cell in level ``t``: ``x [N, d]`` -> ``[N]`` int64 (-1: not in L_t)."""
@@ -329,7 +382,7 @@ class TablePolicy:
         r = torch.empty(x.shape[0], device=self.device, dtype=self.dtype).uniform_(0, self.num_actions,
                                                                                     generator=generator)  # [N]
         u, code = self._sample(x, self._level_base[t], r)
-        self._count(x.shape[0], code)
+        self._count(x.shape[0], code.sum())
         return u
 
     @property
@@ -351,9 +404,10 @@ def load_table(
     dtype: torch.dtype = torch.float32,
     fallback: str | Fallback = Fallback.NEAREST,
     compile: bool = False,
+    lookup: str | Lookup = Lookup.AUTO,
 ) -> TablePolicy:
     """Read and validate a table file, and return its :class:`TablePolicy` on ``device``."""
-    return TablePolicy(read_table(path), device=device, dtype=dtype, fallback=fallback, compile=compile)
+    return TablePolicy(read_table(path), device=device, dtype=dtype, fallback=fallback, compile=compile, lookup=lookup)
 
 
 class UniformPolicy:

@@ -16,7 +16,7 @@ import math
 import pytest
 import torch
 
-from cuniform_torch import TablePolicy
+from cuniform_torch import TablePolicy, rollout
 from cuniform_torch.grid import CellKeys, CellSet, KeyHash
 from cuniform_torch.policy import _alias_tables, _halo
 
@@ -99,10 +99,12 @@ class TestKeyHash:
 class TestPolicySlots:
     """Random states around every level: the hash-slot lookup against CellSet lookups of the level and its halo."""
 
+    @pytest.mark.parametrize("lookup", ["dense", "hash"])
     @pytest.mark.parametrize("table_name", ["dubins_table", "walk_table"])
-    def test_rows_probs_and_counts_match_a_sorted_lookup_with_halo(self, request, table_name):
+    def test_rows_probs_and_counts_match_a_sorted_lookup_with_halo(self, request, table_name, lookup):
         table = request.getfixturevalue(table_name)
-        policy = TablePolicy(table)
+        policy = TablePolicy(table, lookup=lookup)
+        assert policy.lookup.value == lookup
         grid = policy.grid
         d = grid.dim
         g = torch.Generator().manual_seed(0)
@@ -138,8 +140,54 @@ class TestPolicySlots:
         assert policy.queries == total
         assert int(policy.nearest_hits) == total_hits and int(policy.misses) == total_misses
 
-    def test_sample_counts_like_action_probs(self, dubins_table):
-        policy = TablePolicy(dubins_table)
+    @pytest.mark.parametrize("lookup", ["dense", "hash"])
+    def test_non_finite_states_are_misses(self, dubins_table, lookup):
+        """NaN and +-inf coordinates (any dimension) fall back to uniform rows and count as misses, never a crash."""
+        policy = TablePolicy(dubins_table, lookup=lookup)
+        bad = []
+        for dim in range(3):
+            for value in (float("nan"), float("inf"), -float("inf")):
+                x = [0.0, 0.0, 0.0]
+                x[dim] = value
+                bad.append(x)
+        x = torch.tensor(bad)
+        probs = policy.action_probs(x, 0)
+        A = policy.num_actions
+        angle_inf = (x[:, 2].isinf()) & (x[:, :2] == 0).all(dim=1)  # an infinite heading clamps to a real angle cell
+        assert torch.equal(probs[~angle_inf], torch.full(((~angle_inf).sum(), A), 1.0 / A))
+        assert torch.equal(policy.rows(x, 0)[~angle_inf], torch.full(((~angle_inf).sum(),), -1))
+        u = policy.sample(x, 3, torch.Generator().manual_seed(0))
+        assert u.shape == (x.shape[0], 1) and bool(torch.isfinite(u).all())
+
+    def test_auto_lookup_is_dense_for_small_boxes_and_hash_beyond(self, dubins_table, monkeypatch):
+        import cuniform_torch.policy as policy_module
+
+        assert TablePolicy(dubins_table).lookup.value == "dense"
+        monkeypatch.setattr(policy_module, "DENSE_MIN_CELLS", 0)
+        monkeypatch.setattr(policy_module, "DENSE_CELLS_PER_ENTRY", 1)
+        assert TablePolicy(dubins_table).lookup.value == "hash"
+        with pytest.raises(ValueError, match=r"unknown lookup 'sparse'; choose one of: auto, dense, hash"):
+            TablePolicy(dubins_table, lookup="sparse")
+
+    @pytest.mark.parametrize("lookup", ["dense", "hash"])
+    def test_compiled_kernel_draws_what_the_eager_one_draws(self, dubins_table, lookup):
+        """compile=True on one CPU thread (where torch 2.13's inductor once failed to build the kernel's sum)."""
+        threads = torch.get_num_threads()
+        torch.set_num_threads(1)
+        try:
+            eager = TablePolicy(dubins_table, lookup=lookup)
+            compiled = TablePolicy(dubins_table, lookup=lookup, compile=True)
+            x0 = torch.tensor([0.3, -0.2, 0.5])
+            runs = [rollout(p.system, p, x0, 500, dubins_table.horizon, torch.Generator().manual_seed(3)) for p in
+                    (eager, compiled)]
+        finally:
+            torch.set_num_threads(threads)
+        assert torch.equal(runs[0][1], runs[1][1]) and torch.equal(runs[0][0], runs[1][0])
+        assert int(eager.nearest_hits) == int(compiled.nearest_hits) and int(eager.misses) == int(compiled.misses)
+
+    @pytest.mark.parametrize("lookup", ["dense", "hash"])
+    def test_sample_counts_like_action_probs(self, dubins_table, lookup):
+        policy = TablePolicy(dubins_table, lookup=lookup)
         x = policy.grid.centers(torch.tensor([[0, 0, 0], [1, 0, 0], [0, 0, 1], [40, 40, 0]])).float()
         policy.action_probs(x, 0)
         hits, misses = int(policy.nearest_hits), int(policy.misses)
@@ -178,10 +226,11 @@ class TestAlias:
         assert bool((thr[p == 0] == 0).all())
         assert bool((p.gather(1, alias)[thr < 1] > 0).all())
 
+    @pytest.mark.parametrize("lookup", ["dense", "hash"])
     @pytest.mark.parametrize("table_name", ["dubins_table", "walk_table"])
-    def test_policy_slot_tables_reproduce_the_rows(self, request, table_name):
+    def test_policy_slot_tables_reproduce_the_rows(self, request, table_name, lookup):
         """Every slot's thresholds and outcome pairs give its entry's row (uniform for empty and not-found slots)."""
-        policy = TablePolicy(request.getfixturevalue(table_name))
+        policy = TablePolicy(request.getfixturevalue(table_name), lookup=lookup)
         A = policy.num_actions
         thr = policy._alias_thr.double().reshape(-1, A) - torch.arange(A)  # [S+1, A] in [0, 1]
         assert bool(((thr >= 0) & (thr <= 1)).all())
