@@ -34,8 +34,12 @@ def se2_to_world(local: Tensor, pose: Tensor) -> Tensor:
     x = torch.addcmul(pose[..., 0], lx, c).addcmul_(ly, s, value=-1.0)
     y = torch.addcmul(pose[..., 1], lx, s).addcmul_(ly, c)
     heading = wrap_angle(local[..., 2] + theta)
-    world = torch.stack(torch.broadcast_tensors(x, y, heading), dim=-1)
-    return torch.cat((world, local[..., 3:].expand(*world.shape[:-1], -1)), dim=-1) if local.shape[-1] > 3 else world
+    x, y, heading = torch.broadcast_tensors(x, y, heading)
+    world = x.new_empty((*x.shape, local.shape[-1]))  # written column by column: cheaper than a stack on a CPU
+    world[..., 0], world[..., 1], world[..., 2] = x, y, heading
+    if local.shape[-1] > 3:
+        world[..., 3:] = local[..., 3:]
+    return world
 
 
 def se2_to_local(world: Tensor, pose: Tensor) -> Tensor:

@@ -118,6 +118,9 @@ def rollout(
         else:
             u = policy.sample(x, t, generator)  # [N, q]
         x = system.step(x, u)
+        if x.shape != (num_samples, d):
+            raise ValueError(f"{getattr(system, 'name', type(system).__name__)}.step returned shape {list(x.shape)} "
+                             f"for {num_samples} states of dimension {d}; expected [{num_samples}, {d}]")
         states.append(x)
         taken.append(u)
     states_t = torch.stack(states, dim=1)  # [N, T+1, d]

@@ -667,6 +667,15 @@ def test_rollout_non_finite_x0(policy, bad):
         rollout(policy.system, policy, x0, 4, 2)
 
 
+def test_rollout_names_a_system_whose_step_returns_a_wrong_shape(policy):
+    class Truncating(Dubins):
+        def step(self, x, u):
+            return super().step(x, u)[:, :2]
+
+    with pytest.raises(ValueError, match=r"dubins.step returned shape \[4, 2\] for 4 states of dimension 3"):
+        rollout(Truncating(), policy, torch.zeros(3), 4, 2)
+
+
 @pytest.mark.parametrize("shape", [(2,), (4,), (5, 3), (4, 2), (4, 3, 1), ()])
 def test_rollout_wrong_x0_shape(policy, shape):
     with pytest.raises(ValueError, match=rf"x0 must have shape \[3\] or \[4, 3\], got {re.escape(str(list(shape)))}"):
