@@ -1,4 +1,5 @@
-"""Grid: integer cells of a state space, packed int64 keys, and sorted-key lookup. No dense grid anywhere.
+"""Grid: integer cells of a state space, packed int64 keys, and sorted-key and hashed lookups (no dense grid here;
+the table policy's bounded dense index is in :mod:`cuniform_torch.policy`).
 
 Shapes: N states (any leading batch shape ``...`` works), d state dimensions, C cells.
 
