@@ -2,10 +2,11 @@
 
 An :class:`Episode` is one closed-loop run: a method with N samples in one scenario (an environment, a start
 pose, a goal) under one controller seed. :func:`run_episodes` drives each through
-:func:`cuniform_torch.envs.simulate` with the paper's cost (:class:`EpisodeCost`, a
-:class:`cuniform_torch.envs.NavigationCost`: squared distance to the goal + a collision penalty, both ending
-at a rollout's first arrival at the goal, told the time every cycle so that an obstacle counts only once it
-is sensed) and returns one JSON-ready record per run. :func:`aggregate` turns records into success rates with
+:func:`cuniform_torch.envs.simulate` with the paper's cost (:class:`cuniform_torch.envs.NavigationCost`:
+squared distance to the goal + a collision penalty, both ending at a rollout's first arrival at the goal
+(``stop_at_goal``, as the authors' controllers do: their ROS C-Uniform node breaks out of the horizon loop
+there, their C-Free-Uniform planner zeroes the obstacle cost from the goal on), told the time every cycle so
+that an obstacle counts only once it is sensed) and returns one JSON-ready record per run. :func:`aggregate` turns records into success rates with
 95% Wilson intervals, mean time to goal and mean path length (both over successful runs);
 :func:`success_markdown` renders them with the paper's values alongside; :func:`plot_paths` draws the
 closed-loop paths per method.
@@ -33,7 +34,6 @@ from typing import Any, Iterable, Sequence
 import torch
 
 from cuniform_torch.envs import Circle, Environment, NavigationCost, Polygon, Rect, simulate
-from cuniform_torch.envs.costs import goal_cost
 
 from cuniform_torch.fileio import write_json
 
@@ -42,7 +42,7 @@ from .cli import add_source_args
 from .methods import METHODS, Method, Sources, make_controller, parse_methods
 
 __all__ = [
-    "EpisodeCost", "Episode", "run_episodes", "wilson_interval", "aggregate", "usable_methods", "paper_label",
+    "Episode", "run_episodes", "wilson_interval", "aggregate", "usable_methods", "paper_label",
     "success_markdown", "fmt_rate", "plot_paths", "SLOW_METHODS", "ControllerSettings", "add_common_args",
     "config_from_args", "config_from_json", "finish_cli", "PAPER_FAMILY_OF", "OUTCOME_COLORS",
 ]
@@ -68,8 +68,8 @@ class ControllerSettings:
     per_state: bool = True
     """penalty per colliding state (True) or once per colliding rollout"""
     stop_at_goal: bool = True
-    """no collision cost after a rollout's first arrival at the goal (:class:`EpisodeCost`); False: the plain
-    :class:`NavigationCost`, which charges collisions over the whole horizon (the default before this option)"""
+    """no collision cost after a rollout's first arrival at the goal (``NavigationCost.stop_at_goal``); False:
+    collisions count over the whole horizon (the experiments' cost before this option)"""
     seed: int = 0
     """draws the scenario (obstacle offsets, start poses); controller seeds derive from it"""
     methods: tuple[str, ...] | None = None
@@ -78,42 +78,6 @@ class ControllerSettings:
     """add cu_mlp to a default run (``methods=None``); it is ~10x slower per cycle than the table on CPU"""
     samples: tuple[int, ...] = (500, 1000)
     """N, trajectories per control cycle"""
-
-
-@dataclass
-class EpisodeCost(NavigationCost):
-    """:class:`NavigationCost` whose collision term, like its goal term, ends where a rollout first comes within
-    ``goal_tolerance`` of the goal (``stop_at_goal``, the default of every closed-loop experiment).
-
-    A closed-loop run ends at the goal, so a rollout's states after its arrival are never driven; charging their
-    collisions makes a rollout that reaches a goal close to a wall (the U-shape's goal, 0.6 m from the base)
-    look like a crash, and a controller whose proposals include a collision-free way out then steers away from
-    the goal. The authors' controllers stop every cost term at the first goal-reaching state (their ROS C-Uniform
-    node's rollout cost breaks out of the horizon loop there; the C-Free-Uniform planner base zeroes the
-    obstacle cost from the goal on, "we don't care about what happens after goal"). The state that reaches the
-    goal is still checked (a step that both collides and reaches the goal is a collision in
-    :func:`~cuniform_torch.envs.simulate` too); ``stop_at_goal=False`` is the plain :class:`NavigationCost`.
-    """
-
-    stop_at_goal: bool = True
-    """charge no collision after the rollout's first arrival at the goal"""
-
-    def __call__(self, states: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
-        if not self.stop_at_goal:
-            return super().__call__(states, actions)
-        cost = goal_cost(states, self.goal, self.goal_tolerance)  # [N]; checks states
-        N, T1 = states.shape[0], states.shape[1]
-        if not isinstance(actions, torch.Tensor) or actions.ndim != 3 or actions.shape[:2] != (N, T1 - 1):
-            raise ValueError(f"EpisodeCost: actions must have shape [{N}, {T1 - 1}, q] to match states "
-                             f"{list(states.shape)}, got {list(getattr(actions, 'shape', []))}")
-        xy = states[:, 1:, :2]  # [N, T]
-        g = xy.new_tensor(self.goal)
-        reached = ((xy - g) ** 2).sum(dim=-1) <= self.goal_tolerance ** 2  # [N, T]
-        arrivals = reached.to(torch.int32).cumsum(dim=1)
-        live = (arrivals - reached.to(torch.int32)) == 0  # [N, T] no arrival before this step (this one counts)
-        hit = self.env.in_collision(xy, self.time) & live  # [N, T]
-        hit = hit.sum(dim=1) if self.per_state else hit.any(dim=1)
-        return cost + hit.to(cost.dtype) * self.collision_penalty
 
 
 @dataclass
@@ -184,7 +148,7 @@ def run_episodes(episodes: Sequence[Episode], sources: Sources, lambda_: float =
                  desc: str = "episodes", stop_at_goal: bool = True) -> list[dict]:
     """Run every episode; one record per episode (plain JSON types).
 
-    The cost is :class:`EpisodeCost` with ``collision_penalty`` per colliding state (``per_state``, the
+    The cost is :class:`~cuniform_torch.envs.NavigationCost` with ``collision_penalty`` per colliding state (``per_state``, the
     paper's per-state obstacle cost summed over the horizon) or once per colliding rollout, both cost terms
     ending at a rollout's first arrival at the goal (``stop_at_goal``; False: collisions after it count too).
 
@@ -198,8 +162,8 @@ def run_episodes(episodes: Sequence[Episode], sources: Sources, lambda_: float =
     out = []
     for ep in tqdm(episodes, desc=desc, disable=not progress, leave=False):
         method = METHODS[ep.method]
-        cost = EpisodeCost(ep.env, ep.goal, goal_tolerance=ep.goal_tolerance,
-                           collision_penalty=collision_penalty, per_state=per_state, stop_at_goal=stop_at_goal)
+        cost = NavigationCost(ep.env, ep.goal, goal_tolerance=ep.goal_tolerance,
+                              collision_penalty=collision_penalty, per_state=per_state, stop_at_goal=stop_at_goal)
         ctrl = make_controller(method, sources, cost, ep.num_samples, ep.horizon, ep.seed, lambda_=lambda_)
         x0 = torch.tensor(ep.x0, dtype=torch.float32, device=sources.device)
         t0 = time.perf_counter()
@@ -398,7 +362,7 @@ def add_common_args(parser) -> None:
     parser.add_argument("--mlp", action="store_true", help="also run cu_mlp in a default run (slow on CPU)")
     parser.add_argument("--collisions-after-goal", action="store_true",
                         help="charge a rollout's collisions after its arrival at the goal too (the plain "
-                        "NavigationCost; default: the cost ends at the goal, see EpisodeCost)")
+                        "NavigationCost; default: the cost ends at the goal, NavigationCost.stop_at_goal)")
     parser.add_argument("--quick", action="store_true", help="tiny sizes (a few seconds)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
 

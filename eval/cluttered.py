@@ -25,7 +25,7 @@ method and N.
 Runs: every closed-loop method of ``eval.methods`` (``cu_mlp`` only with ``--mlp`` / ``--methods``) with N in {500, 1000, 2500}, horizon 15 steps (3 s),
 lambda = 0.567, the paper's cost (squared xy distance to the goal summed over the horizon + 1e6 per rollout
 state in collision, walls included; both terms end at the rollout's first state within the goal tolerance, as
-in the authors' controllers: :class:`eval.closed_loop.EpisodeCost`), goal tolerance 0.3 m. The time limit
+in the authors' controllers: ``NavigationCost(stop_at_goal=True)``), goal tolerance 0.3 m. The time limit
 comes from the environment size: ``(width + height) / v`` (24 s for the U arena, 22 s for the rectangles),
 i.e. the time to drive half the arena's perimeter. Success = goal reached with no collision within the
 limit. Controller seed ``seed + 1 + 1000 * env index + start``: the same for every method and N. No knob

@@ -366,3 +366,37 @@ class NaNControl:
 def test_bad_simulate_input_raises(overrides, match):
     with pytest.raises(ValueError, match=match):
         _sim(**overrides)
+
+
+def test_navigation_cost_stop_at_goal_ends_the_collision_term_at_the_goal():
+    """Collisions after a rollout's first arrival at the goal are not charged (the run would have ended there);
+    collisions before it, and in the arriving state itself, are."""
+    env = Environment([Circle((1.5, 0.0), 0.25), Circle((0.5, 1.0), 0.25)])  # behind the goal; on row 2's way
+    xs = torch.linspace(0.0, 2.0, 11)  # steps of 0.2 m along +x
+    rows = [torch.stack((xs, torch.full((11,), y), torch.zeros(11)), 1) for y in (0.0, 1.0, 3.0)]
+    states = torch.stack(rows)  # [3, 11, 3]: through the goal then the circle; a circle, no goal; free
+    actions = torch.zeros(3, 10, 1)
+    goal = (1.0, 0.0)
+    kw = dict(goal_tolerance=0.1, collision_penalty=100.0, per_state=True)
+    plain = NavigationCost(env, goal, **kw)(states, actions)
+    free = NavigationCost(Environment([]), goal, **kw)(states, actions)
+    ends = NavigationCost(env, goal, stop_at_goal=True, **kw)(states, actions)
+    assert plain - free == pytest.approx(torch.tensor([200.0, 200.0, 0.0]))  # x = 1.4, 1.6 / x = 0.4, 0.6
+    assert ends - free == pytest.approx(torch.tensor([0.0, 200.0, 0.0]))  # row 0 arrives at x = 1.0 first
+    assert NavigationCost(env, goal, stop_at_goal=False, **kw)(states, actions) == pytest.approx(plain)
+    once = NavigationCost(env, goal, goal_tolerance=0.1, collision_penalty=100.0, stop_at_goal=True)(states, actions)
+    assert once - free == pytest.approx(torch.tensor([0.0, 100.0, 0.0]))
+    # the arriving state itself still counts: a goal inside an obstacle
+    inside = NavigationCost(Environment([Circle((1.0, 0.0), 0.05)]), goal, stop_at_goal=True, **kw)(states, actions)
+    assert inside - free == pytest.approx(torch.tensor([100.0, 0.0, 0.0]))
+    torch.manual_seed(0)
+    rnd = torch.randn(64, 11, 3) * 2  # no arrival within 0.01 m: the two costs agree
+    a = torch.zeros(64, 10, 1)
+    assert NavigationCost(env, (9.0, 9.0), goal_tolerance=0.01, per_state=True, stop_at_goal=True)(rnd, a) == pytest.approx(
+        NavigationCost(env, (9.0, 9.0), goal_tolerance=0.01, per_state=True)(rnd, a))
+    with pytest.raises(ValueError):
+        NavigationCost(env, goal, stop_at_goal=True)(states, torch.zeros(3, 9, 1))
+
+
+    with pytest.raises(ValueError, match=r"NavigationCost: stop_at_goal must be a bool, got 1"):
+        NavigationCost(env, goal, stop_at_goal=1)

@@ -16,7 +16,7 @@ import torch
 from cuniform_torch.envs import Circle, Environment, NavigationCost
 from cuniform_torch.table import write_table
 from eval import cluttered, sudden_obstacle
-from eval.closed_loop import EpisodeCost, aggregate, success_markdown, usable_methods, wilson_interval
+from eval.closed_loop import aggregate, success_markdown, usable_methods, wilson_interval
 from eval.methods import Sources
 
 METHODS = ("mppi_high", "cu_table")
@@ -92,36 +92,6 @@ def test_per_state_collision_cost():
     assert per - free == pytest.approx(torch.tensor([300.0, 0.0]))  # x = 0.8, 1.0, 1.2 are inside
     with pytest.raises(ValueError):
         NavigationCost(env, (5.0, 0.0), per_state=1)
-
-
-def test_episode_cost_ends_at_the_goal():
-    """Collisions after a rollout's first arrival at the goal are not charged (the run would have ended there);
-    collisions before it, and in the arriving state itself, are."""
-    env = Environment([Circle((1.5, 0.0), 0.25), Circle((0.5, 1.0), 0.25)])  # behind the goal; on row 2's way
-    xs = torch.linspace(0.0, 2.0, 11)  # steps of 0.2 m along +x
-    rows = [torch.stack((xs, torch.full((11,), y), torch.zeros(11)), 1) for y in (0.0, 1.0, 3.0)]
-    states = torch.stack(rows)  # [3, 11, 3]: through the goal then the circle; a circle, no goal; free
-    actions = torch.zeros(3, 10, 1)
-    goal = (1.0, 0.0)
-    kw = dict(goal_tolerance=0.1, collision_penalty=100.0, per_state=True)
-    plain = NavigationCost(env, goal, **kw)(states, actions)
-    free = NavigationCost(Environment([]), goal, **kw)(states, actions)
-    ends = EpisodeCost(env, goal, **kw)(states, actions)
-    assert plain - free == pytest.approx(torch.tensor([200.0, 200.0, 0.0]))  # x = 1.4, 1.6 / x = 0.4, 0.6
-    assert ends - free == pytest.approx(torch.tensor([0.0, 200.0, 0.0]))  # row 0 arrives at x = 1.0 first
-    assert EpisodeCost(env, goal, stop_at_goal=False, **kw)(states, actions) == pytest.approx(plain)
-    once = EpisodeCost(env, goal, goal_tolerance=0.1, collision_penalty=100.0)(states, actions)
-    assert once - free == pytest.approx(torch.tensor([0.0, 100.0, 0.0]))
-    # the arriving state itself still counts: a goal inside an obstacle
-    inside = EpisodeCost(Environment([Circle((1.0, 0.0), 0.05)]), goal, **kw)(states, actions)
-    assert inside - free == pytest.approx(torch.tensor([100.0, 0.0, 0.0]))
-    torch.manual_seed(0)
-    rnd = torch.randn(64, 11, 3) * 2  # no arrival within 0.01 m: the two costs agree
-    a = torch.zeros(64, 10, 1)
-    assert EpisodeCost(env, (9.0, 9.0), goal_tolerance=0.01, per_state=True)(rnd, a) == pytest.approx(
-        NavigationCost(env, (9.0, 9.0), goal_tolerance=0.01, per_state=True)(rnd, a))
-    with pytest.raises(ValueError):
-        EpisodeCost(env, goal)(states, torch.zeros(3, 9, 1))
 
 
 def test_missing_sources_are_skipped_with_a_note(sources, capsys):

@@ -13,7 +13,10 @@ obstacle. Here, per rollout:
   with the obstacles sensed at the cost's ``time`` (finite, so MPPI weights ``softmax(-cost / lambda)`` never
   become NaN when every rollout collides); with ``per_state=True``, once for every such state (the paper's
   per-state ``l_obs`` summed over the horizon, so that when every rollout collides the ones that spend fewer
-  steps in collision still weigh more).
+  steps in collision still weigh more). With ``stop_at_goal=True`` the collision term ends, like the goal
+  term, at the rollout's first arrival at the goal (that state still counts): what the authors' controllers
+  do, and right for a closed loop that ends at the goal, where a rollout's states after its arrival are never
+  driven (charging them makes a rollout that reaches a goal near a wall look like a crash).
 """
 
 from __future__ import annotations
@@ -80,12 +83,23 @@ def goal_cost(states: Tensor, goal: Sequence[float] | Tensor, tol: float) -> Ten
     _check_states(states, "goal_cost")
     tol = _tolerance(tol, "goal_cost")
     g = _goal_xy(goal, states, "goal_cost")
-    dx = states[:, 1:, 0] - g[0]  # [N, T]
-    dy = states[:, 1:, 1] - g[1]
-    dist2 = dx * dx + dy * dy  # [N, T]
-    reached = dist2 <= tol * tol  # [N, T]
-    before = reached.to(torch.int32).cumsum(dim=1) == 0  # [N, T] steps before the first arrival
+    dist2 = _goal_dist2(states, g)  # [N, T]
+    before = _before_arrival(dist2 <= tol * tol)  # [N, T]
     return torch.where(before, dist2, torch.zeros_like(dist2)).sum(dim=1)
+
+
+def _goal_dist2(states: Tensor, g) -> Tensor:
+    """Squared xy distance to the goal at steps ``1..T``: ``[N, T+1, d]`` -> ``[N, T]``."""
+    dx = states[:, 1:, 0] - g[0]
+    dy = states[:, 1:, 1] - g[1]
+    return dx * dx + dy * dy
+
+
+def _before_arrival(reached: Tensor, inclusive: bool = False) -> Tensor:
+    """``reached [N, T]`` (bool) -> ``[N, T]``: the steps before each row's first True (and that step too when
+    ``inclusive``)."""
+    arrivals = reached.to(torch.int32).cumsum(dim=1)  # [N, T]
+    return (arrivals - reached.to(torch.int32) if inclusive else arrivals) == 0
 
 
 def collision_mask(states: Tensor, env: Environment, time: float | None = None) -> Tensor:
@@ -115,6 +129,9 @@ class NavigationCost:
     """current time (s): obstacles with ``appear_time <= time`` are seen; None: all"""
     per_state: bool = False
     """charge ``collision_penalty`` for every colliding state at steps 1..T instead of once per rollout"""
+    stop_at_goal: bool = False
+    """end the collision term, like the goal term, at the rollout's first arrival at the goal (that state still
+    counts); False charges collisions over the whole horizon"""
 
     def __post_init__(self) -> None:
         if not isinstance(self.env, Environment):
@@ -125,8 +142,9 @@ class NavigationCost:
         if isinstance(p, bool) or not isinstance(p, (int, float)) or not math.isfinite(p) or p <= 0:
             raise ValueError(f"NavigationCost: collision_penalty must be a finite number > 0, got {p!r}")
         self.collision_penalty = float(p)
-        if not isinstance(self.per_state, bool):
-            raise ValueError(f"NavigationCost: per_state must be a bool, got {self.per_state!r}")
+        for flag in ("per_state", "stop_at_goal"):
+            if not isinstance(getattr(self, flag), bool):
+                raise ValueError(f"NavigationCost: {flag} must be a bool, got {getattr(self, flag)!r}")
         self.set_time(self.time)
 
     def set_time(self, t: float | None) -> None:
@@ -144,8 +162,9 @@ class NavigationCost:
             raise ValueError(f"NavigationCost: actions must have shape [{N}, {T1 - 1}, q] to match states "
                              f"{list(states.shape)}, got {list(getattr(actions, 'shape', []))}")
         cost = goal_cost(states, self.goal, self.goal_tolerance)  # [N]
-        if self.per_state:
-            hit = self.env.in_collision(states[:, 1:, :2], self.time).sum(dim=1)  # [N] colliding states
-        else:
-            hit = collision_mask(states, self.env, self.time)  # [N]
+        hit = self.env.in_collision(states[:, 1:, :2], self.time)  # [N, T]
+        if self.stop_at_goal:
+            reached = _goal_dist2(states, self.goal) <= self.goal_tolerance * self.goal_tolerance  # [N, T]
+            hit = hit & _before_arrival(reached, inclusive=True)
+        hit = hit.sum(dim=1) if self.per_state else hit.any(dim=1)  # [N]
         return cost + hit.to(cost.dtype) * self.collision_penalty
