@@ -227,6 +227,7 @@ class TablePolicy:
             dense = torch.full((total + 1,), E, dtype=torch.int32)
             dense[1 + packed] = torch.arange(E, dtype=torch.int32)
             self._dense = dense.to(self.device)
+            self._index_top = total  # the largest index
             self._hash = None
             self._level_base = [torch.tensor(1 + (t - int(lo[0])) * strides[0], dtype=torch.int32, device=self.device)
                                 for t in range(self.horizon + 1)]  # 0-d
@@ -260,7 +261,6 @@ class TablePolicy:
         code[slot_entry < 0] = 1 << 32  # not found (and empty slots, which no query reaches): a miss, high word
         self._slot_code = code.to(self.device)
         self._miss_slot = S
-        self._index_top = total  # dense: the largest index
 
     def _build_alias(self) -> None:
         """Walker alias tables per slot: thresholds ``j + p`` ``[(S+1) A]`` and outcome pairs ``[(S+1) A 2]`` = (alias,

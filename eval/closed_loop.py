@@ -143,14 +143,14 @@ def _path_list(path: torch.Tensor) -> list[list[float]]:
     return [[round(float(x), 3), round(float(y), 3)] for x, y in path[:, :2].tolist()]
 
 
-def run_episodes(episodes: Sequence[Episode], sources: Sources, lambda_: float = config.LAMBDA,
-                 collision_penalty: float = 1e6, per_state: bool = True, record_paths: bool = True, progress: bool = True,
-                 desc: str = "episodes", stop_at_goal: bool = True) -> list[dict]:
+def run_episodes(episodes: Sequence[Episode], sources: Sources, settings: ControllerSettings,
+                 record_paths: bool = True, progress: bool = True, desc: str = "episodes") -> list[dict]:
     """Run every episode; one record per episode (plain JSON types).
 
-    The cost is :class:`~cuniform_torch.envs.NavigationCost` with ``collision_penalty`` per colliding state (``per_state``, the
-    paper's per-state obstacle cost summed over the horizon) or once per colliding rollout, both cost terms
-    ending at a rollout's first arrival at the goal (``stop_at_goal``; False: collisions after it count too).
+    The controllers use ``settings.lambda_``; the cost is :class:`~cuniform_torch.envs.NavigationCost` with
+    ``settings.collision_penalty`` per colliding state (``per_state``, the paper's per-state obstacle cost summed
+    over the horizon) or once per colliding rollout, both cost terms ending at a rollout's first arrival at the
+    goal (``stop_at_goal``; False: collisions after it count too).
 
     Record: the episode's ``tags``, ``method``, ``num_samples``, ``seed``, ``x0``, ``goal``, ``outcome``
     ("goal" / "collision" / "timeout"), ``success``, ``time`` (s, simulated), ``path_length`` (m), ``steps``,
@@ -163,8 +163,9 @@ def run_episodes(episodes: Sequence[Episode], sources: Sources, lambda_: float =
     for ep in tqdm(episodes, desc=desc, disable=not progress, leave=False):
         method = METHODS[ep.method]
         cost = NavigationCost(ep.env, ep.goal, goal_tolerance=ep.goal_tolerance,
-                              collision_penalty=collision_penalty, per_state=per_state, stop_at_goal=stop_at_goal)
-        ctrl = make_controller(method, sources, cost, ep.num_samples, ep.horizon, ep.seed, lambda_=lambda_)
+                              collision_penalty=settings.collision_penalty, per_state=settings.per_state,
+                              stop_at_goal=settings.stop_at_goal)
+        ctrl = make_controller(method, sources, cost, ep.num_samples, ep.horizon, ep.seed, lambda_=settings.lambda_)
         x0 = torch.tensor(ep.x0, dtype=torch.float32, device=sources.device)
         t0 = time.perf_counter()
         res = simulate(system, ctrl, x0, ep.env, ep.goal, ep.goal_tolerance, ep.time_limit, cost=cost,

@@ -211,10 +211,8 @@ def run(cfg: ClutteredConfig, sources: Sources, progress: bool = True, record_pa
     methods = [m.key for m in usable_methods(cfg.methods, sources, requested=cfg.methods is not None,
                                               include_slow=cfg.include_mlp)]
     speed = float(getattr(sources.system, "speed", 1.0))
-    records = run_episodes(episodes(cfg, methods, speed), sources, lambda_=cfg.lambda_,
-                           collision_penalty=cfg.collision_penalty, per_state=cfg.per_state,
-                           stop_at_goal=cfg.stop_at_goal,
-                           record_paths=record_paths, progress=progress, desc="cluttered")
+    records = run_episodes(episodes(cfg, methods, speed), sources, cfg, record_paths=record_paths,
+                           progress=progress, desc="cluttered")
     return {
         "experiment": "cluttered",
         "config": asdict(cfg),

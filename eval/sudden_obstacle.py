@@ -142,9 +142,7 @@ def run(cfg: SuddenObstacleConfig, sources: Sources, progress: bool = True, reco
     offs = offsets(cfg)
     system = sources.system
     oracle = {str(a): [oracle_feasible(cfg, system, off, a) for off in offs] for a in cfg.appear}
-    records = run_episodes(episodes(cfg, methods), sources, lambda_=cfg.lambda_,
-                           collision_penalty=cfg.collision_penalty, per_state=cfg.per_state,
-                           stop_at_goal=cfg.stop_at_goal, record_paths=record_paths, progress=progress,
+    records = run_episodes(episodes(cfg, methods), sources, cfg, record_paths=record_paths, progress=progress,
                            desc="sudden obstacle")
     return {
         "experiment": "sudden_obstacle",
