@@ -32,13 +32,14 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from . import cpu_kernels
 from .grid import CellKeys, CellSet, Grid, KeyHash
 from .options import Option, option_label
 from .rollout import check_states
 from .systems import System
 from .table import Table, read_table
 
-__all__ = ["Fallback", "Lookup", "TablePolicy", "UniformPolicy", "load_table"]
+__all__ = ["Fallback", "Kernel", "Lookup", "TablePolicy", "UniformPolicy", "load_table"]
 
 
 @option_label('fallback')
@@ -47,6 +48,18 @@ class Fallback(Option):
 
     NEAREST = "nearest"
     UNIFORM = "uniform"
+
+
+@option_label('kernel')
+class Kernel(Option):
+    """What runs :meth:`TablePolicy.sample`'s per-step lookup and draw."""
+
+    AUTO = "auto"
+    """numba where it applies (see :data:`NUMBA`), else torch"""
+    TORCH = "torch"
+    """about 24 small tensor ops per step, on any device (``compile=True`` wraps them in ``torch.compile``)"""
+    NUMBA = "numba"
+    """one compiled CPU loop (:mod:`~cuniform_torch.cpu_kernels`): float32 on a CPU, dense lookup, no compile"""
 
 
 @option_label('lookup')
@@ -156,6 +169,7 @@ class TablePolicy:
         fallback: str | Fallback = Fallback.NEAREST,
         compile: bool = False,
         lookup: str | Lookup = Lookup.AUTO,
+        kernel: str | Kernel = Kernel.AUTO,
     ):
         self.table = table
         self.system: System = table.make_system()
@@ -182,7 +196,36 @@ class TablePolicy:
         self._entry_probs = torch.cat((self.probs[self.entry_row], uniform))  # [C + H + 1, A]
         self._build_alias()
         self._sample = torch.compile(self._sample_kernel, dynamic=False) if compile else self._sample_kernel
+        self.kernel = self._choose_kernel(Kernel.parse(kernel), compile)
         self.reset_counters()
+
+    def _choose_kernel(self, kernel: Kernel, compile: bool) -> Kernel:
+        """The kernel :meth:`sample` runs: numba when asked for (an error naming what rules it out) or, for
+        ``auto``, when every condition holds; else torch. Settles the numba kernel's constants."""
+        if kernel is Kernel.TORCH:
+            return kernel
+        unmet = [why for ok, why in (
+            (self.device.type == "cpu", f"the policy is on {self.device}, not a CPU"),
+            (self.dtype == torch.float32, f"the policy is {self.dtype}, not float32"),
+            (self.lookup is Lookup.DENSE, "the lookup is a hash, not dense"),
+            (self._key_dtype == torch.float32, "the table's key box needs float64 keys"),
+            (not compile, "compile=True asks for the torch kernel"),
+            (cpu_kernels.available(), "numba is not installed (pip install numba)"),
+        ) if not ok]
+        if unmet:
+            if kernel is Kernel.NUMBA:
+                raise ValueError(f"kernel='numba' cannot be used: {'; '.join(unmet)}")
+            return Kernel.TORCH
+        dims = np.array([k[0] for k in self._key_dims], dtype=np.int64)
+        f32 = lambda values: np.array([float(v) for v in values], dtype=np.float32)  # noqa: E731
+        scale, shift, low, high, span = (f32(k[i] for k in self._key_dims) for i in range(1, 6))
+        angle = [k[6] or (0, 0.0, 0.0) for k in self._key_dims]
+        period, inv_period, half = (f32(a[i] for a in angle) for i in range(3))
+        self._numba_args = (dims, (scale, shift, low, high, span, period, inv_period, half), self._dense.numpy(),
+                            self._index_top, self._alias_thr.numpy(), self._alias_pair.numpy(),
+                            self._slot_code.numpy())
+        self._numba_base = [int(b) for b in self._level_base]
+        return Kernel.NUMBA
 
     def _build_lookup(self, entries: Tensor, lookup: "Lookup") -> None:
         """Settle the lookup kernel's constants once (see :meth:`_slot_kernel`).
@@ -384,6 +427,13 @@ class TablePolicy:
         self._check(x, t)
         r = torch.empty(x.shape[0], device=self.device, dtype=self.dtype).uniform_(0, self.num_actions,
                                                                                     generator=generator)  # [N]
+        if self.kernel is Kernel.NUMBA:
+            dims, consts, dense, top, thr, pair, code = self._numba_args
+            out = torch.empty(x.shape[0], dtype=self._alias_pair.dtype)  # [N] action values (q = 1) or indices
+            total = cpu_kernels.sample_dense(x.detach().numpy(), r.numpy(), self._numba_base[t], dims, consts, dense,
+                                             top, thr, pair, code, out.numpy())
+            self._count(x.shape[0], total)
+            return out.unsqueeze(1) if out.dtype == self.dtype else self.actions.index_select(0, out)  # [N, q]
         u, code = self._sample(x, self._level_base[t], r)
         self._count(x.shape[0], code.sum())
         return u
@@ -408,9 +458,11 @@ def load_table(
     fallback: str | Fallback = Fallback.NEAREST,
     compile: bool = False,
     lookup: str | Lookup = Lookup.AUTO,
+    kernel: str | Kernel = Kernel.AUTO,
 ) -> TablePolicy:
     """Read and validate a table file, and return its :class:`TablePolicy` on ``device``."""
-    return TablePolicy(read_table(path), device=device, dtype=dtype, fallback=fallback, compile=compile, lookup=lookup)
+    return TablePolicy(read_table(path), device=device, dtype=dtype, fallback=fallback, compile=compile, lookup=lookup,
+                       kernel=kernel)
 
 
 class UniformPolicy:

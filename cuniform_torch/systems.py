@@ -277,8 +277,14 @@ def _advance(x: Tensor, theta: Tensor, dx: Tensor, dy: Tensor, *rest: Tensor) ->
 
     Written column by column into one new tensor: on a CPU, ``torch.stack`` of ``[N]`` columns along dim 1 costs
     about as much as the rest of a Dubins step. The values are those of ``torch.stack((x[:, 0] + dx, ...))``.
+    The new state keeps the layout of ``x``: a column-major ``x`` (what :func:`~cuniform_torch.rollout.rollout`
+    steps, so that every column is contiguous) gives a column-major state.
     """
-    out = theta.new_empty((x.shape[0], 3 + len(rest)))  # the dtype of the new heading (x and u promoted)
+    d = 3 + len(rest)
+    if x.shape[1] == d and x.stride(0) == 1 and x.shape[0] > 1:  # column-major: [d, N] storage
+        out = theta.new_empty((d, x.shape[0])).T
+    else:
+        out = theta.new_empty((x.shape[0], d))  # the dtype of the new heading (x and u promoted)
     torch.add(x[:, 0], dx, out=out[:, 0])
     torch.add(x[:, 1], dy, out=out[:, 1])
     out[:, 2] = theta

@@ -29,6 +29,7 @@ import torch
 from cuniform_torch import (CUMPPI, MPPI, CUniformMPPI, Dubins, GaussianSampler, LogMPPI, load_table, rollout,
                             write_table)
 from cuniform_torch.fileio import write_json
+from cuniform_torch.policy import Kernel
 
 
 def _timer(fn: Callable[[], object], repeats: int, warmup: int, device: torch.device) -> float:
@@ -156,11 +157,15 @@ def main(argv=None) -> int:
     x0 = torch.zeros(3, device=device)
     pose = torch.tensor([1.0, -2.0, 0.7], device=device)
     reps = args.rollout_repeats or args.repeats
-    bare = _interleaved({
+    fns = {
         "table": lambda: rollout(system, policy, x0, N, T, gen),
         "gaussian": lambda: rollout(system, gauss, x0, N, T, gen),
         "table_from_pose": lambda: rollout(system, policy, pose, N, T, gen),
-    }, reps, args.warmup, device)
+    }
+    if policy.kernel is not Kernel.TORCH:  # the torch kernel too: what a GPU, float64 or a machine without numba runs
+        torch_kernel = load_table(tables[15], device=device, kernel="torch")
+        fns["table_torch_kernel"] = lambda: rollout(system, torch_kernel, x0, N, T, gen)
+    bare = _interleaved(fns, reps, args.warmup, device)
     if args.compile:
         compiled = load_table(tables[15], device=device, compile=True)
         t0 = time.perf_counter()
@@ -170,16 +175,19 @@ def main(argv=None) -> int:
                               "gaussian": lambda: rollout(system, gauss, x0, N, T, gen)}, reps, args.warmup, device)
         bare["table_compiled"] = timed["table_compiled"]
         bare["gaussian_beside_compiled"] = timed["gaussian"]
-    ratios = {"table": bare["table"] / bare["gaussian"], "table_from_pose": bare["table_from_pose"] / bare["gaussian"]}
+    ratios = {name: bare[name] / bare["gaussian"] for name in fns if name != "gaussian"}
     if args.compile:
         ratios["table_compiled"] = bare["table_compiled"] / bare["gaussian_beside_compiled"]
     print(f"bare rollouts (median of {reps}, interleaved), device {device}, torch threads {torch.get_num_threads()}")
-    print(f"bare rollout N={N} T={T}: table {1e3 * bare['table']:.2f} ms, gaussian {1e3 * bare['gaussian']:.2f} ms, "
-          f"ratio {ratios['table']:.2f}x"
+    print(f"bare rollout N={N} T={T}: table ({policy.kernel.value} kernel) {1e3 * bare['table']:.2f} ms, "
+          f"gaussian {1e3 * bare['gaussian']:.2f} ms, ratio {ratios['table']:.2f}x"
           + (f"; compiled table {1e3 * bare['table_compiled']:.2f} ms ({ratios['table_compiled']:.2f}x, "
              f"compiled in {bare['compile_seconds']:.1f} s)" if args.compile else ""))
     print(f"bare rollout from pose {pose.tolist()} (adds the change of frame): table "
           f"{1e3 * bare['table_from_pose']:.2f} ms, ratio {ratios['table_from_pose']:.2f}x")
+    if "table_torch_kernel" in bare:
+        print(f"bare rollout N={N} T={T} with the torch kernel: table {1e3 * bare['table_torch_kernel']:.2f} ms, "
+              f"ratio {ratios['table_torch_kernel']:.2f}x")
     write_json(args.json, {"device": str(device), "threads": torch.get_num_threads(), "repeats": args.repeats,
                            "commands": rows, "bare_rollout_seconds": bare, "bare_rollout_ratios": ratios,
                            "torch": torch.__version__})

@@ -1,0 +1,91 @@
+"""The table policy's per-step lookup-and-sample kernel as one compiled CPU loop (numba).
+
+Shapes: N states, d state dimensions, D key dimensions, S slots, A actions.
+
+On a CPU the eager kernel of :class:`~cuniform_torch.policy.TablePolicy` is about 24 small tensor ops per step,
+each paying a dispatch and a pass over memory; here the same arithmetic runs in three loops over the states
+(keys one dimension at a time, so the loop vectorizes; then the gathers and the alias draw). It computes what the
+eager kernel computes, value for value: ``shift + scale * x`` is rounded once to float32 as torch's fused
+multiply-add does (the product of two float32 is exact in float64), then the same clamp, round-half-even,
+exact angle wrap, Horner key, dense index, alias threshold and outcome. Only float32 states are handled (a
+float64 multiply-add has no wider type to round from); the policy uses the eager kernel otherwise.
+
+numba is imported lazily: :func:`available` says whether it can be used; the first call compiles the loops (about
+a second, cached on disk next to this file when the directory is writable).
+"""
+
+from __future__ import annotations
+
+import functools
+
+import numpy as np
+
+__all__ = ["available", "sample_dense"]
+
+
+@functools.cache
+def available() -> bool:
+    """Whether numba imports (the compiled CPU kernel can be used)."""
+    try:
+        import numba  # noqa: F401
+    except Exception:  # not installed, or broken against this numpy
+        return False
+    return True
+
+
+@functools.cache
+def _kernel():
+    import numba
+
+    @numba.njit(cache=True, nogil=True, boundscheck=False)
+    def sample_dense(x, r, base, dims, scale, shift, low, high, span, period, inv_period, half,
+                     dense, top, thr, pair, code, num_actions, key, index, out):
+        n = x.shape[0]
+        for i in range(n):
+            key[i] = np.float32(0.0)
+        for j in range(dims.shape[0]):  # key = c_0 span_1 ... + c_{D-1}, one dimension at a time
+            dim = dims[j]
+            s, sh, lo, hi, sp = np.float64(scale[j]), np.float64(shift[j]), low[j], high[j], span[j]
+            k, ik, hf = period[j], np.float64(inv_period[j]), np.float64(half[j])
+            for i in range(n):
+                v = x[i, dim]
+                c = np.float32(sh + s * np.float64(v))  # torch.add(shift, x, alpha=scale): one rounding (FMA)
+                c = np.rint(min(max(c, lo), hi))
+                if k > 0:  # c mod K = c - K floor((c + 0.5) / K), exact (see TablePolicy._build_lookup)
+                    c = c - k * np.floor(np.float32(hf + ik * np.float64(c)))
+                c = c + sp * key[i]
+                key[i] = c if v == v else np.float32(np.nan)  # a NaN state: NaN key, the "not found" sentinel
+        for i in range(n):
+            kv = key[i]  # a NaN key goes to index 0, the "not found" sentinel
+            kv = kv if kv == kv else np.float32(-2.0**31)
+            index[i] = np.uint32(min(max(np.int64(kv) + base, 0), top))
+        total = 0
+        last = num_actions - 1
+        for i in range(n):
+            slot = np.uint32(dense[index[i]])
+            total += code[slot]
+            rv = r[i]
+            ix = slot * np.uint32(num_actions) + np.uint32(min(np.int64(rv), last))
+            out[i] = pair[np.uint32(2) * ix + np.uint32(rv < thr[ix])]
+        return total
+
+    return sample_dense
+
+
+def sample_dense(x: np.ndarray, r: np.ndarray, base: int, dims: np.ndarray, consts: tuple, dense: np.ndarray,
+                 top: int, thr: np.ndarray, pair: np.ndarray, code: np.ndarray, out: np.ndarray) -> int:
+    """One step of lookup and alias sampling over a dense index.
+
+    ``x [N, d]`` float32 states (any strides), ``r [N]`` uniforms in ``[0, A)``, ``base`` the level's index offset,
+    ``dims [D]`` and ``consts`` (scale, shift, low, high, span, period, inverse period, half: ``[D]`` float32 each)
+    the key dimensions, ``dense`` the int32 index, ``top`` its largest index, ``thr [(S+1) A]`` and
+    ``pair [(S+1) A 2]`` the alias tables, ``code [S+1]`` the fallback codes. Writes the outcome of each state
+    into ``out [N]`` (action values, or action indices) and returns the sum of the codes (hits + 2^32 misses).
+    """
+    n = x.shape[0]
+    if x.ndim == 2 and x.strides[0] != x.itemsize:  # row-major: columns first (the key loop vectorizes on them)
+        x = np.ascontiguousarray(x.T).T
+    key = np.empty(n, dtype=np.float32)
+    index = np.empty(n, dtype=np.uint32)
+    num_actions = thr.shape[0] // code.shape[0]
+    return int(_kernel()(x, r, base, dims, *consts, dense, top, thr, pair, code, num_actions, key, index, out))

@@ -1,0 +1,87 @@
+"""The compiled CPU kernel of the table policy (numba) draws exactly what the torch kernel draws.
+
+Shapes: N states, d state dimensions, q action dimensions.
+
+Same generator seed, same uniforms: the two kernels must give the same actions bit for bit, count the same
+nearest-cell hits and misses, and drive :func:`~cuniform_torch.rollout.rollout` to the same states, for states
+inside, near and far outside the level sets, NaN and infinite ones, row- and column-major layouts, one and two
+action dimensions. ``kernel="numba"`` names what rules it out; ``"auto"`` falls back to torch there.
+"""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from cuniform_torch import TablePolicy, rollout
+from cuniform_torch.cpu_kernels import available
+from cuniform_torch.policy import Kernel
+from cuniform_torch.systems import make_system
+from precompute.builder import BuildConfig, build_table
+
+pytestmark = pytest.mark.skipif(not available(), reason="numba is not installed")
+
+
+@pytest.fixture(scope="module")
+def ks_speed_table():
+    """A small kinematic single-track table with speed: two action dimensions (steer rate, acceleration)."""
+    table, _ = build_table(make_system("ks_speed"), BuildConfig(horizon=4))
+    return table
+
+
+def _states(policy: TablePolicy, n: int, seed: int) -> torch.Tensor:
+    """``[n, d]`` states: on table cells (jittered), spread wide, and a few NaN, infinite and huge ones."""
+    g = torch.Generator().manual_seed(seed)
+    d = policy.grid.dim
+    cells = torch.from_numpy(policy.table.cells)[torch.randint(0, policy.num_cells, (n // 2,), generator=g)]
+    size = torch.tensor(policy.grid.cell_size, dtype=torch.float64)
+    offset = torch.tensor(policy.grid.offset, dtype=torch.float64)
+    near = ((cells - offset + 1.2 * (torch.rand(cells.shape, generator=g, dtype=torch.float64) - 0.5)) * size)
+    wide = torch.randn((n - n // 2, d), generator=g, dtype=torch.float64) * 3.0
+    x = torch.cat((near, wide)).float()
+    x[::97] = float("nan")
+    x[5::89, 0] = float("inf")
+    x[7::83, -1] = -float("inf")
+    x[11::79, 0] = 1e30
+    return x
+
+
+@pytest.mark.parametrize("table_name", ["dubins_table", "walk_table", "ks_speed_table"])
+@pytest.mark.parametrize("column_major", [False, True])
+def test_numba_draws_what_torch_draws(request, table_name, column_major):
+    table = request.getfixturevalue(table_name)
+    eager, fast = TablePolicy(table, kernel="torch"), TablePolicy(table)
+    assert eager.kernel is Kernel.TORCH and fast.kernel is Kernel.NUMBA
+    x = _states(fast, 20000, seed=3)
+    if column_major:
+        x = x.T.contiguous().T
+    for t in range(fast.horizon + 1):
+        u_eager = eager.sample(x, t, torch.Generator().manual_seed(t))
+        u_fast = fast.sample(x, t, torch.Generator().manual_seed(t))
+        assert u_fast.shape == u_eager.shape == (x.shape[0], table.actions.shape[1])
+        assert torch.equal(u_fast, u_eager), f"level {t}: {int((u_fast != u_eager).any(1).sum())} states differ"
+    assert int(fast.misses) == int(eager.misses) > 0
+    assert int(fast.nearest_hits) == int(eager.nearest_hits) > 0
+    assert fast.queries == eager.queries
+
+
+def test_rollouts_are_the_same_with_either_kernel(dubins_table):
+    eager, fast = TablePolicy(dubins_table, kernel="torch"), TablePolicy(dubins_table, kernel="numba")
+    for x0 in (torch.zeros(3), torch.tensor([1.0, -2.0, 0.7])):
+        s_eager, a_eager = rollout(eager.system, eager, x0, 3000, 10, torch.Generator().manual_seed(5))
+        s_fast, a_fast = rollout(fast.system, fast, x0, 3000, 10, torch.Generator().manual_seed(5))
+        assert torch.equal(s_fast, s_eager) and torch.equal(a_fast, a_eager)
+    assert fast.miss_rate == eager.miss_rate and fast.nearest_rate == eager.nearest_rate
+
+
+@pytest.mark.parametrize("kwargs, reason", [
+    (dict(dtype=torch.float64), "float64"),
+    (dict(lookup="hash"), "hash"),
+    (dict(compile=True), "compile"),
+])
+def test_numba_names_what_rules_it_out_and_auto_falls_back(dubins_table, kwargs, reason):
+    with pytest.raises(ValueError, match=reason):
+        TablePolicy(dubins_table, kernel="numba", **kwargs)
+    assert TablePolicy(dubins_table, **kwargs).kernel is Kernel.TORCH
+    with pytest.raises(ValueError, match="unknown kernel 'fortran'"):
+        TablePolicy(dubins_table, kernel="fortran")
