@@ -124,9 +124,13 @@ def rollout(
                              f"for {num_samples} states of dimension {d}; expected [{num_samples}, {d}]")
         states.append(x)
         taken.append(u)
-    states_t = torch.stack(states, dim=1)  # [N, T+1, d]
     if relative and (x0.ndim == 2 or bool(x0[:3].any())):  # the origin pose needs no change of frame
-        states_t = se2_to_world(states_t, x0 if x0.ndim == 1 else start.unsqueeze(1))
+        # the column-major states stacked time-major ([T+1, d, N], one copy) and viewed as [N, T+1, d]: the frame
+        # change reads contiguous runs and writes the [N, T+1, d] result once
+        local = torch.stack([s.T for s in states]).permute(2, 0, 1)
+        states_t = se2_to_world(local, x0 if x0.ndim == 1 else start.unsqueeze(1))
+    else:
+        states_t = torch.stack(states, dim=1)  # [N, T+1, d]
     q = policy.actions.shape[1] if hasattr(policy, "actions") else (nominal.shape[1] if nominal is not None else 0)
     if planned is not None:
         actions_t = planned  # [N, T, q]
