@@ -9,7 +9,7 @@ ties go to the lower table row). The keys go once into a lookup structure (``loo
 dense int32 index over the keys' bounding box when that is small (about 17 MB for the horizon-15 Dubins
 table; one gather per lookup), else a static hash table (:class:`~cuniform_torch.grid.KeyHash`, one probe per
 lookup, memory in proportion to the entries). Either way a lookup is pure tensor ops (a few gathers), the same
-on CPU and GPU; sampling uses per-slot alias tables (Walker's method: one uniform, two gathers).
+on CPU and GPU; sampling uses per-entry alias tables (Walker's method: one uniform, two gathers).
 
 Fallback for a state whose cell is not in L_t (``fallback=``):
 
@@ -81,32 +81,38 @@ DENSE_CELLS_PER_ENTRY = 16
 
 
 def _halo(keyed: Tensor, grid: Grid) -> tuple[Tensor, Tensor]:
-    """Neighbour cells of each level not in it, with the row of their nearest cell: ``([H, 1+d], [H])``."""
+    """Neighbour cells of each level not in it, with the row of their nearest cell: ``([H, 1+d], [H])``.
+
+    ``keyed [C, 1+d]`` holds (level, cell) per table row. The halo cells come out in packed-key order, each with
+    the table row of least grid distance, ties to the lower row. One neighbour offset at a time, so memory stays
+    in proportion to the table and the halo rather than to the 3^d - 1 neighbours of every cell.
+    """
     d = grid.dim
     offsets = torch.tensor([o for o in itertools.product((-1, 0, 1), repeat=d) if any(o)], dtype=torch.int64)  # [O, d]
-    dist2 = (offsets**2).sum(dim=1)  # [O] squared grid distance
-    C, O = keyed.shape[0], offsets.shape[0]
-    nb = keyed[:, None, 1:] + offsets[None]  # [C, O, d]
+    dist2 = (offsets**2).sum(dim=1).tolist()  # [O] squared grid distance
+    C = keyed.shape[0]
     k = grid.num_angle_cells
-    for dim, kk in enumerate(k):
-        if kk:
-            nb[..., dim] = torch.remainder(nb[..., dim], kk)
-    nb = torch.cat((keyed[:, None, :1].expand(C, O, 1), nb), dim=2).reshape(-1, 1 + d)  # [C*O, 1+d]
-    src = torch.arange(C).repeat_interleave(O)  # [C*O]
-    dist = dist2.repeat(C)
-    keys = CellKeys.covering(torch.cat((keyed, nb)))
+    box = CellKeys.covering(keyed)  # widened by the one-cell step on every non-angle dimension; angles: [0, K)
+    lo, span = box.lo.clone(), box.span.clone()
+    for dim in range(d):
+        lo[1 + dim], span[1 + dim] = (0, k[dim]) if k[dim] else (lo[1 + dim] - 1, span[1 + dim] + 2)
+    keys = CellKeys(lo, span)
     own = CellSet.build(keyed, keys)
-    outside = own.lookup(nb) < 0
-    nb, src, dist = nb[outside], src[outside], dist[outside]
-    packed = keys.pack(nb)
-    # order by (key, distance, source row); keep the first entry of each key
-    order = torch.sort(src, stable=True).indices
-    order = order[torch.sort(dist[order], stable=True).indices]
-    order = order[torch.sort(packed[order], stable=True).indices]
-    packed, src, nb = packed[order], src[order], nb[order]
-    first = torch.ones_like(packed, dtype=torch.bool)
-    first[1:] = packed[1:] != packed[:-1]
-    return nb[first], src[first]
+    packed_parts, rank_parts = [], []
+    rows = torch.arange(C)
+    for offset, d2 in zip(offsets, dist2):
+        nb = keyed.clone()  # [C, 1+d]
+        nb[:, 1:] += offset
+        for dim, kk in enumerate(k):
+            if kk:
+                nb[:, 1 + dim] = torch.remainder(nb[:, 1 + dim], kk)
+        outside = own.lookup(nb) < 0  # [C]
+        packed_parts.append(keys.pack(nb[outside]))
+        rank_parts.append(d2 * C + rows[outside])  # ordered by (distance, source row)
+    packed, rank = torch.cat(packed_parts), torch.cat(rank_parts)
+    halo, inverse = torch.unique(packed, return_inverse=True)  # [H] ascending
+    best = torch.full_like(halo, torch.iinfo(torch.int64).max).scatter_reduce_(0, inverse, rank, reduce="amin")
+    return keys.unpack(halo), best % C
 
 
 _ANGLE_CLAMP = float(2**22)  # scaled angles are clamped here first (exact integers; far beyond any real angle)
@@ -223,21 +229,21 @@ class TablePolicy:
         period, inv_period, half = (f32(a[i] for a in angle) for i in range(3))
         self._numba_args = (dims, (scale, shift, low, high, span, period, inv_period, half), self._dense.numpy(),
                             self._index_top, self._alias_thr.numpy(), self._alias_pair.numpy(),
-                            self._slot_code.numpy())
+                            self._entry_code.numpy())
         self._numba_base = [int(b) for b in self._level_base]
         return Kernel.NUMBA
 
     def _build_lookup(self, entries: Tensor, lookup: "Lookup") -> None:
-        """Settle the lookup kernel's constants once (see :meth:`_slot_kernel`).
+        """Settle the lookup kernel's constants once (see :meth:`_entry_kernel`).
 
         Keys pack (level, cell) over a box that spans every angle index and, on the other dimensions, one cell
         more than the entries on each side. Scaled states are clamped into that box before rounding, so a
         state far outside lands on a border cell that holds no entry: a miss, never a wrong cell. The keys are
         looked up in a dense index over the box (``Lookup.DENSE``: one gather) or a
         :class:`~cuniform_torch.grid.KeyHash` (``Lookup.HASH``: one probe, memory in proportion to the entries).
-        Each *slot* (an entry, or a hash slot), plus one last slot for "not found", carries what sampling needs:
-        an alias table of its row (Walker's method, so a draw is two gathers and a compare whatever the number
-        of actions), its entry, and a fallback code.
+        Either way a lookup ends at an *entry* (a table cell or a halo cell), or at E for "not found"; each of
+        the E + 1 carries what sampling needs: an alias table of its row (Walker's method, so a draw is two
+        gathers and a compare whatever the number of actions) and a fallback code.
         """
         grid = self.grid
         covering = CellKeys.covering(entries)
@@ -274,7 +280,6 @@ class TablePolicy:
             self._hash = None
             self._level_base = [torch.tensor(1 + (t - int(lo[0])) * strides[0], dtype=torch.int32, device=self.device)
                                 for t in range(self.horizon + 1)]  # 0-d
-            slot_entry = torch.cat((torch.arange(E), torch.tensor([-1])))  # [E+1]: slot = entry; E: not found
         else:
             self._dense = None
             self._hash = KeyHash.build(packed, key_limit=total).to(self.device)
@@ -283,7 +288,10 @@ class TablePolicy:
             m = self._hash.multiplier
             level_hash = [_wrap(((t - int(lo[0])) * strides[0]) * m, bits) for t in range(self.horizon + 1)]
             self._level_base = [torch.tensor(v, dtype=self._hash.dtype, device=self.device) for v in level_hash]  # 0-d
-            slot_entry = torch.cat((self._hash.slot_rows.cpu(), torch.tensor([-1])))  # [S+1]; -1: empty or not found
+            # slot -> entry (E: empty, which no stored key reaches, or not found: the last slot S)
+            slot_entry = torch.cat((self._hash.slot_rows.cpu(), torch.tensor([-1])))  # [S+1]
+            self._hash_entry = torch.where(slot_entry >= 0, slot_entry, E).to(device=self.device, dtype=torch.int32)
+            self._miss_slot = self._hash.num_slots
         # per dimension: scaled = x * scale + shift (relative to lo); angles mod K, others clamped into the box
         self._key_dims = []
         for dim in range(grid.dim):
@@ -296,24 +304,25 @@ class TablePolicy:
             else:
                 self._key_dims.append((dim, 1.0 / grid.cell_size[dim], shift, 0.0, float(spans[1 + dim] - 1),
                                        spans[1 + dim], None))
-        # per slot (S of them, then the "not found" slot S): entry, fallback code, alias table
-        S = slot_entry.shape[0] - 1
-        self._slot_entry = slot_entry.to(self.device)
-        code = torch.zeros(S + 1, dtype=torch.int64)
-        code[:S] = (slot_entry[:S] >= self.num_cells).long()  # nearest-cell fallback: 1
-        code[slot_entry < 0] = 1 << 32  # not found (and empty slots, which no query reaches): a miss, high word
-        self._slot_code = code.to(self.device)
-        self._miss_slot = S
+        # per entry (E of them, then "not found" E): fallback code; the alias tables follow (see _build_alias)
+        code = torch.zeros(E + 1, dtype=torch.int64)
+        code[self.num_cells:E] = 1  # a halo entry: the nearest-cell fallback
+        code[E] = 1 << 32  # not found: a miss, high word
+        self._entry_code = code.to(self.device)
+        self._num_entries = E
 
     def _build_alias(self) -> None:
-        """Walker alias tables per slot: thresholds ``j + p`` ``[(S+1) A]`` and outcome pairs ``[(S+1) A 2]`` = (alias,
-        j), as action values when q == 1, else as action indices (see :meth:`_sample_kernel`)."""
+        """Walker alias tables per entry: thresholds ``j + p`` ``[(E+1) A]`` and outcome pairs ``[(E+1) A 2]`` =
+        (alias, j), as action values when q == 1, else as action indices (see :meth:`_sample_kernel`)."""
         A = self.num_actions
-        probs = self._entry_probs.cpu().double()[self._slot_entry.cpu()]  # [S+1, A]; empty and not found: uniform
+        # one alias table per table row and one for the uniform row (C), then per entry (halo entries repeat rows)
+        probs = torch.cat((self.probs, self._entry_probs[-1:])).cpu().double()  # [C+1, A]
         thr, alias = _alias_tables(probs)
+        entry_row = torch.cat((self.entry_row.cpu(), torch.tensor([self.num_cells])))  # [E+1]
+        thr, alias = thr[entry_row], alias[entry_row]
         cols = torch.arange(A)
-        self._alias_thr = (cols + thr).to(self.dtype).reshape(-1).to(self.device)  # [(S+1) A]
-        pair = torch.stack((alias, cols.expand_as(alias)), dim=2).reshape(-1)  # [(S+1) A 2]: alias, then j
+        self._alias_thr = (cols + thr).to(self.dtype).reshape(-1).to(self.device)  # [(E+1) A]
+        pair = torch.stack((alias, cols.expand_as(alias)), dim=2).reshape(-1)  # [(E+1) A 2]: alias, then j
         if self.actions.shape[1] == 1:
             pair = self.actions[:, 0].cpu()[pair]
         self._alias_pair = pair.to(device=self.device, dtype=self.dtype if self.actions.shape[1] == 1 else torch.int32)
@@ -330,9 +339,9 @@ class TablePolicy:
     def level_size(self, t: int) -> int:
         return int(self.table.level_offsets[t + 1] - self.table.level_offsets[t])
 
-    def _slots(self, x: Tensor, t: int) -> Tensor:
+    def _entries(self, x: Tensor, t: int) -> Tensor:
         self._check(x, t)
-        return self._slot_kernel(x, self._level_base[t])
+        return self._entry_kernel(x, self._level_base[t])
 
     def _check(self, x: Tensor, t: int) -> None:
         if isinstance(t, bool) or not isinstance(t, int) or not 0 <= t <= self.horizon:
@@ -341,13 +350,13 @@ class TablePolicy:
         if x.dtype != self.dtype:
             raise ValueError(f"states are {x.dtype} but the policy is {self.dtype}")
 
-    def _slot_kernel(self, x: Tensor, base: Tensor) -> Tensor:
-        """Pure tensor kernel: states ``[N, d]`` and the level's hash base (0-d) -> hash slot ``[N]`` (S: not found).
+    def _entry_kernel(self, x: Tensor, base: Tensor) -> Tensor:
+        """Pure tensor kernel: states ``[N, d]`` and the level's base (0-d) -> entry ``[N]`` int32 (E: not found).
 
         One dimension at a time (ops on a ``[N]`` column beat ops on ``[N, d]`` broadcast over a short last axis):
         cell = round(x / delta + offset) - lo, clamped into the key box (angles: to +-2^22, then mod K by an exact
         floor); the cell key accumulates by Horner's rule in exact integer arithmetic, then one gather of the
-        dense index or one hash probe.
+        dense index, or one hash probe and a gather from its slot to the entry.
         """
         key = None
         for dim, scale, shift, lo, hi, span, angle in self._key_dims:
@@ -360,40 +369,40 @@ class TablePolicy:
             key = c if key is None else c.add_(key, alpha=span)  # [N]
         if self._dense is not None:  # key -> index of level + key; a NaN key (INT_MIN) is clamped onto the sentinel
             index = key.to(torch.int32).add_(base).clamp_(0, self._index_top)  # [N]
-            return self._dense.index_select(0, index)  # [N] int32 slot (entry), or the miss slot
+            return self._dense.index_select(0, index)  # [N] int32 entry, E where none
         h = torch.add(base, key.to(self._hash.dtype), alpha=self._hash.multiplier)  # [N] hash of level + cell key
         slot = self._hash.slots(h)  # [N]
-        return slot.masked_fill_(self._hash.slot_hash.index_select(0, slot) != h, self._miss_slot)  # [N]
+        slot = slot.masked_fill_(self._hash.slot_hash.index_select(0, slot) != h, self._miss_slot)  # [N]
+        return self._hash_entry.index_select(0, slot)  # [N] int32 entry, E where none
 
     def _sample_kernel(self, x: Tensor, base: Tensor, r: Tensor) -> tuple[Tensor, Tensor]:
         """Pure tensor kernel: ``x [N, d]``, level base, uniforms ``r [N]`` in ``[0, A)`` -> actions ``[N, q]`` and
         the fallback code of each state ``[N]`` (nearest-cell hit 1, miss 2^32; summed outside the kernel, as
         torch 2.13's inductor fails to build some int64 sum reductions on one CPU thread).
 
-        Walker's alias method with one uniform: column ``j = floor(r)`` of the state's slot keeps ``j`` when
+        Walker's alias method with one uniform: column ``j = floor(r)`` of the state's entry keeps ``j`` when
         ``r < j + p_j`` (one stored threshold), else takes its alias; the two outcomes sit side by side, so the
-        comparison picks one by index (``2 (slot A + j) + keep``) instead of a ``where``.
+        comparison picks one by index (``2 (entry A + j) + keep``) instead of a ``where``.
         """
-        slot = self._slot_kernel(x, base)  # [N]
-        ix = torch.add(r.to(torch.int32), slot, alpha=self.num_actions)  # [N] slot * A + floor(r)
+        entry = self._entry_kernel(x, base)  # [N]
+        ix = torch.add(r.to(torch.int32), entry, alpha=self.num_actions)  # [N] entry * A + floor(r)
         pick = torch.add(r < self._alias_thr.index_select(0, ix), ix, alpha=2)  # [N]
         if self._alias_pair.dtype == self.dtype:  # q == 1: the pairs hold the action values
             u = self._alias_pair.index_select(0, pick).unsqueeze(1)  # [N, 1]
         else:
             u = self.actions.index_select(0, self._alias_pair.index_select(0, pick))  # [N, q]
-        return u, self._slot_code.index_select(0, slot)
+        return u, self._entry_code.index_select(0, entry)
 
     def rows(self, x: Tensor, t: int) -> Tensor:
         """Table row of each state's cell in level ``t``: ``x [N, d]`` -> ``[N]`` int64 (-1: not in L_t)."""
-        entry = self._slot_entry.index_select(0, self._slots(x, t))  # [N]
-        return torch.where(entry < self.num_cells, entry, -1)  # entries below C are table rows; -1 stays
+        entry = self._entries(x, t).long()  # [N]
+        return torch.where(entry < self.num_cells, entry, -1)  # entries below C are table rows
 
     def action_probs(self, x: Tensor, t: int) -> Tensor:
         """p(u | cell of x, t): ``x [N, d]`` -> ``[N, A]``, with the fallback for states outside L_t."""
-        slot = self._slots(x, t)  # [N]
-        self._count(x.shape[0], self._slot_code.index_select(0, slot).sum())
-        entry = self._slot_entry.index_select(0, slot)  # [N]
-        return self._entry_probs[entry]  # [N, A]; entry -1 -> the uniform row
+        entry = self._entries(x, t)  # [N]
+        self._count(x.shape[0], self._entry_code.index_select(0, entry).sum())
+        return self._entry_probs.index_select(0, entry)  # [N, A]; entry E: the uniform row
 
     def _count(self, n: int, code: Tensor) -> None:
         """Add a batch of ``n`` lookups with fallback count ``code`` (nearest hits + 2^32 x misses, a device tensor).
@@ -460,8 +469,9 @@ def load_table(
     lookup: str | Lookup = Lookup.AUTO,
     kernel: str | Kernel = Kernel.AUTO,
 ) -> TablePolicy:
-    """Read and validate a table file, and return its :class:`TablePolicy` on ``device``."""
-    return TablePolicy(read_table(path), device=device, dtype=dtype, fallback=fallback, compile=compile, lookup=lookup,
+    """Read and validate a table file (not its flow graph, which a policy does not use), and return its
+    :class:`TablePolicy` on ``device``."""
+    return TablePolicy(read_table(path, graph=False), device=device, dtype=dtype, fallback=fallback, compile=compile, lookup=lookup,
                        kernel=kernel)
 
 

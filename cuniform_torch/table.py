@@ -133,8 +133,13 @@ def write_table(path: str | os.PathLike, table: Table) -> None:
     write_npz(path, table.to_arrays())
 
 
-def read_table(path: str | os.PathLike, *, check_system: bool = True) -> Table:
-    """Read and validate a table file; every problem raises :class:`TableError` naming the file and the key."""
+def read_table(path: str | os.PathLike, *, check_system: bool = True, graph: bool = True) -> Table:
+    """Read and validate a table file; every problem raises :class:`TableError` naming the file and the key.
+
+    ``graph=False`` leaves the optional flow graph (``arcs``, ``transitions`` and their values: the audit data a
+    max-flow build stores) in the file, unread and unchecked; the table's graph fields are then None. A policy
+    needs none of it, and for a large table it is most of the file: 3.5 GB of the ks table's arrays.
+    """
     path = Path(path)
     if not path.is_file():
         raise TableError(f"{path}: no table file there")
@@ -145,7 +150,7 @@ def read_table(path: str | os.PathLike, *, check_system: bool = True) -> Table:
     if not isinstance(npz, np.lib.npyio.NpzFile):
         raise TableError(f"{path}: a single .npy array, not an .npz table")
     with npz:
-        names = set(npz.files)
+        names = set(npz.files) if graph else set(npz.files) - set(_OPTIONAL_ARRAYS)
         arrays: dict[str, np.ndarray] = {}
         for key in names:
             try:

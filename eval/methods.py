@@ -27,7 +27,7 @@ import torch
 from torch import Tensor
 
 from cuniform_torch import (CUMPPI, MPPI, CUniformMPPI, GaussianSampler, LogMPPI, NormalLogNormalSampler,
-                            TablePolicy, UniformPolicy, load_policy, load_table, rollout)
+                            TablePolicy, UniformPolicy, load_policy, load_table, read_table, rollout)
 from cuniform_torch.graph import GraphSampler
 
 from . import config
@@ -95,7 +95,8 @@ class Sources:
         return self._load("policy", lambda p: load_policy(p, device=self.device), self.policy)
 
     def graph(self) -> GraphSampler:
-        return self._load("graph", lambda p: GraphSampler(self.table_policy().table, device=self.device), self.table)
+        # read again with the flow graph, which the table policy leaves in the file
+        return self._load("graph", lambda p: GraphSampler(read_table(p), device=self.device), self.table)
 
     def policy_for(self, method: Method):
         """The discrete Policy behind a C-Uniform or uniform method."""

@@ -19,7 +19,7 @@ import pytest
 import torch
 
 from cuniform_torch.fileio import write_npz
-from cuniform_torch.policy import TablePolicy
+from cuniform_torch.policy import TablePolicy, load_table
 from cuniform_torch.rollout import rollout
 from cuniform_torch.systems import Dubins, RandomWalk1D, UnknownSystemError, make_system
 from cuniform_torch.table import TABLE_FORMAT, Table, TableError, read_table, write_table
@@ -93,6 +93,22 @@ def test_valid_file_round_trips(small_table, good_path):
     assert table.build_info == small_table.build_info
     assert table.extra == {}
     assert table.horizon == HORIZON
+
+
+def test_graph_false_leaves_the_flow_graph_unread(small_table, arrays, tmp_path):
+    """A policy's read skips the flow graph: its fields are None, and a broken graph array does not matter."""
+    graph_keys = ("arc_offsets", "arcs", "arc_flow", "transition_offsets", "transitions", "transition_frac")
+    assert all(getattr(small_table, key) is not None for key in graph_keys)
+    arrays["arc_flow"] = arrays["arc_flow"][:-1]  # inconsistent with the arcs: read_table rejects it
+    path = _write(tmp_path, arrays)
+    with pytest.raises(TableError, match="arcs must be"):
+        read_table(path)
+    table = read_table(path, graph=False)
+    assert all(getattr(table, key) is None for key in graph_keys)
+    for key in ("cells", "action_probs", "cell_probs", "level_offsets"):
+        np.testing.assert_array_equal(getattr(table, key), getattr(small_table, key), err_msg=key)
+    policy = load_table(path)
+    assert policy.table.arcs is None and policy.num_cells == small_table.cells.shape[0]
 
 
 def test_two_writes_are_byte_identical(small_table, good_path, tmp_path):

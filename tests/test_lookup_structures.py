@@ -4,9 +4,9 @@ Shapes: N queries, E keys, R probability rows, A actions, d state dimensions.
 
 * :class:`~cuniform_torch.grid.KeyHash` (one-probe static hash) answers exactly what a sorted-key
   ``searchsorted`` answers, hits and misses alike, for int32 and int64 keys and tiny tables;
-* ``TablePolicy`` slots (hash of the packed (level, cell) key) give the row a dictionary over the table gives,
+* ``TablePolicy`` entries (dense index or hash of the packed (level, cell) key) give the row a dictionary over the table gives,
   the nearest level cell for halo cells, and a miss elsewhere, and count them;
-* the per-slot alias tables reproduce every probability row exactly (zero-probability actions get no mass).
+* the per-entry alias tables reproduce every probability row exactly (zero-probability actions get no mass).
 """
 
 from __future__ import annotations
@@ -97,7 +97,7 @@ class TestKeyHash:
 
 
 class TestPolicySlots:
-    """Random states around every level: the hash-slot lookup against CellSet lookups of the level and its halo."""
+    """Random states around every level: the entry lookup against CellSet lookups of the level and its halo."""
 
     @pytest.mark.parametrize("lookup", ["dense", "hash"])
     @pytest.mark.parametrize("table_name", ["dubins_table", "walk_table"])
@@ -228,20 +228,20 @@ class TestAlias:
 
     @pytest.mark.parametrize("lookup", ["dense", "hash"])
     @pytest.mark.parametrize("table_name", ["dubins_table", "walk_table"])
-    def test_policy_slot_tables_reproduce_the_rows(self, request, table_name, lookup):
-        """Every slot's thresholds and outcome pairs give its entry's row (uniform for empty and not-found slots)."""
+    def test_policy_entry_tables_reproduce_the_rows(self, request, table_name, lookup):
+        """Every entry's thresholds and outcome pairs give its row (uniform for "not found")."""
         policy = TablePolicy(request.getfixturevalue(table_name), lookup=lookup)
         A = policy.num_actions
         thr = policy._alias_thr.double().reshape(-1, A) - torch.arange(A)  # [S+1, A] in [0, 1]
         assert bool(((thr >= 0) & (thr <= 1)).all())
-        pair = policy._alias_pair.reshape(-1, A, 2)  # [S+1, A, 2]: alias, j (action values when q == 1)
+        pair = policy._alias_pair.reshape(-1, A, 2)  # [E+1, A, 2]: alias, j (action values when q == 1)
         values = policy.actions[:, 0].double()
         alias, own = (torch.searchsorted(values, pair[..., i].double()) for i in (0, 1))
         assert torch.equal(own, torch.arange(A).expand_as(own))
         mass = torch.zeros_like(thr)
         mass.scatter_add_(1, own, thr / A)
         mass.scatter_add_(1, alias, (1 - thr) / A)
-        want = policy._entry_probs.double()[policy._slot_entry]  # [S+1, A]
+        want = policy._entry_probs.double()  # [E+1, A]: the entries' rows, then uniform for "not found"
         torch.testing.assert_close(mass, want, atol=1e-6, rtol=0)
 
     def test_sampled_frequencies_follow_a_skewed_row(self, walk_table):

@@ -174,7 +174,7 @@ def parse_args(argv: Sequence[str] | None = None) -> DistillConfig:
 
 def read_tables(paths: Sequence[str]) -> list[Table]:
     """Read every table (:class:`TableError` when one is bad) and check they share the system and the actions."""
-    tables = [read_table(p) for p in paths]
+    tables = [read_table(p, graph=False) for p in paths]  # the flow graph is not distilled
     for path, table in zip(paths[1:], tables[1:]):
         if json.loads(table.system) != json.loads(tables[0].system):
             raise UsageError(f"{path} was built for {table.system}, but {paths[0]} for {tables[0].system}; "
