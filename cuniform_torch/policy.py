@@ -24,6 +24,7 @@ of frame, so one table serves every start pose (``start_relative = True``).
 
 from __future__ import annotations
 
+import functools
 import itertools
 import math
 import os
@@ -59,7 +60,7 @@ class Kernel(Option):
     TORCH = "torch"
     """about 24 small tensor ops per step, on any device (``compile=True`` wraps them in ``torch.compile``)"""
     NUMBA = "numba"
-    """one compiled CPU loop (:mod:`~cuniform_torch.cpu_kernels`): float32 on a CPU, dense lookup, no compile"""
+    """one compiled CPU loop (:mod:`~cuniform_torch.cpu_kernels`): float32 on a CPU, dense or int32-hash lookup"""
 
 
 @option_label('lookup')
@@ -213,7 +214,7 @@ class TablePolicy:
         unmet = [why for ok, why in (
             (self.device.type == "cpu", f"the policy is on {self.device}, not a CPU"),
             (self.dtype == torch.float32, f"the policy is {self.dtype}, not float32"),
-            (self.lookup is Lookup.DENSE, "the lookup is a hash, not dense"),
+            (self.lookup is Lookup.DENSE or self._hash.dtype == torch.int32, "the lookup is an int64 hash"),
             (self._key_dtype == torch.float32, "the table's key box needs float64 keys"),
             (not compile, "compile=True asks for the torch kernel"),
             (cpu_kernels.available(), "numba is not installed (pip install numba)"),
@@ -227,9 +228,17 @@ class TablePolicy:
         scale, shift, low, high, span = (f32(k[i] for k in self._key_dims) for i in range(1, 6))
         angle = [k[6] or (0, 0.0, 0.0) for k in self._key_dims]
         period, inv_period, half = (f32(a[i] for a in angle) for i in range(3))
-        self._numba_args = (dims, (scale, shift, low, high, span, period, inv_period, half), self._dense.numpy(),
-                            self._index_top, self._alias_thr.numpy(), self._alias_pair.numpy(),
-                            self._entry_code.numpy())
+        consts = (scale, shift, low, high, span, period, inv_period, half)
+        tables = (self._alias_thr.numpy(), self._alias_pair.numpy(), self._entry_code.numpy())
+        if self._dense is not None:
+            self._numba_lookup = functools.partial(cpu_kernels.sample_dense, dims=dims, consts=consts,
+                                                   dense=self._dense.numpy(), top=self._index_top)
+        else:
+            h = self._hash
+            probe = (h.multiplier, h.bucket_shift, h.bucket_mask, h.slot_shift, h.disp.numpy(), h.slot_hash.numpy(),
+                     self._hash_entry.numpy())
+            self._numba_lookup = functools.partial(cpu_kernels.sample_hash, dims=dims, consts=consts, probe=probe)
+        self._numba_tables = tables
         self._numba_base = [int(b) for b in self._level_base]
         return Kernel.NUMBA
 
@@ -437,10 +446,10 @@ class TablePolicy:
         r = torch.empty(x.shape[0], device=self.device, dtype=self.dtype).uniform_(0, self.num_actions,
                                                                                     generator=generator)  # [N]
         if self.kernel is Kernel.NUMBA:
-            dims, consts, dense, top, thr, pair, code = self._numba_args
+            thr, pair, code = self._numba_tables
             out = torch.empty(x.shape[0], dtype=self._alias_pair.dtype)  # [N] action values (q = 1) or indices
-            total = cpu_kernels.sample_dense(x.detach().numpy(), r.numpy(), self._numba_base[t], dims, consts, dense,
-                                             top, thr, pair, code, out.numpy())
+            total = self._numba_lookup(x.detach().numpy(), r.numpy(), self._numba_base[t], thr=thr, pair=pair,
+                                       code=code, out=out.numpy())
             self._count(x.shape[0], total)
             return out.unsqueeze(1) if out.dtype == self.dtype else self.actions.index_select(0, out)  # [N, q]
         u, code = self._sample(x, self._level_base[t], r)

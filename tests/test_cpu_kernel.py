@@ -5,7 +5,7 @@ Shapes: N states, d state dimensions, q action dimensions.
 Same generator seed, same uniforms: the two kernels must give the same actions bit for bit, count the same
 nearest-cell hits and misses, and drive :func:`~cuniform_torch.rollout.rollout` to the same states, for states
 inside, near and far outside the level sets, NaN and infinite ones, row- and column-major layouts, one and two
-action dimensions. ``kernel="numba"`` names what rules it out; ``"auto"`` falls back to torch there.
+action dimensions, dense and hash lookups. ``kernel="numba"`` names what rules it out; ``"auto"`` falls back to torch there.
 """
 
 from __future__ import annotations
@@ -47,10 +47,11 @@ def _states(policy: TablePolicy, n: int, seed: int) -> torch.Tensor:
 
 
 @pytest.mark.parametrize("table_name", ["dubins_table", "walk_table", "ks_speed_table"])
+@pytest.mark.parametrize("lookup", ["dense", "hash"])
 @pytest.mark.parametrize("column_major", [False, True])
-def test_numba_draws_what_torch_draws(request, table_name, column_major):
+def test_numba_draws_what_torch_draws(request, table_name, lookup, column_major):
     table = request.getfixturevalue(table_name)
-    eager, fast = TablePolicy(table, kernel="torch"), TablePolicy(table)
+    eager, fast = TablePolicy(table, kernel="torch", lookup=lookup), TablePolicy(table, lookup=lookup)
     assert eager.kernel is Kernel.TORCH and fast.kernel is Kernel.NUMBA
     x = _states(fast, 20000, seed=3)
     if column_major:
@@ -76,7 +77,6 @@ def test_rollouts_are_the_same_with_either_kernel(dubins_table):
 
 @pytest.mark.parametrize("kwargs, reason", [
     (dict(dtype=torch.float64), "float64"),
-    (dict(lookup="hash"), "hash"),
     (dict(compile=True), "compile"),
 ])
 def test_numba_names_what_rules_it_out_and_auto_falls_back(dubins_table, kwargs, reason):
