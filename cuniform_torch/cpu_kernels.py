@@ -12,7 +12,8 @@ outcome. Only float32 states are handled (a float64 multiply-add has no wider ty
 int32 hashes; the policy uses the eager kernel otherwise.
 
 numba is imported lazily: :func:`available` says whether it can be used; the first call compiles the loops (about
-a second, cached on disk next to this file when the directory is writable).
+a second, cached on disk next to this file when the directory is writable). :class:`TablePolicy` makes that call
+when it is made, so that no control cycle pays for it.
 """
 
 from __future__ import annotations

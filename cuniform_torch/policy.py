@@ -240,6 +240,10 @@ class TablePolicy:
             self._numba_lookup = functools.partial(cpu_kernels.sample_hash, dims=dims, consts=consts, probe=probe)
         self._numba_tables = tables
         self._numba_base = [int(b) for b in self._level_base]
+        # compile (or load from numba's disk cache) now, not in the first control cycle: one state, not counted
+        out = np.empty(1, dtype=tables[1].dtype)
+        self._numba_lookup(np.zeros((1, self.grid.dim), dtype=np.float32), np.zeros(1, dtype=np.float32),
+                           self._numba_base[0], thr=tables[0], pair=tables[1], code=tables[2], out=out)
         return Kernel.NUMBA
 
     def _build_lookup(self, entries: Tensor, lookup: "Lookup") -> None:
