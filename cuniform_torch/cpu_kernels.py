@@ -75,8 +75,9 @@ def _kernels():
 
     @jit
     def dense_entries(key, base, dense, top, entry):
+        """``entry [N]`` from the dense index at ``base + key``, clamped into it (NaN: index 0, "not found")."""
         for i in range(key.shape[0]):
-            kv = key[i]  # a NaN key goes to index 0, the "not found" sentinel
+            kv = key[i]
             kv = kv if kv == kv else np.float32(-2.0**31)
             entry[i] = dense[np.uint32(min(max(np.int64(kv) + base, 0), top))]
 
@@ -97,6 +98,7 @@ def _kernels():
 
 
 def _prepare(x: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """States with contiguous columns, and scratch ``key [N]`` float32 and ``entry [N]`` int32."""
     if x.ndim == 2 and x.strides[0] != x.itemsize:  # row-major: columns first (the key loop vectorizes on them)
         x = np.ascontiguousarray(x.T).T
     return x, np.empty(n, dtype=np.float32), np.empty(n, dtype=np.int32)
