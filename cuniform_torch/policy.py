@@ -228,22 +228,20 @@ class TablePolicy:
         scale, shift, low, high, span = (f32(k[i] for k in self._key_dims) for i in range(1, 6))
         angle = [k[6] or (0, 0.0, 0.0) for k in self._key_dims]
         period, inv_period, half = (f32(a[i] for a in angle) for i in range(3))
-        consts = (scale, shift, low, high, span, period, inv_period, half)
-        tables = (self._alias_thr.numpy(), self._alias_pair.numpy(), self._entry_code.numpy())
+        shared = dict(dims=dims, consts=(scale, shift, low, high, span, period, inv_period, half),
+                      thr=self._alias_thr.numpy(), pair=self._alias_pair.numpy(), code=self._entry_code.numpy())
         if self._dense is not None:
-            self._numba_lookup = functools.partial(cpu_kernels.sample_dense, dims=dims, consts=consts,
-                                                   dense=self._dense.numpy(), top=self._index_top)
+            self._numba_sample = functools.partial(cpu_kernels.sample_dense, dense=self._dense.numpy(),
+                                                   top=self._index_top, **shared)
         else:
             h = self._hash
             probe = (h.multiplier, h.bucket_shift, h.bucket_mask, h.slot_shift, h.disp.numpy(), h.slot_hash.numpy(),
                      self._hash_entry.numpy())
-            self._numba_lookup = functools.partial(cpu_kernels.sample_hash, dims=dims, consts=consts, probe=probe)
-        self._numba_tables = tables
+            self._numba_sample = functools.partial(cpu_kernels.sample_hash, probe=probe, **shared)
         self._numba_base = [int(b) for b in self._level_base]
         # compile (or load from numba's disk cache) now, not in the first control cycle: one state, not counted
-        out = np.empty(1, dtype=tables[1].dtype)
-        self._numba_lookup(np.zeros((1, self.grid.dim), dtype=np.float32), np.zeros(1, dtype=np.float32),
-                           self._numba_base[0], thr=tables[0], pair=tables[1], code=tables[2], out=out)
+        self._numba_sample(np.zeros((1, self.grid.dim), dtype=np.float32), np.zeros(1, dtype=np.float32),
+                           self._numba_base[0], out=np.empty(1, dtype=shared["pair"].dtype))
         return Kernel.NUMBA
 
     def _build_lookup(self, entries: Tensor, lookup: "Lookup") -> None:
@@ -322,7 +320,6 @@ class TablePolicy:
         code[self.num_cells:E] = 1  # a halo entry: the nearest-cell fallback
         code[E] = 1 << 32  # not found: a miss, high word
         self._entry_code = code.to(self.device)
-        self._num_entries = E
 
     def _build_alias(self) -> None:
         """Walker alias tables per entry: thresholds ``j + p`` ``[(E+1) A]`` and outcome pairs ``[(E+1) A 2]`` =
@@ -450,10 +447,8 @@ class TablePolicy:
         r = torch.empty(x.shape[0], device=self.device, dtype=self.dtype).uniform_(0, self.num_actions,
                                                                                     generator=generator)  # [N]
         if self.kernel is Kernel.NUMBA:
-            thr, pair, code = self._numba_tables
             out = torch.empty(x.shape[0], dtype=self._alias_pair.dtype)  # [N] action values (q = 1) or indices
-            total = self._numba_lookup(x.detach().numpy(), r.numpy(), self._numba_base[t], thr=thr, pair=pair,
-                                       code=code, out=out.numpy())
+            total = self._numba_sample(x.detach().numpy(), r.numpy(), self._numba_base[t], out=out.numpy())
             self._count(x.shape[0], total)
             return out.unsqueeze(1) if out.dtype == self.dtype else self.actions.index_select(0, out)  # [N, q]
         u, code = self._sample(x, self._level_base[t], r)
@@ -484,8 +479,8 @@ def load_table(
 ) -> TablePolicy:
     """Read and validate a table file (not its flow graph, which a policy does not use), and return its
     :class:`TablePolicy` on ``device``."""
-    return TablePolicy(read_table(path, graph=False), device=device, dtype=dtype, fallback=fallback, compile=compile, lookup=lookup,
-                       kernel=kernel)
+    return TablePolicy(read_table(path, graph=False), device=device, dtype=dtype, fallback=fallback,
+                       compile=compile, lookup=lookup, kernel=kernel)
 
 
 class UniformPolicy:
