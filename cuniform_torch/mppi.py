@@ -18,11 +18,19 @@ Every controller does the same three things per command, and differs only in how
   command is a random subset + a rigid transform + cost + weights.
 * :class:`CUMPPI` (arXiv 2503.05819) makes the lowest-cost C-Uniform rollout the nominal of one local MPPI or
   log-MPPI pass and applies that pass's first control.
+
+Bad input is refused with one ValueError or TypeError naming it: a ``lambda_`` that the controller's dtype
+cannot hold (or whose inverse overflows it), a ``seed`` that is not an integer, a state of the wrong shape,
+dtype or device or with NaN, and a cost (or terminal cost) that is not a ``[K]`` tensor of the controller's dtype
+and device, or is NaN for every proposal. A state that requires grad is detached (a controller never
+differentiates through its input).
 """
 
 from __future__ import annotations
 
 import math
+import numbers
+import warnings
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Callable
@@ -36,7 +44,8 @@ from .rollout import Policy, rollout
 from .samplers import GaussianSampler, NormalLogNormalSampler
 from .systems import System
 
-__all__ = ["CostFn", "MPPIResult", "mppi_weights", "MPPI", "LogMPPI", "CUniformMPPI", "CUMPPI", "COST_CAP"]
+__all__ = ["CostFn", "MPPIResult", "mppi_weights", "MPPI", "LogMPPI", "CUniformMPPI", "CUMPPI", "COST_CAP",
+           "BankRefreshWarning"]
 
 COST_CAP = 1e10
 """NaN / inf costs are replaced by this finite value before weighting"""
@@ -44,6 +53,10 @@ COST_CAP = 1e10
 
 CostFn = TrajectoryCost
 """Trajectory cost: ``states [K, T+1, d]``, ``actions [K, T, q]`` -> ``[K]`` (may be inf for collisions)."""
+
+
+class BankRefreshWarning(RuntimeWarning):
+    """A background bank refresh of :class:`CUniformMPPI` raised; the controller goes on with its current bank."""
 
 
 @dataclass
@@ -70,17 +83,62 @@ class MPPIResult:
 
 
 def mppi_weights(costs: Tensor, lambda_: float) -> Tensor:
-    """``softmax(-(cost - min) / lambda)`` over ``costs [K]``; ``lambda_ = 0`` puts all weight on the argmin."""
+    """``softmax(-(cost - min) / lambda)`` over ``costs [K]``; ``lambda_ = 0`` puts all weight on the argmin.
+
+    ValueError when ``lambda_`` is not 0 nor a normal number of ``costs.dtype`` with a finite inverse.
+    """
+    return _weights(costs, _check_lambda(lambda_, costs.dtype))
+
+
+def _weights(costs: Tensor, lambda_: float) -> Tensor:
+    """:func:`mppi_weights` for a ``lambda_`` checked already (at a controller's construction)."""
     c = torch.nan_to_num(costs, nan=COST_CAP, posinf=COST_CAP, neginf=-COST_CAP).clamp(max=COST_CAP)
     if lambda_ == 0:
         return torch.nn.functional.one_hot(torch.argmin(c), c.shape[0]).to(c.dtype)
     return torch.softmax(-(c - c.min()) / lambda_, dim=0)
 
 
-def _check_lambda(lambda_: float) -> float:
-    if not (isinstance(lambda_, (int, float)) and math.isfinite(lambda_) and lambda_ >= 0):
+def _check_lambda(lambda_: float, dtype: torch.dtype) -> float:
+    """``lambda_`` as a float: 0, or a positive number that ``dtype`` holds as a normal number with a finite
+    inverse (else ``-(c - min) / lambda`` is 0 / 0 or inf - inf in that dtype, and the weights are NaN)."""
+    if isinstance(lambda_, bool) or not isinstance(lambda_, numbers.Real) or not (math.isfinite(lambda_) and lambda_ >= 0):
         raise ValueError(f"lambda_ must be a finite number >= 0, got {lambda_!r}")
-    return float(lambda_)
+    value = float(lambda_)
+    if value == 0:
+        return value
+    held = torch.tensor(value, dtype=dtype).item()  # lambda_ as the controller's dtype rounds it
+    inverse = torch.tensor(1.0 / held, dtype=dtype).item() if held > 0 else math.inf
+    if not (held >= torch.finfo(dtype).tiny and math.isfinite(held) and math.isfinite(inverse)):
+        info = torch.finfo(dtype)
+        raise ValueError(f"lambda_={lambda_!r} is out of range for {dtype}: it must be 0 or between {info.tiny:.3g} "
+                         f"and {info.max:.3g} with a finite 1/lambda_ (it becomes {held!r} in {dtype})")
+    return value
+
+
+def _check_seed(seed: int | None) -> int | None:
+    if seed is not None and (isinstance(seed, bool) or not isinstance(seed, numbers.Integral)):
+        raise TypeError(f"seed must be an int or None, got {type(seed).__name__} ({seed!r:.40})")
+    return None if seed is None else int(seed)
+
+
+def _callable_name(fn: object) -> str:
+    """A user callable's name for an error message: its ``__qualname__``, else a short repr."""
+    name = getattr(fn, "__qualname__", None)
+    if isinstance(name, str):
+        return name
+    text = repr(fn)
+    return text if len(text) <= 80 else f"{type(fn).__qualname__} object"
+
+
+def _check_costs(costs: object, who: str, fn: object, k: int, dtype: torch.dtype, device: torch.device) -> Tensor:
+    """``costs`` as returned by the user's ``fn``, checked to be a ``[k]`` tensor of ``dtype`` on ``device``."""
+    expected = f"expected a [{k}] tensor of {dtype} on {device} (one cost per proposal, the controller's dtype and device)"
+    if not isinstance(costs, Tensor):
+        raise ValueError(f"{who} {_callable_name(fn)} returned {type(costs).__name__} {costs!r:.60}; {expected}")
+    if costs.shape != (k,) or costs.dtype != dtype or costs.device != device:
+        raise ValueError(f"{who} {_callable_name(fn)} returned a {list(costs.shape)} tensor of {costs.dtype} on "
+                         f"{costs.device}; {expected}")
+    return costs.detach()
 
 
 def _check_positive_int(name: str, value: int) -> int:
@@ -100,9 +158,12 @@ class _Core:
         self.terminal_cost = terminal_cost
         self.num_samples = _check_positive_int("num_samples", num_samples)
         self.horizon = _check_positive_int("horizon", horizon)
-        self.lambda_ = _check_lambda(lambda_)
         self.device = torch.device(device)
+        if not (isinstance(dtype, torch.dtype) and dtype.is_floating_point):
+            raise ValueError(f"dtype must be a floating-point torch.dtype, got {dtype!r}")
         self.dtype = dtype
+        self.lambda_ = _check_lambda(lambda_, dtype)
+        seed = _check_seed(seed)
         self.state_dim = len(system.periodic)
         actions = system.action_set(dtype=dtype, device=self.device)  # [A, q]
         self.low, self.high = actions.min(dim=0).values, actions.max(dim=0).values  # [q] action bounds
@@ -110,24 +171,31 @@ class _Core:
         self.generator.manual_seed(seed) if seed is not None else self.generator.seed()
 
     def _check_state(self, state: Tensor) -> Tensor:
+        """``state [d]`` of the controller's dtype and device, finite; detached (a state is an observation)."""
         if not isinstance(state, Tensor) or state.shape != (self.state_dim,):
             raise ValueError(f"state must be a tensor of shape [{self.state_dim}], got {getattr(state, 'shape', state)!r}")
         if state.device != self.device:
             raise ValueError(f"state is on {state.device} but the controller is on {self.device}")
         if state.dtype != self.dtype:
-            raise ValueError(f"state is {state.dtype} but the controller is {self.dtype}")
+            raise ValueError(f"state is {state.dtype} but the controller is {self.dtype}; pass state.to({self.dtype})")
+        state = state.detach()
         if not bool(torch.isfinite(state).all()):
             raise ValueError(f"state contains NaN or infinite values: {state.tolist()}")
         return state
 
     def _evaluate(self, states: Tensor, actions: Tensor) -> tuple[Tensor, Tensor]:
-        costs = self.cost_fn(states, actions)  # [K]
-        if costs.shape != (states.shape[0],):
-            raise ValueError(f"cost_fn must return one cost per rollout, shape [{states.shape[0]}], got {list(costs.shape)}")
+        """Finite costs ``[K]`` of the proposals and their weights ``[K]``; the user's costs are checked first."""
+        k = states.shape[0]
+        costs = _check_costs(self.cost_fn(states, actions), "cost_fn", self.cost_fn, k, self.dtype, self.device)
         if self.terminal_cost is not None:
-            costs = costs + self.terminal_cost(states[:, -1])
+            costs = costs + _check_costs(self.terminal_cost(states[:, -1]), "terminal_cost", self.terminal_cost, k,
+                                         self.dtype, self.device)
+        if bool(torch.isnan(costs).all()):  # some NaN is a penalty; NaN everywhere is a broken cost, not a choice
+            raise ValueError(f"cost_fn {_callable_name(self.cost_fn)}"
+                             f"{'' if self.terminal_cost is None else ' + terminal_cost ' + _callable_name(self.terminal_cost)}"
+                             f" returned NaN for all {k} proposals; expected a [{k}] tensor of costs")
         costs = torch.nan_to_num(costs, nan=COST_CAP, posinf=COST_CAP, neginf=-COST_CAP).clamp(max=COST_CAP)
-        return costs, mppi_weights(costs, self.lambda_)
+        return costs, _weights(costs, self.lambda_)
 
 
 class MPPI(_Core):
@@ -200,7 +268,12 @@ class CUniformMPPI(_Core):
     ``bank_background=True`` that refresh runs in a worker thread while commands go on with the current bank;
     the new bank replaces it at the first command after it is ready (``wait_for_bank()`` blocks until then).
     Which command first sees a background bank depends on timing, so runs with it are not bit-reproducible;
-    call ``close()`` to stop the worker.
+    call ``close()`` to stop the worker (or use the controller as a context manager).
+
+    A background refresh that raises does not break the controller: the exception is reported once, as a
+    :class:`BankRefreshWarning` naming its type and message (``warnings.warn``, so a test or an application can
+    turn it into an error with a warnings filter), the current bank stays in use, ``bank_failures`` counts it,
+    ``last_bank_error`` keeps it, and the next due refresh is tried as usual.
     """
 
     def __init__(self, policy, cost_fn: CostFn, num_samples: int = 1000, lambda_: float = 0.567,
@@ -231,6 +304,10 @@ class CUniformMPPI(_Core):
         self._executor: ThreadPoolExecutor | None = None
         self.banks_swapped = 0
         """background banks put in use so far"""
+        self.bank_failures = 0
+        """background refreshes that raised (each reported once by a BankRefreshWarning)"""
+        self.last_bank_error: BaseException | None = None
+        """the exception of the latest failed background refresh"""
         if self.bank_background:
             self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="cuniform-bank")
             self._bank_generator = torch.Generator(device=self.device)  # the worker's own stream of random numbers
@@ -258,24 +335,47 @@ class CUniformMPPI(_Core):
         self.bank_states, self.bank_actions = self._draw_bank(self.generator)  # [M, T+1, d], [M, T, q]
 
     def _swap_if_ready(self, wait: bool = False) -> bool:
+        """Put a finished background bank in use (True); a failed refresh is reported and leaves the bank as is."""
         if self._pending is None or not (wait or self._pending.done()):
             return False
-        self.bank_states, self.bank_actions = self._pending.result()
-        self._pending = None
+        pending, self._pending = self._pending, None  # a failed refresh is never looked at twice
+        error = pending.exception()  # blocks until it is done
+        if error is not None:
+            self._report_bank_error(error)
+            return False
+        self.bank_states, self.bank_actions = pending.result()
         self.banks_swapped += 1
         return True
 
+    def _report_bank_error(self, error: BaseException) -> None:
+        self.bank_failures += 1
+        self.last_bank_error = error
+        warnings.warn(f"CUniformMPPI: background bank refresh failed ({type(error).__name__}: {error}); "
+                      f"the current bank stays in use and the next refresh is tried as usual",
+                      BankRefreshWarning, stacklevel=4)
+
     def wait_for_bank(self) -> bool:
-        """Block until a background refresh in flight is done and use its bank; False when none was pending."""
+        """Block until a background refresh in flight is done and use its bank; False when none was pending or it
+        failed (then reported by a :class:`BankRefreshWarning`)."""
         return self._swap_if_ready(wait=True)
 
     def close(self) -> None:
-        """Stop the background worker (a pending refresh is finished first)."""
-        if self._executor is not None:
+        """Stop the background worker: a pending refresh is finished first (and used, or reported if it failed).
+        The thread is stopped even when a refresh failed; calling it again does nothing."""
+        executor, self._executor = self._executor, None
+        if executor is None:
+            return
+        self.bank_background = False
+        try:
             self._swap_if_ready(wait=True)
-            self._executor.shutdown(wait=True)
-            self._executor = None
-            self.bank_background = False
+        finally:
+            executor.shutdown(wait=True)
+
+    def __enter__(self) -> CUniformMPPI:
+        return self
+
+    def __exit__(self, *exc_info: object) -> None:
+        self.close()
 
     def propose(self, state: Tensor) -> tuple[Tensor, Tensor]:
         """``num_samples`` C-Uniform proposals from ``state [d]``: ``[K, T+1, d]``, ``[K, T, q]``."""

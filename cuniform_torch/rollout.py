@@ -23,7 +23,7 @@ from torch import Tensor
 from .frames import se2_to_world
 from .systems import System
 
-__all__ = ["Policy", "ActionSampler", "rollout", "check_states"]
+__all__ = ["Policy", "ActionSampler", "rollout", "check_states", "check_generator"]
 
 
 @runtime_checkable
@@ -57,6 +57,17 @@ def check_states(x: Tensor, dim: int, device: torch.device, who: str = "the poli
         raise ValueError(f"states must be a floating-point tensor, got {x.dtype}")
 
 
+def check_generator(generator: object, device: torch.device, name: str = "generator") -> None:
+    """Raise TypeError unless ``generator`` is None or a ``torch.Generator``, ValueError if it is not on ``device``."""
+    if generator is None:
+        return
+    if not isinstance(generator, torch.Generator):
+        raise TypeError(f"{name} must be a torch.Generator or None, got {type(generator).__name__} ({generator!r:.40}); "
+                        f"make one with torch.Generator(device).manual_seed(seed)")
+    if generator.device.type != device.type:  # a generator of another device type cannot draw there
+        raise ValueError(f"{name} is on {generator.device} but the samples are drawn on {device}")
+
+
 def _check_args(system: System, x0: Tensor, num_samples: int, horizon: int) -> int:
     d = len(system.periodic)
     for name, value, least in (("num_samples", num_samples, 1), ("horizon", horizon, 0)):
@@ -80,9 +91,12 @@ def rollout(
     """Sample ``num_samples`` trajectories of ``horizon`` steps from ``x0 [d]`` (or ``[N, d]``).
 
     Returns ``states [N, T+1, d]`` (start included) and ``actions [N, T, q]``, in the dtype and on the device
-    of ``x0``; pass a seeded ``generator`` on that device for reproducible samples.
+    of ``x0``; pass a seeded ``generator`` on that device for reproducible samples. No gradient flows through a
+    rollout: an ``x0`` that requires grad is detached. A policy's ``action_probs`` must return ``[N, A]``.
     """
     d = _check_args(system, x0, num_samples, horizon)
+    check_generator(generator, x0.device)
+    x0 = x0.detach()
     table_horizon = getattr(policy, "horizon", None)
     if table_horizon is not None and horizon > table_horizon:
         raise ValueError(f"horizon {horizon} is longer than the policy's table ({table_horizon} steps)")
@@ -115,6 +129,10 @@ def rollout(
             u = planned[:, t]
         elif discrete:
             probs = policy.action_probs(x, t)  # [N, A]
+            if not isinstance(probs, Tensor) or probs.shape != (num_samples, actions.shape[0]):
+                raise ValueError(f"{type(policy).__name__}.action_probs returned "
+                                 f"{list(probs.shape) if isinstance(probs, Tensor) else type(probs).__name__} at step "
+                                 f"{t}; expected [{num_samples}, {actions.shape[0]}] probabilities (states x actions)")
             u = actions[torch.multinomial(probs, 1, generator=generator).squeeze(1)]  # [N, q]
         else:
             u = policy.sample(x, t, generator)  # [N, q]

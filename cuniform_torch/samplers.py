@@ -21,6 +21,8 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from .rollout import check_generator
+
 __all__ = ["GaussianSampler", "NormalLogNormalSampler", "lognormal_params"]
 
 
@@ -56,7 +58,8 @@ class GaussianSampler:
         self.std = _as_std(self.std, self.nominal.shape[1], self.nominal)
 
     def noise(self, n: int, generator: torch.Generator | None) -> Tensor:
-        """``[n, q]`` zero-mean noise."""
+        """``[n, q]`` zero-mean noise (TypeError when ``generator`` is neither None nor a torch.Generator)."""
+        check_generator(generator, self.nominal.device)
         q = self.nominal.shape[1]
         eps = torch.randn((n, q), generator=generator, dtype=self.nominal.dtype, device=self.nominal.device)
         return eps * self.std
@@ -84,6 +87,7 @@ class NormalLogNormalSampler(GaussianSampler):
         self.mu, self.sigma = lognormal_params(self.lognormal_mean, self.lognormal_var)
 
     def noise(self, n: int, generator: torch.Generator | None) -> Tensor:
+        check_generator(generator, self.nominal.device)
         q = self.nominal.shape[1]
         kw = dict(generator=generator, dtype=self.nominal.dtype, device=self.nominal.device)
         normal = torch.randn((n, q), **kw) * self.std
