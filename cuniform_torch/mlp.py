@@ -130,9 +130,41 @@ class MLPPolicy(nn.Module):
         return self.net(self.features(x, t))
 
     def action_probs(self, x: Tensor, t: int) -> Tensor:
-        """Softmax of the logits: ``x [N, d]`` -> ``[N, A]`` (no fallback needed: every state has an answer)."""
+        """Softmax of the logits: ``x [N, d]`` at level ``t`` -> ``[N, A]``, checked as a TablePolicy checks.
+
+        ``t`` must be an int in ``0..horizon`` and ``x`` of the policy's dtype and device (ValueError otherwise;
+        no silent conversion). A state with a NaN or infinite coordinate gets the uniform row, as a table's
+        "not found" state does, and is counted in :attr:`misses`; ``queries`` counts every state looked up.
+        """
+        if isinstance(t, bool) or not isinstance(t, int) or not 0 <= t <= self.horizon:
+            raise ValueError(f"level t={t!r} is outside the policy's levels 0..{self.horizon} (an integer)")
+        check_states(x, self.config.state_dim, self.device)
+        if x.dtype != self.dtype:
+            raise ValueError(f"states are {x.dtype} but the policy is {self.dtype}")
         with torch.no_grad():
-            return torch.softmax(self(x, t), dim=1)
+            probs = torch.softmax(self(x, t), dim=1)  # [N, A]
+            bad = ~torch.isfinite(x).all(dim=1, keepdim=True)  # [N, 1]: cos(inf) and NaN give NaN logits
+            self._count_misses(x.shape[0], bad)
+            return torch.where(bad, torch.full_like(probs[:1], 1.0 / probs.shape[1]), probs)
+
+    def _count_misses(self, n: int, bad: Tensor) -> None:
+        """Add ``n`` queries and the ``bad [N, 1]`` rows to the counters (a device tensor: counting never syncs)."""
+        misses = getattr(self, "_misses", None)
+        if misses is None or misses.device != bad.device:  # not a buffer: counters stay out of the checkpoint
+            self._misses, self._queries = torch.zeros((), dtype=torch.int64, device=bad.device), 0
+        self._queries += n
+        self._misses += bad.sum()
+
+    @property
+    def queries(self) -> int:
+        """States looked up by :meth:`action_probs` so far (a host int)."""
+        return getattr(self, "_queries", 0)
+
+    @property
+    def misses(self) -> Tensor:
+        """States given the uniform row by :meth:`action_probs` (NaN or infinite ones; a 0-d device tensor)."""
+        misses = getattr(self, "_misses", None)
+        return misses.clone() if misses is not None else torch.zeros((), dtype=torch.int64, device=self.device)
 
 
 def file_sha256(path: str | os.PathLike) -> str:
