@@ -23,10 +23,11 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import io
+import math
 import os
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import torch
 from torch import Tensor, nn
@@ -40,6 +41,9 @@ __all__ = ["POLICY_FORMAT", "MLPConfig", "MLPPolicy", "PolicyCheckpointError", "
            "load_policy", "file_sha256", "default_feature_scale"]
 
 POLICY_FORMAT = "cuniform-policy/1"
+
+MAX_HIDDEN = 1 << 16
+MAX_LAYERS = 64
 
 
 class PolicyCheckpointError(ValueError):
@@ -64,14 +68,29 @@ class MLPConfig:
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
                 raise ValueError(f"MLPConfig.{name} must be a positive integer, got {value!r}")
-        if len(self.periodic) != self.state_dim or len(self.feature_scale) != self.state_dim:
+        if self.hidden > MAX_HIDDEN or self.layers > MAX_LAYERS:
+            raise ValueError(f"MLPConfig: at most {MAX_LAYERS} layers of {MAX_HIDDEN} units, got {self.layers} x {self.hidden}")
+        if not isinstance(self.periodic, (list, tuple)) or not all(isinstance(p, bool) for p in self.periodic):
+            raise ValueError(f"MLPConfig: periodic must be a list of bools, got {self.periodic!r}")
+        if not isinstance(self.feature_scale, (list, tuple)) or len(self.periodic) != self.state_dim \
+                or len(self.feature_scale) != self.state_dim:
             raise ValueError(f"MLPConfig: periodic and feature_scale need {self.state_dim} entries each")
-        if any(not (s > 0) for s in self.feature_scale):
-            raise ValueError(f"MLPConfig: feature_scale must be positive, got {self.feature_scale}")
+        if any(isinstance(s, bool) or not isinstance(s, (int, float)) or not (0 < s < math.inf)
+               for s in self.feature_scale):
+            raise ValueError(f"MLPConfig: feature_scale must be positive finite numbers, got {self.feature_scale}")
 
     @property
     def num_features(self) -> int:
         return sum(2 if p else 1 for p in self.periodic) + 1
+
+    @property
+    def num_weights(self) -> int:
+        """Weights and biases of the network this config describes."""
+        width, total = self.num_features, 0
+        for _ in range(self.layers):
+            total += (width + 1) * self.hidden
+            width = self.hidden
+        return total + (width + 1) * self.num_actions
 
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)
@@ -196,8 +215,16 @@ def save_policy(path: str | os.PathLike, checkpoint: dict[str, Any]) -> None:
     write_bytes(path, buf.getvalue())
 
 
-def load_policy(source: str | os.PathLike | dict, device: torch.device | str = "cpu") -> MLPPolicy:
-    """A ready :class:`MLPPolicy` from a checkpoint path or an already loaded dict; errors are clear."""
+def load_policy(source: str | os.PathLike | dict, device: torch.device | str = "cpu", *,
+                trust_factory: str | Callable[..., Any] | None = None) -> MLPPolicy:
+    """A ready :class:`MLPPolicy` from a checkpoint path or an already loaded dict; errors are clear.
+
+    The file is read with ``torch.load(weights_only=True)`` and its system is rebuilt from the registry or from
+    ``trust_factory`` (see :func:`~cuniform_torch.systems.system_from_json`): nothing it names is imported. Every
+    field has one source of truth, checked against the others: the actions (system, top level, state_dict),
+    the feature scales (config, state_dict), the horizon and angle dimensions (config, system); weights must
+    be finite, and the network may not be larger than the weights the file holds.
+    """
     where = str(source) if not isinstance(source, dict) else "checkpoint dict"
     if isinstance(source, dict):
         ckpt = source
@@ -209,28 +236,56 @@ def load_policy(source: str | os.PathLike | dict, device: torch.device | str = "
             ckpt = torch.load(path, map_location="cpu", weights_only=True)
         except Exception as exc:  # corrupt, truncated, or holding objects that need arbitrary unpickling
             raise PolicyCheckpointError(f"{path}: not a readable policy checkpoint ({type(exc).__name__}: {exc})") from None
+
+    def fail(msg: str) -> None:
+        raise PolicyCheckpointError(f"{where}: {msg}")
+
     if not isinstance(ckpt, dict):
-        raise PolicyCheckpointError(f"{where}: a checkpoint must be a dict, got {type(ckpt).__name__}")
+        fail(f"a checkpoint must be a dict, got {type(ckpt).__name__}")
     fmt = ckpt.get("format")
     if fmt != POLICY_FORMAT:
-        raise PolicyCheckpointError(f"{where}: unknown policy format {fmt!r}; this reader knows {POLICY_FORMAT!r}")
+        fail(f"unknown policy format {fmt!r}; this reader knows {POLICY_FORMAT!r}")
     missing = [k for k in ("state_dict", "config", "system", "actions") if k not in ckpt]
     if missing:
-        raise PolicyCheckpointError(f"{where}: missing key(s) {', '.join(missing)}")
+        fail(f"missing key(s) {', '.join(missing)}")
+    state = ckpt["state_dict"]
+    if not isinstance(state, dict) or not all(isinstance(k, str) and isinstance(v, Tensor) for k, v in state.items()):
+        fail("state_dict must map names to tensors")
+    for key, value in state.items():
+        if not value.is_floating_point() or not bool(torch.isfinite(value).all()):
+            fail(f"state_dict[{key!r}] holds non-finite or non-float values")
+    if not isinstance(ckpt["config"], dict):
+        fail(f"config must be a dict, got {type(ckpt['config']).__name__}")
     try:
         config = MLPConfig(**ckpt["config"])
-        system, _ = system_from_json(ckpt["system"])
-        actions = torch.as_tensor(ckpt["actions"])
-        policy = MLPPolicy(config, system, actions)
     except (TypeError, ValueError) as exc:
-        raise PolicyCheckpointError(f"{where}: config, system or actions do not describe a policy ({exc})") from None
-    expect = system.action_set(dtype=torch.float32)
-    if expect.shape != actions.shape or not torch.allclose(expect, actions.float(), atol=1e-6):
-        raise PolicyCheckpointError(f"{where}: actions do not match the system {system.name!r}")
+        fail(f"config does not describe a policy ({exc})")
+    held = sum(v.numel() for k, v in state.items() if k.startswith("net."))
+    if config.num_weights != held:
+        fail(f"state_dict does not match the network of its config ({config.num_weights} weights described, "
+             f"{held} held)")
     try:
-        policy.load_state_dict(ckpt["state_dict"], strict=True)
-    except (RuntimeError, TypeError, AttributeError) as exc:
-        raise PolicyCheckpointError(f"{where}: state_dict does not match the network of its config ({str(exc)[:300]})") from None
+        system, horizon = system_from_json(ckpt["system"], trust_factory=trust_factory)
+    except ValueError as exc:  # includes UnknownSystemError
+        fail(f"the system cannot be rebuilt: {exc}")
+    if config.horizon != horizon:
+        fail(f"config.horizon is {config.horizon} but the system JSON says {horizon}")
+    if list(config.periodic) != list(system.periodic):
+        fail(f"config.periodic {list(config.periodic)} does not match the system's {list(system.periodic)}")
+    actions = ckpt["actions"]
+    expect = system.action_set(dtype=torch.float32)
+    for field_name, value in (("actions", actions), ("state_dict['actions']", state.get("actions"))):
+        if not isinstance(value, Tensor) or value.shape != expect.shape or not torch.allclose(expect, value.float(), atol=1e-6):
+            fail(f"{field_name} does not match the actions of the system {system.name!r}")
+    inv_scale = state.get("inv_scale")
+    expect_inv = 1.0 / torch.tensor(config.feature_scale, dtype=torch.float32)
+    if not isinstance(inv_scale, Tensor) or inv_scale.shape != expect_inv.shape or not torch.equal(inv_scale.float(), expect_inv):
+        fail("state_dict['inv_scale'] does not match config.feature_scale")
+    try:
+        policy = MLPPolicy(config, system, actions)
+        policy.load_state_dict(state, strict=True)
+    except (RuntimeError, TypeError, ValueError, AttributeError) as exc:
+        fail(f"state_dict does not match the network of its config ({str(exc)[:300]})")
     return policy.to(device).eval()
 
 

@@ -28,6 +28,7 @@ import functools
 import itertools
 import math
 import os
+from typing import Any, Callable
 
 import numpy as np
 import torch
@@ -476,10 +477,13 @@ def load_table(
     compile: bool = False,
     lookup: str | Lookup = Lookup.AUTO,
     kernel: str | Kernel = Kernel.AUTO,
+    trust_factory: str | Callable[..., Any] | None = None,
 ) -> TablePolicy:
     """Read and validate a table file (not its flow graph, which a policy does not use), and return its
-    :class:`TablePolicy` on ``device``."""
-    return TablePolicy(read_table(path, graph=False), device=device, dtype=dtype, fallback=fallback,
+    :class:`TablePolicy` on ``device``. The table's system comes from the registry or ``trust_factory``
+    (see :func:`~cuniform_torch.systems.system_from_json`); nothing the file names is imported."""
+    table = read_table(path, graph=False, trust_factory=trust_factory)
+    return TablePolicy(table, device=device, dtype=dtype, fallback=fallback,
                        compile=compile, lookup=lookup, kernel=kernel)
 
 

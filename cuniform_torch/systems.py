@@ -21,17 +21,18 @@ Built in:
 
 Your own robot: write a class (a frozen dataclass is simplest) with the attributes and methods of
 :class:`System`, then ``register_system("my_robot", MyRobot)``. Tables record the factory as an importable
-``"module:qualname"`` path in their system JSON (key ``factory``), so a table of a user system can be read in a
-fresh process: :func:`system_from_json` imports that module when the name is not registered yet. Reading a
-table can therefore import a module named in it (only modules importable on ``sys.path``): read tables from
-sources you trust. :func:`check_system` says clearly what a user system lacks; :func:`se2_invariance_gap`
-checks a claimed SE(2) invariance numerically.
+``"module:qualname"`` path in their system JSON (key ``factory``), but reading a table or checkpoint never
+imports or calls it: :func:`system_from_json` rebuilds a system from the registry, or from a ``trust_factory``
+the caller names (the file's string is only compared with it). In a fresh process, import the module that
+registers the system first, or pass ``trust_factory="my_robots:MyRobot"``. :func:`check_system` says clearly
+what a user system lacks; :func:`se2_invariance_gap` checks a claimed SE(2) invariance numerically.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import importlib
+import inspect
 import json
 import math
 from dataclasses import dataclass
@@ -58,10 +59,13 @@ __all__ = [
     "check_system",
     "se2_invariance_gap",
     "resolve_system",
+    "import_system_modules",
     "factory_path",
     "load_factory",
     "system_horizon",
     "DEFAULT_HORIZON",
+    "MAX_ACTIONS",
+    "MAX_HORIZON",
 ]
 
 DEFAULT_HORIZON = 10
@@ -164,9 +168,16 @@ def _positive(name: str, **values: float) -> None:
             raise ValueError(f"{name}: {key} must be a positive number, got {value!r}")
 
 
+MAX_ACTIONS = 65536
+"""the most actions a system may have: every table row holds one probability per action"""
+
+MAX_HORIZON = 10000
+"""the longest horizon (steps) a table or checkpoint may declare"""
+
+
 def _check_num_actions(name: str, num_actions: Any) -> None:
-    if isinstance(num_actions, bool) or not isinstance(num_actions, int) or num_actions < 1:
-        raise ValueError(f"{name}: num_actions must be a positive integer, got {num_actions!r}")
+    if isinstance(num_actions, bool) or not isinstance(num_actions, int) or not 1 <= num_actions <= MAX_ACTIONS:
+        raise ValueError(f"{name}: num_actions must be a positive integer (at most {MAX_ACTIONS}), got {num_actions!r}")
 
 
 def _check_step_inputs(system: Any, x: Tensor, u: Tensor, q: int) -> None:
@@ -423,6 +434,7 @@ class KinematicSingleTrackSpeed:
         _non_negative(self.name, max_accel=self.max_accel)
         _check_num_actions(self.name, self.num_steer)
         _check_num_actions(self.name, self.num_accel)
+        _check_num_actions(self.name, self.num_steer * self.num_accel)
         for key in ("min_speed", "max_speed"):
             value = getattr(self, key)
             if not (isinstance(value, (int, float)) and math.isfinite(value)):
@@ -465,7 +477,7 @@ def _params(system: Any) -> dict[str, Any]:
 # ----------------------------------------------------------------------------------------------- registry
 
 class UnknownSystemError(ValueError):
-    """A system name that is not registered (and, for a table, whose factory cannot be imported)."""
+    """A system name that is not registered (a file's system is rebuilt only from the registry or a trusted factory)."""
 
 
 _REGISTRY: dict[str, Callable[..., System]] = {}
@@ -509,7 +521,11 @@ def make_system(name: str, **params: Any) -> System:
     are clear errors."""
     if not isinstance(name, str) or name not in _REGISTRY:
         raise UnknownSystemError(f"unknown system {name!r}; known systems: {', '.join(known_systems())}")
-    factory = _REGISTRY[name]
+    return _build(name, _REGISTRY[name], params)
+
+
+def _check_params(name: str, factory: Callable[..., Any], params: dict[str, Any]) -> None:
+    """Refuse ``params`` that ``factory`` does not take, before it is called (ValueError naming them)."""
     if dataclasses.is_dataclass(factory):
         valid = {f.name for f in dataclasses.fields(factory) if f.init}
         unknown = sorted(set(params) - valid)
@@ -518,8 +534,21 @@ def make_system(name: str, **params: Any) -> System:
                 f"system {name!r} has no parameter(s) {', '.join(unknown)}; its parameters: {', '.join(sorted(valid))}"
             )
     try:
+        signature = inspect.signature(factory)
+    except (TypeError, ValueError):  # a builtin without a signature: nothing to bind against
+        raise ValueError(f"system {name!r}: its factory {factory!r} has no inspectable signature") from None
+    try:
+        signature.bind(**params)
+    except TypeError as exc:
+        raise ValueError(f"system {name!r}: its factory does not accept {sorted(params)} ({exc})") from None
+
+
+def _build(name: str, factory: Callable[..., Any], params: dict[str, Any]) -> System:
+    """``factory(**params)`` once the parameters bind, checked to be a valid System named ``name``."""
+    _check_params(name, factory, params)
+    try:
         system = factory(**params)
-    except TypeError as exc:  # a function factory with other keyword arguments
+    except TypeError as exc:  # a function factory that rejects a value's type
         raise ValueError(f"system {name!r}: its factory does not accept {sorted(params)} ({exc})") from None
     check_system(system)
     if system.name != name:
@@ -585,6 +614,8 @@ def check_system(system: Any) -> None:
     if not isinstance(actions, Tensor) or actions.ndim != 2 or actions.shape[0] < 1 or actions.shape[1] < 1:
         raise ValueError(f"{who}: action_set must return a [A, q] tensor with A, q >= 1, got "
                          f"{list(actions.shape) if isinstance(actions, Tensor) else type(actions).__name__}")
+    if actions.shape[0] > MAX_ACTIONS:
+        raise ValueError(f"{who}: action_set has {actions.shape[0]} actions; at most {MAX_ACTIONS} are supported")
     if actions.dtype != torch.float64 or not bool(torch.isfinite(actions).all()):
         raise ValueError(f"{who}: action_set(dtype=torch.float64) must return finite float64 actions, got {actions.dtype}")
     x = torch.zeros((2, d), dtype=torch.float64)
@@ -666,9 +697,21 @@ def load_factory(path: str) -> Callable[..., System]:
     return obj
 
 
+def import_system_modules(modules: list[str] | tuple[str, ...]) -> None:
+    """Import each user module that registers systems (``--system-module``): the caller typed these names, so
+    importing them is the caller's decision, never a file's. ValueError naming the module that fails."""
+    for module in modules:
+        if not isinstance(module, str) or not module or ":" in module:
+            raise ValueError(f"--system-module {module!r}: give a module name such as my_robots")
+        try:
+            importlib.import_module(module)
+        except ImportError as exc:
+            raise ValueError(f"--system-module {module}: cannot import it ({type(exc).__name__}: {exc})") from None
+
+
 def resolve_system(spec: str) -> str:
-    """The registry name of ``spec``: a registered name, or ``"module:factory"`` (imported, then registered
-    under the name of the system it builds with its defaults). Returns the name."""
+    """The registry name of ``spec``: a registered name, or ``"module:factory"`` that the caller typed (imported,
+    built with its defaults and checked, then registered under the built system's name). Returns the name."""
     if not isinstance(spec, str) or not spec:
         raise UnknownSystemError(f"a system must be a name or 'module:factory', got {spec!r}")
     if ":" not in spec:
@@ -677,11 +720,24 @@ def resolve_system(spec: str) -> str:
                                      "(a user system: --system-module MODULE, or --system module:factory)")
         return spec
     factory = load_factory(spec)
-    name = getattr(factory, "name", None)
-    if not isinstance(name, str):
-        name = factory().name  # a function factory: build one with its defaults to learn the name
+    name = _trusted_name(spec, factory)
     if _REGISTRY.get(name) is not factory:
         register_system(name, factory)
+    return name
+
+
+def _trusted_name(spec: str, factory: Callable[..., Any]) -> str:
+    """The name of the system ``factory`` builds with its defaults; ValueError if it builds no valid System."""
+    _check_params(spec, factory, {})
+    try:
+        system = factory()
+    except Exception as exc:  # the caller named this factory; whatever it raises is theirs to see, in one line
+        raise ValueError(f"factory {spec!r} did not build a system with its defaults ({type(exc).__name__}: {exc})") from None
+    name = getattr(system, "name", None)
+    if not isinstance(name, str):
+        raise ValueError(f"factory {spec!r} built a {type(system).__name__}, not a System (it has no name; "
+                         "see cuniform_torch.systems.System)")
+    check_system(system)
     return name
 
 
@@ -701,37 +757,66 @@ def system_to_json(system: System, horizon: int) -> str:
     return json.dumps(spec, sort_keys=True)
 
 
-def system_from_json(text: str) -> tuple[System, int]:
-    """Rebuild ``(system, horizon)`` from a table's system JSON; a name that is not registered is imported from
-    the JSON's ``factory`` path when it has one. :class:`UnknownSystemError` names the system otherwise."""
+_MAX_SYSTEM_JSON = 1 << 20  # characters; a system JSON is a few hundred
+
+
+def system_from_json(text: str, *, trust_factory: str | Callable[..., Any] | None = None) -> tuple[System, int]:
+    """Rebuild ``(system, horizon)`` from a table's or checkpoint's system JSON.
+
+    Nothing the JSON names is imported or called: the system comes from the registry, or from ``trust_factory``
+    (a ``"module:factory"`` path or the factory itself) that the caller names. The JSON's ``factory`` string is
+    only compared with it. A trusted factory is registered under the system's name once it has built a valid
+    system from the JSON's parameters. :class:`UnknownSystemError` says what to pass when the name is unknown.
+    """
+    if not isinstance(text, str) or len(text) > _MAX_SYSTEM_JSON:
+        raise ValueError(f"system JSON must be a string of at most {_MAX_SYSTEM_JSON} characters")
     try:
         spec = json.loads(text)
-    except json.JSONDecodeError as exc:
+    except (json.JSONDecodeError, RecursionError) as exc:
         raise ValueError(f"system JSON does not parse: {exc}") from None
     if not isinstance(spec, dict) or not {"name", "params", "horizon"} <= set(spec):
         raise ValueError(f"system JSON must be an object with name, params and horizon; got {text[:200]!r}")
-    name = spec["name"]
-    if not isinstance(name, str):
-        raise ValueError(f"system JSON: name must be a string, got {name!r}")
-    if not isinstance(spec["params"], dict):
-        raise ValueError(f"system JSON: params must be an object of constructor arguments, got {spec['params']!r}")
-    if name not in _REGISTRY:
-        path = spec.get("factory")
-        if path is None:
-            raise UnknownSystemError(
-                f"unknown system {name!r} (the JSON names no importable factory); known systems: "
-                f"{', '.join(known_systems())}. Register it first: register_system({name!r}, factory)")
-        try:
-            factory = load_factory(path)
-        except ValueError as exc:
-            raise UnknownSystemError(f"unknown system {name!r}: its factory {path!r} cannot be loaded: {exc}") from None
-        if name not in _REGISTRY:  # importing the module may have registered it already
-            register_system(name, factory)
-    system = make_system(name, **spec["params"])
-    horizon = spec["horizon"]
-    if isinstance(horizon, bool) or not isinstance(horizon, int) or horizon < 1:
-        raise ValueError(f"system JSON: horizon must be a positive integer, got {horizon!r}")
+    name, params, horizon = spec["name"], spec["params"], spec["horizon"]
+    if not isinstance(name, str) or not name or ":" in name:
+        raise ValueError(f"system JSON: name must be a system name (a non-empty string without ':'), got {name!r}")
+    if not isinstance(params, dict):
+        raise ValueError(f"system JSON: params must be an object of constructor arguments, got {params!r}")
+    if isinstance(horizon, bool) or not isinstance(horizon, int) or not 1 <= horizon <= MAX_HORIZON:
+        raise ValueError(f"system JSON: horizon must be a positive integer (at most {MAX_HORIZON}), got {horizon!r}")
+    named = spec.get("factory")
+    if named is not None and not isinstance(named, str):
+        raise ValueError(f"system JSON: factory must be a 'module:factory' string, got {named!r}")
+    if trust_factory is None:
+        if name not in _REGISTRY:
+            raise UnknownSystemError(_unknown_message(name, named))
+        return make_system(name, **params), horizon
+    factory = load_factory(trust_factory) if isinstance(trust_factory, str) else trust_factory
+    if not callable(factory):
+        raise ValueError(f"trust_factory must be a 'module:factory' path or a callable, got {trust_factory!r}")
+    trusted = trust_factory if isinstance(trust_factory, str) else _definition_path(factory)
+    if named is not None and trusted is not None and named != trusted:
+        raise UnknownSystemError(f"system {name!r}: the file names factory {named!r}, not the trusted {trusted!r}")
+    registered = _REGISTRY.get(name)
+    if registered is not None and registered is not factory and not _same_definition(registered, factory):
+        raise ValueError(f"system {name!r} is registered with another factory than the trusted {trusted or factory!r}")
+    system = _build(name, factory, params)
+    if registered is None:
+        register_system(name, factory)
     return system, horizon
+
+
+def _definition_path(factory: Any) -> str | None:
+    module, qualname = getattr(factory, "__module__", None), getattr(factory, "__qualname__", None)
+    return f"{module}:{qualname}" if module and qualname else None
+
+
+def _unknown_message(name: str, named: str | None) -> str:
+    module = named.split(":")[0] if named else "MODULE"
+    where = f"; the file names factory {named!r}" if named else ""
+    return (f"unknown system {name!r} (known: {', '.join(known_systems())}){where}. Reading a file never imports "
+            f"code it names: register the system first (import the module that calls register_system({name!r}, "
+            f"factory)), pass trust_factory={named or 'module:factory'!r}, or on the command line "
+            f"--system-module {module}")
 
 
 register_system(RandomWalk1D.name, RandomWalk1D)

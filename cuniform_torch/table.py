@@ -7,17 +7,19 @@ E flow arcs, K recorded transitions. See DESIGN.md for the key-by-key contract.
 from __future__ import annotations
 
 import json
+import math
 import os
 import zipfile
+import zlib
 from dataclasses import dataclass, field, fields
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 import torch
 
 from .fileio import write_npz
-from .systems import System, system_from_json, system_to_json
+from .systems import MAX_ACTIONS, MAX_HORIZON, System, system_from_json, system_to_json
 
 __all__ = ["TABLE_FORMAT", "Table", "TableError", "write_table", "read_table", "system_fields"]
 
@@ -87,7 +89,8 @@ class Table:
     transitions: np.ndarray | None = None  # [K, 3] int64
     transition_frac: np.ndarray | None = None  # [K] float64
     extra: dict[str, np.ndarray] = field(default_factory=dict)
-    """keys this reader does not know, kept as they are"""
+    """more keys to write, beyond the format's (readers ignore keys they do not know: :func:`read_table` never
+    reads them)"""
 
     @property
     def horizon(self) -> int:
@@ -101,9 +104,10 @@ class Table:
         """Rows of level ``t``."""
         return slice(int(self.level_offsets[t]), int(self.level_offsets[t + 1]))
 
-    def make_system(self) -> System:
-        """Rebuild the system this table was built for."""
-        return system_from_json(self.system)[0]
+    def make_system(self, trust_factory: str | Callable[..., Any] | None = None) -> System:
+        """Rebuild the system this table was built for (from the registry or ``trust_factory``; see
+        :func:`~cuniform_torch.systems.system_from_json`)."""
+        return system_from_json(self.system, trust_factory=trust_factory)[0]
 
     def to_arrays(self) -> dict[str, np.ndarray]:
         arrays: dict[str, np.ndarray] = {"format": np.array(TABLE_FORMAT)}
@@ -133,8 +137,15 @@ def write_table(path: str | os.PathLike, table: Table) -> None:
     write_npz(path, table.to_arrays())
 
 
-def read_table(path: str | os.PathLike, *, check_system: bool = True, graph: bool = True) -> Table:
+def read_table(path: str | os.PathLike, *, check_system: bool = True, graph: bool = True,
+               trust_factory: str | Callable[..., Any] | None = None) -> Table:
     """Read and validate a table file; every problem raises :class:`TableError` naming the file and the key.
+
+    Only the keys of the format are read (others are never decompressed), each member's size must match its
+    ``.npy`` header and the shapes the table's offsets imply, and the whole table may expand to at most
+    :data:`MAX_EXPANSION` times the file's size, so a small hostile file cannot take much memory. The system is
+    rebuilt from the registry or from ``trust_factory`` (see :func:`~cuniform_torch.systems.system_from_json`):
+    nothing the file names is imported or called.
 
     ``graph=False`` leaves the optional flow graph (``arcs``, ``transitions`` and their values: the audit data a
     max-flow build stores) in the file, unread and unchecked; the table's graph fields are then None. A policy
@@ -144,46 +155,131 @@ def read_table(path: str | os.PathLike, *, check_system: bool = True, graph: boo
     if not path.is_file():
         raise TableError(f"{path}: no table file there")
     try:
-        npz = np.load(path, allow_pickle=False)
-    except (zipfile.BadZipFile, ValueError, OSError, EOFError) as exc:
+        with zipfile.ZipFile(path) as zf:
+            arrays = _read_members(zf, path, graph)
+    except (zipfile.BadZipFile, zipfile.LargeZipFile, OSError, EOFError, zlib.error, NotImplementedError) as exc:
         raise TableError(f"{path}: not a readable .npz table ({type(exc).__name__}: {exc})") from None
-    if not isinstance(npz, np.lib.npyio.NpzFile):
-        raise TableError(f"{path}: a single .npy array, not an .npz table")
-    with npz:
-        names = set(npz.files) if graph else set(npz.files) - set(_OPTIONAL_ARRAYS)
-        arrays: dict[str, np.ndarray] = {}
-        for key in names:
-            try:
-                arrays[key] = npz[key]
-            except Exception as exc:  # zlib.error, ValueError (pickled objects), EOFError (truncated), ...
-                raise TableError(f"{path}: array {key!r} is corrupt or truncated ({type(exc).__name__}: {exc})") from None
-            if not isinstance(arrays[key], np.ndarray):  # a zip member without the .npy suffix: raw bytes
-                if key in _KNOWN_KEYS:
-                    raise TableError(f"{path}: entry {key!r} is not a .npy array")
-                del arrays[key]
-    if "format" not in arrays:
+    kwargs: dict[str, Any] = {k: v for k, v in arrays.items() if k != "format"}
+    for key in ("system", *_OPTIONAL_STRINGS):
+        if key in arrays:
+            kwargs[key] = _string(arrays[key], key, path)
+    table = Table(**kwargs)
+    validate_table(table, source=str(path), check_system=check_system, trust_factory=trust_factory)
+    return table
+
+
+MAX_EXPANSION = 200
+"""a table's arrays may take at most this many times its file's size (or 64 MiB) once decompressed"""
+
+_MIN_BUDGET = 64 << 20
+_MAX_DIM = 64  # state and action dimensions
+_MAX_STRING = {"format": 64, "system": 1 << 20, "method": 64, "build_info": 1 << 22}  # characters
+
+
+def _read_members(zf: zipfile.ZipFile, path: Path, graph: bool) -> dict[str, np.ndarray]:
+    """The format's arrays of an open ``.npz``, read in an order that bounds each one before it is decompressed."""
+    infos = zf.infolist()
+    seen: set[str] = set()
+    for info in infos:
+        if info.filename in seen:
+            raise TableError(f"{path}: the zip holds {info.filename!r} twice (which copy is meant is ambiguous)")
+        seen.add(info.filename)
+    wanted = set(_REQUIRED) | set(_OPTIONAL_STRINGS) | (set(_OPTIONAL_ARRAYS) if graph else set())
+    members = {info.filename[:-4]: info for info in infos
+               if info.filename.endswith(".npy") and info.filename[:-4] in wanted}
+    if "format" not in members:
         raise TableError(f"{path}: no 'format' key; this is not a cuniform table")
+    budget = max(_MIN_BUDGET, MAX_EXPANSION * path.stat().st_size)
+    total = sum(info.file_size for info in members.values())
+    if total > budget:
+        big = max(members, key=lambda k: members[k].file_size)
+        raise TableError(f"{path}: its arrays would take {total} bytes decompressed ({big!r}: {members[big].file_size}), "
+                         f"more than {MAX_EXPANSION}x the file's size; refusing to read it")
+    headers = {key: _npy_header(zf, info, key, path) for key, info in members.items()}
+    arrays: dict[str, np.ndarray] = {}
+
+    def read(key: str, shape: tuple[int, ...] | None = None) -> None:
+        if key not in members:
+            return
+        declared, dtype = headers[key]
+        if shape is not None and declared != shape:
+            raise TableError(f"{path}: key {key!r} must have shape {list(shape)} (from the table's offsets and "
+                             f"sizes), its header says {list(declared)}")
+        with zf.open(members[key]) as fh:
+            try:
+                arrays[key] = np.lib.format.read_array(fh, allow_pickle=False)
+            except (ValueError, EOFError, zlib.error) as exc:
+                raise TableError(f"{path}: array {key!r} is corrupt or truncated ({type(exc).__name__}: {exc})") from None
+
+    read("format")
     fmt = _string(arrays["format"], "format", path)
     if fmt != TABLE_FORMAT:
         raise TableError(f"{path}: unknown table format {fmt!r}; this reader knows {TABLE_FORMAT!r}")
-    missing = sorted(set(_REQUIRED) - names)
+    missing = sorted(set(_REQUIRED) - set(members))
     if missing:
         raise TableError(f"{path}: missing required key(s) {', '.join(missing)}")
     for key, (dtype, ndim) in {**_REQUIRED, **_OPTIONAL_ARRAYS}.items():
-        if key not in arrays or dtype is None:
-            continue
-        arr = arrays[key]
-        if arr.dtype != dtype or arr.ndim != ndim:
-            raise TableError(f"{path}: key {key!r} must be {dtype} with {ndim} dimension(s), got {arr.dtype} {list(arr.shape)}")
-    known = set(_REQUIRED) | set(_OPTIONAL_ARRAYS) | set(_OPTIONAL_STRINGS)
-    kwargs: dict[str, Any] = {k: arrays[k] for k in known if k in arrays and k != "format"}
-    kwargs["system"] = _string(arrays["system"], "system", path)
-    for key in _OPTIONAL_STRINGS:
-        if key in arrays:
-            kwargs[key] = _string(arrays[key], key, path)
-    table = Table(**kwargs, extra={k: v for k, v in arrays.items() if k not in known})
-    validate_table(table, source=str(path), check_system=check_system)
-    return table
+        if key in headers and dtype is not None and (headers[key][1] != dtype or len(headers[key][0]) != ndim):
+            raise TableError(f"{path}: key {key!r} must be {dtype} with {ndim} dimension(s), "
+                             f"got {headers[key][1]} {list(headers[key][0])}")
+    _check_small_shapes(headers, path)
+    for key in ("system", *_OPTIONAL_STRINGS, "level_offsets", "actions", "cell_size", "periodic", "cell_offset",
+                "flow_value", "flow_target", "arc_offsets", "transition_offsets"):
+        read(key)
+    C, d, A = int(arrays["level_offsets"][-1]) if len(arrays["level_offsets"]) else 0, len(arrays["cell_size"]), \
+        len(arrays["actions"])
+    read("cells", (C, d))
+    read("action_probs", (C, A))
+    read("cell_probs", (C,))
+    for prefix, keys, width in (("arc", ("arcs", "arc_flow"), 2), ("transition", ("transitions", "transition_frac"), 3)):
+        offsets = arrays.get(f"{prefix}_offsets")
+        E = int(offsets[-1]) if offsets is not None and len(offsets) else 0
+        read(keys[0], (E, width))
+        read(keys[1], (E,))
+    return arrays
+
+
+def _npy_header(zf: zipfile.ZipFile, info: zipfile.ZipInfo, key: str, path: Path) -> tuple[tuple[int, ...], np.dtype]:
+    """``(shape, dtype)`` from a member's ``.npy`` header; its data must be exactly what the header declares."""
+    with zf.open(info) as fh:
+        try:
+            version = np.lib.format.read_magic(fh)
+            if version == (1, 0):
+                shape, _, dtype = np.lib.format.read_array_header_1_0(fh)
+            elif version == (2, 0):
+                shape, _, dtype = np.lib.format.read_array_header_2_0(fh)
+            else:
+                raise ValueError(f".npy version {version} is not supported")
+        except (ValueError, EOFError, zlib.error) as exc:
+            raise TableError(f"{path}: array {key!r} has no readable .npy header ({type(exc).__name__}: {exc})") from None
+        header_size = fh.tell()
+    if dtype.hasobject:
+        raise TableError(f"{path}: array {key!r} holds Python objects (that would need pickle); refusing")
+    expected = header_size + math.prod(shape) * dtype.itemsize
+    if info.file_size != expected:
+        raise TableError(f"{path}: array {key!r} holds {info.file_size} bytes, but its header declares {list(shape)} "
+                         f"{dtype} ({expected} bytes)")
+    return tuple(int(n) for n in shape), dtype
+
+
+def _check_small_shapes(headers: dict[str, tuple[tuple[int, ...], np.dtype]], path: Path) -> None:
+    """Absurd sizes in the small keys (horizon, actions, dimensions, strings), refused before anything is read."""
+    limits = {"level_offsets": MAX_HORIZON + 2, "flow_value": MAX_HORIZON, "flow_target": MAX_HORIZON,
+              "arc_offsets": MAX_HORIZON + 1, "transition_offsets": MAX_HORIZON + 1,
+              "cell_size": _MAX_DIM, "periodic": _MAX_DIM, "cell_offset": _MAX_DIM}
+    for key, limit in limits.items():
+        if key in headers and headers[key][0][0] > limit:
+            raise TableError(f"{path}: key {key!r} has {headers[key][0][0]} entries; at most {limit} are supported")
+    A, q = headers["actions"][0]
+    if A > MAX_ACTIONS or q > _MAX_DIM:
+        raise TableError(f"{path}: key 'actions' is [{A}, {q}]; at most [{MAX_ACTIONS}, {_MAX_DIM}] is supported")
+    for key, limit in _MAX_STRING.items():
+        if key in headers:
+            shape, dtype = headers[key]
+            if shape != () or dtype.kind != "U":
+                raise TableError(f"{path}: key {key!r} must be a string, got {dtype} {list(shape)}")
+            if dtype.itemsize // 4 > limit:
+                raise TableError(f"{path}: key {key!r} is {dtype.itemsize // 4} characters long; at most {limit}")
 
 
 def _string(arr: np.ndarray, key: str, path: Any) -> str:
@@ -192,7 +288,12 @@ def _string(arr: np.ndarray, key: str, path: Any) -> str:
     return str(arr[()])
 
 
-def validate_table(table: Table, source: str = "table", check_system: bool = True) -> None:
+KNOWN_METHODS = ("maxflow", "coverage")
+"""the builders whose tables this reader knows (the optional ``method`` key)"""
+
+
+def validate_table(table: Table, source: str = "table", check_system: bool = True,
+                   trust_factory: str | Callable[..., Any] | None = None) -> None:
     """Check shapes, offsets, probabilities and the system; raise :class:`TableError` on the first problem."""
 
     def fail(msg: str) -> None:
@@ -243,10 +344,49 @@ def validate_table(table: Table, source: str = "table", check_system: bool = Tru
         col = table.cells[:, dim]
         if col.min() < 0 or col.max() >= k:
             fail(f"cells of angle dimension {dim} must lie in [0, {k})")
+    if table.method is not None and table.method not in KNOWN_METHODS:
+        fail(f"unknown method {table.method!r}; known: {', '.join(KNOWN_METHODS)}")
+    _validate_cells(table, T, fail)
     _validate_graph(table, "arc", ("arcs", "arc_flow"), 2, T, C, A, fail)
     _validate_graph(table, "transition", ("transitions", "transition_frac"), 3, T, C, A, fail)
     if check_system:
-        _validate_system(table, T, fail)
+        _validate_system(table, T, fail, trust_factory)
+
+
+_MAX_KEY_CELLS = 2**53  # the runtime packs a cell exactly into a float64 key
+_MAX_PACKED = 2**62  # (level, cell) keys in int64, as cuniform_torch.grid.CellKeys packs them
+
+
+def _validate_cells(table: Table, T: int, fail) -> None:
+    """Level 0 is the start cell; every level's cells are distinct, in ascending (row-major) order, as the
+    builders write them; the (level, cell) box with its one-cell halo packs into the runtime's keys."""
+    cells, lo = table.cells, table.level_offsets
+    box = 1
+    for dim in range(cells.shape[1]):
+        if table.periodic[dim]:
+            box *= round(2 * np.pi / table.cell_size[dim])
+        else:
+            box *= int(cells[:, dim].max()) - int(cells[:, dim].min()) + 3  # python ints: no int64 overflow
+    if box >= _MAX_KEY_CELLS or box * (T + 1) >= _MAX_PACKED:
+        fail(f"the cells span a box of {box} cells (with the runtime's one-cell halo), too large to pack into keys "
+             f"(at most 2^53); cell indices range over {cells.min(axis=0).tolist()} .. {cells.max(axis=0).tolist()}")
+    if lo[1] != 1 or np.any(cells[0] != 0):
+        fail(f"level 0 must be the single start cell {[0] * cells.shape[1]} (the zero state's cell), got "
+             f"{lo[1]} cell(s) starting with {cells[0].tolist()}")
+    if len(cells) > 1:
+        diff = cells[1:] - cells[:-1]  # [C-1, d]: the first non-zero entry of each row gives the order
+        nonzero = diff != 0
+        first = np.argmax(nonzero, axis=1)
+        sign = np.where(nonzero.any(axis=1), np.sign(diff[np.arange(len(diff)), first]), 0)
+        same_level = np.ones(len(diff), dtype=bool)
+        same_level[lo[1:-1] - 1] = False  # the pair (last of level t, first of level t+1)
+        bad = np.flatnonzero(same_level & (sign <= 0))
+        if len(bad):
+            row = int(bad[0]) + 1
+            level = int(np.searchsorted(lo, row, side="right")) - 1
+            what = "repeats" if sign[bad[0]] == 0 else "comes before"
+            fail(f"cells of level {level} must be distinct and in ascending order; row {row} {cells[row].tolist()} "
+                 f"{what} row {row - 1} {cells[row - 1].tolist()}")
 
 
 def _validate_graph(table: Table, prefix: str, keys: tuple[str, str], width: int, T: int, C: int, A: int, fail) -> None:
@@ -274,9 +414,9 @@ def _validate_graph(table: Table, prefix: str, keys: tuple[str, str], width: int
         fail(f"{keys[0]} of step t must go from level t to level t+1")
 
 
-def _validate_system(table: Table, T: int, fail) -> None:
+def _validate_system(table: Table, T: int, fail, trust_factory: str | Callable[..., Any] | None = None) -> None:
     try:
-        system, horizon = system_from_json(table.system)
+        system, horizon = system_from_json(table.system, trust_factory=trust_factory)
     except ValueError as exc:  # includes UnknownSystemError
         fail(f"the system cannot be rebuilt: {exc}")
     if horizon != T:

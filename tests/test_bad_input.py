@@ -101,7 +101,7 @@ def test_graph_false_leaves_the_flow_graph_unread(small_table, arrays, tmp_path)
     assert all(getattr(small_table, key) is not None for key in graph_keys)
     arrays["arc_flow"] = arrays["arc_flow"][:-1]  # inconsistent with the arcs: read_table rejects it
     path = _write(tmp_path, arrays)
-    with pytest.raises(TableError, match="arcs must be"):
+    with pytest.raises(TableError, match=r"'arc_flow' must have shape \[\d+\]"):
         read_table(path)
     table = read_table(path, graph=False)
     assert all(getattr(table, key) is None for key in graph_keys)
@@ -121,18 +121,12 @@ def test_two_writes_are_byte_identical(small_table, good_path, tmp_path):
     assert (tmp_path / "c.npz").read_bytes() == good_path.read_bytes()
 
 
-def test_unknown_extra_keys_are_kept_and_ignored(arrays, small_table, tmp_path):
+def test_unknown_extra_keys_are_ignored_unread(arrays, small_table, tmp_path):
     arrays["my_extra"] = np.arange(7, dtype=np.int16)
     arrays["my_note"] = np.array("hello from a newer builder")
     table = read_table(_write(tmp_path, arrays))
-    assert set(table.extra) == {"my_extra", "my_note"}
-    np.testing.assert_array_equal(table.extra["my_extra"], np.arange(7, dtype=np.int16))
-    assert table.extra["my_extra"].dtype == np.int16
-    assert str(table.extra["my_note"][()]) == "hello from a newer builder"
+    assert table.extra == {}
     np.testing.assert_array_equal(table.action_probs, small_table.action_probs)
-    # and they survive a rewrite
-    write_table(tmp_path / "again.npz", table)
-    assert set(read_table(tmp_path / "again.npz").extra) == {"my_extra", "my_note"}
 
 
 # --------------------------------------------------------------------------------- unreadable table files
@@ -251,14 +245,22 @@ def test_pickle_payload_really_runs_when_unpickled(tmp_path):
     assert marker.exists()
 
 
-@pytest.mark.parametrize("key", ["payload", "action_probs"])
-def test_object_array_is_refused_without_unpickling(arrays, tmp_path, key):
+def test_object_array_is_refused_without_unpickling(arrays, tmp_path):
     marker = tmp_path / "unpickled"
-    arrays[key] = _object_array(marker)
+    arrays["action_probs"] = _object_array(marker)
     path = tmp_path / "pickled.npz"
     np.savez(path, **arrays)  # np.savez pickles object arrays
-    with pytest.raises(TableError, match=rf"{key}.*allow_pickle|{key}.*pickle"):
+    with pytest.raises(TableError, match=r"'action_probs' (must be float32|holds Python objects)"):
         read_table(path)
+    assert not marker.exists(), "read_table unpickled data from the file"
+
+
+def test_unknown_object_array_is_never_read(arrays, tmp_path):
+    marker = tmp_path / "unpickled"
+    arrays["payload"] = _object_array(marker)
+    path = tmp_path / "pickled.npz"
+    np.savez(path, **arrays)
+    assert read_table(path).extra == {}
     assert not marker.exists(), "read_table unpickled data from the file"
 
 
@@ -380,10 +382,10 @@ CORRUPTIONS = [
     ("negative-prob", _negative_prob, r"action_probs must lie in \[0, 1\]"),
     ("level-sum", _cell_probs_level_sum, r"cell_probs must sum to 1 in every level"),
     # shapes and offsets
-    ("cell_probs-short", _cell_probs_short, r"cell_probs must have shape \[39\], got \[38\]"),
-    ("action_probs-narrow", _action_probs_narrow, r"action_probs must have shape \[39, 5\], got \[39, 4\]"),
-    ("offsets-end-short", _offsets_end_short, r"level_offsets must .*end at the number of cells \(39\)"),
-    ("offsets-end-long", _offsets_end_long, r"level_offsets must .*end at the number of cells \(39\)"),
+    ("cell_probs-short", _cell_probs_short, r"'cell_probs' must have shape \[39\] .*header says \[38\]"),
+    ("action_probs-narrow", _action_probs_narrow, r"'action_probs' must have shape \[39, 5\] .*header says \[39, 4\]"),
+    ("offsets-end-short", _offsets_end_short, r"'cells' must have shape \[38, 3\] .*header says \[39, 3\]"),
+    ("offsets-end-long", _offsets_end_long, r"'cells' must have shape \[40, 3\] .*header says \[39, 3\]"),
     ("offsets-flat", _offsets_not_increasing, r"level_offsets must .*increase strictly"),
     ("offsets-start", _offsets_not_from_zero, r"level_offsets must start at 0"),
     ("flow_target", _flow_target, r"flow_target must be n_t \* n_\{t\+1\}"),
@@ -551,7 +553,7 @@ BAD_PARAMS = [
     ("random_walk_1d", {"cell_size": (0.5, 0.5)}, r"random_walk_1d: cell_size needs 1 value\(s\).*got 2"),
     ("dubins", {"cell_offset": (0.0,)}, r"dubins: cell_offset needs 3 value\(s\)"),
     ("dubins", {"cell_size": 0.05}, r"dubins: cell_size must be a sequence of 3 numbers"),
-    ("dubins", {"num_actions": 0}, r"dubins: num_actions must be a positive integer, got 0"),
+    ("dubins", {"num_actions": 0}, r"dubins: num_actions must be a positive integer .at most 65536., got 0"),
     ("dubins", {"num_actions": -3}, r"dubins: num_actions must be a positive integer"),
     ("dubins", {"num_actions": 2.5}, r"dubins: num_actions must be a positive integer"),
     ("dubins", {"num_actions": True}, r"dubins: num_actions must be a positive integer"),

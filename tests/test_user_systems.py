@@ -28,6 +28,7 @@ from cuniform_torch.systems import (
     make_system,
     register_system,
     resolve_system,
+    import_system_modules,
     se2_invariance_gap,
     system_from_json,
     system_to_json,
@@ -130,7 +131,7 @@ def _forget(module: str, *systems: str) -> None:
 
 # ------------------------------------------------------------------------------------------- registry
 
-def test_user_table_names_its_factory_and_rebuilds_in_a_fresh_registry(user_module, tmp_path):
+def test_user_table_names_its_factory_but_a_fresh_process_must_trust_it(user_module, tmp_path):
     resolve_system(f"{user_module}:SlowCar")  # imports and registers under the system's own name
     system = make_system("slow_car", speed=0.4)
     spec = json.loads(system_to_json(system, 3))
@@ -138,19 +139,31 @@ def test_user_table_names_its_factory_and_rebuilds_in_a_fresh_registry(user_modu
     table, _ = build_table(system, BuildConfig(horizon=3))
     write_table(tmp_path / "slow.npz", table)
     _forget(user_module, "slow_car")
-    back = read_table(tmp_path / "slow.npz")
+    with pytest.raises(TableError, match=rf"unknown system 'slow_car'.*the file names factory '{user_module}:SlowCar'"
+                                         rf".*trust_factory='{user_module}:SlowCar'.*--system-module {user_module}"):
+        read_table(tmp_path / "slow.npz")
+    assert user_module not in sys.modules and "slow_car" not in _REGISTRY  # reading imported nothing
+    back = read_table(tmp_path / "slow.npz", trust_factory=f"{user_module}:SlowCar")
     assert back.make_system().speed == 0.4 and "slow_car" in _REGISTRY
 
 
-def test_table_whose_factory_cannot_be_imported_names_the_system(user_module, tmp_path):
+def test_importing_the_users_module_is_enough(user_module, tmp_path):
+    resolve_system(f"{user_module}:SlowCar")
+    table, _ = build_table(make_system("slow_car", speed=0.4), BuildConfig(horizon=2))
+    write_table(tmp_path / "slow.npz", table)
+    _forget(user_module, "slow_car")
+    import_system_modules([user_module])  # what --system-module does
+    assert read_table(tmp_path / "slow.npz").make_system().speed == 0.4
+
+
+def test_trusted_factory_that_cannot_be_imported_names_it(user_module, tmp_path):
     resolve_system(f"{user_module}:SlowCar")
     table, _ = build_table(make_system("slow_car"), BuildConfig(horizon=2))
     write_table(tmp_path / "slow.npz", table)
     _forget(user_module, "slow_car")
     (tmp_path / f"{user_module}.py").unlink()
-    with pytest.raises(TableError, match=rf"system cannot be rebuilt: unknown system 'slow_car': its factory "
-                                         rf"'{user_module}:SlowCar' cannot be loaded: cannot import module"):
-        read_table(tmp_path / "slow.npz")
+    with pytest.raises(TableError, match=r"system cannot be rebuilt: cannot import module"):
+        read_table(tmp_path / "slow.npz", trust_factory=f"{user_module}:SlowCar")
 
 
 def test_system_defined_in_a_script_has_no_factory_and_a_clear_error(tmp_path):
@@ -160,8 +173,8 @@ def test_system_defined_in_a_script_has_no_factory_and_a_clear_error(tmp_path):
     text = system_to_json(make_system("slow_car"), 2)
     assert "factory" not in json.loads(text)
     _REGISTRY.pop("slow_car")
-    with pytest.raises(UnknownSystemError, match=r"unknown system 'slow_car' \(the JSON names no importable factory\)"
-                                                 r".*register_system\('slow_car', factory\)"):
+    with pytest.raises(UnknownSystemError, match=r"unknown system 'slow_car' \(known: .*\)\. Reading a file never "
+                                                 r"imports code it names.*register_system\('slow_car', factory\)"):
         system_from_json(text)
 
 
@@ -361,7 +374,7 @@ def test_build_cli_with_a_user_module_and_params(user_module, tmp_path, capsys):
             "--out", str(out), "--quiet", "--rollouts", "200"]
     assert build_cli.main(argv) == 0
     _forget(user_module, "slow_car")
-    assert read_table(out).make_system().speed == 0.4
+    assert read_table(out, trust_factory=f"{user_module}:SlowCar").make_system().speed == 0.4
     out2 = tmp_path / "crab.npz"
     argv = ["--system", f"{user_module}:make_crab", "--param", "step_size=0.2", "--horizon", "4", "--out", str(out2),
             "--quiet", "--no-report"]
