@@ -1,7 +1,10 @@
-"""Atomic, deterministic file writing shared by tables, checkpoints and reports.
+"""Atomic, deterministic file writing shared by tables, checkpoints and reports; lock files for outputs.
 
 Every file is written to a temporary file in the destination folder and renamed over the destination, so
-an interrupt (Ctrl-C, a crash) leaves either the old file or the new one, never half of one.
+an interrupt (Ctrl-C, a crash) leaves either the old file or the new one, never half of one. A temporary file
+is named ``.<name>.<pid>-<host>.<random>.tmp``: one that a killed writer (SIGKILL, power loss) leaves behind is
+removed by the next write to the same destination once its writer's process is gone (or after
+:data:`STALE_TEMP_SECONDS`, when that cannot be checked).
 """
 
 from __future__ import annotations
@@ -10,25 +13,91 @@ import contextlib
 import io
 import json
 import os
+import re
+import socket
 import tempfile
+import time
 import zipfile
 from pathlib import Path
 from typing import Any, Iterator, Mapping
 
 import numpy as np
 
-__all__ = ["atomic_path", "write_npz", "write_json", "write_bytes"]
+__all__ = ["atomic_path", "write_npz", "write_json", "write_bytes", "remove_stale_temps", "exclusive_lock",
+           "FileLockedError", "STALE_TEMP_SECONDS"]
 
 # A fixed timestamp makes the zip (npz) bytes depend on the arrays only, so equal tables are equal files.
 _ZIP_TIME = (1980, 1, 1, 0, 0, 0)
 
 
+STALE_TEMP_SECONDS = 6 * 3600.0
+"""age after which a temporary file whose writer cannot be checked (another host, the old naming) is stale;
+a live writer keeps its file's mtime fresh, and one atomic write takes seconds to minutes"""
+
+_HOST = re.sub(r"\W", "_", socket.gethostname())[:24] or "localhost"  # word characters: temp names stay unambiguous
+
+
+def _temp_pattern(name: str) -> re.Pattern[str]:
+    """Temp names of destination ``name``: ``.<name>.<pid>-<host>.<8 random>.tmp`` (or the old ``.<name>.<8>.tmp``)."""
+    return re.compile(rf"\.{re.escape(name)}\.(?:(\d+)-(\w*)\.)?\w{{8}}\.tmp")
+
+
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # alive, another user's
+        return True
+    return True
+
+
+def remove_stale_temps(path: str | os.PathLike, max_age: float = STALE_TEMP_SECONDS) -> list[Path]:
+    """Remove the temporary files that killed writers of ``path`` left behind; returns the removed paths.
+
+    A file is stale when its writer (pid, this host) is gone, or when it is older than ``max_age`` seconds.
+    """
+    dest = Path(path)
+    pattern, removed, now = _temp_pattern(dest.name), [], time.time()
+    try:
+        entries = list(os.scandir(dest.parent))
+    except OSError:
+        return []
+    for entry in entries:
+        match = pattern.fullmatch(entry.name)
+        if match is None:
+            continue
+        pid, host = match.groups()
+        try:
+            old = now - entry.stat(follow_symlinks=False).st_mtime > max_age
+        except FileNotFoundError:
+            continue
+        dead = pid is not None and host == _HOST and not _pid_alive(int(pid))
+        if old or dead:
+            with contextlib.suppress(FileNotFoundError):
+                os.unlink(entry.path)
+                removed.append(Path(entry.path))
+    return removed
+
+
+def _with_filename(exc: OSError, dest: Path) -> OSError:
+    """``exc`` naming the destination (a full disk raises ENOSPC from a write, which names no file)."""
+    if exc.filename is not None or exc.errno is None:
+        return exc
+    return type(exc)(exc.errno, exc.strerror or os.strerror(exc.errno), str(dest))
+
+
 @contextlib.contextmanager
 def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
-    """Yield a temporary path next to ``path``; on success it replaces ``path`` atomically, else is removed."""
+    """Yield a temporary path next to ``path``; on success it replaces ``path`` atomically, else is removed.
+
+    Stale temporary files of ``path`` (see :func:`remove_stale_temps`) are removed first. An ``OSError`` that
+    names no file is re-raised naming ``path``.
+    """
     dest = Path(path)
     dest.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{dest.name}.", suffix=".tmp", dir=dest.parent)
+    remove_stale_temps(dest)
+    fd, tmp = tempfile.mkstemp(prefix=f".{dest.name}.{os.getpid()}-{_HOST}.", suffix=".tmp", dir=dest.parent)
     os.close(fd)
     tmp_path = Path(tmp)
     try:
@@ -37,10 +106,94 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
             os.fsync(fh.fileno())
         os.chmod(tmp_path, 0o644)  # mkstemp makes 0600; a table or report is an ordinary shared file
         os.replace(tmp_path, dest)
-    except BaseException:
+    except BaseException as exc:
         with contextlib.suppress(FileNotFoundError):
             tmp_path.unlink()
+        if isinstance(exc, OSError):
+            raise _with_filename(exc, dest) from exc
         raise
+
+
+class FileLockedError(OSError):
+    """The lock file of an output is held by a live process (another build or training run to the same file)."""
+
+
+def _read_lock(lock: Path) -> str | None:
+    try:
+        return lock.read_text()
+    except FileNotFoundError:
+        return None
+
+
+def _lock_owner(text: str) -> tuple[int, str] | None:
+    """``(pid, host)`` of a lock file's text ``"<pid> <host>"``; None when it is empty or not of that form."""
+    parts = text.split()
+    if len(parts) != 2 or not parts[0].isdigit():
+        return None
+    return int(parts[0]), parts[1]
+
+
+def _take_over(lock: Path, stale_text: str) -> bool:
+    """Remove a stale lock, unless another process replaced it meanwhile (then restore theirs): True if removed."""
+    aside = lock.with_name(f"{lock.name}.{os.getpid()}.stale")
+    try:
+        os.rename(lock, aside)
+    except FileNotFoundError:
+        return True  # someone else removed it: try to create ours
+    if aside.read_text() != stale_text:  # a fresh lock of a racing process: put it back
+        with contextlib.suppress(FileExistsError):
+            os.link(aside, lock)
+        os.unlink(aside)
+        return False
+    os.unlink(aside)
+    return True
+
+
+def _acquire(lock: Path, what: str) -> None:
+    for _ in range(5):
+        try:
+            fd = os.open(lock, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
+        except FileExistsError:
+            text = _read_lock(lock)
+            if text is None:
+                continue  # released meanwhile
+            owner = _lock_owner(text)
+            if owner is None:
+                try:
+                    young = time.time() - lock.stat().st_mtime < 10.0
+                except FileNotFoundError:
+                    continue  # released meanwhile
+                if young:  # just created, its pid not yet written
+                    time.sleep(0.1)
+                    continue
+            else:
+                pid, host = owner
+                if host != _HOST or pid == os.getpid() or _pid_alive(pid):
+                    where = f"process {pid}" + ("" if host == _HOST else f" on {host}")
+                    raise FileLockedError(f"{what} is in use by {where} (lock file {lock}); wait for it to finish, "
+                                          "or delete the lock file if no such process runs") from None
+            _take_over(lock, text)
+            continue
+        with os.fdopen(fd, "w") as fh:
+            fh.write(f"{os.getpid()} {_HOST}\n")
+        return
+    raise FileLockedError(f"{what}: could not take the lock file {lock} (other processes keep taking it)")
+
+
+@contextlib.contextmanager
+def exclusive_lock(lock: str | os.PathLike, what: str = "the output") -> Iterator[Path]:
+    """Hold the lock file ``lock`` while the block runs: created exclusively (``O_CREAT | O_EXCL``) holding
+    ``"<pid> <host>"``, removed at the end. A lock of a process that is gone (on this host) is taken over;
+    :class:`FileLockedError` (naming ``what`` and the holder) when a live process holds it."""
+    lock = Path(lock)
+    lock.parent.mkdir(parents=True, exist_ok=True)
+    _acquire(lock, what)
+    try:
+        yield lock
+    finally:
+        if _lock_owner(_read_lock(lock) or "") == (os.getpid(), _HOST):  # never remove a lock taken over from us
+            with contextlib.suppress(FileNotFoundError):
+                lock.unlink()
 
 
 def write_bytes(path: str | os.PathLike, data: bytes) -> None:

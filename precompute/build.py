@@ -4,7 +4,11 @@ Every parameter of a registered dataclass system is a flag (``--horizon 15``, ``
 ``--cell-size 0.1 0.1 0.1571``, ...); ``--param KEY=VALUE`` (a JSON value) sets any parameter of any system.
 Prints a progress bar per level, per-stage times and the uniformity report; writes the table (atomically) and
 ``<out stem>.report.json`` beside it. Each finished level is checkpointed in ``<out>.partial/``; after an
-interrupt, ``--resume`` continues from there and writes a byte-identical table.
+interrupt, ``--resume`` continues from there and writes a byte-identical table (and refuses, naming them, when
+the settings changed). ``<out>.lock`` keeps a second build to the same ``--out`` from starting.
+
+Errors (bad or conflicting flags, an unusable ``--out``, a full disk, ...) are one line ``error: ...`` and exit
+code 2; Ctrl-C is one line and exit code 130 (see :mod:`cuniform_torch.cli`).
 
 User systems: ``--system-module my_robots`` imports a module that calls ``register_system`` (its dataclass
 fields then become flags too), and ``--system my_robots:Unicycle`` imports and registers a factory directly.
@@ -18,7 +22,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import importlib
 import json
 import shutil
 import sys
@@ -26,11 +29,14 @@ import time
 from pathlib import Path
 from typing import Any, Sequence
 
-from cuniform_torch.fileio import write_json
-from cuniform_torch.systems import _REGISTRY, DEFAULT_HORIZON, known_systems, make_system, resolve_system, system_horizon
+from cuniform_torch.cli import (ArgumentParser, CLIError, check_output_file, cli_main, import_system_modules,
+                                out_of_memory_message)
+from cuniform_torch.fileio import exclusive_lock, write_json
+from cuniform_torch.systems import (_BUILTIN_MODULE, _REGISTRY, DEFAULT_HORIZON, check_system, known_systems,
+                                    load_factory, make_system, resolve_system, system_horizon)
 from cuniform_torch.table import write_table
 
-from .builder import BuildConfig, SizeGuide, available_memory_bytes, build_table
+from .builder import BuildConfig, SizeGuide, available_memory_bytes, build_table, check_resume
 from .levels import PointMode
 from .report import format_report, uniformity_report
 
@@ -62,8 +68,14 @@ def _defaults_of(field: str) -> str:
     return "; ".join(parts)
 
 
+# flags of one method only (given with the other method they are refused) and their defaults: None means
+# "not given" until _check_flags fills them in
+MAXFLOW_FLAGS = {"points": PointMode.CENTERS.value, "points_per_cell": 8, "resume": False, "max_memory": None}
+COVERAGE_FLAGS = {"target_samples": 2000, "merge_resolution": 32, "steps": 300, "lr": 0.2}
+
+
 def make_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = ArgumentParser(
         prog="python -m precompute.build",
         description="Build a C-Uniform action-probability table (level sets + exact max-flow) and report its uniformity.",
     )
@@ -78,20 +90,23 @@ def make_parser() -> argparse.ArgumentParser:
     parser.add_argument("--out", type=Path, default=None, help="table file to write (default: out/<system>.npz)")
     parser.add_argument("--horizon", type=int, default=None,
                         help=f"number of steps T (default: the system's default_horizon, else {DEFAULT_HORIZON})")
-    parser.add_argument("--points", default=PointMode.CENTERS.value, choices=[m.value for m in PointMode],
-                        help="sample points per cell: centers (level sets from cell centres, transitions from the 3^d "
-                             "lattice), lattice (level sets from all lattice points), random (centre + K random points)")
-    parser.add_argument("--points-per-cell", type=int, default=8, help="K random points per cell for --points random")
+    parser.add_argument("--points", default=None, choices=[m.value for m in PointMode],
+                        help="sample points per cell: centers (default; level sets from cell centres, transitions "
+                             "from the 3^d lattice), lattice (level sets from all lattice points), random (centre + K "
+                             "random points)")
+    parser.add_argument("--points-per-cell", type=int, default=None,
+                        help="K random points per cell for --points random (default 8)")
     parser.add_argument("--seed", type=int, default=0, help="seed of --points random and of the report's rollouts")
     parser.add_argument("--method", default="maxflow", choices=["maxflow", "coverage"],
                         help="maxflow: the paper's flow network (default); coverage: maximize the expected coverage "
                              "of real rollouts over the reachable states (see precompute/coverage_method.py)")
-    parser.add_argument("--target-samples", type=int, default=2000,
-                        help="coverage method: N whose expected coverage is maximized")
-    parser.add_argument("--merge-resolution", type=int, default=32,
-                        help="coverage method: sub-cell bins per cell and dimension for merging reachable states")
-    parser.add_argument("--steps", type=int, default=300, help="coverage method: gradient-ascent iterations")
-    parser.add_argument("--lr", type=float, default=0.2, help="coverage method: Adam learning rate")
+    parser.add_argument("--target-samples", type=int, default=None,
+                        help="coverage method: N whose expected coverage is maximized (default 2000)")
+    parser.add_argument("--merge-resolution", type=int, default=None,
+                        help="coverage method: sub-cell bins per cell and dimension for merging reachable states "
+                             "(default 32)")
+    parser.add_argument("--steps", type=int, default=None, help="coverage method: gradient-ascent iterations (default 300)")
+    parser.add_argument("--lr", type=float, default=None, help="coverage method: Adam learning rate (default 0.2)")
     parser.add_argument("--resume", action="store_true", help="continue an interrupted build from its checkpoints (maxflow)")
     parser.add_argument("--rollouts", type=int, default=None, help="rollouts for the report (default: 10 x largest level)")
     parser.add_argument("--no-report", action="store_true", help="skip the uniformity report")
@@ -116,14 +131,24 @@ def make_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def _check_output_path(out: Path) -> None:
-    if out.is_dir():
-        raise ValueError(f"--out {out} is a folder; give a file path such as {out / 'table.npz'}")
-    for parent in out.parents:
-        if parent.exists():
-            if not parent.is_dir():
-                raise ValueError(f"--out {out}: {parent} is a file, not a folder")
-            break
+def _flag(name: str) -> str:
+    return "--" + name.replace("_", "-")
+
+
+def _check_flags(args: argparse.Namespace) -> None:
+    """Refuse flags that the chosen method or points mode would ignore (naming both), then fill the defaults."""
+    given = lambda name: getattr(args, name) not in (None, False)  # noqa: E731
+    other, method_flags = ("coverage", MAXFLOW_FLAGS) if args.method == "maxflow" else ("maxflow", COVERAGE_FLAGS)
+    for name in (COVERAGE_FLAGS if args.method == "maxflow" else MAXFLOW_FLAGS):
+        if given(name):
+            raise CLIError(f"{_flag(name)} applies to --method {other} only, not to --method {args.method}")
+    if given("points_per_cell") and args.points != PointMode.RANDOM.value:
+        raise CLIError(f"--points-per-cell applies to --points random only, not to --points {args.points or 'centers'}")
+    if given("rollouts") and args.no_report:
+        raise CLIError("--rollouts sets the report's rollouts, but --no-report skips the report")
+    for name, default in {**MAXFLOW_FLAGS, **COVERAGE_FLAGS}.items():
+        if getattr(args, name) is None:
+            setattr(args, name, default)
 
 
 def _check_device(device: str) -> None:
@@ -165,13 +190,47 @@ def load_user_systems(argv: Sequence[str] | None) -> None:
     pre.add_argument("--system", default="dubins")
     pre.add_argument("--system-module", action="append", default=[])
     known, _ = pre.parse_known_args(argv)
-    for module in known.system_module:
-        try:
-            importlib.import_module(module)
-        except ImportError as exc:
-            raise ValueError(f"--system-module {module}: cannot import it ({type(exc).__name__}: {exc})") from None
+    import_system_modules(known.system_module)
     if ":" in known.system:
-        resolve_system(known.system)
+        _register_factory(known.system)
+
+
+def _register_factory(spec: str) -> None:
+    """``resolve_system`` of a ``--system module:factory`` the user typed, after checking that the factory builds
+    a System: what goes wrong (a missing module, ``os:getpid``, a factory that raises) is a CLIError."""
+    try:
+        factory = load_factory(spec)
+    except ValueError as exc:
+        raise CLIError(f"--system {spec}: {exc}") from None
+    if not isinstance(getattr(factory, "name", None), str):  # resolve_system calls it to learn the name
+        try:
+            built = factory()
+        except Exception as exc:  # the user's callable: any failure is theirs to see, in one line
+            raise CLIError(f"--system {spec}: calling it with no arguments failed ({type(exc).__name__}: {exc}); "
+                           "give a factory of a System (see cuniform_torch.systems.System)") from None
+        try:
+            check_system(built)
+        except Exception as exc:
+            raise CLIError(f"--system {spec} is not a System factory: it built {type(built).__name__} ({exc})") from None
+    resolve_system(spec)
+
+
+def _make_system(spec: str, name: str, params: dict[str, Any]):
+    """``make_system``, with an allocation failure (``--num-actions 10**12``) or a user system's own exception
+    as a CLIError naming the system and its parameters."""
+    try:
+        return make_system(name, **params)
+    except ValueError:
+        raise
+    except Exception as exc:
+        given = ", ".join(f"{k}={v!r}" for k, v in params.items())
+        oom = out_of_memory_message(exc)
+        if oom is not None:
+            raise CLIError(f"--system {name}" + (f" ({given})" if given else "") + f": {oom}; make --num-actions "
+                           "(or the grid) smaller") from None
+        if getattr(_REGISTRY[name], "__module__", _BUILTIN_MODULE) != _BUILTIN_MODULE:
+            raise CLIError(f"--system {spec}: building or checking it failed ({type(exc).__name__}: {exc})") from None
+        raise  # a built-in system that fails is a bug
 
 
 def _parse_params(items: list[str]) -> dict[str, Any]:
@@ -187,24 +246,14 @@ def _parse_params(items: list[str]) -> dict[str, Any]:
     return out
 
 
+@cli_main(interrupted="interrupted: no table written")
 def main(argv: Sequence[str] | None = None) -> int:
+    """Build a table from the flags ``argv``: 0, or 2 after one ``error: ...`` line, or 130 on Ctrl-C."""
     argv = sys.argv[1:] if argv is None else list(argv)
-    try:
-        load_user_systems(argv)
-    except ValueError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
-    parser = make_parser()
-    args = parser.parse_args(argv)
-    try:
-        return _run(args)
-    except KeyboardInterrupt:
-        print("\ninterrupted: no table written; rerun with --resume to continue from the last finished level",
-              file=sys.stderr)
-        return 130
-    except ValueError as exc:  # bad input: unknown system, bad sizes, corrupt table, ...
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
+    load_user_systems(argv)
+    args = make_parser().parse_args(argv)
+    _check_flags(args)
+    return _run(args)
 
 
 def _run(args: argparse.Namespace) -> int:
@@ -218,20 +267,29 @@ def _run(args: argparse.Namespace) -> int:
         raise ValueError(f"parameter(s) {', '.join(both)} given both as a flag and as --param")
     params.update({k: tuple(v) if isinstance(v, list) else v for k, v in extra_params.items()})
     name = resolve_system(args.system)
-    system = make_system(name, **params)
+    system = _make_system(args.system, name, params)
     horizon = system_horizon(system) if args.horizon is None else args.horizon
     config = BuildConfig(horizon=horizon, points=args.points, points_per_cell=args.points_per_cell, seed=args.seed)
     out: Path = args.out or Path("out") / f"{name}.npz"
     if args.max_memory is not None and not args.max_memory > 0:
         raise ValueError(f"--max-memory must be a positive number of GB, got {args.max_memory}")
-    _check_output_path(out)
+    check_output_file(out, "--out")
     if args.rollouts is not None and args.rollouts < 1:
         raise ValueError(f"--rollouts must be positive, got {args.rollouts}")
     _check_device(args.device)
+    with exclusive_lock(out.with_name(out.name + ".lock"), what=f"--out {out} (another build writing it?)"):
+        return _build(args, system, horizon, config, out)
+
+
+def _build(args: argparse.Namespace, system, horizon: int, config: BuildConfig, out: Path) -> int:
+    """Build, write and report, holding the lock of ``out``."""
     ckpt = out.with_name(out.name + ".partial")
     if ckpt.exists() and not args.resume:
         shutil.rmtree(ckpt)
-    ckpt.mkdir(parents=True, exist_ok=True)
+    if args.method == "maxflow":
+        if args.resume and ckpt.is_dir():
+            check_resume(ckpt, system, config)
+        ckpt.mkdir(parents=True, exist_ok=True)
     say = (lambda *a: None) if args.quiet else (lambda *a: print(*a, flush=True))
     detail = f"points={config.points.value}" if args.method == "maxflow" else f"target N={args.target_samples}"
     say(f"building {system.name} table ({args.method}): {system.params()} horizon={horizon} {detail}")
@@ -262,11 +320,20 @@ def _run(args: argparse.Namespace) -> int:
             table, stats, extra = _build_coverage(system, horizon, args, bar)
         else:
             table, stats = build_table(system, config, checkpoint_dir=ckpt, resume=args.resume, progress=progress)
+    except KeyboardInterrupt:
+        if args.method == "coverage":
+            raise
+        raise KeyboardInterrupt("interrupted: no table written; rerun with --resume to continue from the last "
+                                "finished level") from None
     finally:
         if bar is not None:
             bar.close()
     t0 = time.perf_counter()
-    write_table(out, table)
+    try:
+        write_table(out, table)
+    except OSError as exc:
+        kept = f"; the finished levels stay in {ckpt} (rerun with --resume)" if args.method == "maxflow" else ""
+        raise CLIError(f"cannot write the table {out}: {exc.strerror or exc}{kept}") from None
     stats.seconds["write"] = time.perf_counter() - t0
     shutil.rmtree(ckpt, ignore_errors=True)
     total = time.perf_counter() - t_start

@@ -5,7 +5,8 @@ Shapes: C cells over all levels, n / m cells of L_t / L_{t+1}, A actions, d stat
 ``build_table`` is the library entry point (``python -m precompute.build`` wraps it). Each finished step
 t -> t+1 can be saved as a checkpoint file in ``checkpoint_dir``; a later call with ``resume=True`` loads the
 finished steps (after checking that the build settings are the same) and continues, and the table it
-writes is byte-identical to an uninterrupted build's.
+writes is byte-identical to an uninterrupted build's. The folder also holds the build's settings, so that
+:func:`check_resume` can refuse a resume with other settings (:class:`ResumeError` names the ones that changed).
 """
 
 from __future__ import annotations
@@ -23,7 +24,7 @@ import numpy as np
 import scipy
 import torch
 
-from cuniform_torch.fileio import write_npz
+from cuniform_torch.fileio import write_json, write_npz
 from cuniform_torch.grid import Grid
 from cuniform_torch.systems import System, system_to_json
 from cuniform_torch.table import Table, system_fields
@@ -31,7 +32,7 @@ from cuniform_torch.table import Table, system_fields
 from .levels import LevelStep, PointMode, next_level
 from .maxflow import action_probs_from_flow, solve_maxflow, unique_arcs
 
-__all__ = ["BuildConfig", "BuildStats", "build_table", "propagate_cell_probs", "SizeGuide", "project_level_sizes",
+__all__ = ["BuildConfig", "BuildStats", "ResumeError", "build_settings", "check_resume", "build_table", "propagate_cell_probs", "SizeGuide", "project_level_sizes",
            "estimate_build_bytes", "available_memory_bytes"]
 
 
@@ -114,6 +115,40 @@ def _fingerprint(system: System, config: BuildConfig) -> str:
     return hashlib.sha256(json.dumps(spec, sort_keys=True).encode()).hexdigest()
 
 
+class ResumeError(ValueError):
+    """A resume refused by :func:`check_resume`: the checkpoints are of a build with other settings."""
+
+
+MANIFEST = "build.json"
+"""the settings of the build whose steps a checkpoint folder holds"""
+
+
+def build_settings(system: System, config: BuildConfig) -> dict:
+    """The settings that make a table, by their flag names (``horizon``, ``num_actions``, ...): JSON types."""
+    random = config.points is PointMode.RANDOM
+    return json.loads(json.dumps({
+        "system": system.name, **system.params(), "horizon": config.horizon, "points": config.points.value,
+        "points_per_cell": config.points_per_cell if random else None, "seed": config.seed if random else None}))
+
+
+def check_resume(checkpoint_dir: str | Path, system: System, config: BuildConfig) -> None:
+    """ResumeError naming every setting (old and new value) that differs from the build whose steps
+    ``checkpoint_dir`` holds; a no-op for a folder without settings (none yet, or from an older version)."""
+    ckpt, settings = Path(checkpoint_dir), build_settings(system, config)
+    try:
+        saved = json.loads((ckpt / MANIFEST).read_text())
+    except (OSError, ValueError):
+        return  # no manifest (an old folder) or a damaged one: the per-step fingerprints still guard the table
+    if not isinstance(saved, dict):
+        return
+    changed = [k for k in sorted(set(saved) | set(settings)) if saved.get(k) != settings.get(k)]
+    if changed:
+        flag = lambda k: "--" + k.replace("_", "-")  # noqa: E731
+        detail = "; ".join(f"{flag(k)} was {saved.get(k)!r}, now {settings.get(k)!r}" for k in changed)
+        raise ResumeError(f"--resume: the checkpoints in {ckpt} are of a build with other settings ({detail}); "
+                          "resume with the old values, or rerun without --resume to start over")
+
+
 def _solve_step(system: System, cells: np.ndarray, config: BuildConfig, t: int, stats: BuildStats) -> StepResult:
     A = system.action_set().shape[0]
     t0 = time.perf_counter()
@@ -146,12 +181,15 @@ def build_table(
 ) -> tuple[Table, BuildStats]:
     """Build the C-Uniform table of ``system`` from the origin for ``config.horizon`` steps.
 
-    ``progress(t, step)`` is called after each step t -> t+1. With ``checkpoint_dir`` every step is saved there;
-    ``resume=True`` reuses the saved steps of a build with the same settings.
+    ``progress(t, step)`` is called after each step t -> t+1. With ``checkpoint_dir`` every step is saved there,
+    with the build's settings (:func:`build_settings`); ``resume=True`` reuses the saved steps of a build with
+    the same settings (others are recomputed; :func:`check_resume` first refuses them instead).
     """
     stats = BuildStats()
     fingerprint = _fingerprint(system, config)
     ckpt = Path(checkpoint_dir) if checkpoint_dir is not None else None
+    if ckpt is not None:
+        write_json(ckpt / MANIFEST, build_settings(system, config))
     grid = Grid.of(system)
     x0 = torch.zeros((1, len(system.periodic)), dtype=torch.float64)
     level_cells = [grid.cells(x0).numpy()]  # L_0: the start cell
