@@ -40,7 +40,7 @@ from torch import Tensor
 
 from .envs.costs import TrajectoryCost
 from .frames import se2_to_world
-from .rollout import Policy, rollout
+from .rollout import Policy, rollout, same_device
 from .samplers import GaussianSampler, NormalLogNormalSampler
 from .systems import System
 
@@ -135,7 +135,7 @@ def _check_costs(costs: object, who: str, fn: object, k: int, dtype: torch.dtype
     expected = f"expected a [{k}] tensor of {dtype} on {device} (one cost per proposal, the controller's dtype and device)"
     if not isinstance(costs, Tensor):
         raise ValueError(f"{who} {_callable_name(fn)} returned {type(costs).__name__} {costs!r:.60}; {expected}")
-    if costs.shape != (k,) or costs.dtype != dtype or costs.device != device:
+    if costs.shape != (k,) or costs.dtype != dtype or not same_device(costs.device, device):
         raise ValueError(f"{who} {_callable_name(fn)} returned a {list(costs.shape)} tensor of {costs.dtype} on "
                          f"{costs.device}; {expected}")
     return costs.detach()
@@ -174,7 +174,7 @@ class _Core:
         """``state [d]`` of the controller's dtype and device, finite; detached (a state is an observation)."""
         if not isinstance(state, Tensor) or state.shape != (self.state_dim,):
             raise ValueError(f"state must be a tensor of shape [{self.state_dim}], got {getattr(state, 'shape', state)!r}")
-        if state.device != self.device:
+        if not same_device(state.device, self.device):
             raise ValueError(f"state is on {state.device} but the controller is on {self.device}")
         if state.dtype != self.dtype:
             raise ValueError(f"state is {state.dtype} but the controller is {self.dtype}; pass state.to({self.dtype})")

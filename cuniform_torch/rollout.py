@@ -23,7 +23,7 @@ from torch import Tensor
 from .frames import se2_to_world
 from .systems import System
 
-__all__ = ["Policy", "ActionSampler", "rollout", "check_states", "check_generator"]
+__all__ = ["Policy", "ActionSampler", "rollout", "check_states", "check_generator", "same_device"]
 
 
 @runtime_checkable
@@ -47,11 +47,24 @@ class ActionSampler(Protocol):
         ...
 
 
+def _device_index(device: torch.device) -> int:
+    if device.index is not None:
+        return device.index
+    return torch.cuda.current_device() if device.type == "cuda" else 0
+
+
+def same_device(a: torch.device | str, b: torch.device | str) -> bool:
+    """Whether two devices are one: ``"cuda"`` (no index: the current device) is ``cuda:0`` when that is current,
+    which ``torch.device`` equality says it is not (a tensor's device always has its index)."""
+    a, b = torch.device(a), torch.device(b)
+    return a.type == b.type and (a.index == b.index or _device_index(a) == _device_index(b))
+
+
 def check_states(x: Tensor, dim: int, device: torch.device, who: str = "the policy") -> None:
     """Raise ValueError unless ``x`` is a floating-point ``[N, dim]`` tensor on ``device``."""
     if not isinstance(x, Tensor) or x.ndim != 2 or x.shape[1] != dim:
         raise ValueError(f"states must have shape [N, {dim}], got {list(getattr(x, 'shape', []))}")
-    if x.device != device:
+    if not same_device(x.device, device):
         raise ValueError(f"states are on {x.device} but {who} is on {device}")
     if not x.is_floating_point():
         raise ValueError(f"states must be a floating-point tensor, got {x.dtype}")
@@ -64,7 +77,7 @@ def check_generator(generator: object, device: torch.device, name: str = "genera
     if not isinstance(generator, torch.Generator):
         raise TypeError(f"{name} must be a torch.Generator or None, got {type(generator).__name__} ({generator!r:.40}); "
                         f"make one with torch.Generator(device).manual_seed(seed)")
-    if generator.device.type != device.type:  # a generator of another device type cannot draw there
+    if not same_device(generator.device, device):
         raise ValueError(f"{name} is on {generator.device} but the samples are drawn on {device}")
 
 
@@ -101,7 +114,7 @@ def rollout(
     if table_horizon is not None and horizon > table_horizon:
         raise ValueError(f"horizon {horizon} is longer than the policy's table ({table_horizon} steps)")
     policy_device = getattr(policy, "device", None)
-    if policy_device is not None and torch.device(policy_device) != x0.device:
+    if policy_device is not None and not same_device(policy_device, x0.device):
         raise ValueError(f"x0 is on {x0.device} but the policy is on {policy_device}")
     if not bool(torch.isfinite(x0).all()):
         raise ValueError("x0 contains NaN or infinite values")

@@ -245,3 +245,15 @@ class TestMLPActionProbs:
         assert int(mlp.misses) - misses == 3 and mlp.queries - queries == 4
         table_row = policy.action_probs(x[:1], 1)  # a table's NaN state: its uniform "not found" row
         torch.testing.assert_close(table_row, probs[:1])
+
+
+# ------------------------------------------------------------------------------------------ devices
+
+def test_an_unindexed_cuda_device_is_the_current_one(monkeypatch):
+    """``TablePolicy(table, "cuda")`` keeps ``cuda`` while its tensors say ``cuda:0``: the checks must agree."""
+    from cuniform_torch.rollout import same_device
+
+    monkeypatch.setattr(torch.cuda, "current_device", lambda: 0)  # no GPU needed
+    assert same_device("cuda", torch.device("cuda", 0)) and same_device(torch.device("cuda", 0), "cuda")
+    assert not same_device("cuda", "cuda:1") and not same_device("cuda", "cpu")
+    assert same_device("cpu", torch.device("cpu")) and not same_device("cpu", "meta")
