@@ -260,10 +260,6 @@ def load_policy(source: str | os.PathLike | dict, device: torch.device | str = "
         config = MLPConfig(**ckpt["config"])
     except (TypeError, ValueError) as exc:
         fail(f"config does not describe a policy ({exc})")
-    held = sum(v.numel() for k, v in state.items() if k.startswith("net."))
-    if config.num_weights != held:
-        fail(f"state_dict does not match the network of its config ({config.num_weights} weights described, "
-             f"{held} held)")
     try:
         system, horizon = system_from_json(ckpt["system"], trust_factory=trust_factory)
     except ValueError as exc:  # includes UnknownSystemError
@@ -272,6 +268,10 @@ def load_policy(source: str | os.PathLike | dict, device: torch.device | str = "
         fail(f"config.horizon is {config.horizon} but the system JSON says {horizon}")
     if list(config.periodic) != list(system.periodic):
         fail(f"config.periodic {list(config.periodic)} does not match the system's {list(system.periodic)}")
+    held = sum(v.numel() for k, v in state.items() if k.startswith("net."))
+    if config.num_weights != held:
+        fail(f"state_dict does not match the network of its config ({config.num_weights} weights described, "
+             f"{held} held)")
     actions = ckpt["actions"]
     expect = system.action_set(dtype=torch.float32)
     for field_name, value in (("actions", actions), ("state_dict['actions']", state.get("actions"))):
