@@ -119,11 +119,12 @@ def _check_folder_writable(path: Path, flag: str) -> None:
         raise CLIError(f"{flag} {path}: cannot create files in {folder} ({exc.strerror or exc})") from None
 
 
-def check_output_file(path: str | os.PathLike, flag: str) -> None:
-    """Before long work starts: CLIError unless ``path`` can become a file (not a folder, its folder writable)."""
+def check_output_file(path: str | os.PathLike, flag: str, example: str = "out.json") -> None:
+    """Before long work starts: CLIError unless ``path`` can become a file (not a folder, its folder writable);
+    ``example`` is the file name the message suggests inside a folder."""
     path = Path(path)
     if path.is_dir():
-        raise CLIError(f"{flag} {path} is a folder; give a file path such as {path / 'out.json'}")
+        raise CLIError(f"{flag} {path} is a folder; give a file path such as {path / example}")
     _check_folder_writable(path, flag)
 
 

@@ -17,7 +17,6 @@ Writes JSON to ``--json`` (default out/bench.json).
 
 from __future__ import annotations
 
-import argparse
 import statistics
 import sys
 import time
@@ -28,6 +27,7 @@ import torch
 
 from cuniform_torch import (CUMPPI, MPPI, CUniformMPPI, Dubins, GaussianSampler, LogMPPI, load_table, rollout,
                             write_table)
+from cuniform_torch.cli import ArgumentParser, CLIError, check_output_file, cli_main
 from cuniform_torch.fileio import write_json
 from cuniform_torch.policy import Kernel
 
@@ -75,8 +75,9 @@ def _table(path: Path, horizon: int):
     return path
 
 
+@cli_main()
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(prog="python -m eval.bench", description=__doc__.split("\n\n")[0])
+    p = ArgumentParser(prog="python -m eval.bench", description=__doc__.split("\n\n")[0])
     p.add_argument("--samples", type=int, nargs="+", default=[500, 1000, 10000])
     p.add_argument("--horizons", type=int, nargs="+", default=[15, 10], help="15 and the default table's 10")
     p.add_argument("--table15", type=Path, default=Path("out/dubins_h15.npz"), help="a horizon-15 Dubins table")
@@ -90,12 +91,15 @@ def main(argv=None) -> int:
     p.add_argument("--rollout-repeats", type=int, default=None, help="repeats of the bare rollouts (default: --repeats)")
     p.add_argument("--json", type=Path, default=Path("out/bench.json"))
     args = p.parse_args(argv)
-    device = torch.device(args.device)
+    try:
+        device = torch.device(args.device)
+    except RuntimeError:
+        raise CLIError(f"--device {args.device!r} is not a torch device (cpu, cuda, cuda:1, ...)") from None
     if args.threads is not None:
         torch.set_num_threads(args.threads)
     if device.type == "cuda" and not torch.cuda.is_available():
-        print("error: --device cuda but CUDA is not available", file=sys.stderr)
-        return 2
+        raise CLIError("--device cuda but CUDA is not available")
+    check_output_file(args.json, "--json", example="bench.json")
     try:
         import pytorch_mppi  # noqa: F401
         have_peer = True

@@ -9,34 +9,42 @@ flow values (they must agree) and the speed ratio. Prints a table and writes JSO
 
 from __future__ import annotations
 
-import argparse
 import statistics
 import sys
 import time
 from pathlib import Path
 
+from cuniform_torch.cli import (ArgumentParser, CLIError, add_system_module_arg, check_output_file, cli_main,
+                                import_system_modules)
 from cuniform_torch.fileio import write_json
 from cuniform_torch.table import read_table
 from precompute.maxflow import maxflow_value_networkx, solve_maxflow
 
 
+@cli_main()
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(prog="python -m eval.bench_maxflow", description=__doc__.split("\n\n")[0])
+    p = ArgumentParser(prog="python -m eval.bench_maxflow", description=__doc__.split("\n\n")[0])
     p.add_argument("--table", type=Path, default=Path("out/dubins.npz"))
     p.add_argument("--levels", type=int, nargs="*", default=None, help="target levels t+1 (default: every level)")
     p.add_argument("--repeats", type=int, default=3)
     p.add_argument("--networkx-max-nodes", type=int, default=20000, help="skip networkx on larger networks")
     p.add_argument("--json", type=Path, default=None)
+    add_system_module_arg(p)
     args = p.parse_args(argv)
+    import_system_modules(args.system_module)
+    if args.json is not None:
+        check_output_file(args.json, "--json", example="bench_maxflow.json")
     table = read_table(args.table)
+    if table.arcs is None:
+        raise CLIError(f"--table {args.table} holds no flow graph (a --method coverage table?); give a max-flow table")
     levels = args.levels or list(range(1, table.horizon + 1))
+    bad = [lv for lv in levels if not 1 <= lv <= table.horizon]
+    if bad:
+        raise CLIError(f"--levels {' '.join(map(str, bad))}: not in 1..{table.horizon} (the table's levels)")
     rows = []
     print(f"{'step':>7} {'nodes':>7} {'arcs':>8} {'scipy s':>9} {'networkx s':>11} {'ratio':>8} {'flow/nm':>8}")
     for lv in levels:
         t = lv - 1
-        if not 0 <= t < table.horizon:
-            print(f"error: level {lv} is not in 1..{table.horizon}", file=sys.stderr)
-            return 2
         sl = slice(table.arc_offsets[t], table.arc_offsets[t + 1])
         n, m = table.level_sizes[t], table.level_sizes[t + 1]
         src = table.arcs[sl, 0] - table.level_offsets[t]

@@ -1,13 +1,15 @@
-"""Command-line pieces every experiment module shares: the source-file flags and running one experiment."""
+"""Command-line pieces every experiment module shares: the source-file flags and running one experiment.
+
+Errors and exit codes are :mod:`cuniform_torch.cli`'s: every ``main`` is decorated with ``cli_main``.
+"""
 
 from __future__ import annotations
 
 import argparse
-import sys
 from pathlib import Path
 from typing import Callable
 
-from cuniform_torch import TableError
+from cuniform_torch.cli import add_system_module_arg, check_output_file, check_output_folder, import_system_modules
 from cuniform_torch.fileio import write_json
 
 from . import config
@@ -15,8 +17,8 @@ from .methods import Sources
 
 
 def add_source_args(p: argparse.ArgumentParser, horizon15: bool = False) -> None:
-    """--table / --coverage-table / --policy / --device flags (defaults from eval.config: the 2 s tables, or
-    the 3 s ones of the closed-loop experiments with ``horizon15``)."""
+    """--table / --coverage-table / --policy / --device / --system-module flags (defaults from eval.config: the
+    2 s tables, or the 3 s ones of the closed-loop experiments with ``horizon15``)."""
     p.add_argument("--table", type=Path, default=config.TABLE_15 if horizon15 else config.TABLE,
                    help="max-flow table (also the system, grid and horizon of the experiment)")
     p.add_argument("--coverage-table", type=Path,
@@ -24,6 +26,17 @@ def add_source_args(p: argparse.ArgumentParser, horizon15: bool = False) -> None
     p.add_argument("--policy", type=Path, default=config.POLICY_15 if horizon15 else config.POLICY,
                    help="distilled MLP (cu_mlp)")
     p.add_argument("--device", default="cpu")
+    add_system_module_arg(p)
+
+
+def prepare(args: argparse.Namespace) -> None:
+    """Before the experiment runs: import the ``--system-module`` modules and check the output paths
+    (``--json``, ``--figures``), so that a bad one fails now rather than after the work."""
+    import_system_modules(args.system_module)
+    if getattr(args, "json", None) is not None:
+        check_output_file(args.json, "--json", example="result.json")
+    if getattr(args, "figures", None) is not None:
+        check_output_folder(args.figures, "--figures")
 
 
 def sources_from_args(args: argparse.Namespace) -> Sources:
@@ -31,12 +44,10 @@ def sources_from_args(args: argparse.Namespace) -> Sources:
 
 
 def run_experiment(run: Callable[..., dict], cfg, args: argparse.Namespace, show: Callable[[dict], None]) -> int:
-    """``run(cfg, sources)``, then ``show`` the result and write ``--json``; bad input is a one-line error (exit 2)."""
-    try:
-        result = run(cfg, sources_from_args(args))
-    except (TableError, ValueError, FileNotFoundError) as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
+    """``prepare``, ``run(cfg, sources)``, then ``show`` the result and write ``--json``; bad input raises (the
+    entry point's ``cli_main`` turns it into one ``error: ...`` line and exit code 2)."""
+    prepare(args)
+    result = run(cfg, sources_from_args(args))
     show(result)
     if args.json is not None:
         write_json(args.json, result)

@@ -44,8 +44,8 @@ a per-start table (successes out of R).
 
 from __future__ import annotations
 
-import argparse
 import math
+import sys
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -53,10 +53,11 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from cuniform_torch.cli import ArgumentParser, cli_main
 from cuniform_torch.envs import Environment, Rect, u_shape
 
 from . import config
-from .cli import sources_from_args
+from .cli import prepare, sources_from_args
 from .closed_loop import (ControllerSettings, Episode, add_common_args, aggregate, config_from_args,
                           config_from_json, finish_cli, plot_paths, run_episodes, success_markdown, usable_methods)
 from .methods import METHODS, Sources
@@ -315,8 +316,9 @@ def figures(results: dict, outdir: Path) -> list[Path]:
     return paths
 
 
-def main(argv: list[str] | None = None) -> dict:
-    parser = argparse.ArgumentParser(prog="python -m eval.cluttered", description=__doc__.splitlines()[0])
+@cli_main()
+def main(argv: list[str] | None = None) -> int:
+    parser = ArgumentParser(prog="python -m eval.cluttered", description=__doc__.splitlines()[0])
     add_common_args(parser)
     parser.add_argument("--starts", type=int, default=None)
     parser.add_argument("--envs", nargs="+", default=None, choices=list(ENVIRONMENTS))
@@ -329,10 +331,11 @@ def main(argv: list[str] | None = None) -> dict:
     torch.set_num_threads(1)
     cfg = config_from_args(QUICK if args.quick else ClutteredConfig(), args, starts=args.starts,
                            environments=args.envs, seeds_per_start=args.seeds_per_start)
+    prepare(args)
     results = run(cfg, sources_from_args(args), progress=not args.quiet)
     finish_cli(args, results, markdown, figures)
-    return results
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

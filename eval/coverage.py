@@ -15,7 +15,6 @@ graph sampling, ``cu_graph`` here).
 
 from __future__ import annotations
 
-import argparse
 import statistics
 import sys
 import time
@@ -24,6 +23,7 @@ from pathlib import Path
 
 import torch
 
+from cuniform_torch.cli import ArgumentParser, cli_main
 from cuniform_torch.coverage import coverage, uniform_ceiling
 
 from . import config
@@ -122,8 +122,9 @@ def print_table(result: dict) -> None:
               f" {r['pct_reachable']:>7.1f}% {r['pct_ceiling']:>8.1f}% {paper:>6}")
 
 
+@cli_main()
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(prog="python -m eval.coverage", description=__doc__.split("\n\n")[0])
+    p = ArgumentParser(prog="python -m eval.coverage", description=__doc__.split("\n\n")[0])
     p.add_argument("--methods", nargs="+", default=None, help="method keys (default: every open-loop method)")
     p.add_argument("--samples", type=int, nargs="+", default=None)
     p.add_argument("--seeds", type=int, default=5)

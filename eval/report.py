@@ -18,7 +18,6 @@ Stages (each prints its time; a finished stage is reused on the next run unless 
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import platform
@@ -30,6 +29,7 @@ from typing import Callable
 
 import torch
 
+from cuniform_torch.cli import ArgumentParser, add_system_module_arg, check_output_folder, cli_main, import_system_modules
 from cuniform_torch.fileio import write_bytes, write_json
 
 from . import config
@@ -84,12 +84,20 @@ def _stage(name: str, timings: dict, fn: Callable[[], object]):
     return value
 
 
+class StepFailed(Exception):
+    """A command the report runs failed; it has printed its own one-line error, the report exits with its code."""
+
+    def __init__(self, code: int) -> None:
+        super().__init__(f"exit code {code}")
+        self.code = code
+
+
 def _run_cli(module: str, main: Callable[[list[str]], int], argv: list[str], commands: list[str]) -> None:
     commands.append(f"python -m {module} " + " ".join(argv))
     print("$ " + commands[-1], flush=True)
     code = main(argv)
     if code:
-        raise SystemExit(f"eval.report: `{commands[-1]}` failed with exit code {code}")
+        raise StepFailed(code)
 
 
 def build_inputs(paths: Paths, quick: bool, commands: list[str], force: bool) -> None:
@@ -212,8 +220,9 @@ def write_markdown(path: Path, sections: list[tuple[str, str]], commands: list[s
     write_bytes(path, "\n".join(lines).encode())
 
 
+@cli_main()
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(prog="python -m eval.report", description=__doc__.split("\n\n")[0])
+    p = ArgumentParser(prog="python -m eval.report", description=__doc__.split("\n\n")[0])
     p.add_argument("--quick", action="store_true", help="about a minute: fewer seeds and sizes")
     p.add_argument("--out", type=Path, default=config.OUT, help="folder of tables, results, figures and the report")
     p.add_argument("--runs", type=Path, default=Path("runs/eval"), help="TensorBoard folder")
@@ -223,7 +232,19 @@ def main(argv=None) -> int:
     p.add_argument("--no-mlp", action="store_true",
                    help="leave the distilled MLP out of the closed-loop experiments (saves several minutes on a CPU: "
                         "its forward pass costs about 10x a table lookup per control cycle)")
+    add_system_module_arg(p)
     args = p.parse_args(argv)
+    import_system_modules(args.system_module)
+    check_output_folder(args.out, "--out")
+    check_output_folder(args.runs, "--runs")
+    try:
+        return _report(args)
+    except StepFailed as exc:  # the step printed its error line (or its Ctrl-C line) already
+        return exc.code
+
+
+def _report(args) -> int:
+    """Every stage of the report (see the module docstring)."""
     out, runs = (args.out / "quick", args.runs / "quick") if args.quick else (args.out, args.runs)
     paths = Paths(out, runs, args.quick)
     timings: dict[str, float] = {}

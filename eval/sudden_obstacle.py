@@ -41,7 +41,7 @@ a controller can beat it by a position or two.
 
 from __future__ import annotations
 
-import argparse
+import sys
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -49,10 +49,11 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from cuniform_torch.cli import ArgumentParser, cli_main
 from cuniform_torch.envs import Circle, Environment
 
 from . import config
-from .cli import sources_from_args
+from .cli import prepare, sources_from_args
 from .closed_loop import (ControllerSettings, Episode, add_common_args, aggregate, config_from_args,
                           config_from_json, finish_cli, plot_paths, run_episodes, success_markdown, usable_methods)
 from .methods import METHODS, Sources
@@ -213,8 +214,9 @@ def figures(results: dict, outdir: Path) -> list[Path]:
     return paths
 
 
-def main(argv: list[str] | None = None) -> dict:
-    parser = argparse.ArgumentParser(prog="python -m eval.sudden_obstacle", description=__doc__.splitlines()[0])
+@cli_main()
+def main(argv: list[str] | None = None) -> int:
+    parser = ArgumentParser(prog="python -m eval.sudden_obstacle", description=__doc__.splitlines()[0])
     add_common_args(parser)
     parser.add_argument("--positions", type=int, default=None)
     parser.add_argument("--appear", type=float, nargs="+", default=None)
@@ -222,10 +224,11 @@ def main(argv: list[str] | None = None) -> dict:
     torch.set_num_threads(1)
     cfg = config_from_args(QUICK if args.quick else SuddenObstacleConfig(), args, positions=args.positions,
                            appear=args.appear)
+    prepare(args)
     results = run(cfg, sources_from_args(args), progress=not args.quiet)
     finish_cli(args, results, markdown, figures)
-    return results
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

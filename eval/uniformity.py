@@ -18,7 +18,6 @@ main one) and the max-flow table's level sets L_t (the paper's). Values are mean
 
 from __future__ import annotations
 
-import argparse
 import math
 import statistics
 import sys
@@ -28,6 +27,7 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
+from cuniform_torch.cli import ArgumentParser, cli_main
 from cuniform_torch.grid import CellKeys
 
 from .cli import add_source_args, run_experiment
@@ -122,8 +122,9 @@ def print_table(result: dict) -> None:
     print(markdown(result))
 
 
+@cli_main()
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(prog="python -m eval.uniformity", description=__doc__.split("\n\n")[0])
+    p = ArgumentParser(prog="python -m eval.uniformity", description=__doc__.split("\n\n")[0])
     p.add_argument("--methods", nargs="+", default=None)
     p.add_argument("--samples", type=int, default=10000)
     p.add_argument("--seeds", type=int, default=3)

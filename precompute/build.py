@@ -273,7 +273,7 @@ def _run(args: argparse.Namespace) -> int:
     out: Path = args.out or Path("out") / f"{name}.npz"
     if args.max_memory is not None and not args.max_memory > 0:
         raise ValueError(f"--max-memory must be a positive number of GB, got {args.max_memory}")
-    check_output_file(out, "--out")
+    check_output_file(out, "--out", example="table.npz")
     if args.rollouts is not None and args.rollouts < 1:
         raise ValueError(f"--rollouts must be positive, got {args.rollouts}")
     _check_device(args.device)

@@ -27,12 +27,13 @@ dimensions, A actions, G (table, level) groups.
   at the same weights as an uninterrupted run); ``<out stem>.comparison.json``, the final comparison of
   :func:`training.evaluate.compare` with sizes and wall times, also printed.
 
-``main(argv)`` returns 0, or 2 after printing ``error: ...`` for bad flags, unreadable tables and refused resumes.
+``main(argv)`` returns 0, or 2 after printing one line ``error: ...`` (bad flags, unreadable tables, an output
+path that cannot be written, checked before training starts, a full disk, a refused resume, another run holding
+``<out>.lock``), or 130 after one line on Ctrl-C (see :mod:`cuniform_torch.cli`).
 """
 
 from __future__ import annotations
 
-import argparse
 import ast
 import dataclasses
 import inspect
@@ -51,13 +52,15 @@ import torch
 from torch.utils.tensorboard import SummaryWriter
 from tqdm import tqdm
 
+from cuniform_torch.cli import (ArgumentParser, add_system_module_arg, check_output_file, check_output_folder,
+                                cli_main, import_system_modules)
 from cuniform_torch.coverage import coverage, uniform_ceiling
-from cuniform_torch.fileio import write_bytes, write_json
+from cuniform_torch.fileio import exclusive_lock, write_bytes, write_json
 from cuniform_torch.grid import Grid
 from cuniform_torch.mlp import MLPConfig, MLPPolicy, default_feature_scale, file_sha256, policy_checkpoint, save_policy
 from cuniform_torch.policy import TablePolicy
 from cuniform_torch.rollout import rollout
-from cuniform_torch.table import Table, TableError, read_table
+from cuniform_torch.table import Table, read_table
 
 from .evaluate import cell_centres, cell_levels, compare, jitter_cells, kl_per_level, kl_rows, sizes
 
@@ -108,6 +111,8 @@ class DistillConfig:
     """rollout counts N of the final coverage comparison (the first also sets the coverage figure's N)"""
     eval_every: int = 100
     """epochs between the eval/kl_level_<t> scalars and the figures"""
+    system_module: list[str] = field(default_factory=list)
+    """modules to import first (--system-module, repeatable): they register the user systems the tables name"""
 
 
 # the settings a training state must share with the run that resumes it (the others change no weight)
@@ -118,8 +123,8 @@ class UsageError(ValueError):
     """A bad flag, an inconsistent set of tables, or a refused resume: reported as ``error: ...``, exit code 2."""
 
 
-class _Parser(argparse.ArgumentParser):
-    def error(self, message: str) -> typing.NoReturn:
+class _Parser(ArgumentParser):
+    def error(self, message: str) -> typing.NoReturn:  # main returns 2 rather than exiting
         raise UsageError(message)
 
 
@@ -135,6 +140,9 @@ def parse_args(argv: Sequence[str] | None = None) -> DistillConfig:
     parser = _Parser(prog="python -m training.distill", description=__doc__.splitlines()[0])
     docs, hints = _field_docs(DistillConfig), typing.get_type_hints(DistillConfig)
     for f in dataclasses.fields(DistillConfig):
+        if f.name == "system_module":
+            add_system_module_arg(parser)  # repeatable, as in every entry point
+            continue
         flag, kind, doc = "--" + f.name.replace("_", "-"), hints[f.name], docs[f.name]
         default = f.default_factory() if f.default_factory is not dataclasses.MISSING else f.default
         helptext = doc if ("default" in doc or kind is bool or f.name == "tables") else f"{doc} (default: {default})"
@@ -169,7 +177,26 @@ def parse_args(argv: Sequence[str] | None = None) -> DistillConfig:
             raise UsageError(f"--tables: no table file at {path}")
     if cfg.out is None:
         cfg.out = str(Path("out") / f"{Path(cfg.tables[0]).stem}.policy.pt")
+    check_outputs(cfg)
     return cfg
+
+
+def output_paths(cfg: DistillConfig) -> tuple[Path, Path, Path]:
+    """``(checkpoint, training state, comparison JSON)`` of a config whose ``out`` is filled."""
+    assert cfg.out is not None
+    out = Path(cfg.out)
+    return out, out.with_name(out.name + ".train.pt"), out.with_name(out.stem + ".comparison.json")
+
+
+def check_outputs(cfg: DistillConfig) -> None:
+    """Before training: every output can be written (a folder named like a file, an unwritable folder, a file
+    as ``--logdir`` would otherwise surface after the training only)."""
+    out, state_path, comparison_path = output_paths(cfg)
+    check_output_file(out, "--out", example="policy.pt")
+    for path in (state_path, comparison_path):
+        if path.is_dir():
+            raise UsageError(f"--out {out}: {path}, which distillation writes, is a folder")
+    check_output_folder(cfg.logdir, "--logdir")
 
 
 def read_tables(paths: Sequence[str]) -> list[Table]:
@@ -271,11 +298,16 @@ def load_train_state(path: Path, fingerprint: dict[str, Any]) -> dict[str, Any]:
 
 def distill(cfg: DistillConfig) -> int:
     """Train, checkpoint and compare (see the module docstring)."""
+    import_system_modules(cfg.system_module)
+    out = output_paths(cfg)[0]
+    with exclusive_lock(out.with_name(out.name + ".lock"), what=f"--out {out} (another distillation writing it?)"):
+        return _distill(cfg)
+
+
+def _distill(cfg: DistillConfig) -> int:
+    """:func:`distill`, holding the lock of ``--out``."""
     wall_start = time.perf_counter()
-    assert cfg.out is not None
-    out = Path(cfg.out)
-    state_path = out.with_name(out.name + ".train.pt")
-    comparison_path = out.with_name(out.stem + ".comparison.json")
+    out, state_path, comparison_path = output_paths(cfg)
     device = torch.device(cfg.device)
 
     # ---- tables
@@ -472,12 +504,11 @@ def format_comparison(c: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
+@cli_main(interrupted="interrupted: no checkpoint written; rerun with --resume to continue from the last "
+                      "finished epoch")
 def main(argv: Sequence[str] | None = None) -> int:
-    try:
-        return distill(parse_args(argv))
-    except (UsageError, TableError) as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
+    """Distil from the flags ``argv``: 0, or 2 after one ``error: ...`` line, or 130 on Ctrl-C."""
+    return distill(parse_args(argv))
 
 
 if __name__ == "__main__":
