@@ -170,8 +170,8 @@ def _acquire(lock: Path, what: str) -> None:
                 pid, host = owner
                 if host != _HOST or pid == os.getpid() or _pid_alive(pid):
                     where = f"process {pid}" + ("" if host == _HOST else f" on {host}")
-                    raise FileLockedError(f"{what} is in use by {where} (lock file {lock}); wait for it to finish, "
-                                          "or delete the lock file if no such process runs") from None
+                    raise FileLockedError(f"{what} is being written by {where} (lock file {lock}); wait for it to "
+                                          "finish, or delete the lock file if no such process runs") from None
             _take_over(lock, text)
             continue
         with os.fdopen(fd, "w") as fh:

@@ -277,7 +277,7 @@ def _run(args: argparse.Namespace) -> int:
     if args.rollouts is not None and args.rollouts < 1:
         raise ValueError(f"--rollouts must be positive, got {args.rollouts}")
     _check_device(args.device)
-    with exclusive_lock(out.with_name(out.name + ".lock"), what=f"--out {out} (another build writing it?)"):
+    with exclusive_lock(out.with_name(out.name + ".lock"), what=f"--out {out}"):
         return _build(args, system, horizon, config, out)
 
 

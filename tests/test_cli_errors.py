@@ -216,7 +216,7 @@ def test_lock_is_exclusive_within_a_run(tmp_path):
     lock = tmp_path / "x.lock"
     with exclusive_lock(lock, what="x"):
         assert lock.read_text().split()[0] == str(os.getpid())
-        with pytest.raises(FileLockedError, match=r"x is in use by process"):
+        with pytest.raises(FileLockedError, match=r"x is being written by process"):
             with exclusive_lock(lock, what="x"):
                 pass
     assert not lock.exists()

@@ -300,7 +300,7 @@ def distill(cfg: DistillConfig) -> int:
     """Train, checkpoint and compare (see the module docstring)."""
     import_system_modules(cfg.system_module)
     out = output_paths(cfg)[0]
-    with exclusive_lock(out.with_name(out.name + ".lock"), what=f"--out {out} (another distillation writing it?)"):
+    with exclusive_lock(out.with_name(out.name + ".lock"), what=f"--out {out}"):
         return _distill(cfg)
 
 
