@@ -16,7 +16,6 @@ finite.
 
 from __future__ import annotations
 
-import argparse
 import sys
 import threading
 import warnings
@@ -27,6 +26,7 @@ import torch
 from tqdm import tqdm
 
 from cuniform_torch import CUniformMPPI, Dubins, load_table
+from cuniform_torch.cli import ArgumentParser, check_output_file, cli_main
 from cuniform_torch.fileio import write_json
 from cuniform_torch.mppi import BankRefreshWarning
 
@@ -136,8 +136,9 @@ def _policy(path: Path | None, horizon: int, device: str):
     return TablePolicy(table, device=device)
 
 
+@cli_main()
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(prog="python -m eval.soak_bank", description=__doc__.split("\n\n")[0])
+    p = ArgumentParser(prog="python -m eval.soak_bank", description=__doc__.split("\n\n")[0])
     p.add_argument("--commands", type=int, default=20000)
     p.add_argument("--samples", type=int, default=1000, help="K, proposals per command")
     p.add_argument("--bank-size", type=int, default=20000)
@@ -150,13 +151,11 @@ def main(argv=None) -> int:
     p.add_argument("--quiet", action="store_true")
     p.add_argument("--json", type=Path, default=None)
     args = p.parse_args(argv)
-    try:
-        policy = _policy(args.table, args.horizon, args.device)
-        result = soak(policy, args.commands, args.samples, args.bank_size, args.refresh, args.fail_once,
-                      args.sample_every, args.quiet)
-    except ValueError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
+    if args.json is not None:
+        check_output_file(args.json, "--json", "soak_bank.json")
+    policy = _policy(args.table, args.horizon, args.device)
+    result = soak(policy, args.commands, args.samples, args.bank_size, args.refresh, args.fail_once,
+                  args.sample_every, args.quiet)
     for key, value in asdict(result).items():
         print(f"{key:28} {value}")
     if args.json is not None:
