@@ -37,7 +37,7 @@ from torch import Tensor
 from . import cpu_kernels
 from .grid import CellKeys, CellSet, Grid, KeyHash
 from .options import Option, option_label
-from .rollout import check_states
+from .rollout import check_generator, check_states
 from .systems import System
 from .table import Table, read_table
 
@@ -445,6 +445,8 @@ class TablePolicy:
     def sample(self, x: Tensor, t: int, generator: torch.Generator | None = None) -> Tensor:
         """Draw one action per state from its row (alias method, one uniform each): ``x [N, d]`` -> ``[N, q]``."""
         self._check(x, t)
+        if generator is not None and not isinstance(generator, torch.Generator):
+            check_generator(generator, self.device)  # the clear TypeError
         r = torch.empty(x.shape[0], device=self.device, dtype=self.dtype).uniform_(0, self.num_actions,
                                                                                     generator=generator)  # [N]
         if self.kernel is Kernel.NUMBA:

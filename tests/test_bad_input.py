@@ -751,3 +751,8 @@ def test_rows_non_integer_level(policy):
 def test_rows_integer_states(policy):
     with pytest.raises(ValueError, match=r"dtype|floating"):
         policy.rows(torch.zeros(2, 3, dtype=torch.int64), 0)
+
+
+def test_table_policy_sample_names_a_generator_that_is_not_one(policy):
+    with pytest.raises(TypeError, match=r"generator must be a torch.Generator or None, got int"):
+        policy.sample(torch.zeros(4, 3), 0, generator=0)
