@@ -270,13 +270,15 @@ class TestAngles:
             shifted[:, 2] += 2 * math.pi * turns
             assert torch.equal(policy.rows(shifted.float(), t), rows), turns
 
-    def test_huge_and_non_finite_states_are_misses_not_errors(self, dubins_table):
-        policy = TablePolicy(dubins_table)
+    @pytest.mark.parametrize("kernel", ["torch", "numba"])
+    def test_huge_and_non_finite_states_are_misses_not_errors(self, dubins_table, kernel):
+        """Far (|x| = 1e30), infinite and NaN states are in no cell and no halo: misses, answered uniformly."""
+        policy = TablePolicy(dubins_table, kernel=kernel)
         x = torch.tensor([[0.0, 0.0, 1e30], [0.0, 0.0, -1e30], [1e30, -1e30, 0.0], [0.0, 0.0, float("inf")],
                           [0.0, 0.0, float("nan")], [float("nan")] * 3])
-        rows = policy.rows(x, 0)
-        assert bool((rows == -1).all()) or bool((rows < policy.num_cells).all())
-        probs = policy.action_probs(x, 0)
-        torch.testing.assert_close(probs.sum(dim=1), torch.ones(x.shape[0]))
+        for t in (0, 3):
+            assert policy.rows(x, t).tolist() == [-1] * x.shape[0]
+            probs = policy.action_probs(x, t)
+            torch.testing.assert_close(probs, torch.full_like(probs, 1.0 / policy.num_actions))
         u = policy.sample(x, 0, torch.Generator().manual_seed(0))
         assert bool(torch.isin(u[:, 0], policy.actions[:, 0]).all())
