@@ -1,0 +1,99 @@
+"""The README's commands stay true: every ``python -m`` command it shows parses with today's flags.
+
+Each command is run in-process up to its argument parsing (``parse_args`` returns, then the run stops), so a
+renamed module or flag fails here in a second, without doing the command's work.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import re
+import shlex
+import sys
+from pathlib import Path
+
+import pytest
+
+from cuniform_torch.systems import _REGISTRY
+
+README = Path(__file__).resolve().parents[1] / "README.md"
+SKIP = {"pytest"}  # not ours
+
+
+def readme_commands(text: str) -> list[str]:
+    """Every ``python -m ...`` command of the README: in fenced blocks (a ``$ `` prompt optional, ``\\``
+    continuations joined, comments cut) and in inline code spans (joined across line breaks)."""
+    commands = []
+    for block in re.findall(r"```[a-z]*\n(.*?)```", text, flags=re.S):
+        for line in block.replace("\\\n", " ").splitlines():
+            line = line.strip().removeprefix("$ ").strip()
+            if line.startswith("python -m "):
+                commands.append(line)
+    outside = re.sub(r"```.*?```", "", text, flags=re.S)
+    commands += [span.replace("\n", " ") for span in re.findall(r"`(python -m [^`]+)`", outside)]
+    cleaned = []
+    for command in commands:
+        words = shlex.split(command, comments=True)
+        cleaned.append(shlex.join(words))
+    return sorted(set(cleaned))
+
+
+class _Parsed(BaseException):
+    """Raised right after the command's arguments parse (a BaseException: no CLI wrapper turns it into exit 2)."""
+
+
+COMMANDS = readme_commands(README.read_text())
+
+
+def test_the_readme_shows_commands():
+    modules = {shlex.split(c)[2] for c in COMMANDS}
+    assert {"precompute.build", "training.distill", "eval.report", "eval.bench"} <= modules, modules
+
+
+def _my_robots(text: str) -> str:
+    """The README's own ``Unicycle`` example as the module ``my_robots`` its commands import: the example's
+    imports, class and ``register_system`` line."""
+    block = next(b for b in re.findall(r"```python\n(.*?)```", text, flags=re.S) if "class Unicycle" in b)
+    lines = block.splitlines()
+    end = next(i for i, line in enumerate(lines) if line.startswith("register_system("))
+    keep = [line for line in lines[: end + 1] if not line.startswith(("from precompute", "from training"))]
+    return "\n".join(keep) + "\n"
+
+
+@pytest.fixture()
+def registry_restored():
+    """The system registry as it was: a command may register the README's unicycle from ``my_robots``."""
+    saved = dict(_REGISTRY)
+    yield
+    _REGISTRY.clear()
+    _REGISTRY.update(saved)
+
+
+@pytest.mark.parametrize("command", [c for c in COMMANDS if shlex.split(c)[2] not in SKIP])
+def test_readme_command_parses(command, monkeypatch, tmp_path, capsys, registry_restored):
+    words = shlex.split(command)
+    module, argv = words[2], words[3:]
+    main = getattr(importlib.import_module(module), "main", None)
+    assert callable(main), f"{module} has no main(argv)"
+    if not argv:
+        return  # a bare mention of the command (a heading, a sentence): the module and its main exist
+    if "my_robots" in command:
+        (tmp_path / "my_robots.py").write_text(_my_robots(README.read_text()))
+        monkeypatch.syspath_prepend(str(tmp_path))
+        monkeypatch.delitem(sys.modules, "my_robots", raising=False)
+    real_parse_args = argparse.ArgumentParser.parse_args
+
+    def parse_then_stop(self, args=None, namespace=None):
+        real_parse_args(self, args, namespace)
+        raise _Parsed
+
+    monkeypatch.setattr(argparse.ArgumentParser, "parse_args", parse_then_stop)
+    monkeypatch.chdir(tmp_path)  # nothing the parse might create lands in the checkout
+    try:
+        code = main(argv)
+    except _Parsed:
+        return
+    except SystemExit as exc:  # --help exits 0; a bad flag exits 2 with its error line
+        code = exc.code
+    assert code == 0, f"README command does not parse: {command}\n{capsys.readouterr().err}"
