@@ -25,7 +25,8 @@ def test_readme_python_example_runs(tmp_path, dubins_table, monkeypatch):
         namespace: dict = {}
         exec(compile(code, "README.md", "exec"), namespace)
         namespaces.append(namespace)
-    assert namespaces[0]["states"].shape == (1000, 11, 3)
+    assert namespaces[0]["states"].shape == (1000, 11, 3)  # the ten-line API of the first screen
+    assert namespaces[0]["result"].outcome == "goal"
     # the closed-loop example: every controller reaches the goal around the obstacle
     assert namespaces[-1]["result"].outcome == "goal"
 
