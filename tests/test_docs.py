@@ -65,6 +65,7 @@ def _my_robots(text: str) -> str:
 def registry_restored():
     """The system registry as it was: a command may register the README's unicycle from ``my_robots``."""
     saved = dict(_REGISTRY)
+    _REGISTRY.pop("unicycle", None)  # as a fresh process: the README's Python example may have registered its own
     yield
     _REGISTRY.clear()
     _REGISTRY.update(saved)
