@@ -8,7 +8,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from .systems import wrap_angle
+from .checks import wrap_angle
 
 __all__ = ["se2_to_world", "se2_to_local"]
 

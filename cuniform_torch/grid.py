@@ -8,6 +8,10 @@ A state ``x`` lies in the cell ``round(x / delta + offset)`` per dimension, wher
 taken mod K, so it lies in ``[0, K)``. The centre of a cell is ``(cell - offset) * delta`` (angles wrapped to
 ``[-pi, pi)``).
 
+:func:`check_grid` is the one check of these invariants (cell sizes, offsets, angle cells of ``2 pi / K`` within
+:data:`ANGLE_CELL_RTOL`); systems, :func:`~cuniform_torch.systems.check_system`, :class:`Grid` and the table
+reader all call it.
+
 Lookups pack a cell into one int64 key by mixed radix over a bounding box (``CellKeys``) and binary-search a
 sorted key array (``CellSet``), or probe a static hash table of the keys once (``KeyHash``: a few gathers
 instead of a binary search, sized about 2-4x the number of keys); both work the same on CPU and GPU.
@@ -21,14 +25,49 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-__all__ = ["Grid", "CellKeys", "CellSet", "KeyHash"]
+from .checks import float_tuple, wrap_angle
+
+__all__ = ["Grid", "CellKeys", "CellSet", "KeyHash", "check_grid", "ANGLE_CELL_RTOL"]
 
 _MAX_KEY = 2**62
+
+ANGLE_CELL_RTOL = 1e-3
+"""how far an angle cell size ``delta`` may be from ``2 pi / K`` (``K = round(2 pi / delta)``), relative:
+``|K delta - 2 pi| <= ANGLE_CELL_RTOL * 2 pi``. Loose enough for a size typed with four digits (``0.1571`` for
+``2 pi / 40`` is 1.3e-4 off), which :func:`check_grid` then makes exactly ``2 pi / K``; tight enough to refuse a
+size that is not meant as ``2 pi / K`` at all (``0.3``: ``2 pi / 20.94``)."""
+
+
+def check_grid(cell_size, periodic, offset, who: str) -> tuple[tuple[float, ...], tuple[float, ...]]:
+    """The one check of a grid's invariants: ``(cell_size, offset)`` normalized, or ValueError naming ``who``.
+
+    ``periodic [d]`` (bools) sets the number of dimensions; ``cell_size [d]`` must be finite and positive,
+    ``offset [d]`` (in cells) finite with ``|offset| < 0.5``, and an angle dimension's size ``2 pi / K`` for an
+    integer ``K >= 1`` within :data:`ANGLE_CELL_RTOL`. Returned: float tuples, each angle size exactly
+    ``2 pi / K``. Sequences, tuples and numpy arrays are all accepted.
+    """
+    periodic = tuple(bool(p) for p in periodic)
+    d = len(periodic)
+    sizes = list(float_tuple(cell_size, d, "cell_size", who))
+    offsets = float_tuple(offset, d, "cell_offset", who)
+    if any(c <= 0 for c in sizes):
+        raise ValueError(f"{who}: cell_size must be positive in every dimension, got {tuple(sizes)}")
+    if any(abs(o) >= 0.5 for o in offsets):
+        raise ValueError(f"{who}: cell_offset is in cells and must satisfy |offset| < 0.5, got {offsets}")
+    for i, angle in enumerate(periodic):
+        if angle:
+            k = round(2.0 * math.pi / sizes[i])
+            if k < 1 or abs(k * sizes[i] - 2.0 * math.pi) > ANGLE_CELL_RTOL * 2.0 * math.pi:
+                raise ValueError(f"{who}: the angle cell size must divide 2*pi (it must be 2*pi/K for an integer K); "
+                                 f"dimension {i} has {sizes[i]} (2*pi/{2.0 * math.pi / sizes[i]:.4f})")
+            sizes[i] = 2.0 * math.pi / k
+    return tuple(sizes), offsets
 
 
 @dataclass(frozen=True)
 class Grid:
-    """Cell geometry of a state space."""
+    """Cell geometry of a state space, checked and normalized by :func:`check_grid` (an angle cell size within
+    :data:`ANGLE_CELL_RTOL` of ``2 pi / K`` becomes exactly ``2 pi / K``)."""
 
     cell_size: tuple[float, ...]
     """delta per dimension ``[d]``"""
@@ -38,15 +77,10 @@ class Grid:
     """grid offset per dimension, in cells ``[d]``"""
 
     def __post_init__(self) -> None:
-        d = len(self.cell_size)
-        if len(self.periodic) != d or len(self.offset) != d:
-            raise ValueError(
-                f"Grid: cell_size, periodic and offset need the same length, got {d}, {len(self.periodic)}, {len(self.offset)}"
-            )
-        if any(not (c > 0) for c in self.cell_size):
-            raise ValueError(f"Grid: cell_size must be positive, got {self.cell_size}")
-        if any(not (abs(o) < 0.5) for o in self.offset):
-            raise ValueError(f"Grid: offset is in cells and must satisfy |offset| < 0.5, got {self.offset}")
+        sizes, offsets = check_grid(self.cell_size, self.periodic, self.offset, "Grid")
+        object.__setattr__(self, "cell_size", sizes)
+        object.__setattr__(self, "periodic", tuple(bool(p) for p in self.periodic))
+        object.__setattr__(self, "offset", offsets)
 
     @classmethod
     def of(cls, system) -> "Grid":
@@ -91,7 +125,7 @@ class Grid:
         if not any(self.periodic):
             return x
         per = torch.tensor(self.periodic, dtype=torch.bool, device=x.device)
-        return torch.where(per, torch.remainder(x + math.pi, 2.0 * math.pi) - math.pi, x)
+        return torch.where(per, wrap_angle(x), x)
 
 
 @dataclass(frozen=True)

@@ -19,6 +19,7 @@ import numpy as np
 import torch
 
 from .fileio import write_npz
+from .grid import Grid, check_grid
 from .systems import MAX_ACTIONS, MAX_HORIZON, System, system_from_json, system_to_json
 
 __all__ = ["TABLE_FORMAT", "Table", "TableError", "write_table", "read_table", "system_fields"]
@@ -318,10 +319,11 @@ def validate_table(table: Table, source: str = "table", check_system: bool = Tru
     for key in ("actions", "cell_size", "cell_offset", "action_probs", "cell_probs"):
         if not np.all(np.isfinite(getattr(table, key))):
             fail(f"{key} contains NaN or infinite values")
-    if np.any(table.cell_size <= 0):
-        fail(f"cell_size must be positive, got {table.cell_size.tolist()}")
-    if np.any(np.abs(table.cell_offset) >= 0.5):
-        fail(f"cell_offset must satisfy |offset| < 0.5 cells, got {table.cell_offset.tolist()}")
+    try:  # the one check of the grid's invariants (angle cells of 2 pi / K within grid.ANGLE_CELL_RTOL)
+        sizes, offsets = check_grid(table.cell_size, table.periodic, table.cell_offset, "grid")
+    except ValueError as exc:
+        fail(str(exc))
+    grid = Grid(sizes, tuple(table.periodic), offsets)
     probs = table.action_probs
     if np.any(probs < 0) or np.any(probs > 1 + _ROW_SUM_TOL):
         fail("action_probs must lie in [0, 1]")
@@ -340,7 +342,7 @@ def validate_table(table: Table, source: str = "table", check_system: bool = Tru
     if np.any(table.flow_value < 0) or np.any(table.flow_value > table.flow_target):
         fail("flow_value must lie in [0, flow_target]")
     for dim in np.flatnonzero(table.periodic):
-        k = round(2 * np.pi / table.cell_size[dim])
+        k = grid.num_angle_cells[dim]
         col = table.cells[:, dim]
         if col.min() < 0 or col.max() >= k:
             fail(f"cells of angle dimension {dim} must lie in [0, {k})")
@@ -350,7 +352,7 @@ def validate_table(table: Table, source: str = "table", check_system: bool = Tru
     _validate_graph(table, "arc", ("arcs", "arc_flow"), 2, T, C, A, fail)
     _validate_graph(table, "transition", ("transitions", "transition_frac"), 3, T, C, A, fail)
     if check_system:
-        _validate_system(table, T, fail, trust_factory)
+        _validate_system(table, grid, T, fail, trust_factory)
 
 
 _MAX_KEY_CELLS = 2**53  # the runtime packs a cell exactly into a float64 key
@@ -414,7 +416,7 @@ def _validate_graph(table: Table, prefix: str, keys: tuple[str, str], width: int
         fail(f"{keys[0]} of step t must go from level t to level t+1")
 
 
-def _validate_system(table: Table, T: int, fail, trust_factory: str | Callable[..., Any] | None = None) -> None:
+def _validate_system(table: Table, grid: Grid, T: int, fail, trust_factory: str | Callable[..., Any] | None = None) -> None:
     try:
         system, horizon = system_from_json(table.system, trust_factory=trust_factory)
     except ValueError as exc:  # includes UnknownSystemError
@@ -424,9 +426,11 @@ def _validate_system(table: Table, T: int, fail, trust_factory: str | Callable[.
     expect = system.action_set(dtype=torch.float32).numpy()
     if expect.shape != table.actions.shape or not np.allclose(expect, table.actions, atol=1e-6):
         fail(f"actions do not match the system {system.name!r} ({expect.shape[0]} actions expected)")
-    checks = (("cell_size", system.cell_size), ("periodic", system.periodic), ("cell_offset", system.cell_offset))
-    for key, value in checks:
-        if not np.allclose(np.asarray(value, dtype=np.float64), np.asarray(getattr(table, key), dtype=np.float64)):
+    ours = Grid.of(system)  # both grids normalized by check_grid: angle sizes exactly 2 pi / K
+    checks = (("cell_size", ours.cell_size, grid.cell_size), ("periodic", ours.periodic, grid.periodic),
+              ("cell_offset", ours.offset, grid.offset))
+    for key, value, theirs in checks:
+        if not np.allclose(np.asarray(value, dtype=np.float64), np.asarray(theirs, dtype=np.float64)):
             fail(f"{key} {getattr(table, key).tolist()} does not match the system's {list(value)}")
     if json.loads(table.system).get("dt") not in (None, system.dt):
         fail("system JSON dt does not match its params")

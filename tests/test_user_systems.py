@@ -216,7 +216,7 @@ class _Broken:
     (dict(step=None), r"lacks step of the System protocol"),
     (dict(cell_size=(0.1,)), r"cell_size needs 2 value"),
     (dict(se2_invariant=True), r"SE\(2\)-invariant system needs the state \(x, y, theta, \.\.\.\)"),
-    (dict(periodic=(False, True), cell_size=(0.1, 0.1571)), r"must be 2\*pi/K"),
+    (dict(periodic=(False, True), cell_size=(0.1, 0.3)), r"bad grid: the angle cell size .*must be 2\*pi/K"),
     (dict(step=lambda x, u: x[:, :1]), r"step\(x \[2, 2\] float64.*must return \[2, 2\] float64"),
     (dict(params=lambda: {"f": object()}), r"params\(\) must be JSON-serializable"),
     (dict(cell_offset=(0.5, 0.0)), r"bad grid"),
