@@ -1,15 +1,17 @@
 """cuniform_torch: the runtime library of C-Uniform trajectory sampling.
 
-Systems, grid, table files, the table policy, batched rollouts, noise samplers, the MPPI family and
-navigation environments. See the README for a tour.
+Systems, grid, table files, the table policy, batched rollouts, noise samplers, proposals, the MPPI family
+(one core, :class:`MPPICore`, that takes a :class:`Proposal`) and navigation environments. See the README for a tour.
 """
 
 from .frames import se2_to_local, se2_to_world
 from .grid import CellKeys, CellSet, Grid
 from .mlp import POLICY_FORMAT, MLPConfig, MLPPolicy, PolicyCheckpointError, load_policy, save_policy
-from .mppi import COST_CAP, CUMPPI, MPPI, CostFn, CUniformMPPI, LogMPPI, MPPIResult, mppi_weights
+from .mppi import COST_CAP, CUMPPI, MPPI, CostFn, CUniformMPPI, LogMPPI, MPPICore, MPPIResult, mppi_weights
 from .policy import Fallback, TablePolicy, UniformPolicy, load_table
-from .rollout import ActionSampler, Policy, rollout
+from .proposals import (BankProposal, BankRefreshWarning, CompositeProposal, GaussianProposal, NormalLogNormalProposal,
+                        PolicyProposal, Proposal)
+from .rollout import ActionSampler, Policy, PolicyTraits, rollout, rollout_actions
 from .samplers import GaussianSampler, NormalLogNormalSampler, lognormal_params
 from .systems import (
     KinematicSingleTrack,
@@ -30,8 +32,11 @@ from .table import TABLE_FORMAT, Table, TableError, read_table, write_table
 __all__ = [
     "se2_to_local", "se2_to_world", "POLICY_FORMAT", "MLPConfig", "MLPPolicy", "PolicyCheckpointError",
     "load_policy", "save_policy", "CellKeys", "CellSet", "Grid",
-    "COST_CAP", "CUMPPI", "MPPI", "CostFn", "CUniformMPPI", "LogMPPI", "MPPIResult", "mppi_weights",
-    "Fallback", "TablePolicy", "UniformPolicy", "load_table", "ActionSampler", "Policy", "rollout",
+    "COST_CAP", "CUMPPI", "MPPI", "CostFn", "CUniformMPPI", "LogMPPI", "MPPICore", "MPPIResult", "mppi_weights",
+    "BankProposal", "BankRefreshWarning", "CompositeProposal", "GaussianProposal", "NormalLogNormalProposal",
+    "PolicyProposal", "Proposal",
+    "Fallback", "TablePolicy", "UniformPolicy", "load_table", "ActionSampler", "Policy", "PolicyTraits", "rollout",
+    "rollout_actions",
     "GaussianSampler", "NormalLogNormalSampler", "lognormal_params",
     "Dubins", "KinematicSingleTrack", "KinematicSingleTrackSpeed", "check_system", "RandomWalk1D", "System", "UnknownSystemError", "known_systems", "make_system", "register_system",
     "system_from_json", "system_to_json", "TABLE_FORMAT", "Table", "TableError", "read_table", "write_table",

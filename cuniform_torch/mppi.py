@@ -1,62 +1,62 @@
-"""The MPPI family on one core: MPPI, log-MPPI, C-Uniform MPPI and CU-MPPI.
+"""The MPPI family on one core: :class:`MPPICore` takes a :class:`~cuniform_torch.proposals.Proposal`.
 
 Shapes: K samples (proposals), T horizon, d state dimensions, q action dimensions.
 
-Every controller does the same three things per command, and differs only in how it proposes trajectories:
+:meth:`MPPICore.plan` is the one MPPI iteration of every controller here:
 
-1. propose K trajectories ``states [K, T+1, d]``, ``actions [K, T, q]`` from the current state;
+1. ``states [K, T+1, d], actions [K, T, q] = proposal.propose(state, generator)``;
 2. cost each one, ``cost_fn(states, actions) -> [K]`` (+ ``terminal_cost(states[:, -1]) -> [K]``); NaN and
    +-inf (e.g. the paper's infinite collision cost) become a large finite penalty, so weights never go NaN;
 3. weight them, ``w = softmax(-(cost - min cost) / lambda)`` (``lambda = 0``: all weight on the best one), and
-   return the weighted average of the proposals' first actions.
+   return the weighted average of the proposals' action sequences (its first action is the command).
 
-* :class:`MPPI` samples Gaussian noise around a nominal sequence, updates the nominal to the weighted average
-  of the sampled sequences, and warm-starts the next command by shifting it one step.
-* :class:`LogMPPI` is MPPI with normal x log-normal noise (Mohamed et al.).
-* :class:`CUniformMPPI` (the C-Uniform paper) proposes C-Uniform rollouts of a policy (a table or an MLP)
-  from the robot's pose; optionally from a *proposal bank* of pre-sampled rollouts at the origin, so that a
-  command is a random subset + a rigid transform + cost + weights.
-* :class:`CUMPPI` (arXiv 2503.05819) makes the lowest-cost C-Uniform rollout the nominal of one local MPPI or
-  log-MPPI pass and applies that pass's first control.
+:meth:`MPPICore.command` is ``plan``, then ``proposal.update(result)`` (the warm start), then the command. The
+four controllers of the papers are that core with a proposal, built by thin constructors:
 
-Bad input is refused with one ValueError or TypeError naming it: a ``lambda_`` that the controller's dtype
-cannot hold (or whose inverse overflows it), a ``seed`` that is not an integer, a state of the wrong shape,
-dtype or device or with NaN, and a cost (or terminal cost) that is not a ``[K]`` tensor of the controller's dtype
-and device, or is NaN for every proposal. A state that requires grad is detached (a controller never
-differentiates through its input).
+* :class:`MPPI`: :class:`~cuniform_torch.proposals.GaussianProposal` (noise around a nominal, shifted one step);
+* :class:`LogMPPI`: :class:`~cuniform_torch.proposals.NormalLogNormalProposal` (Mohamed et al.);
+* :class:`CUniformMPPI` (the C-Uniform paper): :class:`~cuniform_torch.proposals.PolicyProposal` (C-Uniform
+  rollouts of a table or an MLP from the pose) or, with ``bank_size``,
+  :class:`~cuniform_torch.proposals.BankProposal` (a random subset of pre-sampled rollouts + a rigid transform);
+* :class:`CUMPPI` (arXiv 2503.05819): :class:`~cuniform_torch.proposals.CompositeProposal` (the lowest-cost
+  C-Uniform rollout seeds one local MPPI or log-MPPI pass, whose first control is applied).
+
+Bad input is refused with one ValueError or TypeError naming it, all checked here: a ``lambda_`` that the
+controller's dtype cannot hold (or whose inverse overflows it), a ``seed`` that is not an integer, a state of the
+wrong shape, dtype or device or with NaN, a proposal that lacks a member of the protocol or returns trajectories
+of the wrong shape, dtype or device, and a cost (or terminal cost) that is not a ``[K]`` tensor of the
+controller's dtype and device, or is NaN for every proposal. A state that requires grad is detached (a
+controller never differentiates through its input).
 """
 
 from __future__ import annotations
 
 import math
 import numbers
-import warnings
-from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
-from typing import Callable
+from typing import Callable, Protocol
 
 import torch
 from torch import Tensor
 
-from .envs.costs import TrajectoryCost
-from .frames import se2_to_world
-from .rollout import Policy, rollout, same_device
-from .samplers import GaussianSampler, NormalLogNormalSampler
+from .proposals import (PROPOSAL_MEMBERS, BankProposal, BankRefreshWarning, Closeable, CompositeProposal,
+                        GaussianProposal, NormalLogNormalProposal, PolicyProposal, Proposal, check_positive_int,
+                        seeded_generator)
+from .rollout import same_device
 from .systems import System
 
-__all__ = ["CostFn", "MPPIResult", "mppi_weights", "MPPI", "LogMPPI", "CUniformMPPI", "CUMPPI", "COST_CAP",
-           "BankRefreshWarning"]
+__all__ = ["CostFn", "MPPIResult", "mppi_weights", "MPPICore", "MPPI", "LogMPPI", "CUniformMPPI", "CUMPPI",
+           "COST_CAP", "BankRefreshWarning"]
 
 COST_CAP = 1e10
 """NaN / inf costs are replaced by this finite value before weighting"""
 
 
-CostFn = TrajectoryCost
-"""Trajectory cost: ``states [K, T+1, d]``, ``actions [K, T, q]`` -> ``[K]`` (may be inf for collisions)."""
+class CostFn(Protocol):
+    """Trajectory cost: ``states [K, T+1, d]``, ``actions [K, T, q]`` -> ``[K]`` (may be inf for collisions), a
+    tensor of the controller's dtype on its device (``cuniform_torch.envs.NavigationCost`` is one)."""
 
-
-class BankRefreshWarning(RuntimeWarning):
-    """A background bank refresh of :class:`CUniformMPPI` raised; the controller goes on with its current bank."""
+    def __call__(self, states: Tensor, actions: Tensor) -> Tensor: ...
 
 
 @dataclass
@@ -82,20 +82,24 @@ class MPPIResult:
         return torch.argmin(self.costs)
 
 
+def _finite_costs(costs: Tensor) -> Tensor:
+    """NaN and +inf -> COST_CAP, -inf -> -COST_CAP, everything capped at COST_CAP."""
+    return torch.nan_to_num(costs, nan=COST_CAP, posinf=COST_CAP, neginf=-COST_CAP).clamp_(max=COST_CAP)
+
+
 def mppi_weights(costs: Tensor, lambda_: float) -> Tensor:
     """``softmax(-(cost - min) / lambda)`` over ``costs [K]``; ``lambda_ = 0`` puts all weight on the argmin.
 
     ValueError when ``lambda_`` is not 0 nor a normal number of ``costs.dtype`` with a finite inverse.
     """
-    return _weights(costs, _check_lambda(lambda_, costs.dtype))
+    return _weights(_finite_costs(costs), _check_lambda(lambda_, costs.dtype))
 
 
 def _weights(costs: Tensor, lambda_: float) -> Tensor:
-    """:func:`mppi_weights` for a ``lambda_`` checked already (at a controller's construction)."""
-    c = torch.nan_to_num(costs, nan=COST_CAP, posinf=COST_CAP, neginf=-COST_CAP).clamp(max=COST_CAP)
+    """:func:`mppi_weights` of finite ``costs`` for a ``lambda_`` checked already (at a controller's construction)."""
     if lambda_ == 0:
-        return torch.nn.functional.one_hot(torch.argmin(c), c.shape[0]).to(c.dtype)
-    return torch.softmax(-(c - c.min()) / lambda_, dim=0)
+        return torch.nn.functional.one_hot(torch.argmin(costs), costs.shape[0]).to(costs.dtype)
+    return torch.softmax((costs - costs.min()).div_(-lambda_), dim=0)
 
 
 def _check_lambda(lambda_: float, dtype: torch.dtype) -> float:
@@ -121,6 +125,11 @@ def _check_seed(seed: int | None) -> int | None:
     return None if seed is None else int(seed)
 
 
+def make_generator(seed: int | None, device: torch.device | str) -> torch.Generator:
+    """A controller's generator on ``device``, seeded by ``seed`` (TypeError unless it is an int or None)."""
+    return seeded_generator(_check_seed(seed), torch.device(device))
+
+
 def _callable_name(fn: object) -> str:
     """A user callable's name for an error message: its ``__qualname__``, else a short repr."""
     name = getattr(fn, "__qualname__", None)
@@ -141,34 +150,87 @@ def _check_costs(costs: object, who: str, fn: object, k: int, dtype: torch.dtype
     return costs.detach()
 
 
-def _check_positive_int(name: str, value: int) -> int:
-    if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-        raise ValueError(f"{name} must be a positive integer, got {value!r}")
-    return value
+def _describe(x: object) -> str:
+    return f"{list(x.shape)} {x.dtype} on {x.device}" if isinstance(x, Tensor) else type(x).__name__
 
 
-class _Core:
-    """Shared settings and the cost -> weights step."""
+class MPPICore:
+    """One MPPI controller around any :class:`~cuniform_torch.proposals.Proposal`.
 
-    def __init__(self, system: System, cost_fn: CostFn, num_samples: int, horizon: int, lambda_: float,
-                 terminal_cost: Callable[[Tensor], Tensor] | None, device: torch.device | str,
-                 dtype: torch.dtype, seed: int | None):
-        self.system = system
+    ``plan(state [d]) -> MPPIResult`` proposes, costs, weights (``lambda_``; 0 puts all the weight on the best
+    proposal) and averages; ``command(state) -> [q]`` plans, lets the proposal warm-start from the result and
+    returns its first action. The controller's ``generator`` (seeded by ``seed``, or passed in) is the one
+    stream of random numbers the proposal draws from. ``close()`` (or ``with``) releases what the proposal holds
+    (a bank's worker thread).
+    """
+
+    def __init__(self, proposal: Proposal, cost_fn: CostFn, lambda_: float = 0.567,
+                 terminal_cost: Callable[[Tensor], Tensor] | None = None, seed: int | None = None, *,
+                 generator: torch.Generator | None = None):
+        if not isinstance(proposal, Proposal):
+            missing = [m for m in PROPOSAL_MEMBERS if not hasattr(proposal, m)]
+            raise TypeError(f"{type(proposal).__name__} is not a Proposal: it lacks {', '.join(missing)} (a proposal "
+                            f"has {', '.join(PROPOSAL_MEMBERS)})")
+        for name, fn in (("cost_fn", cost_fn), ("terminal_cost", terminal_cost)):
+            if fn is not None and not callable(fn):
+                raise TypeError(f"{name} must be callable (states, actions) -> [K], got {type(fn).__name__}")
+        if cost_fn is None:
+            raise TypeError("cost_fn must be callable (states, actions) -> [K], got None")
+        self.proposal = proposal
+        self.system: System = proposal.system
         self.cost_fn = cost_fn
         self.terminal_cost = terminal_cost
-        self.num_samples = _check_positive_int("num_samples", num_samples)
-        self.horizon = _check_positive_int("horizon", horizon)
-        self.device = torch.device(device)
+        self.num_samples = check_positive_int("num_samples", proposal.num_samples)
+        self.horizon = check_positive_int("horizon", proposal.horizon)
+        self.device = torch.device(proposal.device)
+        dtype = proposal.dtype
         if not (isinstance(dtype, torch.dtype) and dtype.is_floating_point):
             raise ValueError(f"dtype must be a floating-point torch.dtype, got {dtype!r}")
         self.dtype = dtype
         self.lambda_ = _check_lambda(lambda_, dtype)
-        seed = _check_seed(seed)
-        self.state_dim = len(system.periodic)
-        actions = system.action_set(dtype=dtype, device=self.device)  # [A, q]
-        self.low, self.high = actions.min(dim=0).values, actions.max(dim=0).values  # [q] action bounds
-        self.generator = torch.Generator(device=self.device)
-        self.generator.manual_seed(seed) if seed is not None else self.generator.seed()
+        self.state_dim = len(self.system.periodic)
+        self.action_dim = self.system.action_set(dtype=dtype, device=self.device).shape[1]
+        if generator is None:
+            generator = make_generator(seed, self.device)
+        elif seed is not None:
+            raise ValueError("pass a seed or a generator, not both")
+        self.generator = generator
+        """the stream of random numbers of every proposal drawn by this controller"""
+
+    # -------------------------------------------------------------------------------- the one MPPI iteration
+
+    def plan(self, state: Tensor) -> MPPIResult:
+        """One MPPI iteration from ``state [d]``; the proposal's warm start is left as it was."""
+        state = self._check_state(state)
+        states, actions = self.proposal.propose(state, self.generator)
+        self._check_proposals(states, actions)
+        costs, weights = self._evaluate(states, actions)
+        k, t, q = actions.shape
+        nominal = (weights @ actions.reshape(k, t * q)).reshape(t, q)  # [T, q] weighted sequences
+        return MPPIResult(nominal[0], nominal, states, actions, costs, weights)
+
+    def command(self, state: Tensor) -> Tensor:
+        """The control ``[q]`` to apply at ``state [d]``; the proposal warm-starts the next command from this one."""
+        result = self.plan(state)
+        self.proposal.update(result)
+        return result.command
+
+    def reset(self) -> None:
+        """The start of an episode (the proposal forgets its warm start)."""
+        self.proposal.reset()
+
+    def close(self) -> None:
+        """Release what the proposal holds (a background worker); calling it again does nothing."""
+        if isinstance(self.proposal, Closeable):
+            self.proposal.close()
+
+    def __enter__(self) -> MPPICore:
+        return self
+
+    def __exit__(self, *exc_info: object) -> None:
+        self.close()
+
+    # -------------------------------------------------------------------------------- checks
 
     def _check_state(self, state: Tensor) -> Tensor:
         """``state [d]`` of the controller's dtype and device, finite; detached (a state is an observation)."""
@@ -183,6 +245,17 @@ class _Core:
             raise ValueError(f"state contains NaN or infinite values: {state.tolist()}")
         return state
 
+    def _check_proposals(self, states: object, actions: object) -> None:
+        """What ``propose`` returned: ``[K, T+1, d]`` states and ``[K, T, q]`` actions of the dtype and device."""
+        k, t, d, q = self.num_samples, self.horizon, self.state_dim, self.action_dim
+        ok = (isinstance(states, Tensor) and isinstance(actions, Tensor) and states.shape == (k, t + 1, d)
+              and actions.shape == (k, t, q) and states.dtype == actions.dtype == self.dtype
+              and same_device(states.device, self.device) and same_device(actions.device, self.device))
+        if not ok:
+            raise ValueError(f"{type(self.proposal).__name__}.propose returned states {_describe(states)} and actions "
+                             f"{_describe(actions)}; expected [{k}, {t + 1}, {d}] and [{k}, {t}, {q}] of {self.dtype} "
+                             f"on {self.device}")
+
     def _evaluate(self, states: Tensor, actions: Tensor) -> tuple[Tensor, Tensor]:
         """Finite costs ``[K]`` of the proposals and their weights ``[K]``; the user's costs are checked first."""
         k = states.shape[0]
@@ -194,221 +267,172 @@ class _Core:
             raise ValueError(f"cost_fn {_callable_name(self.cost_fn)}"
                              f"{'' if self.terminal_cost is None else ' + terminal_cost ' + _callable_name(self.terminal_cost)}"
                              f" returned NaN for all {k} proposals; expected a [{k}] tensor of costs")
-        costs = torch.nan_to_num(costs, nan=COST_CAP, posinf=COST_CAP, neginf=-COST_CAP).clamp(max=COST_CAP)
+        costs = _finite_costs(costs)
         return costs, _weights(costs, self.lambda_)
 
 
-class MPPI(_Core):
-    """MPPI with Gaussian noise (std ``noise_std``, scalar or ``[q]``) around a warm-started nominal sequence."""
+# ------------------------------------------------------------------------------------------ the four controllers
 
-    sampler_class = GaussianSampler
+class MPPI(MPPICore):
+    """MPPI: the core with a :class:`~cuniform_torch.proposals.GaussianProposal` (std ``noise_std``, scalar or
+    ``[q]``, around a nominal sequence that the command's weighted sequence, shifted one step, warm-starts)."""
 
     def __init__(self, system: System, cost_fn: CostFn, num_samples: int = 1000, horizon: int = 15,
                  lambda_: float = 0.567, noise_std: float | Tensor = 0.3,
                  terminal_cost: Callable[[Tensor], Tensor] | None = None, device: torch.device | str = "cpu",
-                 dtype: torch.dtype = torch.float32, seed: int | None = None, **sampler_kwargs):
-        super().__init__(system, cost_fn, num_samples, horizon, lambda_, terminal_cost, device, dtype, seed)
+                 dtype: torch.dtype = torch.float32, seed: int | None = None):
+        proposal = self._proposal(system, num_samples, horizon, noise_std, device, dtype)
+        super().__init__(proposal, cost_fn, lambda_, terminal_cost, seed)
         self.noise_std = noise_std
-        self.sampler_kwargs = sampler_kwargs
-        self.reset()
 
-    def reset(self) -> None:
-        """Zero nominal sequence (the start of an episode)."""
-        self.nominal = torch.zeros((self.horizon, self.low.shape[0]), dtype=self.dtype, device=self.device)  # [T, q]
-        self._sampler()  # validates the noise settings now, not at the first command
+    @staticmethod
+    def _proposal(system, num_samples, horizon, noise_std, device, dtype) -> GaussianProposal:
+        return GaussianProposal(system, num_samples, horizon, noise_std, device, dtype)
 
-    def _sampler(self) -> GaussianSampler:
-        return self.sampler_class(self.nominal, self.noise_std, self.low, self.high, **self.sampler_kwargs)
+    @property
+    def nominal(self) -> Tensor:
+        """``[T, q]`` the sequence the next command samples around (the proposal's)."""
+        return self.proposal.nominal
 
-    def plan(self, state: Tensor) -> MPPIResult:
-        """One MPPI iteration from ``state [d]`` (does not shift the nominal)."""
-        state = self._check_state(state)
-        states, actions = rollout(self.system, self._sampler(), state, self.num_samples, self.horizon, self.generator)
-        costs, weights = self._evaluate(states, actions)
-        nominal = torch.einsum("k,ktq->tq", weights, actions)  # [T, q]
-        return MPPIResult(nominal[0], nominal, states, actions, costs, weights)
+    @nominal.setter
+    def nominal(self, value: Tensor) -> None:
+        self.proposal.nominal = value
 
-    def command(self, state: Tensor) -> Tensor:
-        """The control ``[q]`` to apply at ``state [d]``; warm-starts the next call by shifting the nominal."""
-        result = self.plan(state)
-        self.nominal = torch.cat((result.nominal[1:], result.nominal[-1:]))  # shift, repeat the last action
-        return result.command
+    @property
+    def low(self) -> Tensor:
+        """``[q]`` lower action bounds"""
+        return self.proposal.low
+
+    @property
+    def high(self) -> Tensor:
+        """``[q]`` upper action bounds"""
+        return self.proposal.high
 
 
 class LogMPPI(MPPI):
-    """MPPI with normal x log-normal noise; ``lognormal_mean`` / ``lognormal_var`` set the log-normal factor."""
-
-    sampler_class = NormalLogNormalSampler
+    """log-MPPI: the core with a :class:`~cuniform_torch.proposals.NormalLogNormalProposal`; ``lognormal_mean``
+    / ``lognormal_var`` set the log-normal factor."""
 
     def __init__(self, system: System, cost_fn: CostFn, num_samples: int = 1000, horizon: int = 15,
                  lambda_: float = 0.567, noise_std: float | Tensor = 0.3, lognormal_mean: float = 1.0,
                  lognormal_var: float = 1.0, **kwargs):
-        super().__init__(system, cost_fn, num_samples, horizon, lambda_, noise_std,
-                         lognormal_mean=lognormal_mean, lognormal_var=lognormal_var, **kwargs)
+        self.lognormal_mean, self.lognormal_var = lognormal_mean, lognormal_var
+        super().__init__(system, cost_fn, num_samples, horizon, lambda_, noise_std, **kwargs)
+
+    def _proposal(self, system, num_samples, horizon, noise_std, device, dtype) -> NormalLogNormalProposal:
+        return NormalLogNormalProposal(system, num_samples, horizon, noise_std, self.lognormal_mean,
+                                       self.lognormal_var, device, dtype)
 
 
-def _as_policy(policy, device):
-    """A Policy object, or a distilled-policy checkpoint dict (``torch.load(path, weights_only=True)``)."""
-    if isinstance(policy, dict):
-        from .mlp import load_policy
-
-        return load_policy(policy, device=device)
-    if not isinstance(policy, Policy):
-        raise ValueError(f"policy must have actions [A, q] and action_probs(x, t); got {type(policy).__name__}")
-    return policy
-
-
-class CUniformMPPI(_Core):
+class CUniformMPPI(MPPICore):
     """C-Uniform MPPI: C-Uniform rollouts of ``policy`` from the robot's pose, softmax-weighted (paper 1).
 
-    ``lambda_ = 0`` commands the best proposal's first action (as the reference robot code does). With
-    ``bank_size`` set, ``bank_size`` rollouts are pre-sampled at the origin (SE(2)-invariant systems only); each
-    command takes a fresh random subset of ``num_samples`` of them and moves it to the pose by a rigid
-    transform; ``resample_bank()`` draws a new bank (also every ``bank_refresh`` commands when set). With
-    ``bank_background=True`` that refresh runs in a worker thread while commands go on with the current bank;
-    the new bank replaces it at the first command after it is ready (``wait_for_bank()`` blocks until then).
-    Which command first sees a background bank depends on timing, so runs with it are not bit-reproducible;
-    call ``close()`` to stop the worker (or use the controller as a context manager).
-
-    A background refresh that raises does not break the controller: the exception is reported once, as a
-    :class:`BankRefreshWarning` naming its type and message (``warnings.warn``, so a test or an application can
-    turn it into an error with a warnings filter), the current bank stays in use, ``bank_failures`` counts it,
-    ``last_bank_error`` keeps it, and the next due refresh is tried as usual.
+    ``policy`` is a table, an MLP, any Policy with a ``system``, or a distilled checkpoint dict
+    (:func:`~cuniform_torch.mlp.load_policy` loads it). ``lambda_ = 0`` commands the best proposal's first action
+    (as the reference robot code does). Without ``bank_size`` the proposal is a
+    :class:`~cuniform_torch.proposals.PolicyProposal` (fresh rollouts every command). With ``bank_size`` it is a
+    :class:`~cuniform_torch.proposals.BankProposal`: ``bank_size`` rollouts pre-sampled at the origin
+    (SE(2)-invariant systems only); each command takes a fresh random subset of ``num_samples`` of them and moves
+    it to the pose by a rigid transform; ``resample_bank()`` draws a new bank (also every ``bank_refresh`` commands
+    when set, from a stream seeded by ``seed + 1``). With ``bank_background=True`` that refresh runs in a worker
+    thread while commands go on with the current bank; see the bank's docstring for when it is swapped in and
+    what a failed refresh does. Call ``close()`` to stop the worker (or use the controller as a context manager).
     """
 
     def __init__(self, policy, cost_fn: CostFn, num_samples: int = 1000, lambda_: float = 0.567,
                  horizon: int | None = None, bank_size: int | None = None, bank_refresh: int | None = None,
                  bank_background: bool = False, terminal_cost: Callable[[Tensor], Tensor] | None = None,
                  device: torch.device | str | None = None, seed: int | None = None):
-        device = torch.device(device) if device is not None else getattr(policy, "device", torch.device("cpu"))
-        self.policy = _as_policy(policy, device)
-        table_horizon = getattr(self.policy, "horizon", None)
-        horizon = horizon if horizon is not None else table_horizon
-        if horizon is None:
-            raise ValueError("horizon is required for a policy without a table horizon")
-        if table_horizon is not None and horizon > table_horizon:
-            raise ValueError(f"horizon {horizon} is longer than the policy's table ({table_horizon} steps)")
-        dtype = getattr(self.policy, "dtype", torch.float32)
-        super().__init__(self.policy.system, cost_fn, num_samples, horizon, lambda_, terminal_cost, device, dtype, seed)
+        seed = _check_seed(seed)
         if bank_refresh is not None:
-            _check_positive_int("bank_refresh", bank_refresh)
+            check_positive_int("bank_refresh", bank_refresh)
             if bank_size is None:
                 raise ValueError("bank_refresh needs a proposal bank: set bank_size too")
         if bank_background and bank_refresh is None:
             raise ValueError("bank_background refreshes the bank every bank_refresh commands: set bank_refresh too")
+        source = PolicyProposal(policy, num_samples, horizon, device)
+        self.policy = source.policy
+        generator = make_generator(seed, source.device)
+        proposal: PolicyProposal | BankProposal = source
+        if bank_size is not None:  # the first bank comes from the controller's stream, refreshes from seed + 1
+            proposal = BankProposal(source, bank_size, generator, bank_refresh, bank_background,
+                                    seed=None if seed is None else seed + 1)
+        super().__init__(proposal, cost_fn, lambda_, terminal_cost, generator=generator)
         self.bank_size = bank_size
         self.bank_refresh = bank_refresh
-        self.bank_background = bool(bank_background)
-        self._commands = 0
-        self._pending: Future | None = None
-        self._executor: ThreadPoolExecutor | None = None
-        self.banks_swapped = 0
+
+    @property
+    def bank(self) -> BankProposal | None:
+        """The proposal bank, None without one."""
+        return self.proposal if isinstance(self.proposal, BankProposal) else None
+
+    def _need_bank(self) -> BankProposal:
+        if self.bank is None:
+            raise AttributeError("this CUniformMPPI has no proposal bank (bank_size=None)")
+        return self.bank
+
+    @property
+    def bank_states(self) -> Tensor:
+        """``[M, T+1, d]`` the bank's rollouts at the origin"""
+        return self._need_bank().bank_states
+
+    @property
+    def bank_actions(self) -> Tensor:
+        """``[M, T, q]``"""
+        return self._need_bank().bank_actions
+
+    @property
+    def bank_background(self) -> bool:
+        """Whether bank refreshes run in a worker thread (False after ``close()``)"""
+        return self.bank is not None and self.bank.background
+
+    @property
+    def banks_swapped(self) -> int:
         """background banks put in use so far"""
-        self.bank_failures = 0
+        return 0 if self.bank is None else self.bank.banks_swapped
+
+    @property
+    def bank_failures(self) -> int:
         """background refreshes that raised (each reported once by a BankRefreshWarning)"""
-        self.last_bank_error: BaseException | None = None
+        return 0 if self.bank is None else self.bank.bank_failures
+
+    @property
+    def last_bank_error(self) -> BaseException | None:
         """the exception of the latest failed background refresh"""
-        if self.bank_background:
-            self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="cuniform-bank")
-            self._bank_generator = torch.Generator(device=self.device)  # the worker's own stream of random numbers
-            self._bank_generator.manual_seed(seed + 1) if seed is not None else self._bank_generator.seed()
-        if bank_size is not None:
-            _check_positive_int("bank_size", bank_size)
-            if not self.system.se2_invariant:
-                raise ValueError(f"a proposal bank needs an SE(2)-invariant system; {self.system.name} is not")
-            if self.state_dim > 3:  # the bank starts at rest; a state's speed etc. is not a change of frame
-                raise ValueError(f"a proposal bank needs the state (x, y, theta) only; {self.system.name} has "
-                                 f"{self.state_dim} dimensions, whose rollouts depend on the start's other dimensions")
-            if bank_size < num_samples:
-                raise ValueError(f"bank_size ({bank_size}) must be at least num_samples ({num_samples})")
-            self.resample_bank()
+        return None if self.bank is None else self.bank.last_bank_error
 
-    def reset(self) -> None:
-        self._commands = 0
+    @property
+    def _draw_bank(self) -> Callable[[torch.Generator], tuple[Tensor, Tensor]]:
+        """The bank's draw (``generator -> (states, actions)``); assignable, for fault injection (eval.soak_bank)."""
+        return self._need_bank().draw_bank
 
-    def _draw_bank(self, generator: torch.Generator) -> tuple[Tensor, Tensor]:
-        origin = torch.zeros(self.state_dim, dtype=self.dtype, device=self.device)
-        return rollout(self.system, self.policy, origin, self.bank_size, self.horizon, generator)
+    @_draw_bank.setter
+    def _draw_bank(self, fn: Callable[[torch.Generator], tuple[Tensor, Tensor]]) -> None:
+        self._need_bank().draw_bank = fn
 
     def resample_bank(self) -> None:
-        """Draw ``bank_size`` fresh rollouts at the origin, now."""
-        self.bank_states, self.bank_actions = self._draw_bank(self.generator)  # [M, T+1, d], [M, T, q]
-
-    def _swap_if_ready(self, wait: bool = False) -> bool:
-        """Put a finished background bank in use (True); a failed refresh is reported and leaves the bank as is."""
-        if self._pending is None or not (wait or self._pending.done()):
-            return False
-        pending, self._pending = self._pending, None  # a failed refresh is never looked at twice
-        error = pending.exception()  # blocks until it is done
-        if error is not None:
-            self._report_bank_error(error)
-            return False
-        self.bank_states, self.bank_actions = pending.result()
-        self.banks_swapped += 1
-        return True
-
-    def _report_bank_error(self, error: BaseException) -> None:
-        self.bank_failures += 1
-        self.last_bank_error = error
-        warnings.warn(f"CUniformMPPI: background bank refresh failed ({type(error).__name__}: {error}); "
-                      f"the current bank stays in use and the next refresh is tried as usual",
-                      BankRefreshWarning, stacklevel=4)
+        """Draw ``bank_size`` fresh rollouts at the origin, now, from the controller's generator."""
+        self._need_bank().resample(self.generator)
 
     def wait_for_bank(self) -> bool:
         """Block until a background refresh in flight is done and use its bank; False when none was pending or it
         failed (then reported by a :class:`BankRefreshWarning`)."""
-        return self._swap_if_ready(wait=True)
-
-    def close(self) -> None:
-        """Stop the background worker: a pending refresh is finished first (and used, or reported if it failed).
-        The thread is stopped even when a refresh failed; calling it again does nothing."""
-        executor, self._executor = self._executor, None
-        if executor is None:
-            return
-        self.bank_background = False
-        try:
-            self._swap_if_ready(wait=True)
-        finally:
-            executor.shutdown(wait=True)
-
-    def __enter__(self) -> CUniformMPPI:
-        return self
-
-    def __exit__(self, *exc_info: object) -> None:
-        self.close()
+        return self.bank is not None and self.bank.wait_for_bank()
 
     def propose(self, state: Tensor) -> tuple[Tensor, Tensor]:
         """``num_samples`` C-Uniform proposals from ``state [d]``: ``[K, T+1, d]``, ``[K, T, q]``."""
-        if self.bank_size is None:
-            return rollout(self.system, self.policy, state, self.num_samples, self.horizon, self.generator)
-        idx = torch.randperm(self.bank_size, generator=self.generator, device=self.device)[: self.num_samples]
-        return se2_to_world(self.bank_states[idx], state), self.bank_actions[idx]
-
-    def plan(self, state: Tensor) -> MPPIResult:
-        state = self._check_state(state)
-        states, actions = self.propose(state)
-        costs, weights = self._evaluate(states, actions)
-        nominal = torch.einsum("k,ktq->tq", weights, actions)  # [T, q]
-        return MPPIResult(nominal[0], nominal, states, actions, costs, weights)
-
-    def command(self, state: Tensor) -> Tensor:
-        self._commands += 1
-        if self.bank_refresh and self.bank_size is not None:
-            due = self._commands % self.bank_refresh == 0
-            if self.bank_background:
-                self._swap_if_ready()
-                if due and self._pending is None:
-                    self._pending = self._executor.submit(self._draw_bank, self._bank_generator)
-            elif due:
-                self.resample_bank()
-        return self.plan(state).command
+        return self.proposal.propose(self._check_state(state), self.generator)
 
 
-class CUMPPI:
+class CUMPPI(MPPICore):
     """CU-MPPI: the best C-Uniform rollout seeds one local MPPI (or log-MPPI) pass; its first control is applied.
 
-    ``num_samples`` is split: ``round(cuniform_fraction * num_samples)`` C-Uniform proposals, the rest for the
-    local pass (Gaussian noise of std ``noise_std`` around the best C-Uniform action sequence).
+    ``num_samples`` is split: ``round(cuniform_fraction * num_samples)`` C-Uniform proposals (the first stage,
+    ``self.cuniform``: a :class:`CUniformMPPI` with ``lambda_ = 0`` seeded by ``seed``), the rest for the local
+    pass (``self.local``: Gaussian noise of std ``noise_std`` around the best C-Uniform action sequence, or
+    normal x log-normal with ``local="log_mppi"``; drawn from the controller's generator, seeded by ``seed + 1``).
+    The core weighs the local pass with ``lambda_``; ``plan`` returns its result. ``local_kwargs`` go to the local
+    proposal (``lognormal_mean``, ``lognormal_var``).
     """
 
     def __init__(self, policy, cost_fn: CostFn, num_samples: int = 1000, cuniform_fraction: float = 0.5,
@@ -416,31 +440,19 @@ class CUMPPI:
                  horizon: int | None = None, bank_size: int | None = None,
                  terminal_cost: Callable[[Tensor], Tensor] | None = None, device: torch.device | str | None = None,
                  seed: int | None = None, **local_kwargs):
-        _check_positive_int("num_samples", num_samples)
+        check_positive_int("num_samples", num_samples)
         if not 0 < cuniform_fraction < 1:
             raise ValueError(f"cuniform_fraction must be in (0, 1), got {cuniform_fraction!r}")
-        k_cu = max(1, min(num_samples - 1, round(cuniform_fraction * num_samples)))
         if num_samples < 2:
             raise ValueError("CU-MPPI needs num_samples >= 2 (C-Uniform proposals + a local pass)")
-        self.cuniform = CUniformMPPI(policy, cost_fn, k_cu, lambda_=0.0, horizon=horizon, bank_size=bank_size,
-                                     terminal_cost=terminal_cost, device=device, seed=seed)
-        local_cls = {"mppi": MPPI, "log_mppi": LogMPPI}.get(local)
+        local_cls = {"mppi": GaussianProposal, "log_mppi": NormalLogNormalProposal}.get(local)
         if local_cls is None:
             raise ValueError(f"unknown local pass {local!r}; choose mppi or log_mppi")
-        self.local = local_cls(self.cuniform.system, cost_fn, num_samples - k_cu, self.cuniform.horizon, lambda_,
-                               noise_std, terminal_cost=terminal_cost, device=self.cuniform.device,
-                               dtype=self.cuniform.dtype, seed=None if seed is None else seed + 1, **local_kwargs)
-        self.system = self.cuniform.system
-
-    def reset(self) -> None:
-        self.cuniform.reset()
-        self.local.reset()
-
-    def plan(self, state: Tensor) -> MPPIResult:
-        """C-Uniform stage, then a local pass around its best trajectory; returns the local pass's result."""
-        seed_result = self.cuniform.plan(state)
-        self.local.nominal = seed_result.actions[seed_result.best]  # [T, q]
-        return self.local.plan(state)
-
-    def command(self, state: Tensor) -> Tensor:
-        return self.plan(state).command
+        seed = _check_seed(seed)
+        k_cu = max(1, min(num_samples - 1, round(cuniform_fraction * num_samples)))
+        self.cuniform = CUniformMPPI(policy, cost_fn, k_cu, lambda_=0.0, horizon=horizon, bank_size=bank_size,
+                                     terminal_cost=terminal_cost, device=device, seed=seed)
+        self.local = local_cls(self.cuniform.system, num_samples - k_cu, self.cuniform.horizon, noise_std=noise_std,
+                               device=self.cuniform.device, dtype=self.cuniform.dtype, **local_kwargs)
+        super().__init__(CompositeProposal(self.cuniform, self.local), cost_fn, lambda_, terminal_cost,
+                         seed=None if seed is None else seed + 1)

@@ -1,20 +1,25 @@
-"""Batched rollouts of a policy or a noise sampler through a system: one batched step per time step.
+"""Batched rollouts through a system: one batched step per time step, no Python loop over samples.
 
 Shapes: N samples, T horizon, d state dimensions, q action dimensions, A actions.
 
-Two kinds of proposal sources drive the same :func:`rollout`:
+* :func:`rollout` runs a discrete :class:`Policy` (a table or an MLP: ``actions [A, q]`` and
+  ``action_probs(x, t) -> [N, A]``) in closed loop: each step's actions are drawn for each state. A policy
+  that also has :class:`ActionSampler`'s ``sample(x, t, generator)`` (the table's alias sampler) draws through
+  it; any other draws by categorical sampling of ``action_probs``. An :class:`ActionSampler` alone (a noise
+  law of :mod:`cuniform_torch.samplers`) drives it too, one ``sample`` per step.
+* :func:`rollout_actions` runs given open-loop action sequences ``[N, T, q]`` (what the Gaussian and log-normal
+  proposals of :mod:`cuniform_torch.proposals` draw).
 
-* a discrete :class:`Policy` (``actions [A, q]`` and ``action_probs(x, t) -> [N, A]``): a table or an MLP;
-  actions are drawn by categorical sampling;
-* a continuous :class:`ActionSampler` (``sample(x, t, generator) -> [N, q]``): Gaussian (MPPI) or
-  normal x log-normal (log-MPPI) noise around a nominal sequence, see :mod:`cuniform_torch.samplers`.
-
-A policy with ``start_relative = True`` (tables and MLPs, built at the origin) on an SE(2)-invariant system is
-rolled out from the origin and its states are moved to the start pose by a rigid transform.
+What :func:`rollout` reads from a policy, besides the protocol's members, is declared once, in
+:class:`PolicyTraits` (optional attributes, each with its default): ``horizon`` (longest rollout it serves),
+``device`` (where the start must be), ``dtype`` (what a controller around it runs in) and ``start_relative`` (a table or MLP built at the origin:
+on an SE(2)-invariant system it is rolled out from the origin and its states are moved to the start pose by a
+rigid transform).
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Protocol, runtime_checkable
 
 import torch
@@ -23,12 +28,16 @@ from torch import Tensor
 from .frames import se2_to_world
 from .systems import System
 
-__all__ = ["Policy", "ActionSampler", "rollout", "check_states", "check_generator", "same_device"]
+__all__ = ["Policy", "ActionSampler", "PolicyTraits", "rollout", "rollout_actions", "check_states",
+           "check_generator", "same_device"]
 
 
 @runtime_checkable
 class Policy(Protocol):
-    """Anything with a discrete action set and per-state action probabilities."""
+    """Anything with a discrete action set and per-state action probabilities.
+
+    Optional attributes that :func:`rollout` reads when present are listed in :class:`PolicyTraits`.
+    """
 
     actions: Tensor
     """``[A, q]``"""
@@ -40,11 +49,36 @@ class Policy(Protocol):
 
 @runtime_checkable
 class ActionSampler(Protocol):
-    """Anything that draws continuous actions for a batch of states."""
+    """Anything that draws actions for a batch of states (a table's alias sampler, a noise law)."""
 
     def sample(self, x: Tensor, t: int, generator: torch.Generator | None) -> Tensor:
         """``x [N, d]`` at step ``t`` -> actions ``[N, q]``."""
         ...
+
+
+@dataclass(frozen=True)
+class PolicyTraits:
+    """The optional attributes of a policy (or sampler) that :func:`rollout` reads, with their defaults."""
+
+    horizon: int | None = None
+    """the longest rollout the policy serves (a table's T); None: any"""
+    device: torch.device | None = None
+    """the policy's device: the start must be there; None: not checked"""
+    dtype: torch.dtype | None = None
+    """the policy's dtype (what a controller around it runs in; None: float32). A policy checks the states it is
+    given itself: a uniform policy serves any dtype"""
+    start_relative: bool = False
+    """True: the policy was built at the origin (tables, MLPs), its probabilities are in the start pose's frame"""
+
+    @classmethod
+    def of(cls, policy: object) -> PolicyTraits:
+        """The traits ``policy`` declares (an attribute it lacks, or that is None, takes the default)."""
+        device = getattr(policy, "device", None)
+        dtype = getattr(policy, "dtype", None)
+        return cls(horizon=getattr(policy, "horizon", None),
+                   device=None if device is None else torch.device(device),
+                   dtype=dtype if isinstance(dtype, torch.dtype) else None,
+                   start_relative=bool(getattr(policy, "start_relative", False)))
 
 
 def _device_index(device: torch.device) -> int:
@@ -93,6 +127,46 @@ def _check_args(system: System, x0: Tensor, num_samples: int, horizon: int) -> i
     return d
 
 
+def _step(system: System, x: Tensor, u: Tensor, n: int, d: int) -> Tensor:
+    """``system.step`` with its output shape checked: ``[n, d]``."""
+    x = system.step(x, u)
+    if x.shape != (n, d):
+        raise ValueError(f"{getattr(system, 'name', type(system).__name__)}.step returned shape {list(x.shape)} "
+                         f"for {n} states of dimension {d}; expected [{n}, {d}]")
+    return x
+
+
+def open_loop(system: System, start: Tensor, actions: Tensor) -> Tensor:
+    """The kernel of :func:`rollout_actions`, for checked input: ``start [d]`` (or ``[N, d]``), ``actions [N, T, q]``
+    -> ``states [N, T+1, d]``. No host sync."""
+    n, horizon = actions.shape[0], actions.shape[1]
+    d = start.shape[-1]
+    x = start.expand(n, d) if start.ndim == 1 else start  # [N, d]
+    x = x.T.contiguous().T  # column-major [N, d]: every column a step reads is contiguous (faster)
+    states = [x]
+    for t in range(horizon):
+        x = _step(system, x, actions[:, t], n, d)
+        states.append(x)
+    return torch.stack(states, dim=1)  # [N, T+1, d]
+
+
+def rollout_actions(system: System, x0: Tensor, actions: Tensor) -> Tensor:
+    """The states that open-loop ``actions [N, T, q]`` drive from ``x0 [d]`` (or ``[N, d]``): ``[N, T+1, d]``.
+
+    ``x0`` and ``actions`` must share dtype and device; no gradient flows (both are detached); ValueError on a
+    non-finite ``x0``.
+    """
+    if not isinstance(actions, Tensor) or actions.ndim != 3 or not actions.is_floating_point():
+        raise ValueError(f"actions must be a floating-point [N, T, q] tensor, got "
+                         f"{list(actions.shape) if isinstance(actions, Tensor) else type(actions).__name__}")
+    _check_args(system, x0, actions.shape[0], actions.shape[1])
+    if actions.dtype != x0.dtype or not same_device(actions.device, x0.device):
+        raise ValueError(f"actions are {actions.dtype} on {actions.device} but x0 is {x0.dtype} on {x0.device}")
+    if not bool(torch.isfinite(x0).all()):
+        raise ValueError("x0 contains NaN or infinite values")
+    return open_loop(system, x0.detach(), actions.detach())
+
+
 def rollout(
     system: System,
     policy: Policy | ActionSampler,
@@ -110,49 +184,34 @@ def rollout(
     d = _check_args(system, x0, num_samples, horizon)
     check_generator(generator, x0.device)
     x0 = x0.detach()
-    table_horizon = getattr(policy, "horizon", None)
-    if table_horizon is not None and horizon > table_horizon:
-        raise ValueError(f"horizon {horizon} is longer than the policy's table ({table_horizon} steps)")
-    policy_device = getattr(policy, "device", None)
-    if policy_device is not None and not same_device(policy_device, x0.device):
-        raise ValueError(f"x0 is on {x0.device} but the policy is on {policy_device}")
+    sampler = isinstance(policy, ActionSampler)
+    if not sampler and not isinstance(policy, Policy):
+        raise ValueError(f"{type(policy).__name__} is neither a Policy (actions, action_probs) nor an ActionSampler (sample)")
+    traits = PolicyTraits.of(policy)
+    if traits.horizon is not None and horizon > traits.horizon:
+        raise ValueError(f"horizon {horizon} is longer than the policy's table ({traits.horizon} steps)")
+    if traits.device is not None and not same_device(traits.device, x0.device):
+        raise ValueError(f"x0 is on {x0.device} but the policy is on {traits.device}")
     if not bool(torch.isfinite(x0).all()):
         raise ValueError("x0 contains NaN or infinite values")
-    nominal = getattr(policy, "nominal", None)  # noise samplers: an action sequence [T', q]
-    if nominal is not None:
-        if nominal.shape[0] < horizon:
-            raise ValueError(f"the sampler's nominal sequence has {nominal.shape[0]} steps, fewer than horizon {horizon}")
-        if nominal.dtype != x0.dtype or nominal.device != x0.device:
-            raise ValueError(f"the sampler is {nominal.dtype} on {nominal.device} but x0 is {x0.dtype} on {x0.device}")
-    discrete = not isinstance(policy, ActionSampler)
-    if discrete and not isinstance(policy, Policy):
-        raise ValueError(f"{type(policy).__name__} is neither a Policy (actions, action_probs) nor an ActionSampler (sample)")
     start = x0.unsqueeze(0).expand(num_samples, d) if x0.ndim == 1 else x0  # [N, d]
-    relative = bool(getattr(policy, "start_relative", False)) and system.se2_invariant
+    relative = traits.start_relative and system.se2_invariant
     # in the start pose's frame the start is (0, 0, 0, *rest): the frame change leaves speeds etc. unchanged
     x = torch.cat((torch.zeros_like(start[:, :3]), start[:, 3:]), dim=1) if relative else start
     x = x.T.contiguous().T  # column-major [N, d]: every column a policy or a step reads is contiguous (faster)
-    actions = policy.actions.to(dtype=x0.dtype) if discrete else None  # [A, q]
-    planned = None
-    if not discrete and hasattr(policy, "sample_sequences"):  # open-loop noise: draw it all at once
-        planned = policy.sample_sequences(num_samples, horizon, generator)  # [N, T, q]
+    actions = policy.actions.to(dtype=x0.dtype) if isinstance(policy, Policy) else None  # [A, q]
     states, taken = [x], []
     for t in range(horizon):
-        if planned is not None:
-            u = planned[:, t]
-        elif discrete:
+        if sampler:
+            u = policy.sample(x, t, generator)  # [N, q]
+        else:
             probs = policy.action_probs(x, t)  # [N, A]
             if not isinstance(probs, Tensor) or probs.shape != (num_samples, actions.shape[0]):
                 raise ValueError(f"{type(policy).__name__}.action_probs returned "
                                  f"{list(probs.shape) if isinstance(probs, Tensor) else type(probs).__name__} at step "
                                  f"{t}; expected [{num_samples}, {actions.shape[0]}] probabilities (states x actions)")
             u = actions[torch.multinomial(probs, 1, generator=generator).squeeze(1)]  # [N, q]
-        else:
-            u = policy.sample(x, t, generator)  # [N, q]
-        x = system.step(x, u)
-        if x.shape != (num_samples, d):
-            raise ValueError(f"{getattr(system, 'name', type(system).__name__)}.step returned shape {list(x.shape)} "
-                             f"for {num_samples} states of dimension {d}; expected [{num_samples}, {d}]")
+        x = _step(system, x, u, num_samples, d)
         states.append(x)
         taken.append(u)
     if relative and (x0.ndim == 2 or bool(x0[:3].any())):  # the origin pose needs no change of frame
@@ -162,10 +221,10 @@ def rollout(
         states_t = se2_to_world(local, x0 if x0.ndim == 1 else start.unsqueeze(1))
     else:
         states_t = torch.stack(states, dim=1)  # [N, T+1, d]
-    q = policy.actions.shape[1] if hasattr(policy, "actions") else (nominal.shape[1] if nominal is not None else 0)
-    if planned is not None:
-        actions_t = planned  # [N, T, q]
-    else:
+    if taken:
         # stacked time-major, then one transposing copy: cheaper on a CPU than stacking [N, q] along dim 1
-        actions_t = torch.stack(taken).transpose(0, 1).contiguous() if taken else x0.new_zeros((num_samples, 0, q))
+        actions_t = torch.stack(taken).transpose(0, 1).contiguous()  # [N, T, q]
+    else:
+        q = actions.shape[1] if actions is not None else system.action_set(dtype=x0.dtype, device=x0.device).shape[1]
+        actions_t = x0.new_zeros((num_samples, 0, q))
     return states_t, actions_t

@@ -9,8 +9,11 @@ Shapes: N samples, T horizon, q action dimensions.
   its own mean ``m`` and variance ``v``: ``sigma^2 = ln(1 + v / m^2)``, ``mu = ln(m) - sigma^2 / 2``. The product
   has mean 0 and variance ``std^2 (v + m^2)``, with heavier tails than a Gaussian of that variance.
 
-Both clip to the system's action bounds (the range of its discrete action set) and implement
-:class:`~cuniform_torch.rollout.ActionSampler`.
+Both clip to the system's action bounds (the range of its discrete action set). They are noise laws: the
+MPPI and log-MPPI proposals (:mod:`cuniform_torch.proposals`) draw whole sequences with :meth:`perturb`; each is
+also an :class:`~cuniform_torch.rollout.ActionSampler` (``sample(x, t, generator)``, one step's actions around
+its own ``nominal``), so :func:`~cuniform_torch.rollout.rollout` runs it too, declaring its ``horizon`` (the
+nominal's length), ``device`` and ``dtype`` as :class:`~cuniform_torch.rollout.PolicyTraits`.
 """
 
 from __future__ import annotations
@@ -57,22 +60,45 @@ class GaussianSampler:
             raise ValueError(f"nominal must be [T, q], got {list(self.nominal.shape)}")
         self.std = _as_std(self.std, self.nominal.shape[1], self.nominal)
 
+    @property
+    def horizon(self) -> int:
+        """steps of the nominal: the longest rollout this sampler serves"""
+        return self.nominal.shape[0]
+
+    @property
+    def device(self) -> torch.device:
+        return self.nominal.device
+
+    @property
+    def dtype(self) -> torch.dtype:
+        return self.nominal.dtype
+
     def noise(self, n: int, generator: torch.Generator | None) -> Tensor:
         """``[n, q]`` zero-mean noise (TypeError when ``generator`` is neither None nor a torch.Generator)."""
         check_generator(generator, self.nominal.device)
         q = self.nominal.shape[1]
         eps = torch.randn((n, q), generator=generator, dtype=self.nominal.dtype, device=self.nominal.device)
-        return eps * self.std
+        return eps.mul_(self.std)
 
     def sample(self, x: Tensor, t: int, generator: torch.Generator | None) -> Tensor:
-        """``x [N, d]`` at step ``t`` -> ``[N, q]`` actions."""
+        """``x [N, d]`` at step ``t`` -> ``[N, q]`` actions (ValueError when ``x`` is not of the sampler's dtype)."""
+        if x.dtype != self.nominal.dtype:
+            raise ValueError(f"states are {x.dtype} but the sampler is {self.nominal.dtype}")
         return torch.clamp(self.nominal[t] + self.noise(x.shape[0], generator), self.low, self.high)
 
     def sample_sequences(self, n: int, horizon: int, generator: torch.Generator | None) -> Tensor:
         """The whole open-loop action sequences at once: ``[n, horizon, q]`` (noise does not depend on the state)."""
-        q = self.nominal.shape[1]
-        noise = self.noise(n * horizon, generator).reshape(n, horizon, q)
-        return torch.clamp(self.nominal[:horizon] + noise, self.low, self.high)
+        if horizon > self.nominal.shape[0]:
+            raise ValueError(f"the sampler's nominal sequence has {self.nominal.shape[0]} steps, fewer than horizon {horizon}")
+        return self.perturb(self.nominal[:horizon], n, generator)
+
+    def perturb(self, nominal: Tensor, n: int, generator: torch.Generator | None) -> Tensor:
+        """``n`` noisy copies of any ``nominal [T, q]`` (of this law's dtype and device), clipped: ``[n, T, q]``.
+
+        Pure tensor ops, no host sync: what a proposal calls every command with its current nominal."""
+        horizon, q = nominal.shape
+        noise = self.noise(n * horizon, generator).reshape(n, horizon, q)  # a fresh tensor: updated in place
+        return noise.add_(nominal).clamp_(self.low, self.high)
 
 
 @dataclass
@@ -90,6 +116,6 @@ class NormalLogNormalSampler(GaussianSampler):
         check_generator(generator, self.nominal.device)
         q = self.nominal.shape[1]
         kw = dict(generator=generator, dtype=self.nominal.dtype, device=self.nominal.device)
-        normal = torch.randn((n, q), **kw) * self.std
-        lognormal = torch.exp(self.mu + self.sigma * torch.randn((n, q), **kw))
-        return normal * lognormal
+        normal = torch.randn((n, q), **kw).mul_(self.std)
+        lognormal = torch.randn((n, q), **kw).mul_(self.sigma).add_(self.mu).exp_()
+        return normal.mul_(lognormal)

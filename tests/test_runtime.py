@@ -9,6 +9,8 @@ small sample counts (256-512 proposals) and short episodes so the whole file run
 from __future__ import annotations
 
 import math
+import threading
+import time
 
 import numpy as np
 import pytest
@@ -386,15 +388,13 @@ class TestRollout:
         with pytest.raises(ValueError):
             rollout(dubins_policy.system, sampler, torch.zeros(3), 4, 10, _gen(0))
 
-    def test_sampler_of_another_dtype_is_an_error_or_matches_x0(self, dubins_policy):
+    def test_sampler_of_another_dtype_is_a_value_error(self, dubins_policy):
         lo, hi = dubins_policy.actions.min(0).values, dubins_policy.actions.max(0).values
         sampler = GaussianSampler(torch.zeros(5, 1), 0.3, lo, hi)  # float32
-        x0 = torch.zeros(3, dtype=torch.float64)
-        try:
-            states, actions = rollout(dubins_policy.system, sampler, x0, 4, 5, _gen(0))
-        except ValueError:
-            return
-        assert states.dtype == actions.dtype == torch.float64
+        with pytest.raises(ValueError, match=r"states are torch\.float64 but the sampler is torch\.float32"):
+            rollout(dubins_policy.system, sampler, torch.zeros(3, dtype=torch.float64), 4, 5, _gen(0))
+        states, actions = rollout(dubins_policy.system, sampler, torch.zeros(3), 4, 5, _gen(0))  # its own dtype works
+        assert states.dtype == actions.dtype == torch.float32
 
     @pytest.mark.parametrize("sampler_cls", [GaussianSampler, NormalLogNormalSampler])
     def test_sampler_actions_are_clipped_to_the_system_bounds(self, dubins_policy, sampler_cls):
@@ -807,24 +807,45 @@ class TestGPU:
 
 
 class TestBackgroundBank:
-    def test_background_refresh_swaps_in_a_new_bank_without_blocking_commands(self, dubins_policy):
+    def test_commands_return_while_a_refresh_is_blocked_and_the_new_bank_comes_in_after(self, dubins_policy):
+        """The worker's draw waits on an Event the test holds: commands must return (with the old bank) while the
+        refresh is provably still running, and the new bank is used only once it is released and done."""
         cost = lambda s, a: (s[:, :, :2] ** 2).sum(dim=(1, 2))  # noqa: E731
         ctrl = CUniformMPPI(dubins_policy, cost, num_samples=64, bank_size=256, bank_refresh=1,
                             bank_background=True, seed=0)
+        started, release, finished = threading.Event(), threading.Event(), threading.Event()
+        draw = ctrl.bank.draw_bank
+
+        def blocked_draw(generator):
+            started.set()
+            release.wait(timeout=5)  # a command that waited for the refresh would hang here for 5 s
+            bank = draw(generator)
+            finished.set()
+            return bank
+
+        ctrl.bank.draw_bank = blocked_draw
         try:
             first = ctrl.bank_states.clone()
             x = torch.zeros(3)
-            ctrl.command(x)  # submits a refresh and keeps using the current bank
-            assert ctrl.wait_for_bank() is True
+            ctrl.command(x)  # submits the refresh
+            assert started.wait(timeout=10), "the refresh never started"
+            t0 = time.perf_counter()
+            for _ in range(3):  # the refresh is blocked all along
+                u = ctrl.command(x)
+                assert u.shape == (1,) and bool(torch.isfinite(u).all())
+            elapsed = time.perf_counter() - t0
+            assert not finished.is_set() and not release.is_set(), "the commands ran while the refresh was blocked"
+            assert elapsed < 4, f"3 commands took {elapsed:.1f} s: they waited for the refresh"
+            assert torch.equal(ctrl.bank_states, first) and ctrl.banks_swapped == 0, "the old bank stays in use"
+            release.set()
+            assert ctrl.wait_for_bank() is True and finished.is_set()
             assert ctrl.banks_swapped == 1
             assert ctrl.bank_states.shape == first.shape and not torch.equal(ctrl.bank_states, first)
             assert ctrl.wait_for_bank() is False  # nothing pending any more
-            for _ in range(3):
-                u = ctrl.command(x)
-                assert u.shape == (1,) and bool(torch.isfinite(u).all())
         finally:
+            release.set()
             ctrl.close()
-        assert ctrl._executor is None
+        assert not ctrl.bank.worker_running and not ctrl.bank_background
 
     def test_background_needs_a_refresh_period(self, dubins_policy):
         cost = lambda s, a: s[:, -1, 0]  # noqa: E731
