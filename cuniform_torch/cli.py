@@ -1,30 +1,51 @@
-"""What every ``python -m`` entry point shares: one-line errors, exit codes, output checks, ``--system-module``.
+"""What every ``python -m`` entry point shares: one-line errors, exit codes, output checks, ``--system-module``,
+flags made from a config dataclass, and the default output folders.
 
 Decorate an entry point's ``main(argv) -> int`` with :func:`cli_main`. Clear errors -- the library's
 ``ValueError`` subclasses (``TableError``, ``PolicyCheckpointError``, ``UnknownSystemError``, ...), a
 :class:`CLIError`, an ``OSError`` (a missing file, a full disk, a folder one cannot write) and running out of
 memory -- print one line ``error: ...`` on stderr and return :data:`EXIT_ERROR` (2); Ctrl-C prints one line and
 returns :data:`EXIT_INTERRUPTED` (130). Any other exception is a bug and keeps its traceback.
+
+Config dataclasses are the one home of a setting's default: :func:`add_dataclass_args` makes a flag of every
+field (type, help from the field's docstring, the default shown in the help) whose parser default is
+``argparse.SUPPRESS``, so a flag that is not given leaves no attribute; :func:`dataclass_from_args` then
+builds the config from the flags that were given, over the dataclass defaults or over a base config (a
+``--quick`` preset). A default can therefore not drift between the dataclass and the command line.
 """
 
 from __future__ import annotations
 
 import argparse
+import ast
+import collections.abc
+import dataclasses
+import enum
 import functools
+import inspect
 import os
 import re
 import sys
 import tempfile
+import textwrap
+import types
+import typing
 from pathlib import Path
-from typing import Callable, NoReturn, Sequence
+from typing import Any, Callable, Iterable, Mapping, NoReturn, Sequence
 
 from .systems import import_system_modules
 
 __all__ = ["EXIT_ERROR", "EXIT_INTERRUPTED", "CLIError", "ArgumentParser", "cli_main", "error_message",
-           "out_of_memory_message", "add_system_module_arg", "import_system_modules", "check_output_file", "check_output_folder"]
+           "out_of_memory_message", "add_system_module_arg", "import_system_modules", "check_output_file", "check_output_folder",
+           "OUT", "RUNS", "field_docs", "add_dataclass_args", "dataclass_from_args", "given_fields", "flag_name"]
 
 EXIT_ERROR = 2
 EXIT_INTERRUPTED = 130
+
+OUT = Path("out")
+"""the folder of everything generated (tables, checkpoints, results, figures); git-ignored"""
+RUNS = Path("runs")
+"""the folder of TensorBoard runs"""
 
 
 class CLIError(Exception):
@@ -134,3 +155,144 @@ def check_output_folder(path: str | os.PathLike, flag: str) -> None:
     if path.exists() and not path.is_dir():
         raise CLIError(f"{flag} {path} is a file; give a folder")
     _check_folder_writable(path, flag)
+
+
+# ------------------------------------------------------------------------------------------ config -> flags
+
+def flag_name(field: str) -> str:
+    """``"batch_size"`` -> ``"--batch-size"``."""
+    return "--" + field.replace("_", "-")
+
+
+def field_docs(cls: type) -> dict[str, str]:
+    """The help of each field of a dataclass: ``field(metadata={"help": ...})``, else the string literal under
+    the field in the class body (base classes included; a subclass's wins)."""
+    docs: dict[str, str] = {}
+    for klass in reversed(cls.__mro__):
+        if not dataclasses.is_dataclass(klass) or klass is object:
+            continue
+        try:
+            tree = ast.parse(textwrap.dedent(inspect.getsource(klass)))
+        except (OSError, TypeError, SyntaxError):
+            continue
+        body = tree.body[0].body if tree.body and isinstance(tree.body[0], ast.ClassDef) else []
+        for a, b in zip(body, body[1:]):
+            if (isinstance(a, ast.AnnAssign) and isinstance(a.target, ast.Name) and isinstance(b, ast.Expr)
+                    and isinstance(b.value, ast.Constant) and isinstance(b.value.value, str)):
+                docs[a.target.id] = " ".join(b.value.value.split())
+    for f in dataclasses.fields(cls):
+        if "help" in f.metadata:
+            docs[f.name] = f.metadata["help"]
+    return docs
+
+
+def _default(f: dataclasses.Field) -> Any:
+    if f.default_factory is not dataclasses.MISSING:
+        return f.default_factory()
+    return f.default
+
+
+def _unwrap(kind: Any) -> tuple[Any, bool]:
+    """``(inner type, optional)`` of ``X | None`` / ``Optional[X]``."""
+    if typing.get_origin(kind) in (typing.Union, types.UnionType):
+        args = [a for a in typing.get_args(kind) if a is not type(None)]
+        if len(args) == 1:
+            return args[0], True
+    return kind, False
+
+
+def _sequence_item(kind: Any) -> Any | None:
+    """The item type of ``list[X]`` / ``tuple[X, ...]``, else None."""
+    origin = typing.get_origin(kind)
+    if origin in (list, tuple, collections.abc.Sequence):
+        args = [a for a in typing.get_args(kind) if a is not Ellipsis]
+        return args[0] if args else str
+    return None
+
+
+def _show(value: Any) -> str:
+    if isinstance(value, enum.Enum):
+        return str(value.value)
+    if isinstance(value, (list, tuple)):
+        return " ".join(_show(v) for v in value) if value else "none"
+    if value is None:
+        return "none"
+    return str(value)
+
+
+def add_dataclass_args(parser: argparse.ArgumentParser | argparse._ArgumentGroup, cls: type, *,
+                       only: Iterable[str] | None = None, exclude: Iterable[str] = (),
+                       flags: Mapping[str, str] | None = None, help: Mapping[str, str] | None = None,
+                       required: Iterable[str] = (), choices: Mapping[str, Sequence[Any]] | None = None) -> list[str]:
+    """A flag per field of the dataclass ``cls`` (``only`` those, less ``exclude``); returns the field names.
+
+    The flag is ``--field-name`` (or ``flags[name]``); its type comes from the annotation (``int``, ``float``,
+    ``str``, ``Path``, an ``Enum`` (its values become the choices), ``list[X]`` / ``tuple[X, ...]`` (one or more
+    values), ``X | None``); a ``bool`` field that defaults to False is a switch that sets it, one that defaults
+    to True a switch (named by ``flags``) that clears it. The help is ``help[name]``, else the field's docstring
+    (:func:`field_docs`), followed by the dataclass default unless the text already speaks of the default. Every
+    flag's parser default is ``argparse.SUPPRESS``: only given flags reach the namespace
+    (:func:`dataclass_from_args`), so the dataclass holds the only copy of each default.
+    """
+    flags, help, choices = dict(flags or {}), dict(help or {}), dict(choices or {})
+    required = set(required)
+    docs = field_docs(cls)
+    hints = typing.get_type_hints(cls)
+    wanted = None if only is None else list(only)
+    fields = {f.name: f for f in dataclasses.fields(cls) if f.init}
+    unknown = [n for n in [*(wanted or []), *exclude, *flags, *help, *required, *choices] if n not in fields]
+    if unknown:
+        raise TypeError(f"{cls.__name__} has no field(s) {', '.join(sorted(set(unknown)))}")
+    names = [n for n in (wanted if wanted is not None else fields) if n not in set(exclude)]
+    for name in names:
+        f = fields[name]
+        kind, _ = _unwrap(hints[name])
+        default = _default(f)
+        text = help.get(name, docs.get(name, ""))
+        kwargs: dict[str, Any] = {"dest": name, "default": argparse.SUPPRESS}
+        if kind is bool:
+            kwargs["action"] = "store_false" if default is True else "store_true"
+            if default is True and name not in flags:
+                raise TypeError(f"{cls.__name__}.{name} defaults to True: name the switch that clears it in flags")
+        else:
+            item = _sequence_item(kind)
+            base = item if item is not None else kind
+            if item is not None:
+                kwargs["nargs"] = "+"
+            if isinstance(base, type) and issubclass(base, enum.Enum):
+                kwargs["choices"] = [m.value for m in base]
+                base = str
+            kwargs["type"] = base
+            if name in choices:
+                kwargs["choices"] = list(choices[name])
+            if name in required:
+                kwargs["required"] = True
+            elif not (default is None or "default" in text.lower()):
+                text = f"{text} (default: {_show(default)})" if text else f"default: {_show(default)}"
+        kwargs["help"] = text.replace("%", "%%")
+        parser.add_argument(flags.get(name, flag_name(name)), **kwargs)
+    return names
+
+
+def given_fields(cls: type, args: argparse.Namespace) -> dict[str, Any]:
+    """The fields of ``cls`` that ``args`` holds (the flags that were given), lists turned into tuples where the
+    field is a tuple."""
+    hints = typing.get_type_hints(cls)
+    out = {}
+    for f in dataclasses.fields(cls):
+        if f.init and hasattr(args, f.name):
+            value = getattr(args, f.name)
+            kind, _ = _unwrap(hints[f.name])
+            if isinstance(value, list) and typing.get_origin(kind) is tuple:
+                value = tuple(value)
+            out[f.name] = value
+    return out
+
+
+def dataclass_from_args(cls: type, args: argparse.Namespace, base: Any = None, **overrides: Any) -> Any:
+    """``cls`` from the given flags (see :func:`add_dataclass_args`) over ``base`` (an instance; default: the
+    dataclass defaults), then ``overrides``."""
+    values = {**given_fields(cls, args), **overrides}
+    if base is None:
+        return cls(**values)
+    return dataclasses.replace(base, **values)

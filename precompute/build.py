@@ -29,7 +29,8 @@ import time
 from pathlib import Path
 from typing import Any, Sequence
 
-from cuniform_torch.cli import (ArgumentParser, CLIError, check_output_file, cli_main, import_system_modules,
+from cuniform_torch.cli import (OUT, ArgumentParser, CLIError, add_dataclass_args, check_output_file, cli_main,
+                                dataclass_from_args, field_docs, flag_name, import_system_modules,
                                 out_of_memory_message)
 from cuniform_torch.fileio import exclusive_lock, write_json
 from cuniform_torch.systems import (_BUILTIN_MODULE, _REGISTRY, DEFAULT_HORIZON, check_system, known_systems,
@@ -68,13 +69,17 @@ def _defaults_of(field: str) -> str:
     return "; ".join(parts)
 
 
-# flags of one method only (given with the other method they are refused) and their defaults: None means
-# "not given" until _check_flags fills them in
-MAXFLOW_FLAGS = {"points": PointMode.CENTERS.value, "points_per_cell": 8, "resume": False, "max_memory": None}
-COVERAGE_FLAGS = {"target_samples": 2000, "merge_resolution": 32, "steps": 300, "lr": 0.2}
+MAXFLOW_ONLY = ("points", "points_per_cell", "resume", "max_memory")
+"""flags of --method maxflow only (given with --method coverage they are refused)"""
+COVERAGE_ONLY = ("target_samples", "merge_resolution", "steps", "lr")
+"""flags of --method coverage only: fields of :class:`~precompute.coverage_method.CoverageConfig`"""
 
 
 def make_parser() -> argparse.ArgumentParser:
+    """The build's flags; the settings of the table (``--points``, ``--steps``, ...) are fields of
+    :class:`BuildConfig` and :class:`CoverageConfig`, whose defaults they show (the only copy of each)."""
+    from .coverage_method import CoverageConfig
+
     parser = ArgumentParser(
         prog="python -m precompute.build",
         description="Build a C-Uniform action-probability table (level sets + exact max-flow) and report its uniformity.",
@@ -87,26 +92,21 @@ def make_parser() -> argparse.ArgumentParser:
                         help="a system parameter as JSON (repeatable), e.g. --param speed=0.5 --param 'cell_size=[0.1, 0.1, 0.2]'")
     parser.add_argument("--max-memory", type=float, default=None, metavar="GB",
                         help="memory budget of the size guidance (default: the available memory)")
-    parser.add_argument("--out", type=Path, default=None, help="table file to write (default: out/<system>.npz)")
+    parser.add_argument("--out", type=Path, default=None, help=f"table file to write (default: {OUT}/<system>.npz)")
     parser.add_argument("--horizon", type=int, default=None,
                         help=f"number of steps T (default: the system's default_horizon, else {DEFAULT_HORIZON})")
-    parser.add_argument("--points", default=None, choices=[m.value for m in PointMode],
-                        help="sample points per cell: centers (default; level sets from cell centres, transitions "
-                             "from the 3^d lattice), lattice (level sets from all lattice points), random (centre + K "
-                             "random points)")
-    parser.add_argument("--points-per-cell", type=int, default=None,
-                        help="K random points per cell for --points random (default 8)")
-    parser.add_argument("--seed", type=int, default=0, help="seed of --points random and of the report's rollouts")
+    add_dataclass_args(parser, BuildConfig, only=("points", "points_per_cell", "seed"), help={
+        "points": "sample points per cell: centers (level sets from cell centres, transitions from the 3^d "
+                  "lattice), lattice (level sets from all lattice points), random (centre + K random points)",
+        "points_per_cell": "K random points per cell for --points random",
+        "seed": "seed of --points random and of the report's rollouts",
+    })
     parser.add_argument("--method", default="maxflow", choices=["maxflow", "coverage"],
                         help="maxflow: the paper's flow network (default); coverage: maximize the expected coverage "
                              "of real rollouts over the reachable states (see precompute/coverage_method.py)")
-    parser.add_argument("--target-samples", type=int, default=None,
-                        help="coverage method: N whose expected coverage is maximized (default 2000)")
-    parser.add_argument("--merge-resolution", type=int, default=None,
-                        help="coverage method: sub-cell bins per cell and dimension for merging reachable states "
-                             "(default 32)")
-    parser.add_argument("--steps", type=int, default=None, help="coverage method: gradient-ascent iterations (default 300)")
-    parser.add_argument("--lr", type=float, default=None, help="coverage method: Adam learning rate (default 0.2)")
+    docs = field_docs(CoverageConfig)
+    add_dataclass_args(parser, CoverageConfig, only=COVERAGE_ONLY,
+                       help={name: f"coverage method: {docs[name]}" for name in COVERAGE_ONLY})
     parser.add_argument("--resume", action="store_true", help="continue an interrupted build from its checkpoints (maxflow)")
     parser.add_argument("--rollouts", type=int, default=None, help="rollouts for the report (default: 10 x largest level)")
     parser.add_argument("--no-report", action="store_true", help="skip the uniformity report")
@@ -131,24 +131,22 @@ def make_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def _flag(name: str) -> str:
-    return "--" + name.replace("_", "-")
+def _given(args: argparse.Namespace, name: str) -> bool:
+    """Whether the flag of ``name`` was given (a config flag leaves no attribute when it was not)."""
+    return getattr(args, name, None) not in (None, False)
 
 
 def _check_flags(args: argparse.Namespace) -> None:
-    """Refuse flags that the chosen method or points mode would ignore (naming both), then fill the defaults."""
-    given = lambda name: getattr(args, name) not in (None, False)  # noqa: E731
-    other, method_flags = ("coverage", MAXFLOW_FLAGS) if args.method == "maxflow" else ("maxflow", COVERAGE_FLAGS)
-    for name in (COVERAGE_FLAGS if args.method == "maxflow" else MAXFLOW_FLAGS):
-        if given(name):
-            raise CLIError(f"{_flag(name)} applies to --method {other} only, not to --method {args.method}")
-    if given("points_per_cell") and args.points != PointMode.RANDOM.value:
-        raise CLIError(f"--points-per-cell applies to --points random only, not to --points {args.points or 'centers'}")
-    if given("rollouts") and args.no_report:
+    """Refuse flags that the chosen method or points mode would ignore (naming both)."""
+    other, foreign = ("coverage", COVERAGE_ONLY) if args.method == "maxflow" else ("maxflow", MAXFLOW_ONLY)
+    for name in foreign:
+        if _given(args, name):
+            raise CLIError(f"{flag_name(name)} applies to --method {other} only, not to --method {args.method}")
+    points = getattr(args, "points", BuildConfig().points.value)
+    if _given(args, "points_per_cell") and points != PointMode.RANDOM.value:
+        raise CLIError(f"--points-per-cell applies to --points random only, not to --points {points}")
+    if _given(args, "rollouts") and args.no_report:
         raise CLIError("--rollouts sets the report's rollouts, but --no-report skips the report")
-    for name, default in {**MAXFLOW_FLAGS, **COVERAGE_FLAGS}.items():
-        if getattr(args, name) is None:
-            setattr(args, name, default)
 
 
 def _check_device(device: str) -> None:
@@ -162,13 +160,11 @@ def _check_device(device: str) -> None:
         raise ValueError(f"--device {device}: CUDA is not available on this machine")
 
 
-def _build_coverage(system, horizon: int, args: argparse.Namespace, bar):
+def _build_coverage(system, config, bar):
     """The coverage method (precompute/coverage_method.py), with the bar counting levels, then iterations."""
     from .builder import BuildStats
-    from .coverage_method import CoverageConfig, build_coverage_table
+    from .coverage_method import build_coverage_table
 
-    config = CoverageConfig(horizon=horizon, target_samples=args.target_samples,
-                            merge_resolution=args.merge_resolution, steps=args.steps, lr=args.lr)
     if bar is not None:
         bar.reset(total=horizon + config.steps)
         bar.set_description("levels, then ascent")
@@ -269,8 +265,8 @@ def _run(args: argparse.Namespace) -> int:
     name = resolve_system(args.system)
     system = _make_system(args.system, name, params)
     horizon = system_horizon(system) if args.horizon is None else args.horizon
-    config = BuildConfig(horizon=horizon, points=args.points, points_per_cell=args.points_per_cell, seed=args.seed)
-    out: Path = args.out or Path("out") / f"{name}.npz"
+    config = dataclass_from_args(BuildConfig, args, horizon=horizon)
+    out: Path = args.out or OUT / f"{name}.npz"
     if args.max_memory is not None and not args.max_memory > 0:
         raise ValueError(f"--max-memory must be a positive number of GB, got {args.max_memory}")
     check_output_file(out, "--out", example="table.npz")
@@ -291,7 +287,13 @@ def _build(args: argparse.Namespace, system, horizon: int, config: BuildConfig, 
             check_resume(ckpt, system, config)
         ckpt.mkdir(parents=True, exist_ok=True)
     say = (lambda *a: None) if args.quiet else (lambda *a: print(*a, flush=True))
-    detail = f"points={config.points.value}" if args.method == "maxflow" else f"target N={args.target_samples}"
+    coverage_config = None
+    if args.method == "coverage":
+        from .coverage_method import CoverageConfig
+
+        coverage_config = dataclass_from_args(CoverageConfig, args, horizon=horizon)
+    detail = (f"points={config.points.value}" if coverage_config is None
+              else f"target N={coverage_config.target_samples}")
     say(f"building {system.name} table ({args.method}): {system.params()} horizon={horizon} {detail}")
 
     bar = None
@@ -317,7 +319,7 @@ def _build(args: argparse.Namespace, system, horizon: int, config: BuildConfig, 
     extra: dict[str, Any] = {}
     try:
         if args.method == "coverage":
-            table, stats, extra = _build_coverage(system, horizon, args, bar)
+            table, stats, extra = _build_coverage(system, coverage_config, bar)
         else:
             table, stats = build_table(system, config, checkpoint_dir=ckpt, resume=args.resume, progress=progress)
     except KeyboardInterrupt:
@@ -344,7 +346,7 @@ def _build(args: argparse.Namespace, system, horizon: int, config: BuildConfig, 
     say("stage times: " + ", ".join(f"{k} {v:.2f}s" for k, v in stats.seconds.items()) + f"; total {total:.2f}s")
     say(f"wrote {out}")
 
-    report_path = out.with_name(out.name[: -len(out.suffix)] + ".report.json" if out.suffix else out.name + ".report.json")
+    report_path = out.with_name(out.stem + ".report.json")
     summary: dict[str, Any] = {
         "table": str(out),
         "system": system.name,
@@ -363,7 +365,7 @@ def _build(args: argparse.Namespace, system, horizon: int, config: BuildConfig, 
     }
     if not args.no_report:
         t0 = time.perf_counter()
-        report = uniformity_report(table, num_rollouts=args.rollouts, seed=args.seed, device=args.device)
+        report = uniformity_report(table, num_rollouts=args.rollouts, seed=config.seed, device=args.device)
         summary["report_seconds"] = time.perf_counter() - t0
         summary["uniformity"] = report.to_dict()
         say(format_report(report))

@@ -34,9 +34,7 @@ path that cannot be written, checked before training starts, a full disk, a refu
 
 from __future__ import annotations
 
-import ast
 import dataclasses
-import inspect
 import io
 import json
 import math
@@ -52,8 +50,9 @@ import torch
 from torch.utils.tensorboard import SummaryWriter
 from tqdm import tqdm
 
-from cuniform_torch.cli import (ArgumentParser, add_system_module_arg, check_output_file, check_output_folder,
-                                cli_main, import_system_modules)
+from cuniform_torch.cli import (OUT, RUNS, ArgumentParser, add_dataclass_args, add_system_module_arg,
+                                check_output_file, check_output_folder, cli_main, dataclass_from_args,
+                                import_system_modules)
 from cuniform_torch.coverage import coverage, uniform_ceiling
 from cuniform_torch.fileio import exclusive_lock, write_bytes, write_json
 from cuniform_torch.grid import Grid
@@ -101,7 +100,7 @@ class DistillConfig:
     """held-out jittered points per cell for the validation KL (drawn once)"""
     patience: int = 300
     """stop when the validation KL has not improved for this many epochs"""
-    logdir: str = "runs"
+    logdir: str = str(RUNS)
     """folder of the TensorBoard runs"""
     quiet: bool = False
     """no progress bar"""
@@ -128,33 +127,18 @@ class _Parser(ArgumentParser):
         raise UsageError(message)
 
 
-def _field_docs(cls: type) -> dict[str, str]:
-    """The docstring under each field of a dataclass (read from its source)."""
-    body = ast.parse(inspect.getsource(cls)).body[0].body
-    return {a.target.id: b.value.value for a, b in zip(body, body[1:])
-            if isinstance(a, ast.AnnAssign) and isinstance(b, ast.Expr) and isinstance(b.value, ast.Constant)}
+def make_parser() -> ArgumentParser:
+    """A flag per :class:`DistillConfig` field (:func:`cuniform_torch.cli.add_dataclass_args`: its type, its
+    docstring and its default, which lives only in the dataclass)."""
+    parser = _Parser(prog="python -m training.distill", description=__doc__.splitlines()[0])
+    add_dataclass_args(parser, DistillConfig, exclude=("system_module",), required=("tables",))
+    add_system_module_arg(parser)  # repeatable, as in every entry point
+    return parser
 
 
 def parse_args(argv: Sequence[str] | None = None) -> DistillConfig:
     """Flags -> a checked :class:`DistillConfig` with its derived fields filled; :class:`UsageError` when bad."""
-    parser = _Parser(prog="python -m training.distill", description=__doc__.splitlines()[0])
-    docs, hints = _field_docs(DistillConfig), typing.get_type_hints(DistillConfig)
-    for f in dataclasses.fields(DistillConfig):
-        if f.name == "system_module":
-            add_system_module_arg(parser)  # repeatable, as in every entry point
-            continue
-        flag, kind, doc = "--" + f.name.replace("_", "-"), hints[f.name], docs[f.name]
-        default = f.default_factory() if f.default_factory is not dataclasses.MISSING else f.default
-        helptext = doc if ("default" in doc or kind is bool or f.name == "tables") else f"{doc} (default: {default})"
-        if kind is bool:
-            parser.add_argument(flag, action="store_true", help=helptext)
-        elif typing.get_origin(kind) is list:
-            parser.add_argument(flag, nargs="+", type=typing.get_args(kind)[0], default=default,
-                                required=f.name == "tables", help=helptext)
-        else:
-            base = next((a for a in typing.get_args(kind) if a is not type(None)), kind)
-            parser.add_argument(flag, type=base, default=default, help=helptext)
-    cfg = DistillConfig(**vars(parser.parse_args(argv)))
+    cfg = dataclass_from_args(DistillConfig, make_parser().parse_args(argv))
     for name in ("hidden", "layers", "epochs", "batch_size", "val_points", "patience", "eval_every"):
         if getattr(cfg, name) < 1:
             raise UsageError(f"--{name.replace('_', '-')} must be a positive integer, got {getattr(cfg, name)}")
@@ -176,7 +160,7 @@ def parse_args(argv: Sequence[str] | None = None) -> DistillConfig:
         if not Path(path).is_file():
             raise UsageError(f"--tables: no table file at {path}")
     if cfg.out is None:
-        cfg.out = str(Path("out") / f"{Path(cfg.tables[0]).stem}.policy.pt")
+        cfg.out = str(OUT / f"{Path(cfg.tables[0]).stem}.policy.pt")
     check_outputs(cfg)
     return cfg
 
