@@ -27,9 +27,13 @@ from torch import Tensor
 
 from .checks import float_tuple, wrap_angle
 
-__all__ = ["Grid", "CellKeys", "CellSet", "KeyHash", "check_grid", "ANGLE_CELL_RTOL"]
+__all__ = ["Grid", "CellKeys", "CellSet", "KeyHash", "check_grid", "ANGLE_CELL_RTOL", "TIE_TOL"]
 
 _MAX_KEY = 2**62
+
+TIE_TOL = 1e-4
+"""a step within this many cells of a half cell is a tie, rounded away from its source (:meth:`Grid.cells_from`):
+far above float32 noise on a step (about 1e-7 cells), far below any designed step that is not a tie"""
 
 ANGLE_CELL_RTOL = 1e-3
 """how far an angle cell size ``delta`` may be from ``2 pi / K`` (``K = round(2 pi / delta)``), relative:
@@ -106,11 +110,32 @@ class Grid:
         if not x.is_floating_point():
             raise ValueError(f"Grid.cells: states must be a floating-point tensor, got {x.dtype}")
         scaled = x / self._vec(self.cell_size, x) + self._vec(self.offset, x)
-        idx = torch.round(scaled).to(torch.int64)
+        return self._wrap_cells(torch.round(scaled).to(torch.int64))
+
+    def cells_from(self, source: Tensor, x: Tensor) -> Tensor:
+        """Cells of states ``x [n, ..., d]`` stepped from the cells ``source [n, d]`` int64: the source cell plus
+        the displacement from its centre, in cells, rounded half away from zero (:data:`TIE_TOL`).
+
+        The same cells as :meth:`cells` except on ties. A step of exactly half a cell (the +-pi/8 heading steps
+        of the default Dubins preset) is then decided by its direction, not by floating-point noise: a
+        mirror-symmetric system keeps mirror-symmetric level sets, and float32 and float64 give the same cells.
+        The level-set builder assigns cells this way (as the authors' release effectively does).
+        """
+        if source.ndim != 2 or source.shape[1] != self.dim or x.shape[0] != source.shape[0] or x.shape[-1] != self.dim:
+            raise ValueError(f"Grid.cells_from: source must be [n, {self.dim}] and x [n, ..., {self.dim}], got "
+                             f"{list(source.shape)} and {list(x.shape)}")
+        shape = (source.shape[0],) + (1,) * (x.ndim - 2) + (self.dim,)
+        centre = self.centers(source, x.dtype).view(shape)
+        steps = self.wrap(x - centre) / self._vec(self.cell_size, x)  # [n, ..., d] in cells
+        rounded = torch.sign(steps) * torch.floor(steps.abs() + (0.5 + TIE_TOL))
+        return self._wrap_cells(source.view(shape) + rounded.to(torch.int64))
+
+    def _wrap_cells(self, idx: Tensor) -> Tensor:
+        """Angle indices mod K; other dimensions as they are."""
         k = self.num_angle_cells
         if any(k):
-            mod = torch.tensor([kk if kk else 1 for kk in k], dtype=torch.int64, device=x.device)
-            per = torch.tensor(self.periodic, dtype=torch.bool, device=x.device)
+            mod = torch.tensor([kk if kk else 1 for kk in k], dtype=torch.int64, device=idx.device)
+            per = torch.tensor(self.periodic, dtype=torch.bool, device=idx.device)
             idx = torch.where(per, torch.remainder(idx, mod), idx)
         return idx
 

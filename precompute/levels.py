@@ -86,13 +86,15 @@ def cell_sample_offsets(grid: Grid, mode: PointMode, n: int, points_per_cell: in
     return lattice.unsqueeze(0)
 
 
-def _step_cells(system: System, grid: Grid, points: Tensor, actions: Tensor) -> Tensor:
-    """Cells reached from ``points [n, P, d]`` under every action ``[A, q]``: ``[n, P, A, d]`` int64."""
+def _step_cells(system: System, grid: Grid, points: Tensor, actions: Tensor, source: Tensor) -> Tensor:
+    """Cells reached from ``points [n, P, d]`` of the cells ``source [n, d]`` under every action ``[A, q]``:
+    ``[n, P, A, d]`` int64, counted from the source cell so that half-cell ties break by direction
+    (:meth:`~cuniform_torch.grid.Grid.cells_from`)."""
     n, P, d = points.shape
     A = actions.shape[0]
     x = points.unsqueeze(2).expand(n, P, A, d).reshape(-1, d)
     u = actions.unsqueeze(0).expand(n * P, A, actions.shape[1]).reshape(-1, actions.shape[1])
-    return grid.cells(system.step(x, u)).reshape(n, P, A, d)
+    return grid.cells_from(source, system.step(x, u).reshape(n, P, A, d))
 
 
 def _chunks(n: int, per_cell: int):
@@ -131,7 +133,7 @@ def next_level(
     found, stepped = [], []
     for lo, hi in _chunks(n, level_pts * A):
         pts = points(lo, hi) if mode is PointMode.LATTICE else centres[lo:hi].unsqueeze(1)
-        reached = _step_cells(system, grid, pts, actions)  # [c, P or 1, A, d]
+        reached = _step_cells(system, grid, pts, actions, cells_t[lo:hi])  # [c, P or 1, A, d]
         if reuse:
             stepped.append(reached)
         reached = reached.reshape(-1, grid.dim)
@@ -149,7 +151,7 @@ def next_level(
     trans_keys, trans_counts = [], []
     kept_total = 0
     for k, (lo, hi) in enumerate(_chunks(n, P * A)):
-        reached = stepped[k] if reuse else _step_cells(system, grid, points(lo, hi), actions)
+        reached = stepped[k] if reuse else _step_cells(system, grid, points(lo, hi), actions, cells_t[lo:hi])
         rows = next_set.lookup(reached)  # [c, P, A]
         src = torch.arange(lo, hi).view(-1, 1, 1).expand_as(rows)
         act = torch.arange(A).view(1, 1, A).expand_as(rows)

@@ -37,7 +37,7 @@ ARRAY_FIELDS = REQUIRED_KEYS[1:] + ("arc_offsets", "arcs", "arc_flow", "transiti
 
 @pytest.fixture(scope="module")
 def small_table() -> Table:
-    """A small valid Dubins table (levels 1, 4, 11, 23), built once for this module."""
+    """A small valid Dubins table (levels 1, 5, 13, 25), built once for this module."""
     table, _ = build_table(make_system("dubins"), BuildConfig(horizon=HORIZON))
     return table
 
@@ -382,10 +382,10 @@ CORRUPTIONS = [
     ("negative-prob", _negative_prob, r"action_probs must lie in \[0, 1\]"),
     ("level-sum", _cell_probs_level_sum, r"cell_probs must sum to 1 in every level"),
     # shapes and offsets
-    ("cell_probs-short", _cell_probs_short, r"'cell_probs' must have shape \[39\] .*header says \[38\]"),
-    ("action_probs-narrow", _action_probs_narrow, r"'action_probs' must have shape \[39, 5\] .*header says \[39, 4\]"),
-    ("offsets-end-short", _offsets_end_short, r"'cells' must have shape \[38, 3\] .*header says \[39, 3\]"),
-    ("offsets-end-long", _offsets_end_long, r"'cells' must have shape \[40, 3\] .*header says \[39, 3\]"),
+    ("cell_probs-short", _cell_probs_short, r"'cell_probs' must have shape \[44\] .*header says \[43\]"),
+    ("action_probs-narrow", _action_probs_narrow, r"'action_probs' must have shape \[44, 5\] .*header says \[44, 4\]"),
+    ("offsets-end-short", _offsets_end_short, r"'cells' must have shape \[43, 3\] .*header says \[44, 3\]"),
+    ("offsets-end-long", _offsets_end_long, r"'cells' must have shape \[45, 3\] .*header says \[44, 3\]"),
     ("offsets-flat", _offsets_not_increasing, r"level_offsets must .*increase strictly"),
     ("offsets-start", _offsets_not_from_zero, r"level_offsets must start at 0"),
     ("flow_target", _flow_target, r"flow_target must be n_t \* n_\{t\+1\}"),
