@@ -29,7 +29,7 @@ from cuniform_torch.grid import Grid
 from cuniform_torch.systems import System, system_to_json
 from cuniform_torch.table import Table, system_fields
 
-from .levels import LevelStep, PointMode, next_level
+from .levels import LevelStep, PointMode, TieRule, next_level
 from .maxflow import action_probs_from_flow, solve_maxflow, unique_arcs
 
 __all__ = ["BuildConfig", "BuildStats", "ResumeError", "build_settings", "check_resume", "build_table", "propagate_cell_probs", "SizeGuide", "project_level_sizes",
@@ -44,11 +44,15 @@ class BuildConfig:
     points: PointMode = PointMode.CENTERS
     points_per_cell: int = 8
     seed: int = 0
+    ties: TieRule = TieRule.SYMMETRIC
+    """how a step onto a cell boundary is assigned: ``symmetric`` (away from its source cell, the authors' level
+    sets) or ``grid`` (the state's own cell; the grid offset decides)"""
 
     def __post_init__(self) -> None:
         if isinstance(self.horizon, bool) or not isinstance(self.horizon, int) or self.horizon < 1:
             raise ValueError(f"horizon must be a positive integer (steps), got {self.horizon!r}")
         object.__setattr__(self, "points", PointMode.parse(self.points))
+        object.__setattr__(self, "ties", TieRule.parse(self.ties))
         if self.points is PointMode.RANDOM and self.points_per_cell < 1:
             raise ValueError(f"points_per_cell must be >= 1, got {self.points_per_cell}")
 
@@ -111,7 +115,7 @@ def propagate_cell_probs(prev: np.ndarray, probs: np.ndarray, src, act, dst, fra
 def _fingerprint(system: System, config: BuildConfig) -> str:
     spec = {"system": system_to_json(system, config.horizon), "points": config.points.value,
             "points_per_cell": config.points_per_cell if config.points is PointMode.RANDOM else None,
-            "seed": config.seed if config.points is PointMode.RANDOM else None}
+            "seed": config.seed if config.points is PointMode.RANDOM else None, "ties": config.ties.value}
     return hashlib.sha256(json.dumps(spec, sort_keys=True).encode()).hexdigest()
 
 
@@ -128,7 +132,8 @@ def build_settings(system: System, config: BuildConfig) -> dict:
     random = config.points is PointMode.RANDOM
     return json.loads(json.dumps({
         "system": system.name, **system.params(), "horizon": config.horizon, "points": config.points.value,
-        "points_per_cell": config.points_per_cell if random else None, "seed": config.seed if random else None}))
+        "points_per_cell": config.points_per_cell if random else None, "seed": config.seed if random else None,
+        "ties": config.ties.value}))
 
 
 def check_resume(checkpoint_dir: str | Path, system: System, config: BuildConfig) -> None:
@@ -155,7 +160,7 @@ def _solve_step(system: System, cells: np.ndarray, config: BuildConfig, t: int, 
     gen = None
     if config.points is PointMode.RANDOM:
         gen = torch.Generator().manual_seed(config.seed * 1_000_003 + t)  # per-step stream: resumable
-    lvl: LevelStep = next_level(system, cells, config.points, config.points_per_cell, gen)
+    lvl: LevelStep = next_level(system, cells, config.points, config.points_per_cell, gen, config.ties)
     t1 = time.perf_counter()
     n, m = len(cells), len(lvl.next_cells)
     arc_src, arc_dst, arc_index = unique_arcs(lvl.src, lvl.dst, m)
@@ -233,6 +238,7 @@ def _assemble(system: System, config: BuildConfig, level_cells: list[np.ndarray]
     )
     build_info = {
         "points": config.points.value,
+        "ties": config.ties.value,
         "points_per_cell": config.points_per_cell if config.points is PointMode.RANDOM else None,
         "seed": config.seed if config.points is PointMode.RANDOM else None,
         "lattice_scale": "delta/2.01",

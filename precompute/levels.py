@@ -39,6 +39,16 @@ _CHUNK_POINTS = 1 << 21  # state-action pairs stepped at once (bounds memory on 
 _REUSE_LIMIT = 1 << 25  # int64 cell entries (256 MiB) kept between the two passes in lattice mode
 
 
+@option_label('tie rule')
+class TieRule(Option):
+    """How a step that lands exactly on a cell boundary is assigned (see :meth:`~cuniform_torch.grid.Grid.cells_from`)."""
+
+    SYMMETRIC = "symmetric"
+    """half-cell steps round away from their source cell: mirror-symmetric level sets, the authors' sizes"""
+    GRID = "grid"
+    """the state's own cell, ``round(x / delta + offset)``: the grid offset decides (before: the only rule)"""
+
+
 @option_label('point mode')
 class PointMode(Option):
     """How sample points of a cell are chosen (see the module docstring)."""
@@ -86,7 +96,8 @@ def cell_sample_offsets(grid: Grid, mode: PointMode, n: int, points_per_cell: in
     return lattice.unsqueeze(0)
 
 
-def _step_cells(system: System, grid: Grid, points: Tensor, actions: Tensor, source: Tensor) -> Tensor:
+def _step_cells(system: System, grid: Grid, points: Tensor, actions: Tensor, source: Tensor,
+                ties: TieRule = TieRule.SYMMETRIC) -> Tensor:
     """Cells reached from ``points [n, P, d]`` of the cells ``source [n, d]`` under every action ``[A, q]``:
     ``[n, P, A, d]`` int64, counted from the source cell so that half-cell ties break by direction
     (:meth:`~cuniform_torch.grid.Grid.cells_from`)."""
@@ -94,7 +105,8 @@ def _step_cells(system: System, grid: Grid, points: Tensor, actions: Tensor, sou
     A = actions.shape[0]
     x = points.unsqueeze(2).expand(n, P, A, d).reshape(-1, d)
     u = actions.unsqueeze(0).expand(n * P, A, actions.shape[1]).reshape(-1, actions.shape[1])
-    return grid.cells_from(source, system.step(x, u).reshape(n, P, A, d))
+    reached = system.step(x, u).reshape(n, P, A, d)
+    return grid.cells_from(source, reached) if ties is TieRule.SYMMETRIC else grid.cells(reached)
 
 
 def _chunks(n: int, per_cell: int):
@@ -109,9 +121,11 @@ def next_level(
     mode: PointMode = PointMode.CENTERS,
     points_per_cell: int = 8,
     generator: torch.Generator | None = None,
+    ties: TieRule | str = TieRule.SYMMETRIC,
 ) -> LevelStep:
     """Build L_{t+1} and the transitions from the cells of L_t (``cells [n, d]`` int64)."""
     mode = PointMode.parse(mode)
+    ties = TieRule.parse(ties)
     grid = Grid.of(system)
     actions = system.action_set(dtype=torch.float64)  # [A, q]
     A = actions.shape[0]
@@ -133,7 +147,7 @@ def next_level(
     found, stepped = [], []
     for lo, hi in _chunks(n, level_pts * A):
         pts = points(lo, hi) if mode is PointMode.LATTICE else centres[lo:hi].unsqueeze(1)
-        reached = _step_cells(system, grid, pts, actions, cells_t[lo:hi])  # [c, P or 1, A, d]
+        reached = _step_cells(system, grid, pts, actions, cells_t[lo:hi], ties)  # [c, P or 1, A, d]
         if reuse:
             stepped.append(reached)
         reached = reached.reshape(-1, grid.dim)
@@ -151,7 +165,7 @@ def next_level(
     trans_keys, trans_counts = [], []
     kept_total = 0
     for k, (lo, hi) in enumerate(_chunks(n, P * A)):
-        reached = stepped[k] if reuse else _step_cells(system, grid, points(lo, hi), actions, cells_t[lo:hi])
+        reached = stepped[k] if reuse else _step_cells(system, grid, points(lo, hi), actions, cells_t[lo:hi], ties)
         rows = next_set.lookup(reached)  # [c, P, A]
         src = torch.arange(lo, hi).view(-1, 1, 1).expand_as(rows)
         act = torch.arange(A).view(1, 1, A).expand_as(rows)

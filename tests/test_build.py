@@ -36,6 +36,23 @@ def test_default_dubins_level_sets_are_mirror_symmetric(dubins_table):
         assert set(map(tuple, mirror.tolist())) == set(map(tuple, cells.tolist())), t
 
 
+def test_the_grid_tie_rule_keeps_the_offset_deciding():
+    """``ties="grid"``: a stepped state takes its own cell, so the preset's 1% angle offset breaks every half-cell
+    tie the same way (the builder's only rule before the symmetric one); a resume never mixes the two."""
+    table, _ = build_table(make_system("dubins"), BuildConfig(horizon=10, ties="grid"))
+    assert table.level_sizes == [1, 4, 11, 23, 44, 83, 157, 291, 523, 897, 1456]
+    assert json.loads(table.build_info)["ties"] == "grid"
+    with pytest.raises(ValueError, match=r"unknown tie rule 'nearest'; choose one of: symmetric, grid"):
+        BuildConfig(ties="nearest")
+
+
+def test_a_resume_with_another_tie_rule_rebuilds_every_step(tmp_path):
+    system = make_system("dubins")
+    build_table(system, BuildConfig(horizon=3, ties="grid"), checkpoint_dir=tmp_path)
+    _, stats = build_table(system, BuildConfig(horizon=3), checkpoint_dir=tmp_path, resume=True)
+    assert stats.resumed_steps == 0
+
+
 def test_level_sets_are_the_same_in_float32_and_float64():
     """Every level of the default preset stepped from float32 centres with float32 actions lands in the cells
     that the float64 build finds: the half-cell ties are decided by direction, not by rounding noise."""
