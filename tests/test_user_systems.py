@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 import torch
 
-from cuniform_torch import CUMPPI, TablePolicy, load_policy, read_table, rollout, write_table
+from cuniform_torch import CUMPPI, CUniformMPPI, TablePolicy, load_policy, read_table, rollout, write_table
 from cuniform_torch.envs import Circle, Environment, NavigationCost, simulate
 from cuniform_torch.grid import Grid
 from cuniform_torch.mppi import CUniformMPPI
@@ -333,7 +333,8 @@ def test_ks_speed_table_q2_policy_report_and_escape(ks_speed_table):
 
 
 def test_ks_table_and_ks_speed_table_distill_and_drive(ks_table, ks_speed_table, tmp_path):
-    """A tiny distillation per table (d = 3 and q = 1; d = 4 and q = 2); the MLP drives CU-MPPI in closed loop."""
+    """A tiny distillation per table (d = 3 and q = 1; d = 4 and q = 2); the MLP's own proposals drive the closed
+    loop (and a broken MLP does not)."""
     for name, table in (("ks", ks_table), ("ks_speed", ks_speed_table)):
         write_table(tmp_path / f"{name}.npz", table)
         argv = ["--tables", str(tmp_path / f"{name}.npz"), "--out", str(tmp_path / f"{name}.pt"),
@@ -344,13 +345,24 @@ def test_ks_table_and_ks_speed_table_distill_and_drive(ks_table, ks_speed_table,
         assert policy.config.state_dim == d and policy.actions.shape[1] == q
         states, actions = rollout(policy.system, policy, torch.zeros(d), 100, table.horizon)
         assert states.shape == (100, table.horizon + 1, d) and actions.shape == (100, table.horizon, q)
-    # ks: around an obstacle on the straight line to the goal
+    # ks: around an obstacle on the straight line to the goal, on the MLP's proposals alone (no Gaussian pass)
     policy = load_policy(tmp_path / "ks.pt")
     env = Environment([Circle(center=(1.5, 0.0), radius=0.3)])
     cost = NavigationCost(env, goal=(3.0, 0.0), goal_tolerance=0.2)
-    result = simulate(policy.system, CUMPPI(policy, cost, num_samples=400, seed=0), torch.zeros(3), env,
-                      goal=(3.0, 0.0), goal_tolerance=0.2, time_limit=8.0, cost=cost)
-    assert result.outcome == "goal"
+
+    def outcome(controller) -> str:
+        return simulate(policy.system, controller, torch.zeros(3), env, goal=(3.0, 0.0), goal_tolerance=0.2,
+                        time_limit=8.0, cost=cost).outcome
+
+    outcomes = [outcome(CUniformMPPI(policy, cost, num_samples=400, seed=s)) for s in range(4)]
+    assert outcomes.count("goal") >= 3, outcomes
+    assert outcome(CUMPPI(policy, cost, num_samples=400, seed=0)) == "goal"
+    with torch.no_grad():  # the control: an MLP that always steers hard left drives neither controller there
+        policy.net[-1].weight.zero_()
+        policy.net[-1].bias.zero_()
+        policy.net[-1].bias[0] = 50.0
+    assert outcome(CUniformMPPI(policy, cost, num_samples=400, seed=0)) != "goal"
+    assert outcome(CUMPPI(policy, cost, num_samples=400, seed=0)) != "goal"
     # ks_speed: from rest to a goal ahead
     policy = load_policy(tmp_path / "ks_speed.pt")
     env = Environment([])
