@@ -42,7 +42,7 @@ from torch import Tensor
 from .proposals import (PROPOSAL_MEMBERS, BankProposal, BankRefreshWarning, Closeable, CompositeProposal,
                         GaussianProposal, NormalLogNormalProposal, PolicyProposal, Proposal, check_positive_int,
                         seeded_generator)
-from .rollout import same_device
+from .rollout import check_generator, same_device
 from .systems import System
 
 __all__ = ["CostFn", "MPPIResult", "mppi_weights", "MPPICore", "MPPI", "LogMPPI", "CUniformMPPI", "CUMPPI",
@@ -194,6 +194,8 @@ class MPPICore:
             generator = make_generator(seed, self.device)
         elif seed is not None:
             raise ValueError("pass a seed or a generator, not both")
+        else:
+            check_generator(generator, self.device)
         self.generator = generator
         """the stream of random numbers of every proposal drawn by this controller"""
 

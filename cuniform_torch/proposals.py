@@ -36,7 +36,7 @@ from torch import Tensor
 
 from .frames import se2_to_world
 from .mlp import load_policy
-from .rollout import Policy, PolicyTraits, open_loop, rollout, same_device
+from .rollout import Policy, PolicyTraits, RolloutPlan, check_generator, open_loop, same_device
 from .samplers import GaussianSampler, NormalLogNormalSampler
 from .systems import System
 
@@ -233,9 +233,16 @@ class PolicyProposal:
             raise ValueError(f"horizon {self.horizon} is longer than the policy's table ({traits.horizon} steps)")
         self.num_samples = check_positive_int("num_samples", num_samples)
         self.dtype = traits.dtype or torch.float32
+        self.plan = RolloutPlan.of(self.system, self.policy)
+        """how the policy is rolled out, settled here: a command runs it without the per-call checks"""
 
     def propose(self, state: Tensor, generator: torch.Generator) -> tuple[Tensor, Tensor]:
-        return rollout(self.system, self.policy, state, self.num_samples, self.horizon, generator)
+        return self.rollout(state, self.num_samples, generator)
+
+    def rollout(self, start: Tensor, num_samples: int, generator: torch.Generator) -> tuple[Tensor, Tensor]:
+        """``num_samples`` rollouts of ``horizon`` steps from a checked ``start [d]`` (finite, of the proposal's
+        dtype on its device): ``[N, T+1, d]``, ``[N, T, q]``."""
+        return self.plan.run(self.system, self.policy, start, num_samples, self.horizon, generator)
 
     def update(self, result: MPPIResult) -> None:
         """Nothing to warm-start: every command rolls out afresh."""
@@ -307,8 +314,9 @@ class BankProposal:
 
     def draw_bank(self, generator: torch.Generator) -> tuple[Tensor, Tensor]:
         """``bank_size`` fresh rollouts at the origin: ``[M, T+1, d]``, ``[M, T, q]`` (not put in use)."""
+        check_generator(generator, self.device)
         origin = torch.zeros(self.state_dim, dtype=self.dtype, device=self.device)
-        return rollout(self.system, self.source.policy, origin, self.bank_size, self.horizon, generator)
+        return self.source.rollout(origin, self.bank_size, generator)
 
     def resample(self, generator: torch.Generator | None = None) -> None:
         """Draw a new bank now and use it (from ``generator``, default the refresh stream)."""

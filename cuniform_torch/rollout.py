@@ -25,10 +25,11 @@ from typing import Protocol, runtime_checkable
 import torch
 from torch import Tensor
 
+from . import rollout_kernels
 from .frames import se2_to_world
 from .systems import System
 
-__all__ = ["Policy", "ActionSampler", "PolicyTraits", "rollout", "rollout_actions", "check_states",
+__all__ = ["Policy", "ActionSampler", "PolicyTraits", "RolloutPlan", "rollout", "rollout_actions", "check_states",
            "check_generator", "same_device"]
 
 
@@ -167,6 +168,84 @@ def rollout_actions(system: System, x0: Tensor, actions: Tensor) -> Tensor:
     return open_loop(system, x0.detach(), actions.detach())
 
 
+@dataclass(frozen=True)
+class RolloutPlan:
+    """How :func:`rollout` drives one policy, settled once (a proposal keeps it and skips the per-call checks)."""
+
+    sampler: bool
+    """draw through ``policy.sample`` (an :class:`ActionSampler`); else categorical draws of ``action_probs``"""
+    relative: bool
+    """roll out from the origin and move the states to the start pose (``start_relative`` on an SE(2)-invariant
+    system)"""
+    traits: PolicyTraits
+
+    @classmethod
+    def of(cls, system: System, policy: object) -> RolloutPlan:
+        """The plan for ``policy`` on ``system``; ValueError when it is neither a Policy nor an ActionSampler."""
+        # the two protocols' runtime checks, spelled out (typing's isinstance on a Protocol is ~20 us a call)
+        sampler = callable(getattr(policy, "sample", None))
+        if not sampler and not (hasattr(policy, "actions") and callable(getattr(policy, "action_probs", None))):
+            raise ValueError(f"{type(policy).__name__} is neither a Policy (actions, action_probs) nor an "
+                             f"ActionSampler (sample)")
+        traits = PolicyTraits.of(policy)
+        return cls(sampler=sampler, relative=traits.start_relative and bool(system.se2_invariant), traits=traits)
+
+    def check(self, x0: Tensor, horizon: int) -> None:
+        """ValueError unless the policy serves ``horizon`` steps from ``x0`` (its device, finite)."""
+        traits = self.traits
+        if traits.horizon is not None and horizon > traits.horizon:
+            raise ValueError(f"horizon {horizon} is longer than the policy's table ({traits.horizon} steps)")
+        if traits.device is not None and not same_device(traits.device, x0.device):
+            raise ValueError(f"x0 is on {x0.device} but the policy is on {traits.device}")
+        if not bool(torch.isfinite(x0).all()):
+            raise ValueError("x0 contains NaN or infinite values")
+
+    def run(self, system: System, policy: Policy | ActionSampler, x0: Tensor, num_samples: int, horizon: int,
+            generator: torch.Generator | None) -> tuple[Tensor, Tensor]:
+        """The rollout itself, for checked input (``x0 [d]`` or ``[N, d]``, detached, finite, on the policy's
+        device; a generator on it): ``states [N, T+1, d]``, ``actions [N, T, q]``."""
+        d = x0.shape[-1]
+        start = x0.unsqueeze(0).expand(num_samples, d) if x0.ndim == 1 else x0  # [N, d]
+        # in the start pose's frame the start is (0, 0, 0, *rest): the frame change leaves speeds etc. unchanged
+        x = torch.cat((torch.zeros_like(start[:, :3]), start[:, 3:]), dim=1) if self.relative else start
+        x = x.T.contiguous().T  # column-major [N, d]: every column a policy or a step reads is contiguous (faster)
+        actions = None if self.sampler else policy.actions.to(dtype=x0.dtype)  # [A, q]
+        states, taken = [x], []
+        for t in range(horizon):
+            if self.sampler:
+                u = policy.sample(x, t, generator)  # [N, q]
+            else:
+                probs = policy.action_probs(x, t)  # [N, A]
+                if not isinstance(probs, Tensor) or probs.shape != (num_samples, actions.shape[0]):
+                    raise ValueError(f"{type(policy).__name__}.action_probs returned "
+                                     f"{list(probs.shape) if isinstance(probs, Tensor) else type(probs).__name__} at "
+                                     f"step {t}; expected [{num_samples}, {actions.shape[0]}] probabilities (states x "
+                                     f"actions)")
+                u = actions[torch.multinomial(probs, 1, generator=generator).squeeze(1)]  # [N, q]
+            x = _step(system, x, u, num_samples, d)
+            states.append(x)
+            taken.append(u)
+        # the origin pose needs no change of frame (a host sync to know it: only on a CPU, where it is free)
+        if self.relative and (x0.ndim == 2 or x0.device.type != "cpu" or bool(x0[:3].any())):
+            # the column-major states stacked time-major ([T+1, d, N], one copy, contiguous rows); the frame change
+            # reads that once and writes the [N, T+1, d] result once (a compiled loop on a CPU, else torch ops)
+            local = torch.stack([s.T for s in states])
+            if x0.ndim == 1 and rollout_kernels.usable(local):
+                states_t = rollout_kernels.to_world(local, x0)
+            else:
+                states_t = se2_to_world(local.permute(2, 0, 1), x0 if x0.ndim == 1 else start.unsqueeze(1))
+        else:
+            states_t = torch.stack(states, dim=1)  # [N, T+1, d]
+        if taken:
+            # stacked time-major, then one transposing copy: cheaper on a CPU than stacking [N, q] along dim 1
+            actions_t = torch.stack(taken).transpose(0, 1).contiguous()  # [N, T, q]
+        else:
+            q = (policy.actions.shape[1] if hasattr(policy, "actions")
+                 else system.action_set(dtype=x0.dtype, device=x0.device).shape[1])
+            actions_t = x0.new_zeros((num_samples, 0, q))
+        return states_t, actions_t
+
+
 def rollout(
     system: System,
     policy: Policy | ActionSampler,
@@ -181,50 +260,9 @@ def rollout(
     of ``x0``; pass a seeded ``generator`` on that device for reproducible samples. No gradient flows through a
     rollout: an ``x0`` that requires grad is detached. A policy's ``action_probs`` must return ``[N, A]``.
     """
-    d = _check_args(system, x0, num_samples, horizon)
+    _check_args(system, x0, num_samples, horizon)
     check_generator(generator, x0.device)
     x0 = x0.detach()
-    sampler = isinstance(policy, ActionSampler)
-    if not sampler and not isinstance(policy, Policy):
-        raise ValueError(f"{type(policy).__name__} is neither a Policy (actions, action_probs) nor an ActionSampler (sample)")
-    traits = PolicyTraits.of(policy)
-    if traits.horizon is not None and horizon > traits.horizon:
-        raise ValueError(f"horizon {horizon} is longer than the policy's table ({traits.horizon} steps)")
-    if traits.device is not None and not same_device(traits.device, x0.device):
-        raise ValueError(f"x0 is on {x0.device} but the policy is on {traits.device}")
-    if not bool(torch.isfinite(x0).all()):
-        raise ValueError("x0 contains NaN or infinite values")
-    start = x0.unsqueeze(0).expand(num_samples, d) if x0.ndim == 1 else x0  # [N, d]
-    relative = traits.start_relative and system.se2_invariant
-    # in the start pose's frame the start is (0, 0, 0, *rest): the frame change leaves speeds etc. unchanged
-    x = torch.cat((torch.zeros_like(start[:, :3]), start[:, 3:]), dim=1) if relative else start
-    x = x.T.contiguous().T  # column-major [N, d]: every column a policy or a step reads is contiguous (faster)
-    actions = policy.actions.to(dtype=x0.dtype) if isinstance(policy, Policy) else None  # [A, q]
-    states, taken = [x], []
-    for t in range(horizon):
-        if sampler:
-            u = policy.sample(x, t, generator)  # [N, q]
-        else:
-            probs = policy.action_probs(x, t)  # [N, A]
-            if not isinstance(probs, Tensor) or probs.shape != (num_samples, actions.shape[0]):
-                raise ValueError(f"{type(policy).__name__}.action_probs returned "
-                                 f"{list(probs.shape) if isinstance(probs, Tensor) else type(probs).__name__} at step "
-                                 f"{t}; expected [{num_samples}, {actions.shape[0]}] probabilities (states x actions)")
-            u = actions[torch.multinomial(probs, 1, generator=generator).squeeze(1)]  # [N, q]
-        x = _step(system, x, u, num_samples, d)
-        states.append(x)
-        taken.append(u)
-    if relative and (x0.ndim == 2 or bool(x0[:3].any())):  # the origin pose needs no change of frame
-        # the column-major states stacked time-major ([T+1, d, N], one copy) and viewed as [N, T+1, d]: the frame
-        # change reads contiguous runs and writes the [N, T+1, d] result once
-        local = torch.stack([s.T for s in states]).permute(2, 0, 1)
-        states_t = se2_to_world(local, x0 if x0.ndim == 1 else start.unsqueeze(1))
-    else:
-        states_t = torch.stack(states, dim=1)  # [N, T+1, d]
-    if taken:
-        # stacked time-major, then one transposing copy: cheaper on a CPU than stacking [N, q] along dim 1
-        actions_t = torch.stack(taken).transpose(0, 1).contiguous()  # [N, T, q]
-    else:
-        q = actions.shape[1] if actions is not None else system.action_set(dtype=x0.dtype, device=x0.device).shape[1]
-        actions_t = x0.new_zeros((num_samples, 0, q))
-    return states_t, actions_t
+    plan = RolloutPlan.of(system, policy)
+    plan.check(x0, horizon)
+    return plan.run(system, policy, x0, num_samples, horizon, generator)

@@ -273,3 +273,42 @@ class TestClose:
         plain = MPPICore(ArcFan(Dubins(), 8, 3), goal_cost, seed=0)
         plain.close()  # nothing to release
         assert bool(torch.isfinite(plain.command(torch.zeros(3))).all())
+
+
+# ------------------------------------------------------------------------------------------ rollout's frame change
+
+class TestFrameChangeKernel:
+    """The compiled frame change of a start-relative rollout against :func:`se2_to_world` (the torch reference)."""
+
+    @pytest.mark.parametrize("dtype, atol", [(torch.float32, 4e-6), (torch.float64, 1e-13)])
+    @pytest.mark.parametrize("d", [3, 4])
+    def test_it_matches_se2_to_world(self, dtype, atol, d):
+        from cuniform_torch import rollout_kernels
+
+        if not rollout_kernels.usable(torch.zeros(1, dtype=dtype)):
+            pytest.skip("numba is not installed")
+        gen = torch.Generator().manual_seed(0)
+        local = torch.randn(11, d, 500, generator=gen, dtype=dtype) * 3  # [T+1, d, N], time-major
+        local[:, 2] = torch.remainder(local[:, 2] + torch.pi, 2 * torch.pi) - torch.pi
+        for pose in ([0.3, -2.0, 0.7], [10.0, 1.0, -3.1], [0.0, 0.0, 3.14159], [-4.0, 2.0, -torch.pi]):
+            pose = torch.tensor(pose + [0.5] * (d - 3), dtype=dtype)
+            expected = se2_to_world(local.permute(2, 0, 1), pose)  # [N, T+1, d]
+            got = rollout_kernels.to_world(local, pose)
+            assert got.shape == expected.shape and got.is_contiguous() and got.dtype == dtype
+            torch.testing.assert_close(got[..., :2], expected[..., :2], atol=atol, rtol=0)
+            heading = torch.remainder(got[..., 2] - expected[..., 2] + torch.pi, 2 * torch.pi) - torch.pi
+            assert float(heading.abs().max()) <= atol
+            assert float(got[..., 2].min()) >= -torch.pi and float(got[..., 2].max()) < torch.pi
+            assert torch.equal(got[..., 3:], expected[..., 3:])
+
+    def test_rollouts_from_a_pose_agree_with_and_without_it(self, policy, monkeypatch):
+        from cuniform_torch import rollout_kernels
+
+        pose = torch.tensor([1.2, -0.4, 2.2])
+        fast, fast_actions = rollout(policy.system, policy, pose, 300, 10, _gen(4))
+        monkeypatch.setattr(rollout_kernels, "usable", lambda x: False)
+        slow, slow_actions = rollout(policy.system, policy, pose, 300, 10, _gen(4))
+        assert torch.equal(fast_actions, slow_actions)
+        torch.testing.assert_close(fast[..., :2], slow[..., :2], atol=4e-6, rtol=0)
+        heading = torch.remainder(fast[..., 2] - slow[..., 2] + torch.pi, 2 * torch.pi) - torch.pi
+        assert float(heading.abs().max()) <= 4e-6
