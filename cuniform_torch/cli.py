@@ -223,24 +223,26 @@ def _show(value: Any) -> str:
 def add_dataclass_args(parser: argparse.ArgumentParser | argparse._ArgumentGroup, cls: type, *,
                        only: Iterable[str] | None = None, exclude: Iterable[str] = (),
                        flags: Mapping[str, str] | None = None, help: Mapping[str, str] | None = None,
-                       required: Iterable[str] = (), choices: Mapping[str, Sequence[Any]] | None = None) -> list[str]:
+                       required: Iterable[str] = (), choices: Mapping[str, Sequence[Any]] | None = None,
+                       metavars: Mapping[str, str] | None = None) -> list[str]:
     """A flag per field of the dataclass ``cls`` (``only`` those, less ``exclude``); returns the field names.
 
     The flag is ``--field-name`` (or ``flags[name]``); its type comes from the annotation (``int``, ``float``,
     ``str``, ``Path``, an ``Enum`` (its values become the choices), ``list[X]`` / ``tuple[X, ...]`` (one or more
-    values), ``X | None``); a ``bool`` field that defaults to False is a switch that sets it, one that defaults
-    to True a switch (named by ``flags``) that clears it. The help is ``help[name]``, else the field's docstring
-    (:func:`field_docs`), followed by the dataclass default unless the text already speaks of the default. Every
-    flag's parser default is ``argparse.SUPPRESS``: only given flags reach the namespace
-    (:func:`dataclass_from_args`), so the dataclass holds the only copy of each default.
+    values), ``X | None``; ``choices`` and ``metavars`` per field); a ``bool`` field that defaults to False is a
+    switch that sets it, one that defaults to True a switch (named by ``flags``) that clears it. The help is
+    ``help[name]``, else the field's docstring (:func:`field_docs`), followed by the dataclass default unless the
+    text already speaks of the default. Every flag's parser default is ``argparse.SUPPRESS``: only given flags reach
+    the namespace (:func:`dataclass_from_args`), so the dataclass holds the only copy of each default.
     """
-    flags, help, choices = dict(flags or {}), dict(help or {}), dict(choices or {})
+    flags, help, choices, metavars = dict(flags or {}), dict(help or {}), dict(choices or {}), dict(metavars or {})
     required = set(required)
     docs = field_docs(cls)
     hints = typing.get_type_hints(cls)
     wanted = None if only is None else list(only)
     fields = {f.name: f for f in dataclasses.fields(cls) if f.init}
-    unknown = [n for n in [*(wanted or []), *exclude, *flags, *help, *required, *choices] if n not in fields]
+    unknown = [n for n in [*(wanted or []), *exclude, *flags, *help, *required, *choices, *metavars]
+               if n not in fields]
     if unknown:
         raise TypeError(f"{cls.__name__} has no field(s) {', '.join(sorted(set(unknown)))}")
     names = [n for n in (wanted if wanted is not None else fields) if n not in set(exclude)]
@@ -265,10 +267,13 @@ def add_dataclass_args(parser: argparse.ArgumentParser | argparse._ArgumentGroup
             kwargs["type"] = base
             if name in choices:
                 kwargs["choices"] = list(choices[name])
+            if name in metavars:
+                kwargs["metavar"] = metavars[name]
             if name in required:
                 kwargs["required"] = True
             elif not (default is None or "default" in text.lower()):
                 text = f"{text} (default: {_show(default)})" if text else f"default: {_show(default)}"
+        text = re.sub(r":\w+:`~?([^`]+)`", r"\1", text).replace("``", "")  # reST roles and literals, plain
         kwargs["help"] = text.replace("%", "%%")
         parser.add_argument(flags.get(name, flag_name(name)), **kwargs)
     return names

@@ -31,6 +31,8 @@ from cuniform_torch.cli import ArgumentParser, CLIError, check_output_file, cli_
 from cuniform_torch.fileio import write_json
 from cuniform_torch.policy import Kernel
 
+from .paths import DEFAULT
+
 
 def _timer(fn: Callable[[], object], repeats: int, warmup: int, device: torch.device) -> float:
     sync = torch.cuda.synchronize if device.type == "cuda" else (lambda: None)
@@ -80,8 +82,8 @@ def main(argv=None) -> int:
     p = ArgumentParser(prog="python -m eval.bench", description=__doc__.split("\n\n")[0])
     p.add_argument("--samples", type=int, nargs="+", default=[500, 1000, 10000])
     p.add_argument("--horizons", type=int, nargs="+", default=[15, 10], help="15 and the default table's 10")
-    p.add_argument("--table15", type=Path, default=Path("out/dubins_h15.npz"), help="a horizon-15 Dubins table")
-    p.add_argument("--table", type=Path, default=Path("out/dubins.npz"), help="the default (horizon-10) table")
+    p.add_argument("--table15", type=Path, default=DEFAULT.bench_table(15), help="a horizon-15 Dubins table")
+    p.add_argument("--table", type=Path, default=DEFAULT.table, help="the default (horizon-10) table")
     p.add_argument("--repeats", type=int, default=20)
     p.add_argument("--warmup", type=int, default=3)
     p.add_argument("--device", default="cpu")
@@ -89,7 +91,7 @@ def main(argv=None) -> int:
     p.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's choice)")
     p.add_argument("--rollout-only", action="store_true", help="only the bare-rollout section")
     p.add_argument("--rollout-repeats", type=int, default=None, help="repeats of the bare rollouts (default: --repeats)")
-    p.add_argument("--json", type=Path, default=Path("out/bench.json"))
+    p.add_argument("--json", type=Path, default=DEFAULT.bench_json)
     args = p.parse_args(argv)
     try:
         device = torch.device(args.device)
@@ -127,7 +129,7 @@ def main(argv=None) -> int:
         print(header + (f" {'peer':>8} {'MPPI/peer':>10}" if have_peer else ""))
     for T in [] if args.rollout_only else args.horizons:
         if T not in tables:
-            tables[T] = _table(Path(f"out/dubins_h{T}.npz"), T)
+            tables[T] = _table(DEFAULT.bench_table(T), T)
         policy = load_table(tables[T], device=device)
         for K in args.samples:
             ctrls = {

@@ -20,11 +20,13 @@ from cuniform_torch.fileio import write_json
 from cuniform_torch.table import read_table
 from precompute.maxflow import maxflow_value_networkx, solve_maxflow
 
+from .paths import DEFAULT
+
 
 @cli_main()
 def main(argv=None) -> int:
     p = ArgumentParser(prog="python -m eval.bench_maxflow", description=__doc__.split("\n\n")[0])
-    p.add_argument("--table", type=Path, default=Path("out/dubins.npz"))
+    p.add_argument("--table", type=Path, default=DEFAULT.table)
     p.add_argument("--levels", type=int, nargs="*", default=None, help="target levels t+1 (default: every level)")
     p.add_argument("--repeats", type=int, default=3)
     p.add_argument("--networkx-max-nodes", type=int, default=20000, help="skip networkx on larger networks")

@@ -53,17 +53,19 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from cuniform_torch.cli import ArgumentParser, cli_main
 from cuniform_torch.envs import Environment, Rect, u_shape
 
-from . import config
-from .cli import prepare, sources_from_args
-from .closed_loop import (ControllerSettings, Episode, add_common_args, aggregate, config_from_args,
-                          config_from_json, finish_cli, plot_paths, run_episodes, success_markdown, usable_methods)
+from . import cli, config
+from .episodes import ControllerSettings, Episode, run_episodes, usable_methods
+from .figures import plot_paths
+from .markdown import success_markdown
+from .markdown import table as md_table
 from .methods import METHODS, Sources
+from .stats import aggregate
 
-__all__ = ["EnvSpec", "ENVIRONMENTS", "ClutteredConfig", "QUICK", "make_env", "start_poses", "time_limit",
-           "SEED_STRIDE", "controller_seed", "episodes", "per_start_markdown", "run", "markdown", "figures", "main"]
+__all__ = ["EnvSpec", "ENVIRONMENTS", "ClutteredConfig", "CONFIG", "QUICK", "make_parser",
+           "config_from_args", "make_env", "start_poses", "time_limit", "SEED_STRIDE", "controller_seed",
+           "episodes", "per_start_markdown", "run", "markdown", "figures", "main"]
 
 
 @dataclass(frozen=True)
@@ -115,6 +117,7 @@ class ClutteredConfig(ControllerSettings):
     samples: tuple[int, ...] = (500, 1000, 2500)
     """N, trajectories per control cycle"""
     environments: tuple[str, ...] = ("u_shape", "rectangles")
+    """environment names (:data:`ENVIRONMENTS`)"""
     starts: int = 10
     """random start poses per environment (the paper: 10)"""
     clearance: float = 1.5
@@ -228,7 +231,7 @@ def run(cfg: ClutteredConfig, sources: Sources, progress: bool = True, record_pa
 
 
 def _config(results: dict) -> ClutteredConfig:
-    return config_from_json(ClutteredConfig, results["config"])
+    return cli.config_from_json(ClutteredConfig, results["config"])
 
 
 def _fmt(v: float | None, unit: str) -> str:
@@ -257,16 +260,11 @@ def markdown(results: dict) -> str:
         out.append(success_markdown(rows, results["methods"], "num_samples", list(cfg.samples),
                                     [f"N = {n}" for n in cfg.samples], paper, where={"env": name}))
         out += ["", f"Mean time to goal / path length over the successful runs ({name}):", ""]
-        head = ["method"] + [f"N = {n}" for n in cfg.samples]
-        lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
-        for m in results["methods"]:
-            cells = []
-            for n in cfg.samples:
-                r = next((r for r in rows if r["env"] == name and r["num_samples"] == n and r["method"] == m), None)
-                cells.append("-" if r is None else
-                             f"{_fmt(r['mean_time'], 's')} / {_fmt(r['mean_path_length'], 'm')}")
-            lines.append(f"| {METHODS[m].label} | " + " | ".join(cells) + " |")
-        out += ["\n".join(lines), ""]
+        at = {(r["method"], r["num_samples"]): r for r in rows if r["env"] == name}
+        times = [[METHODS[m].label, *("-" if (m, n) not in at else f"{_fmt(at[m, n]['mean_time'], 's')} / "
+                                      f"{_fmt(at[m, n]['mean_path_length'], 'm')}" for n in cfg.samples)]
+                 for m in results["methods"]]
+        out += [md_table(["method", *(f"N = {n}" for n in cfg.samples)], times), ""]
         if reps > 1:
             out += [f"Per start ({name}): runs that reached the goal out of {reps} controller seeds "
                     "(c: collisions, t: timeouts):", "", per_start_markdown(results, name), ""]
@@ -279,20 +277,16 @@ def per_start_markdown(results: dict, name: str) -> str:
     from that start (``k/R``), with the collisions and timeouts among the failures."""
     cfg = _config(results)
     recs = [r for r in results["records"] if r["env"] == name]
-    head = ["method", "N"] + [f"start {s}" for s in range(cfg.starts)]
-    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
-    for m in results["methods"]:
-        for n in cfg.samples:
-            cells = []
-            for s in range(cfg.starts):
-                rs = [r for r in recs if r["method"] == m and r["num_samples"] == n and r["start"] == s]
-                ok = sum(r["success"] for r in rs)
-                c = sum(r["outcome"] == "collision" for r in rs)
-                t = sum(r["outcome"] == "timeout" for r in rs)
-                cell = f"{ok}/{len(rs)}" + (f" ({c}c {t}t)" if ok < len(rs) else "")
-                cells.append(cell)
-            lines.append(f"| {METHODS[m].label} | {n} | " + " | ".join(cells) + " |")
-    return "\n".join(lines)
+
+    def cell(rs: list[dict]) -> str:
+        ok, c, t = (sum(r["success"] for r in rs), sum(r["outcome"] == "collision" for r in rs),
+                    sum(r["outcome"] == "timeout" for r in rs))
+        return f"{ok}/{len(rs)}" + (f" ({c}c {t}t)" if ok < len(rs) else "")
+
+    body = [[METHODS[m].label, n, *(cell([r for r in recs if r["method"] == m and r["num_samples"] == n
+                                          and r["start"] == s]) for s in range(cfg.starts))]
+            for m in results["methods"] for n in cfg.samples]
+    return md_table(["method", "N", *(f"start {s}" for s in range(cfg.starts))], body)
 
 
 def figures(results: dict, outdir: Path) -> list[Path]:
@@ -316,25 +310,23 @@ def figures(results: dict, outdir: Path) -> list[Path]:
     return paths
 
 
-@cli_main()
-def main(argv: list[str] | None = None) -> int:
-    parser = ArgumentParser(prog="python -m eval.cluttered", description=__doc__.splitlines()[0])
-    add_common_args(parser)
-    parser.add_argument("--starts", type=int, default=None)
-    parser.add_argument("--envs", nargs="+", default=None, choices=list(ENVIRONMENTS))
-    parser.add_argument("--seeds-per-start", type=int, default=None, metavar="R",
-                        help="controller seeds per start (default 1: one run per start, as the paper); the success "
-                        "rates pool starts x R runs")
-    args = parser.parse_args(argv)
-    if args.seeds_per_start is not None and args.seeds_per_start < 1:
-        parser.error(f"--seeds-per-start must be >= 1, got {args.seeds_per_start}")
-    torch.set_num_threads(1)
-    cfg = config_from_args(QUICK if args.quick else ClutteredConfig(), args, starts=args.starts,
-                           environments=args.envs, seeds_per_start=args.seeds_per_start)
-    prepare(args)
-    results = run(cfg, sources_from_args(args), progress=not args.quiet)
-    finish_cli(args, results, markdown, figures)
-    return 0
+CONFIG = ClutteredConfig
+
+
+def _flags(p) -> None:
+    cli.add_closed_loop_args(p, ClutteredConfig, only=("starts", "environments", "seeds_per_start"),
+                             flags={"environments": "--envs"}, choices={"environments": list(ENVIRONMENTS)},
+                             metavars={"seeds_per_start": "R"},
+                             help={"seeds_per_start": "controller seeds per start (1: one run per start, as the "
+                                                      "paper); the success rates pool starts x R runs"})
+
+
+def _check(args) -> None:
+    if getattr(args, "seeds_per_start", 1) < 1:
+        make_parser().error(f"--seeds-per-start must be >= 1, got {args.seeds_per_start}")
+
+
+make_parser, config_from_args, main = cli.entry_points(__name__, _flags, check=_check, threads=1)
 
 
 if __name__ == "__main__":

@@ -1,13 +1,11 @@
 """Fixed parameters of the evaluation and the paper's published numbers, in one place.
 
-Everything an experiment needs to be rerun with the same numbers lives here: tables, noise levels, the MPPI
-temperature, seeds, and the values printed beside ours ("paper" columns). The paper is *C-Uniform Trajectory
+Everything an experiment needs to be rerun with the same numbers lives here (file paths: :mod:`eval.paths`):
+noise levels, the MPPI temperature, and the values printed beside ours ("paper" columns). The paper is *C-Uniform Trajectory
 Sampling for Fast Motion Planning* (Poyrazoglu, Cao, Isler); its Tables I-III are copied below verbatim.
 """
 
 from __future__ import annotations
-
-from pathlib import Path
 
 LAMBDA = 0.567
 """MPPI temperature of every controller and weighting (the paper's lambda)"""
@@ -15,18 +13,6 @@ DT = 0.2
 """time step of the Dubins preset (s)"""
 NOISE_LEVELS = {"low": 0.03, "medium": 0.1, "high": 0.3}
 """standard deviation of the Gaussian / normal-log-normal noise (rad/s), the paper's Sigma = 0.03 / 0.1 / 0.3"""
-
-OUT = Path("out")
-TABLE = OUT / "dubins.npz"
-"""the default Dubins table (T = 10 steps = 2 s): coverage and uniformity experiments"""
-COVERAGE_TABLE = OUT / "dubins_cov.npz"
-"""the same preset built by ``--method coverage`` (issue 7's method)"""
-TABLE_15 = OUT / "dubins15.npz"
-"""horizon 15 (3 s, the paper's controller horizon): closed-loop experiments"""
-COVERAGE_TABLE_15 = OUT / "dubins15_cov.npz"
-POLICY_15 = OUT / "dubins15.policy.pt"
-"""the MLP distilled from TABLE_15 (its first 10 levels are TABLE's): every experiment's ``cu_mlp``"""
-POLICY = POLICY_15
 
 PAPER_COVERAGE = {  # Table I: N -> method -> distinct cells (2 s trajectories)
     250: {"mppi_low": 21, "mppi_medium": 86, "mppi_high": 329, "log_mppi_low": 74, "log_mppi_medium": 271,

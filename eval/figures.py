@@ -1,12 +1,16 @@
-"""Figures of the open-loop experiments (matplotlib, Agg backend): trajectory fans, coverage vs N, uniformity.
+"""Every figure of the evaluation (matplotlib, Agg backend): trajectory fans, coverage vs N, uniformity per
+level, and the closed-loop paths per method.
 
-Each function saves one PNG and returns the figure (for TensorBoard's ``add_figure``); the closed-loop path
-figures live with their experiments (:mod:`eval.sudden_obstacle`, :mod:`eval.cluttered`).
+The open-loop functions save one PNG and return the figure (for TensorBoard's ``add_figure``); :func:`plot_paths`
+saves one PNG of closed-loop records and returns its path (the experiments' ``figures`` choose the panels). A
+method's colour and line style are its :data:`eval.methods.METHODS` entry's, the same in every figure.
 """
 
 from __future__ import annotations
 
 from pathlib import Path
+
+import math
 
 import matplotlib
 
@@ -14,30 +18,34 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import torch  # noqa: E402
 
+from cuniform_torch.envs import Circle, Environment, Polygon, Rect  # noqa: E402
+
 from .config import PAPER_COVERAGE  # noqa: E402
 from .methods import METHODS, Sources, sample_states  # noqa: E402
+
+__all__ = ["FAN_METHODS", "OUTCOME_COLORS", "method_style", "save_figure", "trajectory_fans", "coverage_vs_samples",
+           "uniformity_per_level", "draw_obstacle", "plot_paths"]
 
 FAN_METHODS = ["mppi_high", "log_mppi_high", "uniform", "cu_table", "cu_coverage", "cu_mlp"]
 """the trajectory-fan panels: the paper's Fig. 1 (uniform actions vs C-Uniform) plus the noise baselines"""
 
 
-STYLE = {  # method -> (colour, line style): one hue per family, darker = more noise
-    "mppi_low": ("#9ecae1", "-"), "mppi_medium": ("#4292c6", "-"), "mppi_high": ("#08519c", "-"),
-    "log_mppi_low": ("#fdae6b", "-"), "log_mppi_medium": ("#f16913", "-"), "log_mppi_high": ("#a63603", "-"),
-    "uniform": ("#737373", "-"), "cu_table": ("#2ca02c", "-"), "cu_coverage": ("#d62728", "-"),
-    "cu_mlp": ("#9467bd", "-"), "cu_graph": ("#8c564b", "--"), "cumppi": ("#e377c2", "-"),
-}
+OUTCOME_COLORS = {"goal": "tab:green", "collision": "tab:red", "timeout": "tab:orange"}
+"""closed-loop paths by outcome"""
 
 
 def method_style(key: str) -> tuple[str, str]:
     """(colour, line style) of a method, the same in every figure."""
-    return STYLE.get(key, ("black", "-"))
+    m = METHODS.get(key)
+    return (m.color, m.linestyle) if m is not None else ("black", "-")
 
 
-def _save(fig, path: Path) -> Path:
+def save_figure(fig, path: Path, tight: bool = True) -> Path:
+    """Write ``fig`` as a PNG (atomically: a temporary file renamed over ``path``), creating the folder."""
+    path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(path.name + ".tmp.png")
-    fig.savefig(tmp, dpi=110, bbox_inches="tight")
+    fig.savefig(tmp, dpi=110, **({"bbox_inches": "tight"} if tight else {}))
     tmp.replace(path)
     return path
 
@@ -61,7 +69,7 @@ def trajectory_fans(sources: Sources, path: Path, methods: list[str] | None = No
     for ax in list(axes.flat)[len(keys):]:
         ax.axis("off")
     fig.suptitle(f"{num_samples} trajectories of {T} steps from (0, 0, 0); red: final states", fontsize=10)
-    _save(fig, path)
+    save_figure(fig, path)
     return fig
 
 
@@ -91,7 +99,7 @@ def coverage_vs_samples(result: dict, path: Path):
     ax.set_title("Coverage (filled: ours, dotted hollow squares: the paper's Table I)", fontsize=10)
     ax.grid(alpha=0.3, which="both")
     ax.legend(fontsize=7, loc="center left", bbox_to_anchor=(1.01, 0.5))
-    _save(fig, path)
+    save_figure(fig, path)
     return fig
 
 
@@ -113,5 +121,71 @@ def uniformity_per_level(result: dict, path: Path, reference: str = "reachable")
         ax.grid(alpha=0.3)
     axes[2].legend(fontsize=7, loc="center left", bbox_to_anchor=(1.01, 0.5))
     fig.suptitle(f"Uniformity per level over S_t = {what}, N = {rows[0]['samples']}", fontsize=10)
-    _save(fig, path)
+    save_figure(fig, path)
     return fig
+
+
+# ------------------------------------------------------------------------------------------------ closed loop
+
+def draw_obstacle(ax, obs, **kw) -> None:
+    from matplotlib import patches
+
+    if isinstance(obs, Circle):
+        ax.add_patch(patches.Circle(obs.center, obs.radius, **kw))
+    elif isinstance(obs, Rect):
+        ax.add_patch(patches.Rectangle((obs.xmin, obs.ymin), obs.xmax - obs.xmin, obs.ymax - obs.ymin, **kw))
+    elif isinstance(obs, Polygon):
+        v = torch.as_tensor(obs.vertices).tolist()
+        ax.add_patch(patches.Polygon(v, closed=True, **kw))
+    else:
+        raise ValueError(f"cannot draw obstacle of type {type(obs).__name__}")
+
+
+def plot_paths(panels: dict[str, list[dict]], envs: dict[str, Environment] | Environment, out: Path,
+               title: str = "", xlim: tuple[float, float] | None = None,
+               ylim: tuple[float, float] | None = None) -> Path:
+    """One subplot per method (``panels``: label -> records with ``path``, ``outcome``, ``goal`` and, when
+    ``envs`` is a dict, an ``env`` key naming its environment); paths coloured by outcome (green goal, red
+    collision, orange timeout), obstacles grey, starts as dots, goals as stars. Saves a PNG to ``out``."""
+    from matplotlib.lines import Line2D
+
+    n = max(1, len(panels))
+    ncols = min(4, n)
+    nrows = math.ceil(n / ncols)
+    fig, axes = plt.subplots(nrows, ncols, figsize=(3.6 * ncols, 3.4 * nrows), squeeze=False)
+    for ax in axes.flat[n:]:
+        ax.axis("off")
+    for ax, (label, recs) in zip(axes.flat, panels.items()):
+        drawn = set()
+        for r in recs:
+            env = envs[r["env"]] if isinstance(envs, dict) else envs
+            if id(env) not in drawn:
+                drawn.add(id(env))
+                alpha = 0.6 if len(drawn) == 1 or not isinstance(envs, dict) else max(0.08, 0.6 / len(recs) * 2)
+                for obs in env.obstacles:
+                    draw_obstacle(ax, obs, facecolor="0.55", edgecolor="0.3", alpha=alpha, lw=0.5)
+                if env.bounds is not None:
+                    xmin, ymin, xmax, ymax = env.bounds
+                    ax.plot([xmin, xmax, xmax, xmin, xmin], [ymin, ymin, ymax, ymax, ymin], color="k", lw=1)
+            p = r.get("path")
+            if p:
+                xs, ys = zip(*p)
+                ax.plot(xs, ys, color=OUTCOME_COLORS.get(r["outcome"], "k"), lw=1.0, alpha=0.8)
+                ax.plot(xs[0], ys[0], "o", color="k", ms=2.5)
+            ax.plot(*r["goal"], marker="*", color="gold", mec="k", ms=11, zorder=5)
+        ok = sum(r["success"] for r in recs)
+        ax.set_title(f"{label}\n{ok}/{len(recs)} reached the goal", fontsize=8)
+        ax.set_aspect("equal")
+        if xlim:
+            ax.set_xlim(*xlim)
+        if ylim:
+            ax.set_ylim(*ylim)
+        ax.tick_params(labelsize=6)
+    handles = [Line2D([], [], color=c, label=k) for k, c in OUTCOME_COLORS.items()]
+    fig.legend(handles=handles, loc="lower right", fontsize=8, ncol=3)
+    if title:
+        fig.suptitle(title, fontsize=10)
+    fig.tight_layout()
+    save_figure(fig, out, tight=False)
+    plt.close(fig)
+    return Path(out)

@@ -1,9 +1,10 @@
-"""The methods every experiment compares, as one registry: open-loop samples and closed-loop controllers.
+"""The methods every experiment compares, as data: one :class:`Method` entry per method in :data:`METHODS`.
 
-A :class:`Method` names a way to propose trajectories; :class:`Sources` holds what the C-Uniform methods need
-(tables, the distilled MLP), loaded once. :func:`sample_states` draws N open-loop trajectories from the
-origin (coverage, uniformity, trajectory fans); :func:`make_controller` builds the MPPI-family controller that
-uses the method's proposals (sudden obstacle, cluttered environments).
+A method is a small frozen dataclass: its key and label, the paper column it belongs to, the controller class
+that proposes with it, what its proposals are drawn from (a noise law around a nominal, or a *source*: a table,
+the distilled MLP, uniform actions, the flow graph) and its colour in figures. :func:`make_controller` and
+:func:`sample_states` read only these fields, so adding a method is adding one entry. :class:`Sources` holds
+the files the sources come from, loaded once.
 
 Baselines sample around a zero nominal (a first solve). Method keys:
 
@@ -14,7 +15,7 @@ Baselines sample around a zero nominal (a first solve). Method keys:
 * ``cu_coverage``: the coverage-method table (``--method coverage``) on real rollouts;
 * ``cu_mlp``: the MLP distilled from the max-flow table, on real rollouts;
 * ``cu_graph``: cell sequences drawn on the max-flow graph in proportion to arc flow (the reference release's
-  way; not executed dynamics, see :mod:`cuniform_torch.graph`). Open-loop only;
+  way; not executed dynamics, see :mod:`eval.graph_sampling`). Open-loop only;
 * ``cumppi``: CU-MPPI (best C-Uniform rollout of the max-flow table seeds a local MPPI pass). Closed-loop only.
 """
 
@@ -22,41 +23,81 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any, Callable
 
 import torch
 from torch import Tensor
 
 from cuniform_torch import (CUMPPI, MPPI, CUniformMPPI, GaussianSampler, LogMPPI, NormalLogNormalSampler,
                             TablePolicy, UniformPolicy, load_policy, load_table, read_table, rollout)
-from cuniform_torch.graph import GraphSampler
 
 from . import config
+from .graph_sampling import GraphSampler
+from .paths import DEFAULT
+
+__all__ = ["Method", "METHODS", "SOURCES", "parse_methods", "Sources", "sample_states", "make_controller"]
+
+SOURCES = ("table", "coverage_table", "policy", "uniform", "graph")
+"""what a method's proposals can be drawn from (:meth:`Sources.load`)"""
 
 
 @dataclass(frozen=True)
 class Method:
+    """One compared method (see the module docstring)."""
+
     key: str
     label: str
     family: str
-    """"mppi", "log_mppi", "uniform" or "cuniform" (the paper's three columns plus uniform)"""
+    """the paper's column: "mppi", "log_mppi" or "cuniform" (or "uniform", ours)"""
+    controller: type | None = None
+    """the MPPI-family class that proposes with this method (None: open-loop only)"""
+    noise: type | None = None
+    """a noise baseline's open-loop law (``GaussianSampler``, ``NormalLogNormalSampler``), std ``noise_std``"""
     noise_std: float | None = None
+    source: str | None = None
+    """a C-Uniform or uniform method's proposals: one of :data:`SOURCES`"""
     open_loop: bool = True
-    closed_loop: bool = True
+    """it draws open-loop trajectories (coverage, uniformity, trajectory fans)"""
+    slow: bool = False
+    """left out of a default closed-loop run unless asked for (see :data:`eval.episodes.SLOW_NOTE`)"""
+    paper: bool = False
+    """the paper's own method of its column (its C-Uniform column is ours)"""
+    color: str = "black"
+    linestyle: str = "-"
 
+    def __post_init__(self) -> None:
+        if (self.noise is None) == (self.source is None):
+            raise ValueError(f"method {self.key}: give a noise law or a source, not both or neither")
+        if self.source is not None and self.source not in SOURCES:
+            raise ValueError(f"method {self.key}: unknown source {self.source!r}; choose from {', '.join(SOURCES)}")
+
+    @property
+    def closed_loop(self) -> bool:
+        return self.controller is not None
+
+
+_SHADES = {"mppi": {"low": "#9ecae1", "medium": "#4292c6", "high": "#08519c"},  # darker = more noise
+           "log_mppi": {"low": "#fdae6b", "medium": "#f16913", "high": "#a63603"}}
 
 METHODS: dict[str, Method] = {m.key: m for m in [
-    *(Method(f"mppi_{lvl}", f"MPPI {lvl} (std {s:g})", "mppi", s) for lvl, s in config.NOISE_LEVELS.items()),
-    *(Method(f"log_mppi_{lvl}", f"log-MPPI {lvl} (std {s:g})", "log_mppi", s) for lvl, s in config.NOISE_LEVELS.items()),
-    Method("uniform", "uniform discrete actions", "uniform"),
-    Method("cu_table", "C-Uniform table (max-flow)", "cuniform"),
-    Method("cu_coverage", "C-Uniform table (coverage method)", "cuniform"),
-    Method("cu_mlp", "C-Uniform distilled MLP", "cuniform"),
-    Method("cu_graph", "C-Uniform graph sampling (cells, not executed)", "cuniform", closed_loop=False),
-    Method("cumppi", "CU-MPPI (max-flow table)", "cuniform", open_loop=False),
+    *(Method(f"mppi_{lvl}", f"MPPI {lvl} (std {s:g})", "mppi", MPPI, GaussianSampler, s, color=_SHADES["mppi"][lvl])
+      for lvl, s in config.NOISE_LEVELS.items()),
+    *(Method(f"log_mppi_{lvl}", f"log-MPPI {lvl} (std {s:g})", "log_mppi", LogMPPI, NormalLogNormalSampler, s,
+             color=_SHADES["log_mppi"][lvl]) for lvl, s in config.NOISE_LEVELS.items()),
+    Method("uniform", "uniform discrete actions", "uniform", CUniformMPPI, source="uniform", color="#737373"),
+    Method("cu_table", "C-Uniform table (max-flow)", "cuniform", CUniformMPPI, source="table", paper=True,
+           color="#2ca02c"),
+    Method("cu_coverage", "C-Uniform table (coverage method)", "cuniform", CUniformMPPI, source="coverage_table",
+           color="#d62728"),
+    Method("cu_mlp", "C-Uniform distilled MLP", "cuniform", CUniformMPPI, source="policy", slow=True, color="#9467bd"),
+    Method("cu_graph", "C-Uniform graph sampling (cells, not executed)", "cuniform", source="graph",
+           color="#8c564b", linestyle="--"),
+    Method("cumppi", "CU-MPPI (max-flow table)", "cuniform", CUMPPI, source="table", open_loop=False,
+           color="#e377c2"),
 ]}
 
 
-def parse_methods(keys: list[str] | None, closed_loop: bool = False) -> list[Method]:
+def parse_methods(keys: list[str] | tuple[str, ...] | None, closed_loop: bool = False) -> list[Method]:
     """Methods by key (None: every method that applies); an unknown key lists the known ones."""
     usable = [m for m in METHODS.values() if (m.closed_loop if closed_loop else m.open_loop)]
     if keys is None:
@@ -70,46 +111,38 @@ def parse_methods(keys: list[str] | None, closed_loop: bool = False) -> list[Met
 
 @dataclass
 class Sources:
-    """Tables and the distilled policy the C-Uniform methods draw on, loaded lazily from their paths."""
+    """The files the methods' sources come from, each loaded once, when first used."""
 
-    table: Path = config.TABLE
-    coverage_table: Path = config.COVERAGE_TABLE
-    policy: Path = config.POLICY
+    table: Path = DEFAULT.table
+    """the max-flow table: also the system, grid and horizon of an experiment"""
+    coverage_table: Path = DEFAULT.coverage_table
+    policy: Path = DEFAULT.policy
     device: str = "cpu"
     _cache: dict = field(default_factory=dict, repr=False)
 
-    def _load(self, key: str, loader, path: Path):
-        if key not in self._cache:
+    def file_of(self, source: str) -> Path:
+        """The file ``source`` is read from."""
+        return {"coverage_table": self.coverage_table, "policy": self.policy}.get(source, self.table)
+
+    def load(self, source: str) -> Any:
+        """The object a source names: a TablePolicy (``table``, ``coverage_table``), an MLPPolicy (``policy``), a
+        UniformPolicy over the table's actions (``uniform``), a GraphSampler (``graph``)."""
+        if source not in self._cache:
+            loaders: dict[str, Callable[[Path], Any]] = {
+                "table": lambda p: load_table(p, device=self.device),
+                "coverage_table": lambda p: load_table(p, device=self.device),
+                "policy": lambda p: load_policy(p, device=self.device),
+                "uniform": lambda p: UniformPolicy(self.system, horizon=None, device=self.device),
+                "graph": lambda p: GraphSampler(read_table(p), device=self.device),  # with the flow graph
+            }
+            path = self.file_of(source)
             if not Path(path).exists():
-                raise FileNotFoundError(f"{key} file {path} not found (python -m eval.report builds it)")
-            self._cache[key] = loader(path)
-        return self._cache[key]
+                raise FileNotFoundError(f"{source} file {path} not found (python -m eval.report builds it)")
+            self._cache[source] = loaders[source](path)
+        return self._cache[source]
 
     def table_policy(self) -> TablePolicy:
-        return self._load("table", lambda p: load_table(p, device=self.device), self.table)
-
-    def coverage_policy(self) -> TablePolicy:
-        return self._load("coverage_table", lambda p: load_table(p, device=self.device), self.coverage_table)
-
-    def mlp_policy(self):
-        return self._load("policy", lambda p: load_policy(p, device=self.device), self.policy)
-
-    def graph(self) -> GraphSampler:
-        # read again with the flow graph, which the table policy leaves in the file
-        return self._load("graph", lambda p: GraphSampler(read_table(p), device=self.device), self.table)
-
-    def policy_for(self, method: Method):
-        """The discrete Policy behind a C-Uniform or uniform method."""
-        if method.key in ("cu_table", "cumppi"):
-            return self.table_policy()
-        if method.key == "cu_coverage":
-            return self.coverage_policy()
-        if method.key == "cu_mlp":
-            return self.mlp_policy()
-        if method.key == "uniform":
-            base = self.table_policy()
-            return UniformPolicy(base.system, horizon=None, device=self.device)
-        raise ValueError(f"{method.key} has no discrete policy")
+        return self.load("table")
 
     @property
     def system(self):
@@ -120,22 +153,25 @@ class Sources:
         return self.table_policy().horizon
 
 
+def _noise_sampler(method: Method, system, horizon: int, device: str):
+    actions = system.action_set(dtype=torch.float32, device=device)  # [A, q]
+    low, high = actions.min(dim=0).values, actions.max(dim=0).values
+    nominal = torch.zeros((horizon, actions.shape[1]), device=device)
+    return method.noise(nominal, method.noise_std, low, high)
+
+
 def sample_states(method: Method, sources: Sources, num_samples: int, horizon: int,
                   generator: torch.Generator) -> Tensor:
     """``[N, T+1, d]`` open-loop trajectories of ``method`` from the origin (float32, on the sources' device)."""
+    if method.source == "graph":  # cell sequences, not a rollout
+        return sources.load("graph").sample(num_samples, horizon, generator)
     system = sources.system
-    d = len(system.periodic)
-    x0 = torch.zeros(d, device=sources.device)
-    if method.key == "cu_graph":
-        return sources.graph().sample(num_samples, horizon, generator)
-    if method.family in ("mppi", "log_mppi"):
-        actions = system.action_set(dtype=torch.float32, device=sources.device)  # [A, q]
-        low, high = actions.min(dim=0).values, actions.max(dim=0).values
-        nominal = torch.zeros((horizon, actions.shape[1]), device=sources.device)
-        cls = GaussianSampler if method.family == "mppi" else NormalLogNormalSampler
-        sampler = cls(nominal, method.noise_std, low, high)
-        return rollout(system, sampler, x0, num_samples, horizon, generator)[0]
-    return rollout(system, sources.policy_for(method), x0, num_samples, horizon, generator)[0]
+    x0 = torch.zeros(len(system.periodic), device=sources.device)
+    if method.source is None:
+        sampler = _noise_sampler(method, system, horizon, sources.device)
+    else:
+        sampler = sources.load(method.source)
+    return rollout(system, sampler, x0, num_samples, horizon, generator)[0]
 
 
 def make_controller(method: Method, sources: Sources, cost_fn, num_samples: int, horizon: int,
@@ -143,12 +179,7 @@ def make_controller(method: Method, sources: Sources, cost_fn, num_samples: int,
     """The MPPI-family controller that proposes with ``method`` (``command(state) -> [q]``)."""
     if not method.closed_loop:
         raise ValueError(f"{method.key} samples cells, not executable actions: it has no controller")
-    system = sources.system
-    kw = dict(num_samples=num_samples, lambda_=lambda_, device=sources.device, seed=seed)
-    if method.family == "mppi":
-        return MPPI(system, cost_fn, horizon=horizon, noise_std=method.noise_std, **kw)
-    if method.family == "log_mppi":
-        return LogMPPI(system, cost_fn, horizon=horizon, noise_std=method.noise_std, **kw)
-    if method.key == "cumppi":
-        return CUMPPI(sources.policy_for(method), cost_fn, horizon=horizon, **kw)
-    return CUniformMPPI(sources.policy_for(method), cost_fn, horizon=horizon, **kw)
+    kw = dict(num_samples=num_samples, horizon=horizon, lambda_=lambda_, device=sources.device, seed=seed)
+    if method.source is None:  # a noise baseline: the system and the noise level
+        return method.controller(sources.system, cost_fn, noise_std=method.noise_std, **kw)
+    return method.controller(sources.load(method.source), cost_fn, **kw)

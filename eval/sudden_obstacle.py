@@ -49,17 +49,17 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from cuniform_torch.cli import ArgumentParser, cli_main
 from cuniform_torch.envs import Circle, Environment
 
-from . import config
-from .cli import prepare, sources_from_args
-from .closed_loop import (ControllerSettings, Episode, add_common_args, aggregate, config_from_args,
-                          config_from_json, finish_cli, plot_paths, run_episodes, success_markdown, usable_methods)
+from . import cli, config
+from .episodes import ControllerSettings, Episode, run_episodes, usable_methods
+from .figures import plot_paths
+from .markdown import success_markdown
 from .methods import METHODS, Sources
+from .stats import aggregate
 
-__all__ = ["SuddenObstacleConfig", "QUICK", "offsets", "make_env", "oracle_feasible", "episodes", "run",
-           "markdown", "figures", "main"]
+__all__ = ["SuddenObstacleConfig", "CONFIG", "QUICK", "make_parser", "config_from_args", "offsets",
+           "make_env", "oracle_feasible", "episodes", "run", "markdown", "figures", "main"]
 
 
 @dataclass(frozen=True)
@@ -158,7 +158,7 @@ def run(cfg: SuddenObstacleConfig, sources: Sources, progress: bool = True, reco
 
 
 def _config(results: dict) -> SuddenObstacleConfig:
-    return config_from_json(SuddenObstacleConfig, results["config"])
+    return cli.config_from_json(SuddenObstacleConfig, results["config"])
 
 
 def markdown(results: dict) -> str:
@@ -214,20 +214,11 @@ def figures(results: dict, outdir: Path) -> list[Path]:
     return paths
 
 
-@cli_main()
-def main(argv: list[str] | None = None) -> int:
-    parser = ArgumentParser(prog="python -m eval.sudden_obstacle", description=__doc__.splitlines()[0])
-    add_common_args(parser)
-    parser.add_argument("--positions", type=int, default=None)
-    parser.add_argument("--appear", type=float, nargs="+", default=None)
-    args = parser.parse_args(argv)
-    torch.set_num_threads(1)
-    cfg = config_from_args(QUICK if args.quick else SuddenObstacleConfig(), args, positions=args.positions,
-                           appear=args.appear)
-    prepare(args)
-    results = run(cfg, sources_from_args(args), progress=not args.quiet)
-    finish_cli(args, results, markdown, figures)
-    return 0
+CONFIG = SuddenObstacleConfig
+
+
+make_parser, config_from_args, main = cli.entry_points(
+    __name__, lambda p: cli.add_closed_loop_args(p, SuddenObstacleConfig, only=("positions", "appear")), threads=1)
 
 
 if __name__ == "__main__":

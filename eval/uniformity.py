@@ -13,53 +13,50 @@ t. Against a reference set S_t of cells:
 * ``outside``: share of the N states at step t whose cell is not in S_t.
 
 Two reference sets: the cells real rollouts can reach (exhaustive enumeration, :mod:`eval.reachable`; the
-main one) and the max-flow table's level sets L_t (the paper's). Values are means over seeds.
+main one) and the max-flow table's level sets L_t (the paper's). Values are means over seeds. The measures are
+:func:`cuniform_torch.metrics.level_uniformity` (the same TV and noise floor as the build's report).
 """
 
 from __future__ import annotations
 
-import math
 import statistics
 import sys
-from dataclasses import asdict, dataclass
-from pathlib import Path
+from dataclasses import asdict, dataclass, replace
 
 import torch
-from torch import Tensor
 
-from cuniform_torch.cli import ArgumentParser, cli_main
-from cuniform_torch.grid import CellKeys
+from cuniform_torch.metrics import level_uniformity
 
-from .cli import add_source_args, run_experiment
+from . import cli
+from .markdown import table as md_table
 from .methods import Sources, parse_methods, sample_states
 from .reachable import reachable
+from .stats import mean_over_levels
+
+__all__ = ["UniformityConfig", "CONFIG", "QUICK", "MEASURES", "run", "markdown", "make_parser", "config_from_args",
+           "main"]
+
+MEASURES = ("tv", "floor", "entropy", "outside")
+"""the per-level measures (:func:`cuniform_torch.metrics.level_uniformity`)"""
 
 
-@dataclass
+@dataclass(frozen=True)
 class UniformityConfig:
-    methods: list[str] | None = None
+    """What the uniformity experiment runs."""
+
+    methods: tuple[str, ...] | None = None
+    """method keys (default: every open-loop method)"""
     samples: int = 10000
+    """N, trajectories per method and seed"""
     seeds: int = 3
+    """seeds per method (values are means over them)"""
     merge_resolution: int = 32
+    """sub-cell merging of the reachable-set enumeration"""
 
 
-def level_stats(cells: Tensor, reference: Tensor, floor_generator: torch.Generator | None = None) -> dict[str, float]:
-    """Uniformity of ``cells [N, d]`` (one level's visited cells) against the set ``reference [n, d]``."""
-    N, n = cells.shape[0], reference.shape[0]
-    keys = CellKeys.covering(torch.cat((cells, reference)))
-    ref = torch.sort(keys.pack(reference)).values  # [n]
-    uniq, counts = torch.unique(keys.pack(cells), return_counts=True)
-    pos = torch.searchsorted(ref, uniq).clamp(max=n - 1)
-    inside = ref[pos] == uniq
-    p = counts.double() / N
-    hist = torch.zeros(n, dtype=torch.float64)
-    hist[pos[inside]] = p[inside]
-    outside = float(p[~inside].sum())
-    tv = 0.5 * float((hist - 1.0 / n).abs().sum()) + 0.5 * outside
-    entropy = float(-(p * p.log()).sum()) / math.log(n) if n > 1 else 1.0
-    draws = torch.randint(n, (N,), generator=floor_generator)
-    floor = 0.5 * float((torch.bincount(draws, minlength=n).double() / N - 1.0 / n).abs().sum())
-    return {"tv": tv, "floor": floor, "entropy": entropy, "outside": outside}
+CONFIG = UniformityConfig
+QUICK = replace(UniformityConfig(), samples=1000, seeds=1)
+"""--quick (and the quick report): N = 1000, 1 seed"""
 
 
 def run(cfg: UniformityConfig, sources: Sources, progress: bool = True) -> dict:
@@ -79,63 +76,39 @@ def run(cfg: UniformityConfig, sources: Sources, progress: bool = True) -> dict:
             gen = torch.Generator(device=sources.device).manual_seed(seed)
             cells = grid.cells(sample_states(method, sources, cfg.samples, T, gen)).cpu()  # [N, T+1, d]
             floor_gen = torch.Generator().manual_seed(1000 + seed)
-            per_seed.append({name: [level_stats(cells[:, t], ref[t], floor_gen) for t in range(T + 1)]
+            per_seed.append({name: [level_uniformity(cells[:, t], ref[t], floor_gen) for t in range(T + 1)]
                              for name, ref in references.items()})
         row = {"method": method.key, "label": method.label, "samples": cfg.samples, "seeds": cfg.seeds}
         for name in references:
             row[name] = {k: [statistics.mean(s[name][t][k] for s in per_seed) for t in range(T + 1)]
-                         for k in ("tv", "floor", "entropy", "outside")}
+                         for k in MEASURES}
         results.append(row)
         if progress:
             r = row["reachable"]
-            print(f"  {method.key:<16} mean TV {statistics.mean(r['tv'][1:]):.3f} (floor "
-                  f"{statistics.mean(r['floor'][1:]):.3f})  entropy {statistics.mean(r['entropy'][1:]):.3f}", flush=True)
+            print(f"  {method.key:<16} mean TV {mean_over_levels(r['tv']):.3f} (floor "
+                  f"{mean_over_levels(r['floor']):.3f})  entropy {mean_over_levels(r['entropy']):.3f}", flush=True)
     return {"config": asdict(cfg), "table": str(sources.table), "horizon": T,
             "reachable_sizes": reach.level_sizes,
             "level_set_sizes": [table.level_size(t) for t in range(T + 1)], "results": results}
 
 
-def _mean(values: list[float]) -> float:
-    return statistics.mean(values[1:]) if len(values) > 1 else values[0]
-
-
 def markdown(result: dict) -> str:
     """Mean over levels 1..T of each measure, per method, against both reference sets."""
-    r0 = result["results"][0]
-    lines = [
+    r0, m = result["results"][0], mean_over_levels
+    body = [[r["method"], f"{m(r['reachable']['tv']):.3f}", f"{m(r['reachable']['floor']):.3f}",
+             f"{m(r['reachable']['entropy']):.3f}", f"{m(r['reachable']['outside']):.1%}",
+             f"{m(r['level_sets']['tv']):.3f}", f"{m(r['level_sets']['outside']):.1%}"] for r in result["results"]]
+    return "\n".join([
         f"Uniformity per level, N = {r0['samples']} trajectories, mean over levels 1..{result['horizon']} and "
         f"{r0['seeds']} seeds. *Reachable*: the cells real rollouts can reach; *L_t*: the max-flow table's "
-        "level sets. TV floor = the TV of N perfectly uniform draws.",
-        "",
-        "| method | TV (reachable) | TV floor | entropy ratio | outside reachable | TV (L_t) | outside L_t |",
-        "|---|---:|---:|---:|---:|---:|---:|",
-    ]
-    for r in result["results"]:
-        a, b = r["reachable"], r["level_sets"]
-        lines.append(f"| {r['method']} | {_mean(a['tv']):.3f} | {_mean(a['floor']):.3f} | {_mean(a['entropy']):.3f} "
-                     f"| {_mean(a['outside']):.1%} | {_mean(b['tv']):.3f} | {_mean(b['outside']):.1%} |")
-    return "\n".join(lines)
+        "level sets. TV floor = the TV of N perfectly uniform draws.", "",
+        md_table(["method", "TV (reachable)", "TV floor", "entropy ratio", "outside reachable", "TV (L_t)",
+                  "outside L_t"], body, "lrrrrrr"),
+    ])
 
 
-def print_table(result: dict) -> None:
-    print()
-    print(markdown(result))
-
-
-@cli_main()
-def main(argv=None) -> int:
-    p = ArgumentParser(prog="python -m eval.uniformity", description=__doc__.split("\n\n")[0])
-    p.add_argument("--methods", nargs="+", default=None)
-    p.add_argument("--samples", type=int, default=10000)
-    p.add_argument("--seeds", type=int, default=3)
-    p.add_argument("--merge-resolution", type=int, default=32)
-    p.add_argument("--quick", action="store_true", help="N = 1000, 1 seed")
-    p.add_argument("--json", type=Path, default=None)
-    add_source_args(p)
-    args = p.parse_args(argv)
-    cfg = UniformityConfig(args.methods, 1000 if args.quick else args.samples, 1 if args.quick else args.seeds,
-                           args.merge_resolution)
-    return run_experiment(run, cfg, args, print_table)
+make_parser, config_from_args, main = cli.entry_points(
+    __name__, cli.open_loop_flags(UniformityConfig, "N = 1000, 1 seed"), show=lambda r: print("\n" + markdown(r)))
 
 
 if __name__ == "__main__":

@@ -166,7 +166,7 @@ def _build_coverage(system, config, bar):
     from .coverage_method import build_coverage_table
 
     if bar is not None:
-        bar.reset(total=horizon + config.steps)
+        bar.reset(total=config.horizon + config.steps)
         bar.set_description("levels, then ascent")
 
     def progress(stage: str, i: int, value: float) -> None:

@@ -7,16 +7,17 @@ continuous states from the origin, with the runtime's default fallback (a state 
 outside the level set; it takes the action row of the nearest cell of L_t when within one cell, else uniform). That TV is set against the noise floor: the TV of N perfectly uniform draws over
 the n_t cells (mean and std over repeated draws), which no sampler can beat with N samples.
 
-``TV = 1/2 (sum over cells of L_t |count/N - 1/n_t| + outside/N)``.
+``TV = 1/2 (sum over cells of L_t |count/N - 1/n_t| + outside/N)``; the TV and the noise floor are
+:mod:`cuniform_torch.metrics`' (``tv_from_uniform`` stays importable from here).
 """
 
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass
 
-import numpy as np
 import torch
 
+from cuniform_torch.metrics import noise_floor, tv_from_uniform, tv_of_distribution
 from cuniform_torch.policy import TablePolicy
 from cuniform_torch.rollout import rollout
 from cuniform_torch.table import Table
@@ -56,22 +57,6 @@ class UniformityReport:
                 "nearest_rate": self.nearest_rate, "levels": [asdict(lv) for lv in self.levels]}
 
 
-def tv_from_uniform(counts: torch.Tensor, total: int, outside: int | torch.Tensor = 0) -> float:
-    """TV distance of a histogram ``counts [n]`` (out of ``total`` samples, ``outside`` of them elsewhere) from uniform."""
-    n = counts.numel()
-    dev = (counts.double() / total - 1.0 / n).abs().sum() + float(outside) / total
-    return 0.5 * float(dev)
-
-
-def _floor(n: int, total: int, repeats: int, gen: torch.Generator) -> tuple[float, float]:
-    tvs = []
-    for _ in range(repeats):
-        draws = torch.randint(0, n, (total,), generator=gen)
-        tvs.append(tv_from_uniform(torch.bincount(draws, minlength=n), total))
-    arr = np.array(tvs)
-    return float(arr.mean()), float(arr.std(ddof=1)) if repeats > 1 else 0.0
-
-
 def uniformity_report(
     table: Table,
     num_rollouts: int | None = None,
@@ -97,14 +82,14 @@ def uniformity_report(
         counts = torch.bincount(local, minlength=n).cpu()
         outside = int((~inside).sum())
         exact = table.cell_probs[table.level(t)]
-        floor_mean, floor_std = _floor(n, N, floor_repeats, floor_gen)
+        floor_mean, floor_std = noise_floor(n, N, floor_repeats, floor_gen)
         levels.append(
             LevelReport(
                 level=t,
                 cells=n,
                 flow_ratio=None if (t == 0 or table.method not in (None, "maxflow"))
                 else float(table.flow_value[t - 1] / table.flow_target[t - 1]),
-                tv_exact=float(0.5 * np.abs(exact - 1.0 / n).sum()),
+                tv_exact=tv_of_distribution(exact),
                 tv_rollout=tv_from_uniform(counts, N, outside),
                 tv_floor=floor_mean,
                 tv_floor_std=floor_std,

@@ -114,7 +114,7 @@ def _entry_points():
     return out
 
 
-EVAL_EXPERIMENTS = ()
+EVAL_EXPERIMENTS = ("eval.coverage_experiment", "eval.uniformity", "eval.sudden_obstacle", "eval.cluttered")
 
 
 def check_no_drift(parser: argparse.ArgumentParser, configs, derived=()) -> list[str]:
@@ -172,3 +172,14 @@ def test_entry_points_parse_to_the_dataclass_defaults(tmp_path):
     for name in EVAL_EXPERIMENTS:
         module = importlib.import_module(name)
         assert module.config_from_args(module.make_parser().parse_args([])) == module.CONFIG(), name
+
+
+def test_build_coverage_method_with_its_progress_bar(tmp_path, capsys):
+    """The coverage method's settings reach the build through the config (the bar counts levels, then steps)."""
+    from precompute import build
+
+    out = tmp_path / "c.npz"
+    assert build.main(["--system", "random_walk_1d", "--method", "coverage", "--horizon", "2", "--steps", "3",
+                       "--target-samples", "50", "--out", str(out), "--no-report"]) == 0
+    printed = capsys.readouterr().out
+    assert "target N=50" in printed and "levels, then ascent" in printed and out.exists()

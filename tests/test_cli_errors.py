@@ -20,7 +20,7 @@ import pytest
 import torch
 
 import eval.bench_maxflow as bench_maxflow
-import eval.coverage as eval_coverage
+import eval.coverage_experiment as eval_coverage
 import eval.report as eval_report
 import eval.uniformity as eval_uniformity
 import precompute.build as build

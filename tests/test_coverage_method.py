@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from cuniform_torch import TablePolicy, make_system, read_table, rollout, write_table
-from cuniform_torch.coverage import coverage, uniform_ceiling
+from cuniform_torch.metrics import coverage, uniform_ceiling
 from precompute import build as build_cli
 from precompute.builder import BuildConfig, build_table, propagate_cell_probs
 from precompute.coverage_method import CoverageConfig, build_coverage_table, enumerate_reachable

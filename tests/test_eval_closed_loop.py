@@ -1,4 +1,5 @@
-"""The closed-loop experiments (eval.closed_loop, eval.sudden_obstacle, eval.cluttered) on tiny sizes.
+"""The closed-loop experiments (eval.episodes, eval.stats, eval.markdown, eval.sudden_obstacle, eval.cluttered) on
+tiny sizes, and closed-loop success rates with a stated margin.
 
 Every run here uses the session's horizon-10 Dubins table written to a temporary file, N = 16 samples and
 one or two scenarios, so each test takes a second or two.
@@ -16,7 +17,9 @@ import torch
 from cuniform_torch.envs import Circle, Environment, NavigationCost
 from cuniform_torch.table import write_table
 from eval import cluttered, sudden_obstacle
-from eval.closed_loop import aggregate, success_markdown, usable_methods, wilson_interval
+from eval.episodes import OUTCOMES, ControllerSettings, Episode, run_episodes, usable_methods
+from eval.markdown import success_markdown
+from eval.stats import aggregate, wilson_interval
 from eval.methods import Sources
 
 METHODS = ("mppi_high", "cu_table")
@@ -44,6 +47,30 @@ def _cl(**overrides) -> cluttered.ClutteredConfig:
 
 def _strip(records):
     return [{k: v for k, v in r.items() if k != "wall_s"} for r in records]
+
+
+DT = 0.2  # the Dubins preset's step
+
+
+def _check_records(records, env_of, time_limit, tolerance=0.3):
+    """Each record's outcome is what its path shows: "goal" ends within the tolerance, "collision" ends in an
+    obstacle (the real one, sensed or not), "timeout" ends free and short of the goal at the time limit; success
+    is the goal and nothing else; time and length agree with the path."""
+    for r in records:
+        assert r["outcome"] in OUTCOMES, r["outcome"]
+        assert r["success"] == (r["outcome"] == "goal")
+        path = torch.tensor(r["path"], dtype=torch.float64)  # [S+1, 2], rounded to the mm
+        end, goal = path[-1], torch.tensor(r["goal"], dtype=torch.float64)
+        assert r["steps"] == len(path) - 1 and r["time"] == pytest.approx(r["steps"] * DT)
+        assert r["path_length"] == pytest.approx(float((path[1:] - path[:-1]).norm(dim=1).sum()), abs=0.01 * len(path))
+        near_goal = float((end - goal).norm()) <= tolerance + 2e-3
+        hit = bool(env_of(r).in_collision(end.float()))
+        if r["outcome"] == "goal":
+            assert near_goal and not hit
+        elif r["outcome"] == "collision":
+            assert hit
+        else:
+            assert not hit and not near_goal and r["time"] == pytest.approx(time_limit, abs=DT)
 
 
 # ------------------------------------------------------------------------------------------------ statistics
@@ -129,7 +156,7 @@ def test_sudden_obstacle_run_markdown_figures(sources, tmp_path):
     res = sudden_obstacle.run(_so(), sources, progress=False)
     assert res["methods"] == list(METHODS)
     assert len(res["records"]) == 2 * 2 * len(METHODS)
-    assert {r["outcome"] for r in res["records"]} <= {"goal", "collision", "timeout"}
+    _check_records(res["records"], lambda r: sudden_obstacle.make_env(_so(), r["offset"], r["appear"]), 6.0)
     assert len(res["summary"]) == 2 * len(METHODS)
     json.loads(json.dumps(res))  # JSON-ready
     md = sudden_obstacle.markdown(res)
@@ -264,3 +291,42 @@ def test_collisions_after_goal_flag(sources, tmp_path):
     assert json.loads(out.read_text())["config"]["stop_at_goal"] is False
     so = sudden_obstacle.run(_so(stop_at_goal=False, positions=1, appear=(0.0,)), sources, progress=False)
     assert so["config"]["stop_at_goal"] is False
+
+
+# ------------------------------------------------------------------------------------------------ success rates
+
+SEEDS = range(5)
+START, GOAL = (0.0, 0.0, 0.0), (3.0, 1.0)
+
+
+def _success(sources, method, env, penalty=1e6, num_samples=200, time_limit=8.0, goal=GOAL):
+    """Records of ``method`` driving from START to ``goal`` in ``env`` under each of SEEDS (horizon 10)."""
+    episodes = [Episode(method, num_samples, env, START, goal, 0.3, time_limit, seed=seed, horizon=10)
+                for seed in SEEDS]
+    records = run_episodes(episodes, sources, ControllerSettings(collision_penalty=penalty), progress=False)
+    _check_records(records, lambda r: env, time_limit)
+    return records
+
+
+@pytest.mark.parametrize("method", ["mppi_high", "cu_table"])
+def test_open_field_goal_is_reached_in_at_least_4_of_5_seeds(sources, method):
+    """An open field, the goal 3.2 m away, 8 s (the straight drive takes 3.2 s): at least 4 of 5 seeds arrive."""
+    records = _success(sources, method, Environment([]))
+    assert sum(r["success"] for r in records) >= 4, [r["outcome"] for r in records]
+    assert all(r["time"] < 6.0 for r in records if r["success"])  # well inside the limit: a direct drive
+
+
+def test_a_disc_on_the_way_is_avoided_only_when_the_cost_sees_it(sources):
+    """A disc of radius 0.4 m right on the straight line: with the paper's collision penalty MPPI goes around it
+    in at least 4 of 5 seeds; with a negligible penalty (the cost blind to it) it drives into it in at least 4 of 5."""
+    env = Environment([Circle((1.5, 0.5), 0.4)])
+    avoided = _success(sources, "mppi_high", env)
+    assert sum(r["success"] for r in avoided) >= 4, [r["outcome"] for r in avoided]
+    blind = _success(sources, "mppi_high", env, penalty=1e-9)  # > 0 is required; this little is blind
+    assert sum(r["outcome"] == "collision" for r in blind) >= 4, [r["outcome"] for r in blind]
+
+
+def test_an_unreachable_goal_is_never_a_success(sources):
+    """The goal 20 m away with 4 s to drive at 1 m/s: every seed must time out (a success here is a bug)."""
+    records = _success(sources, "cu_table", Environment([]), time_limit=4.0, goal=(20.0, 0.0))
+    assert [r["outcome"] for r in records] == ["timeout"] * len(SEEDS)

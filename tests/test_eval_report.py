@@ -10,10 +10,9 @@ import pytest
 import torch
 
 from cuniform_torch import TableError, UniformPolicy, make_system, read_table, rollout
-from cuniform_torch.coverage import coverage
-from cuniform_torch.graph import GraphSampler
-from eval import coverage as coverage_exp
-from eval import uniformity as uniformity_exp
+from cuniform_torch.metrics import coverage, level_uniformity
+from eval.graph_sampling import GraphSampler
+from eval import coverage_experiment as coverage_exp
 from eval.methods import METHODS, Sources, make_controller, parse_methods, sample_states
 from eval.reachable import reachable
 
@@ -116,16 +115,16 @@ def test_reachable_cells_are_what_rollouts_reach(dubins_table_path):
 def test_uniformity_stats_of_exact_uniform_draws_and_of_a_point_mass():
     ref = torch.stack([torch.arange(10), torch.zeros(10, dtype=torch.long)], dim=1)  # 10 cells
     uniform = ref.repeat(100, 1)  # every cell exactly 100 times
-    s = uniformity_exp.level_stats(uniform, ref, torch.Generator().manual_seed(0))
+    s = level_uniformity(uniform, ref, torch.Generator().manual_seed(0))
     assert s["tv"] == pytest.approx(0.0) and s["entropy"] == pytest.approx(1.0) and s["outside"] == 0.0
     point = torch.tensor([[0, 0]] * 500 + [[99, 0]] * 500)  # half in one cell, half outside
-    s = uniformity_exp.level_stats(point, ref)
+    s = level_uniformity(point, ref)
     assert s["outside"] == pytest.approx(0.5)
     expected_tv = 0.5 * (abs(0.5 - 0.1) + 9 * 0.1) + 0.5 * 0.5
     assert s["tv"] == pytest.approx(expected_tv)
 
 
-def test_report_quick_runs_end_to_end(tmp_path):
+def test_report_quick_runs_end_to_end(tmp_path, capsys):
     from eval.report import main
 
     assert main(["--quick", "--out", str(tmp_path / "out"), "--runs", str(tmp_path / "runs")]) == 0
@@ -142,5 +141,17 @@ def test_report_quick_runs_end_to_end(tmp_path):
         json.loads((root / "eval" / f"{name}.json").read_text())
     events = list((tmp_path / "runs" / "quick").rglob("events.out.tfevents.*"))
     assert {p.parent.name for p in events} >= {"cu_table", "mppi_high", "figures"}
-    # a second run reuses every stage's result
+    # a second run reuses every table, the policy and every experiment's result: nothing is rewritten
+    outputs = sorted([*root.glob("*.npz"), *root.glob("*.pt"), *(root / "eval").glob("*.json")])
+    assert {p.name for p in outputs} >= {"dubins.npz", "dubins_cov.npz", "dubins.policy.pt", "coverage.json",
+                                         "uniformity.json", "sudden_obstacle.json", "cluttered.json"}
+    before = {p: p.stat().st_mtime_ns for p in outputs}
+    capsys.readouterr()
     assert main(["--quick", "--out", str(tmp_path / "out"), "--runs", str(tmp_path / "runs")]) == 0
+    out = capsys.readouterr().out
+    assert {p: p.stat().st_mtime_ns for p in outputs} == before
+    reused = {line.removeprefix("reusing ") for line in out.splitlines() if line.startswith("reusing ")}
+    assert reused == {str(p) for p in outputs if p.suffix != ".pt" or p.name == "dubins.policy.pt"}
+    n = len(reused)
+    assert f"reused {n} of {n} outputs of earlier runs" in out and "$ python -m" not in out  # no build, no distill
+    assert f"Reused from an earlier run ({n} of {n} outputs" in (root / "report.md").read_text()

@@ -53,7 +53,7 @@ from tqdm import tqdm
 from cuniform_torch.cli import (OUT, RUNS, ArgumentParser, add_dataclass_args, add_system_module_arg,
                                 check_output_file, check_output_folder, cli_main, dataclass_from_args,
                                 import_system_modules)
-from cuniform_torch.coverage import coverage, uniform_ceiling
+from cuniform_torch.metrics import coverage, uniform_ceiling
 from cuniform_torch.fileio import exclusive_lock, write_bytes, write_json
 from cuniform_torch.grid import Grid
 from cuniform_torch.mlp import MLPConfig, MLPPolicy, default_feature_scale, file_sha256, policy_checkpoint, save_policy

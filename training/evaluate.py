@@ -18,7 +18,7 @@ Definitions (the keys of :func:`compare`'s dict):
   ``mean_rollout_levels`` the levels 0..T-1 whose rows drive a T-step rollout (level T is uniform by construction).
 * ``coverage``: for each N, N real rollouts of the policy and of the table from the origin (seeded), with the
   distinct cells visited (``total``), per step (``per_level``), and cells of L_t visited at step t
-  (``in_level_set``, see :func:`cuniform_torch.coverage.coverage`), the uniform-draw ceiling of each level, and
+  (``in_level_set``, see :func:`cuniform_torch.metrics.coverage`), the uniform-draw ceiling of each level, and
   the ratios policy / table. The table's rollouts also give its fallback rates (``nearest_rate``: lookups outside
   L_t answered by the nearest cell; ``miss_rate``: uniform fallback); an MLP answers every state, so its are 0.
 """
@@ -33,7 +33,7 @@ from typing import Any, Sequence
 import torch
 from torch import Tensor
 
-from cuniform_torch.coverage import coverage, uniform_ceiling
+from cuniform_torch.metrics import coverage, uniform_ceiling
 from cuniform_torch.grid import Grid
 from cuniform_torch.mlp import MLPPolicy
 from cuniform_torch.policy import TablePolicy

@@ -1,4 +1,5 @@
-"""Graph sampling: cell sequences drawn on a table's flow graph, as the paper's reference release samples them.
+"""Graph sampling (the ``cu_graph`` baseline): cell sequences drawn on a table's flow graph, as the paper's
+reference release samples them. An evaluation baseline, not part of the runtime: controllers cannot use it.
 
 Shapes: N sampled sequences, T horizon, d state dimensions, E arcs.
 
@@ -17,8 +18,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from .grid import Grid
-from .table import Table, TableError
+from cuniform_torch.grid import Grid
+from cuniform_torch.table import Table, TableError
 
 __all__ = ["GraphSampler"]
 
