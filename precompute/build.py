@@ -69,7 +69,7 @@ def _defaults_of(field: str) -> str:
     return "; ".join(parts)
 
 
-MAXFLOW_ONLY = ("points", "points_per_cell", "resume", "max_memory")
+MAXFLOW_ONLY = ("points", "points_per_cell", "resume", "max_memory", "ties")
 """flags of --method maxflow only (given with --method coverage they are refused)"""
 COVERAGE_ONLY = ("target_samples", "merge_resolution", "steps", "lr")
 """flags of --method coverage only: fields of :class:`~precompute.coverage_method.CoverageConfig`"""
@@ -95,12 +95,17 @@ def make_parser() -> argparse.ArgumentParser:
     parser.add_argument("--out", type=Path, default=None, help=f"table file to write (default: {OUT}/<system>.npz)")
     parser.add_argument("--horizon", type=int, default=None,
                         help=f"number of steps T (default: the system's default_horizon, else {DEFAULT_HORIZON})")
-    add_dataclass_args(parser, BuildConfig, only=("points", "points_per_cell", "seed"), help={
+    add_dataclass_args(parser, BuildConfig, only=("points", "points_per_cell", "seed", "ties"), help={
         "points": "sample points per cell: centers (level sets from cell centres, transitions from the 3^d "
                   "lattice), lattice (level sets from all lattice points), random (centre + K random points)",
         "points_per_cell": "K random points per cell for --points random",
         "seed": "seed of --points random and of the report's rollouts",
+        "ties": "symmetric: a step onto a cell boundary rounds away from its source cell (mirror-symmetric level "
+                "sets, the authors' sizes); grid: the state's own cell (the grid offset decides)",
     })
+    parser.add_argument("--threads", type=int, default=1,
+                        help="torch CPU threads (0: torch's choice, one per core). 1 by default: the build's tensors "
+                             "are small, and on a busy machine extra threads only wait for each other")
     parser.add_argument("--method", default="maxflow", choices=["maxflow", "coverage"],
                         help="maxflow: the paper's flow network (default); coverage: maximize the expected coverage "
                              "of real rollouts over the reachable states (see precompute/coverage_method.py)")
@@ -249,7 +254,17 @@ def main(argv: Sequence[str] | None = None) -> int:
     load_user_systems(argv)
     args = make_parser().parse_args(argv)
     _check_flags(args)
-    return _run(args)
+    if args.threads < 0:
+        raise CLIError(f"--threads must be >= 0 (0: torch's choice), got {args.threads}")
+    import torch
+
+    previous = torch.get_num_threads()
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    try:
+        return _run(args)
+    finally:  # a caller in the same process (eval.report) keeps its own setting
+        torch.set_num_threads(previous)
 
 
 def _run(args: argparse.Namespace) -> int:
