@@ -290,7 +290,8 @@ class TestFrameChangeKernel:
         gen = torch.Generator().manual_seed(0)
         local = torch.randn(11, d, 500, generator=gen, dtype=dtype) * 3  # [T+1, d, N], time-major
         local[:, 2] = torch.remainder(local[:, 2] + torch.pi, 2 * torch.pi) - torch.pi
-        for pose in ([0.3, -2.0, 0.7], [10.0, 1.0, -3.1], [0.0, 0.0, 3.14159], [-4.0, 2.0, -torch.pi]):
+        for pose in ([0.3, -2.0, 0.7], [10.0, 1.0, -3.1], [0.0, 0.0, 3.14159], [-4.0, 2.0, -torch.pi],
+                     [1.0, 2.0, 7.0], [0.0, 0.0, -9.5]):  # headings outside [-pi, pi) too (a state need not wrap)
             pose = torch.tensor(pose + [0.5] * (d - 3), dtype=dtype)
             expected = se2_to_world(local.permute(2, 0, 1), pose)  # [N, T+1, d]
             got = rollout_kernels.to_world(local, pose)
