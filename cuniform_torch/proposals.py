@@ -34,6 +34,7 @@ from typing import TYPE_CHECKING, Protocol, runtime_checkable
 import torch
 from torch import Tensor
 
+from . import rollout_kernels
 from .frames import se2_to_world
 from .mlp import load_policy
 from .rollout import Policy, PolicyTraits, RolloutPlan, check_generator, open_loop, same_device
@@ -324,7 +325,10 @@ class BankProposal:
 
     def propose(self, state: Tensor, generator: torch.Generator) -> tuple[Tensor, Tensor]:
         idx = torch.randperm(self.bank_size, generator=generator, device=self.device)[: self.num_samples]  # [K]
-        return se2_to_world(self.bank_states[idx], state), self.bank_actions[idx]  # [K, T+1, d], [K, T, q]
+        local = self.bank_states[idx]  # [K, T+1, d]
+        if rollout_kernels.usable(local):  # the compiled frame change, reading the subset in its own order
+            return rollout_kernels.to_world(local.permute(1, 2, 0), state), self.bank_actions[idx]
+        return se2_to_world(local, state), self.bank_actions[idx]  # [K, T+1, d], [K, T, q]
 
     def update(self, result: MPPIResult) -> None:
         """Count the command; every ``refresh`` commands, draw a new bank (or, in the background, put a finished

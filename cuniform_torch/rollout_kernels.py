@@ -68,7 +68,8 @@ def usable(x: Tensor) -> bool:
 
 
 def to_world(local: Tensor, pose: Tensor) -> Tensor:
-    """``local [T+1, d, N]`` (contiguous, origin frame) moved to ``pose [d]``: ``[N, T+1, d]`` contiguous."""
+    """``local [T+1, d, N]`` (origin frame; any strides: a time-major stack, or ``[N, T+1, d]`` states viewed
+    with ``permute(1, 2, 0)``) moved to ``pose [d]``: ``[N, T+1, d]`` contiguous."""
     steps, d, n = local.shape
     out = torch.empty((n, steps, d), dtype=local.dtype, device=local.device)
     real = np.float32 if local.dtype == torch.float32 else np.float64

@@ -212,7 +212,12 @@ class TestBuiltInProposals:
         with pytest.raises(ValueError, match="NoSystem has no system"):
             PolicyProposal(NoSystem(), 8)
 
-    def test_bank_proposals_are_distinct_bank_rows_moved_rigidly_to_the_pose(self, policy):
+    @pytest.mark.parametrize("kernel", [True, False])
+    def test_bank_proposals_are_distinct_bank_rows_moved_rigidly_to_the_pose(self, policy, kernel, monkeypatch):
+        from cuniform_torch import rollout_kernels
+
+        if not kernel:  # the torch frame change (a GPU, or no numba)
+            monkeypatch.setattr(rollout_kernels, "usable", lambda x: False)
         bank = BankProposal(PolicyProposal(policy, 64), 256, _gen(0))
         pose = torch.tensor([-1.5, 0.7, 2.6])
         states, actions = bank.propose(pose, _gen(1))
