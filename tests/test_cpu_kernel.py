@@ -10,6 +10,8 @@ action dimensions, dense and hash lookups. ``kernel="numba"`` names what rules i
 
 from __future__ import annotations
 
+import dataclasses
+
 import pytest
 import torch
 
@@ -66,6 +68,33 @@ def test_numba_draws_what_torch_draws(request, table_name, lookup, column_major)
     assert fast.queries == eager.queries
 
 
+@pytest.mark.parametrize("table_name", ["dubins_table", "walk_table", "ks_speed_table"])
+@pytest.mark.parametrize("n", [1, 2, 777])
+def test_numba_draws_what_torch_draws_with_the_uniform_fallback_and_few_states(request, table_name, n):
+    table = request.getfixturevalue(table_name)
+    eager = TablePolicy(table, kernel="torch", fallback="uniform")
+    fast = TablePolicy(table, kernel="numba", fallback="uniform")
+    assert fast.num_halo == 0
+    x = _states(fast, 800, seed=n)[torch.randperm(800, generator=torch.Generator().manual_seed(n))[:n]]
+    for t in range(fast.horizon + 1):
+        u_eager = eager.sample(x, t, torch.Generator().manual_seed(t))
+        u_fast = fast.sample(x, t, torch.Generator().manual_seed(t))
+        assert torch.equal(u_fast, u_eager), f"level {t}"
+    assert int(fast.misses) == int(eager.misses) and int(fast.nearest_hits) == int(eager.nearest_hits) == 0
+
+
+def test_the_first_control_cycle_compiles_nothing(dubins_table):
+    """Making the policy compiles both layouts numba sees (one state: C; many, column-major: F)."""
+    fast = TablePolicy(dubins_table, kernel="numba")
+    step = fast._numba.step
+    compiled = list(step.signatures)
+    assert len(compiled) >= 2
+    rollout(fast.system, fast, torch.zeros(3), 100, 3, torch.Generator().manual_seed(0))
+    fast.sample(torch.zeros(1, 3), 0)
+    fast.sample(torch.zeros(50, 3), 0)  # row-major: made column-major first
+    assert list(step.signatures) == compiled
+
+
 def test_rollouts_are_the_same_with_either_kernel(dubins_table):
     eager, fast = TablePolicy(dubins_table, kernel="torch"), TablePolicy(dubins_table, kernel="numba")
     for x0 in (torch.zeros(3), torch.tensor([1.0, -2.0, 0.7])):
@@ -85,3 +114,15 @@ def test_numba_names_what_rules_it_out_and_auto_falls_back(dubins_table, kwargs,
     assert TablePolicy(dubins_table, **kwargs).kernel is Kernel.TORCH
     with pytest.raises(ValueError, match="unknown kernel 'fortran'"):
         TablePolicy(dubins_table, kernel="fortran")
+
+
+@pytest.mark.parametrize("factor, reason", [(25, "float64 keys"), (3000, "int64 hash")])
+def test_numba_names_a_key_box_it_cannot_serve(dubins_table, factor, reason):
+    """x and y cell indices times ``factor``: a key box beyond 2^24 cells per level (float64 keys), and beyond
+    2^31 in all (an int64 hash); both stay with the torch kernel."""
+    cells = dubins_table.cells.copy()
+    cells[:, :2] *= factor
+    table = dataclasses.replace(dubins_table, cells=cells)
+    with pytest.raises(ValueError, match=reason):
+        TablePolicy(table, kernel="numba", lookup="hash")
+    assert TablePolicy(table, lookup="hash").kernel is Kernel.TORCH

@@ -18,7 +18,8 @@ import torch
 
 from cuniform_torch import TablePolicy, rollout
 from cuniform_torch.grid import CellKeys, CellSet, KeyHash
-from cuniform_torch.policy import _alias_tables, _halo
+from cuniform_torch.alias import alias_tables
+from cuniform_torch.halo import halo as table_halo
 
 CUDA = torch.cuda.is_available()
 
@@ -111,7 +112,7 @@ class TestPolicySlots:
         level_of = torch.repeat_interleave(torch.arange(table.horizon + 1),
                                            torch.from_numpy(table.level_offsets).diff())
         keyed = torch.cat((level_of[:, None], torch.from_numpy(table.cells)), dim=1)  # [C, 1+d]
-        halo_cells, halo_rows = _halo(keyed, grid)
+        halo_cells, halo_rows = table_halo(keyed, grid)
         keys = CellKeys.covering(torch.cat((keyed, halo_cells)))
         own, halo = CellSet.build(keyed, keys), CellSet.build(halo_cells, keys)
         probs = torch.from_numpy(table.action_probs)
@@ -160,11 +161,11 @@ class TestPolicySlots:
         assert u.shape == (x.shape[0], 1) and bool(torch.isfinite(u).all())
 
     def test_auto_lookup_is_dense_for_small_boxes_and_hash_beyond(self, dubins_table, monkeypatch):
-        import cuniform_torch.policy as policy_module
+        import cuniform_torch.lookup as lookup_module
 
         assert TablePolicy(dubins_table).lookup.value == "dense"
-        monkeypatch.setattr(policy_module, "DENSE_MIN_CELLS", 0)
-        monkeypatch.setattr(policy_module, "DENSE_CELLS_PER_ENTRY", 1)
+        monkeypatch.setattr(lookup_module, "DENSE_MIN_CELLS", 0)
+        monkeypatch.setattr(lookup_module, "DENSE_CELLS_PER_ENTRY", 1)
         assert TablePolicy(dubins_table).lookup.value == "hash"
         with pytest.raises(ValueError, match=r"unknown lookup 'sparse'; choose one of: auto, dense, hash"):
             TablePolicy(dubins_table, lookup="sparse")
@@ -216,7 +217,7 @@ class TestAlias:
         p[0] = 0.0
         p[0, -1] = 1.0  # one certain action
         p /= p.sum(dim=1, keepdim=True)
-        thr, alias = _alias_tables(p)
+        thr, alias = alias_tables(p)
         assert bool(((thr >= 0) & (thr <= 1)).all())
         mass = torch.zeros_like(p)
         mass.scatter_add_(1, torch.arange(A).expand(500, A), thr / A)
@@ -232,16 +233,17 @@ class TestAlias:
         """Every entry's thresholds and outcome pairs give its row (uniform for "not found")."""
         policy = TablePolicy(request.getfixturevalue(table_name), lookup=lookup)
         A = policy.num_actions
-        thr = policy._alias_thr.double().reshape(-1, A) - torch.arange(A)  # [S+1, A] in [0, 1]
+        alias_tables = policy.index.alias
+        thr = alias_tables.threshold.double().reshape(-1, A) - torch.arange(A)  # [E+1, A] in [0, 1]
         assert bool(((thr >= 0) & (thr <= 1)).all())
-        pair = policy._alias_pair.reshape(-1, A, 2)  # [E+1, A, 2]: alias, j (action values when q == 1)
+        pair = alias_tables.outcome.reshape(-1, A, 2)  # [E+1, A, 2]: alias, j (action values when q == 1)
         values = policy.actions[:, 0].double()
         alias, own = (torch.searchsorted(values, pair[..., i].double()) for i in (0, 1))
         assert torch.equal(own, torch.arange(A).expand_as(own))
         mass = torch.zeros_like(thr)
         mass.scatter_add_(1, own, thr / A)
         mass.scatter_add_(1, alias, (1 - thr) / A)
-        want = policy._entry_probs.double()  # [E+1, A]: the entries' rows, then uniform for "not found"
+        want = policy.index.entry_probs.double()  # [E+1, A]: the entries' rows, then uniform for "not found"
         torch.testing.assert_close(mass, want, atol=1e-6, rtol=0)
 
     def test_sampled_frequencies_follow_a_skewed_row(self, walk_table):
