@@ -27,7 +27,11 @@ def test_readme_python_example_runs(tmp_path, dubins_table, monkeypatch):
         namespaces.append(namespace)
     assert namespaces[0]["states"].shape == (1000, 11, 3)  # the ten-line API of the first screen
     assert namespaces[0]["result"].outcome == "goal"
-    # the closed-loop example: every controller reaches the goal around the obstacle
+    # the closed-loop example of the Controllers section: every one of its controllers reaches the goal
+    (five,) = [ns for ns in namespaces if "controllers" in ns]
+    assert set(five["results"]) == set(five["controllers"]) and len(five["results"]) == 5
+    assert {name: r.outcome for name, r in five["results"].items()} == dict.fromkeys(five["controllers"], "goal")
+    # the last example (your own robot: a unicycle distilled and driven by CU-MPPI)
     assert namespaces[-1]["result"].outcome == "goal"
 
 
