@@ -20,6 +20,7 @@ that call when it is made, so that no control cycle pays for it.
 from __future__ import annotations
 
 import functools
+import threading
 
 import numpy as np
 import torch
@@ -72,7 +73,7 @@ class NumbaKernel:
                          h.slot_hash.numpy(), index.slot_entry.numpy())
         self.step = _kernels()[0 if index.lookup is Lookup.DENSE else 1]
         self.actions, self.outcome_is_value = index.actions, a.outcome_is_value
-        self._r = torch.empty(0)  # the uniforms of the last batch size, reused (numba reads them before returning)
+        self._scratch = threading.local()  # per thread: the uniforms of its last batch size, reused
         d = k.scale.shape[0]
         for n in (1, 2):  # numba's two layouts of x: C (one state, or d = 1) and F (what __call__ passes otherwise)
             self(np.zeros((n, d), dtype=np.float32), 0, np.zeros(n, dtype=np.float32),
@@ -91,15 +92,17 @@ class NumbaKernel:
         uniforms (``uniform_(0, A)`` from ``generator``, one per state), then :meth:`__call__`. ``x [N, d]`` ->
         actions ``[N, q]`` and the summed fallback codes (a host int)."""
         n = x.shape[0]
-        if self._r.shape[0] != n:
-            self._r = torch.empty(n, dtype=torch.float32)
-        self._r.uniform_(0, self.actions.shape[0], generator=generator)  # [N]
+        r = getattr(self._scratch, "r", None)
+        if r is None or r.shape[0] != n:  # numba reads them before returning, so a thread can reuse its own
+            r = self._scratch.r = torch.empty(n, dtype=torch.float32)
+            self._scratch.r_np = r.numpy()
+        r.uniform_(0, self.actions.shape[0], generator=generator)  # [N]
         if self.outcome_is_value:  # q == 1: the outcomes are the actions
             u = np.empty((n, 1), dtype=np.float32)
-            total = self(x.detach().numpy(), t, self._r.numpy(), u[:, 0])
+            total = self(x.detach().numpy(), t, self._scratch.r_np, u[:, 0])
             return torch.from_numpy(u), total  # [N, 1]
         out = np.empty(n, dtype=np.int32)
-        total = self(x.detach().numpy(), t, self._r.numpy(), out)
+        total = self(x.detach().numpy(), t, self._scratch.r_np, out)
         return self.actions.index_select(0, torch.from_numpy(out)), total  # [N, q]
 
 

@@ -5,13 +5,18 @@ Shapes: N states, d state dimensions, q action dimensions.
 Same generator seed, same uniforms: the two kernels must give the same actions bit for bit, count the same
 nearest-cell hits and misses, and drive :func:`~cuniform_torch.rollout.rollout` to the same states, for states
 inside, near and far outside the level sets, NaN and infinite ones, row- and column-major layouts, one and two
-action dimensions, dense and hash lookups. ``kernel="numba"`` names what rules it out; ``"auto"`` falls back to torch there.
+action dimensions, dense and hash lookups, the uniform fallback, one and two states. ``kernel="numba"`` names what
+rules it out (float64, compile, a key box that needs float64 keys or an int64 hash); ``"auto"`` falls back to
+torch there. Making the policy compiles every layout the kernel is later given, and threads sampling one policy
+draw what each would draw alone.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import threading
 
+import numpy as np
 import pytest
 import torch
 
@@ -83,16 +88,54 @@ def test_numba_draws_what_torch_draws_with_the_uniform_fallback_and_few_states(r
     assert int(fast.misses) == int(eager.misses) and int(fast.nearest_hits) == int(eager.nearest_hits) == 0
 
 
-def test_the_first_control_cycle_compiles_nothing(dubins_table):
-    """Making the policy compiles both layouts numba sees (one state: C; many, column-major: F)."""
+def test_the_first_control_cycle_compiles_nothing(dubins_table, monkeypatch):
+    """Making the policy compiles every layout numba is then given (one state or d = 1: C; else column-major: F).
+
+    Recorded per call (numba's dispatcher is shared by every policy of the process, so its signatures are not)."""
+    import numba
+
+    from cuniform_torch.cpu_kernels import NumbaKernel
+
+    layouts = []
+    call = NumbaKernel.__call__
+
+    def spy(self, x, *args):
+        layouts.append(numba.typeof(x if x.flags.f_contiguous else np.asfortranarray(x)).layout)
+        return call(self, x, *args)
+
+    monkeypatch.setattr(NumbaKernel, "__call__", spy)
     fast = TablePolicy(dubins_table, kernel="numba")
-    step = fast._numba.step
-    compiled = list(step.signatures)
-    assert len(compiled) >= 2
+    warmed = set(layouts)
+    layouts.clear()
     rollout(fast.system, fast, torch.zeros(3), 100, 3, torch.Generator().manual_seed(0))
     fast.sample(torch.zeros(1, 3), 0)
     fast.sample(torch.zeros(50, 3), 0)  # row-major: made column-major first
-    assert list(step.signatures) == compiled
+    fast.sample(torch.zeros(50, 6)[:, ::2], 0)  # strided
+    assert set(layouts) <= warmed == {"C", "F"}
+
+
+def test_threads_sampling_one_policy_draw_what_each_would_draw_alone(dubins_table):
+    """A bank's worker thread and the control loop may sample the same policy: the kernel's reused uniforms are
+    per thread. Two sizes, so the threads would also fight over the buffer's size if they shared one."""
+    fast = TablePolicy(dubins_table, kernel="numba")
+    x = _states(fast, 20000, seed=4)
+    jobs = [(x[:20000], 1), (x[:13000], 2)]
+    alone = [[fast.sample(xs, t % 5, g) for t in range(40)] for xs, g in
+             ((xs, torch.Generator().manual_seed(seed)) for xs, seed in jobs)]
+    together: list[list[torch.Tensor]] = [[], []]
+
+    def work(i):
+        xs, seed = jobs[i]
+        g = torch.Generator().manual_seed(seed)
+        together[i].extend(fast.sample(xs, t % 5, g) for t in range(40))
+
+    threads = [threading.Thread(target=work, args=(i,)) for i in range(2)]
+    for th in threads:
+        th.start()
+    for th in threads:
+        th.join()
+    for i in range(2):
+        assert all(torch.equal(a, b) for a, b in zip(alone[i], together[i], strict=True)), f"thread {i}"
 
 
 def test_rollouts_are_the_same_with_either_kernel(dubins_table):
