@@ -7,7 +7,6 @@ E flow arcs, K recorded transitions. See DESIGN.md for the key-by-key contract.
 
 from __future__ import annotations
 
-import json
 import math
 import os
 import zipfile
