@@ -168,6 +168,15 @@ def rollout_actions(system: System, x0: Tensor, actions: Tensor) -> Tensor:
     return open_loop(system, x0.detach(), actions.detach())
 
 
+def _steps_into(system: System) -> bool:
+    """Whether ``system.step`` takes ``out=``: the class that defines the ``step`` in use says ``step_out = True``
+    itself (a subclass that overrides ``step`` without saying so is stepped the plain way)."""
+    for klass in type(system).__mro__:
+        if "step" in vars(klass):
+            return vars(klass).get("step_out", False) is True
+    return False
+
+
 @dataclass(frozen=True)
 class RolloutPlan:
     """How :func:`rollout` drives one policy, settled once (a proposal keeps it and skips the per-call checks)."""
@@ -178,6 +187,9 @@ class RolloutPlan:
     """roll out from the origin and move the states to the start pose (``start_relative`` on an SE(2)-invariant
     system)"""
     traits: PolicyTraits
+    step_out: bool = False
+    """the system's ``step`` takes ``out=`` (its class says ``step_out = True``): each step writes a row of one
+    preallocated ``[T+1, d, N]`` buffer, which the results are read from (no stack of T+1 states)"""
 
     @classmethod
     def of(cls, system: System, policy: object) -> RolloutPlan:
@@ -188,7 +200,8 @@ class RolloutPlan:
             raise ValueError(f"{type(policy).__name__} is neither a Policy (actions, action_probs) nor an "
                              f"ActionSampler (sample)")
         traits = PolicyTraits.of(policy)
-        return cls(sampler=sampler, relative=traits.start_relative and bool(system.se2_invariant), traits=traits)
+        return cls(sampler=sampler, relative=traits.start_relative and bool(system.se2_invariant), traits=traits,
+                   step_out=_steps_into(system))
 
     def check(self, x0: Tensor, horizon: int) -> None:
         """ValueError unless the policy serves ``horizon`` steps from ``x0`` (its device, finite)."""
@@ -206,9 +219,15 @@ class RolloutPlan:
         device; a generator on it): ``states [N, T+1, d]``, ``actions [N, T, q]``."""
         d = x0.shape[-1]
         start = x0.unsqueeze(0).expand(num_samples, d) if x0.ndim == 1 else x0  # [N, d]
-        # in the start pose's frame the start is (0, 0, 0, *rest): the frame change leaves speeds etc. unchanged
-        x = torch.cat((torch.zeros_like(start[:, :3]), start[:, 3:]), dim=1) if self.relative else start
-        x = x.T.contiguous().T  # column-major [N, d]: every column a policy or a step reads is contiguous (faster)
+        # column-major [N, d] states: every column a policy or a step reads is contiguous (faster). With step_out all
+        # T+1 of them are rows of one time-major buffer, each step writing the next in place
+        buffer = x0.new_empty((horizon + 1, d, num_samples)) if self.step_out else None  # [T+1, d, N]
+        x = buffer[0].T if buffer is not None else x0.new_empty((d, num_samples)).T  # [N, d], column-major
+        if self.relative:  # in the start pose's frame the start is (0, 0, 0, *rest): speeds etc. are unchanged
+            x[:, :3] = 0
+            x[:, 3:] = start[:, 3:]
+        else:
+            x.copy_(start)
         actions = None if self.sampler else policy.actions.to(dtype=x0.dtype)  # [A, q]
         states, taken = [x], []
         for t in range(horizon):
@@ -222,18 +241,28 @@ class RolloutPlan:
                                      f"step {t}; expected [{num_samples}, {actions.shape[0]}] probabilities (states x "
                                      f"actions)")
                 u = actions[torch.multinomial(probs, 1, generator=generator).squeeze(1)]  # [N, q]
-            x = _step(system, x, u, num_samples, d)
+            if buffer is not None and u.dtype == x.dtype and u.device == x.device:
+                x = system.step(x, u, out=buffer[t + 1].T)  # [N, d] into the buffer
+            else:
+                x = _step(system, x, u, num_samples, d)
+                if buffer is not None and x.dtype == buffer.dtype:
+                    buffer[t + 1].T.copy_(x)
+                else:  # actions of another dtype promote the states: they are stacked from the list instead
+                    buffer = None
             states.append(x)
             taken.append(u)
         # the origin pose needs no change of frame (a host sync to know it: only on a CPU, where it is free)
         if self.relative and (x0.ndim == 2 or x0.device.type != "cpu" or bool(x0[:3].any())):
-            # the column-major states stacked time-major ([T+1, d, N], one copy, contiguous rows); the frame change
-            # reads that once and writes the [N, T+1, d] result once (a compiled loop on a CPU, else torch ops)
-            local = torch.stack([s.T for s in states])
+            # the column-major states time-major ([T+1, d, N], contiguous rows: the buffer, else one stack); the
+            # frame change reads that once and writes the [N, T+1, d] result once (a compiled loop on a CPU, else
+            # torch ops)
+            local = buffer if buffer is not None else torch.stack([s.T for s in states])
             if x0.ndim == 1 and rollout_kernels.usable(local):
                 states_t = rollout_kernels.to_world(local, x0)
             else:
                 states_t = se2_to_world(local.permute(2, 0, 1), x0 if x0.ndim == 1 else start.unsqueeze(1))
+        elif buffer is not None:
+            states_t = buffer.permute(2, 0, 1).contiguous()  # [N, T+1, d]
         else:
             states_t = torch.stack(states, dim=1)  # [N, T+1, d]
         if taken:

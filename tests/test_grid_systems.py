@@ -7,6 +7,7 @@ import math
 import pytest
 import torch
 
+from cuniform_torch.checks import wrap_angle
 from cuniform_torch.grid import CellKeys, CellSet, Grid
 from cuniform_torch.systems import Dubins, RandomWalk1D, make_system, system_from_json, system_to_json
 
@@ -35,6 +36,56 @@ def test_dubins_wraps_heading_to_minus_pi_pi():
     out = s.step(x, torch.tensor([[math.pi / 4]], dtype=torch.float64))
     assert -math.pi <= out[0, 2].item() < math.pi
     assert out[0, 2].item() == pytest.approx(math.pi - 0.01 + math.pi / 20 - 2 * math.pi)
+
+
+def _dubins_reference(s: Dubins, x: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
+    """The Dubins step written plainly (the formula the in-place step must reproduce bit for bit)."""
+    theta = wrap_angle(x[:, 2] + u[:, 0] * s.dt)
+    return torch.stack((x[:, 0] + s.speed * torch.cos(theta) * s.dt, x[:, 1] + s.speed * torch.sin(theta) * s.dt,
+                        theta), dim=1)
+
+
+@pytest.mark.parametrize("speed", [1.0, 0.7])
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64, torch.bfloat16])
+@pytest.mark.parametrize("n", [1, 2, 1000])
+@pytest.mark.parametrize("layout", ["rows", "columns", "strided"])
+def test_dubins_step_is_the_plain_formula_bit_for_bit(speed, dtype, n, layout):
+    s = Dubins(speed=speed)
+    g = torch.Generator().manual_seed(n)
+    x = (torch.randn(n, 3, generator=g) * 5).to(dtype)
+    x = {"rows": x, "columns": x.T.contiguous().T, "strided": torch.cat((x, x), dim=1)[:, ::2]}[layout]
+    u = ((torch.rand(n, 1, generator=g) - 0.5) * 1.6).to(dtype)
+    out = s.step(x, u)
+    expected = _dubins_reference(s, x, u)
+    assert out.dtype == dtype and torch.equal(out, expected)
+    if layout == "columns" and n > 1:
+        assert out.stride(0) == 1  # column-major in, column-major out
+    into = torch.empty(3, n, dtype=dtype).T
+    assert s.step(x, u, out=into) is into and torch.equal(into, expected)
+
+
+def test_dubins_step_promotes_mixed_dtypes_and_checks_out():
+    s = Dubins()
+    x, u = torch.randn(4, 3), torch.rand(4, 1, dtype=torch.float64)
+    out = s.step(x, u)
+    assert out.dtype == torch.float64 and torch.equal(out, _dubins_reference(s, x, u))
+    with pytest.raises(ValueError, match="out must be a"):
+        s.step(x, u, out=torch.empty(4, 3))  # float32 for a float64 result
+
+
+def test_rollout_of_a_dubins_subclass_with_its_own_step():
+    """A subclass that overrides ``step`` (no ``out=``) is stepped the plain way."""
+    from cuniform_torch import UniformPolicy, rollout
+
+    class Slow(Dubins):
+        def step(self, x, u):
+            return super().step(x, u * 0.5)
+
+    system = Slow()
+    policy = UniformPolicy(system)
+    states, actions = rollout(system, policy, torch.tensor([0.5, -1.0, 0.2]), 50, 6, torch.Generator().manual_seed(0))
+    for t in range(6):
+        assert torch.equal(states[:, t + 1], Dubins().step(states[:, t], actions[:, t] * 0.5))
 
 
 def test_random_walk_steps_and_keeps_dtype_device():

@@ -20,6 +20,7 @@ Each model checks its arguments in ``__post_init__`` (:mod:`cuniform_torch.check
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 from dataclasses import dataclass
 from typing import Any, ClassVar
@@ -73,6 +74,67 @@ def _advance(x: Tensor, theta: Tensor, dx: Tensor, dy: Tensor, *rest: Tensor) ->
     out[:, 2] = theta
     for i, column in enumerate(rest):
         out[:, 3 + i] = column
+    return out
+
+
+@functools.lru_cache(maxsize=256)
+def _scalars(dtype: torch.dtype, *values: float) -> tuple[Tensor | float, ...]:
+    """``values`` as 0-d CPU tensors of ``dtype`` (float32 or float64; else the floats themselves).
+
+    A Python float in a tensor op is wrapped into a new tensor and cast on every call (about 3 us a time on a CPU,
+    more than the arithmetic of a 1000-state op); a 0-d CPU tensor of the op's dtype is read as the same scalar
+    (the kernel rounds the float to the dtype either way: the results are bit-identical) and works on any device.
+    Other dtypes keep the floats: a half op computes with the float scalar in float32, a 0-d half would round it.
+    """
+    if dtype not in (torch.float32, torch.float64):
+        return values
+    return tuple(torch.tensor(v, dtype=dtype) for v in values)
+
+
+def _next_state(x: Tensor, u: Tensor, d: int, out: Tensor | None) -> tuple[Tensor, Tensor]:
+    """Where the next state ``[N, d]`` goes and where its new heading is computed.
+
+    The state: ``out`` when given (checked: ``[N, d]``, the dtype of ``x`` and ``u`` promoted, their device), else
+    a new one in that dtype and the layout of ``x`` (column-major when ``x`` is, as :func:`_advance` makes it).
+    The heading: its column ``[N]`` when that is contiguous, else a new ``[N]`` (a strided heading would take
+    torch's scalar cos/sin loop, which may round differently from the vectorized one)."""
+    dtype = torch.promote_types(x.dtype, u.dtype)
+    n = x.shape[0]
+    if out is not None:
+        if out.shape != (n, d) or out.dtype != dtype or out.device != x.device:
+            raise ValueError(f"step: out must be a [{n}, {d}] tensor of {dtype} on {x.device}, got "
+                             f"{list(out.shape)} {out.dtype} on {out.device}")
+    elif x.shape[1] == d and x.stride(0) == 1 and n > 1:  # column-major: [d, N] storage
+        out = torch.empty((d, n), dtype=dtype, device=x.device).T
+    else:
+        out = torch.empty((n, d), dtype=dtype, device=x.device)
+    heading = out[:, 2]
+    return out, heading if heading.is_contiguous() else torch.empty(n, dtype=dtype, device=x.device)
+
+
+def _turn(x: Tensor, rate: Tensor, dt: float, theta: Tensor) -> Tensor:
+    """The new heading ``wrap(theta + rate dt)`` (:func:`~cuniform_torch.checks.wrap_angle`'s arithmetic, in
+    place): ``x [N, d]`` (heading in column 2), ``rate [N]`` -> ``theta [N]``, also returned."""
+    c_dt, c_pi, c_two_pi = _scalars(theta.dtype, dt, math.pi, 2.0 * math.pi)
+    torch.mul(rate, c_dt, out=theta)
+    theta.add_(x[:, 2]).add_(c_pi)  # (theta + rate dt) + pi, as wrap_angle adds them
+    return torch.remainder(theta, c_two_pi, out=theta).sub_(c_pi)
+
+
+def _move(x: Tensor, theta: Tensor, speed: float | Tensor, dt: float, out: Tensor) -> Tensor:
+    """``out[:, :2] = (x + (speed cos(theta)) dt, y + (speed sin(theta)) dt)``, the rest of ``out`` as it is
+    (``speed`` a float or an ``[N]`` tensor): the products rounded as ``speed * torch.cos(theta) * dt`` rounds
+    them (a speed of exactly 1 is skipped: multiplying by it is exact), both columns in each op. Returns ``out``."""
+    trig = torch.empty((2, theta.shape[0]), dtype=out.dtype, device=out.device)  # [2, N]: cos, sin
+    torch.cos(theta, out=trig[0])
+    torch.sin(theta, out=trig[1])
+    if isinstance(speed, Tensor):
+        trig.mul_(speed)  # speed [N] broadcast over both rows
+    elif speed != 1.0:
+        trig.mul_(_scalars(out.dtype, speed)[0])
+    torch.add(x[:, :2], trig.mul_(_scalars(out.dtype, dt)[0]).T, out=out[:, :2])
+    if theta.data_ptr() != out[:, 2].data_ptr():  # the heading was computed apart (_next_state)
+        out[:, 2] = theta
     return out
 
 
@@ -162,6 +224,8 @@ class Dubins:
     name: ClassVar[str] = "dubins"
     periodic: ClassVar[tuple[bool, ...]] = (False, False, True)
     se2_invariant: ClassVar[bool] = True
+    step_out: ClassVar[bool] = True
+    """``step`` takes ``out=`` (a rollout steps into its preallocated states)"""
 
     def __post_init__(self) -> None:
         positive(self.name, speed=self.speed, dt=self.dt)
@@ -177,11 +241,16 @@ class Dubins:
         """``[A, 1]`` angular velocities, evenly in ``[-max_omega, max_omega]``."""
         return _evenly(-self.max_omega, self.max_omega, self.num_actions).to(dtype=dtype, device=device).unsqueeze(1)
 
-    def step(self, x: Tensor, u: Tensor) -> Tensor:
-        """``x [N, 3]``, ``u [N, 1]`` -> ``[N, 3]``: heading first, then position with the new heading."""
+    def step(self, x: Tensor, u: Tensor, out: Tensor | None = None) -> Tensor:
+        """``x [N, 3]``, ``u [N, 1]`` -> ``[N, 3]``: heading first, then position with the new heading.
+
+        ``out`` (optional, ``[N, 3]`` of the result's dtype and device, not overlapping ``x`` or ``u``): written and
+        returned (what :func:`~cuniform_torch.rollout.rollout` passes: a row of its preallocated states)."""
         _check_step_inputs(self, x, u, 1)
-        theta = wrap_angle(x[:, 2] + u[:, 0] * self.dt)  # [N]
-        return _advance(x, theta, self.speed * torch.cos(theta) * self.dt, self.speed * torch.sin(theta) * self.dt)
+        # wrap_angle(x[:, 2] + u[:, 0] * dt), then x + speed cos(theta') dt, ...: the same arithmetic in place into the
+        # new state (a dozen ops, no Python float wrapped per op); the values of _advance(x, theta, ...)
+        out, theta = _next_state(x, u, 3, out)  # [N, 3], [N]
+        return _move(x, _turn(x, u[:, 0], self.dt, theta), self.speed, self.dt, out)
 
     def params(self) -> dict[str, Any]:
         return _params(self)
