@@ -317,7 +317,8 @@ class BankProposal:
         """``bank_size`` fresh rollouts at the origin: ``[M, T+1, d]``, ``[M, T, q]`` (not put in use)."""
         check_generator(generator, self.device)
         origin = torch.zeros(self.state_dim, dtype=self.dtype, device=self.device)
-        return self.source.rollout(origin, self.bank_size, generator)
+        states, actions = self.source.rollout(origin, self.bank_size, generator)
+        return states.contiguous(), actions  # a subset is gathered by rows (a rollout may give a time-major view)
 
     def resample(self, generator: torch.Generator | None = None) -> None:
         """Draw a new bank now and use it (from ``generator``, default the refresh stream)."""

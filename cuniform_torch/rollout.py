@@ -258,11 +258,14 @@ class RolloutPlan:
             # torch ops)
             local = buffer if buffer is not None else torch.stack([s.T for s in states])
             if x0.ndim == 1 and rollout_kernels.usable(local):
-                states_t = rollout_kernels.to_world(local, x0)
+                if buffer is not None:  # world states time-major too: [N, T+1, d] a view of [T+1, d, N]
+                    states_t = rollout_kernels.to_world_time_major(local, x0).permute(2, 0, 1)
+                else:
+                    states_t = rollout_kernels.to_world(local, x0)
             else:
                 states_t = se2_to_world(local.permute(2, 0, 1), x0 if x0.ndim == 1 else start.unsqueeze(1))
         elif buffer is not None:
-            states_t = buffer.permute(2, 0, 1).contiguous()  # [N, T+1, d]
+            states_t = buffer.permute(2, 0, 1)  # [N, T+1, d], a view of the time-major buffer
         else:
             states_t = torch.stack(states, dim=1)  # [N, T+1, d]
         if taken:

@@ -28,7 +28,7 @@ from torch import Tensor
 
 from . import cpu_kernels
 
-__all__ = ["usable", "to_world"]
+__all__ = ["usable", "to_world", "to_world_time_major"]
 
 
 @functools.cache
@@ -59,7 +59,32 @@ def _kernel():
                 for j in range(3, d):
                     out[i, t, j] = local[t, j, i]
 
-    return to_world
+    @numba.njit(cache=True, nogil=True, boundscheck=False)
+    def to_world_time_major(local, px, py, c, s, pth, pi, two_pi, out):
+        """``local [T+1, d, N]`` (origin frame) -> ``out [T+1, d, N]`` (world frame of the pose): every read and
+        write a contiguous row; the arithmetic of ``to_world``."""
+        steps, d, n = local.shape
+        for t in range(steps):
+            for i in range(n):
+                lx, ly = local[t, 0, i], local[t, 1, i]
+                out[t, 0, i] = (px + lx * c) - ly * s
+                out[t, 1, i] = (py + lx * s) + ly * c
+            for i in range(n):
+                a = (local[t, 2, i] + pth) + pi
+                if a >= two_pi:
+                    m = a - two_pi if a < two_pi + two_pi else np.fmod(a, two_pi)
+                elif a < 0:
+                    m = np.fmod(a, two_pi)
+                    if m < 0:
+                        m += two_pi
+                else:
+                    m = a
+                out[t, 2, i] = m - pi
+            for j in range(3, d):
+                for i in range(n):
+                    out[t, j, i] = local[t, j, i]
+
+    return to_world, to_world_time_major
 
 
 def usable(x: Tensor) -> bool:
@@ -72,9 +97,23 @@ def to_world(local: Tensor, pose: Tensor) -> Tensor:
     with ``permute(1, 2, 0)``) moved to ``pose [d]``: ``[N, T+1, d]`` contiguous."""
     steps, d, n = local.shape
     out = torch.empty((n, steps, d), dtype=local.dtype, device=local.device)
+    _kernel()[0](local.numpy(), *_pose_args(local, pose), out.numpy())
+    return out
+
+
+def to_world_time_major(local: Tensor, pose: Tensor) -> Tensor:
+    """``local [T+1, d, N]`` (origin frame, contiguous: a rollout's time-major states) moved to ``pose [d]``:
+    ``[T+1, d, N]`` contiguous, the values of :func:`to_world` (``to_world(local, pose)`` equals this
+    ``.permute(2, 0, 1)``)."""
+    out = torch.empty_like(local, memory_format=torch.contiguous_format)
+    _kernel()[1](local.numpy(), *_pose_args(local, pose), out.numpy())
+    return out
+
+
+def _pose_args(local: Tensor, pose: Tensor) -> tuple:
+    """The kernels' scalars for ``pose``: ``px, py, cos, sin, ptheta, pi, 2 pi`` in the dtype of ``local``."""
     real = np.float32 if local.dtype == torch.float32 else np.float64
     theta = pose[2]
     px, py, pth = (real(v) for v in pose[:3].tolist())
     c, s = real(torch.cos(theta).item()), real(torch.sin(theta).item())  # as torch rounds them in the dtype
-    _kernel()(local.numpy(), px, py, c, s, pth, real(math.pi), real(2 * math.pi), out.numpy())
-    return out
+    return px, py, c, s, pth, real(math.pi), real(2 * math.pi)

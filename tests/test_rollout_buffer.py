@@ -27,4 +27,6 @@ def test_buffered_rollout_is_plain_stepping_bit_for_bit(dubins_table, start, hor
     got = rollout(Dubins(), policy, x0, n, horizon, torch.Generator().manual_seed(0))
     expected = rollout(PlainDubins(), policy, x0, n, horizon, torch.Generator().manual_seed(0))
     for a, b in zip(got, expected):
-        assert a.shape == b.shape and a.dtype == b.dtype and a.is_contiguous() and torch.equal(a, b)
+        assert a.shape == b.shape and a.dtype == b.dtype and torch.equal(a, b)
+    if start != "batch":  # the states are a view of the time-major [T+1, d, N] buffer (what a cost reads fastest)
+        assert got[0].permute(1, 2, 0).is_contiguous()
