@@ -289,7 +289,8 @@ def rollout(
     """Sample ``num_samples`` trajectories of ``horizon`` steps from ``x0 [d]`` (or ``[N, d]``).
 
     Returns ``states [N, T+1, d]`` (start included) and ``actions [N, T, q]``, in the dtype and on the device
-    of ``x0``; pass a seeded ``generator`` on that device for reproducible samples. No gradient flows through a
+    of ``x0`` (on a system whose ``step`` takes ``out=``, the states are a view of time-major ``[T+1, d, N]``
+    storage, not contiguous: elementwise costs over them read whole rows); pass a seeded ``generator`` on that device for reproducible samples. No gradient flows through a
     rollout: an ``x0`` that requires grad is detached. A policy's ``action_probs`` must return ``[N, A]``.
     """
     _check_args(system, x0, num_samples, horizon)
