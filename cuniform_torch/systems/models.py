@@ -91,13 +91,13 @@ def _scalars(dtype: torch.dtype, *values: float) -> tuple[Tensor | float, ...]:
     return tuple(torch.tensor(v, dtype=dtype) for v in values)
 
 
-def _next_state(x: Tensor, u: Tensor, d: int, out: Tensor | None) -> tuple[Tensor, Tensor]:
+def _next_state(x: Tensor, u: Tensor, d: int, out: Tensor | None) -> tuple[Tensor, Tensor, bool]:
     """Where the next state ``[N, d]`` goes and where its new heading is computed.
 
     The state: ``out`` when given (checked: ``[N, d]``, the dtype of ``x`` and ``u`` promoted, their device), else
     a new one in that dtype and the layout of ``x`` (column-major when ``x`` is, as :func:`_advance` makes it).
     The heading: its column ``[N]`` when that is contiguous, else a new ``[N]`` (a strided heading would take
-    torch's scalar cos/sin loop, which may round differently from the vectorized one)."""
+    torch's scalar cos/sin loop, which may round differently from the vectorized one); and whether it is apart."""
     dtype = torch.promote_types(x.dtype, u.dtype)
     n = x.shape[0]
     if out is not None:
@@ -109,7 +109,9 @@ def _next_state(x: Tensor, u: Tensor, d: int, out: Tensor | None) -> tuple[Tenso
     else:
         out = torch.empty((n, d), dtype=dtype, device=x.device)
     heading = out[:, 2]
-    return out, heading if heading.is_contiguous() else torch.empty(n, dtype=dtype, device=x.device)
+    if heading.is_contiguous():
+        return out, heading, False
+    return out, torch.empty(n, dtype=dtype, device=x.device), True
 
 
 def _turn(x: Tensor, rate: Tensor, dt: float, theta: Tensor) -> Tensor:
@@ -121,19 +123,21 @@ def _turn(x: Tensor, rate: Tensor, dt: float, theta: Tensor) -> Tensor:
     return torch.remainder(theta, c_two_pi, out=theta).sub_(c_pi)
 
 
-def _move(x: Tensor, theta: Tensor, speed: float | Tensor, dt: float, out: Tensor) -> Tensor:
+def _move(x: Tensor, theta: Tensor, speed: float | Tensor, dt: float, out: Tensor, apart: bool) -> Tensor:
     """``out[:, :2] = (x + (speed cos(theta)) dt, y + (speed sin(theta)) dt)``, the rest of ``out`` as it is
     (``speed`` a float or an ``[N]`` tensor): the products rounded as ``speed * torch.cos(theta) * dt`` rounds
-    them (a speed of exactly 1 is skipped: multiplying by it is exact), both columns in each op. Returns ``out``."""
+    them (a speed of exactly 1 is skipped: multiplying by it is exact), both columns in each op; ``theta`` copied
+    into ``out[:, 2]`` when it was computed ``apart`` (:func:`_next_state`). Returns ``out``."""
     trig = torch.empty((2, theta.shape[0]), dtype=out.dtype, device=out.device)  # [2, N]: cos, sin
-    torch.cos(theta, out=trig[0])
-    torch.sin(theta, out=trig[1])
+    cos, sin = trig.unbind(0)
+    torch.cos(theta, out=cos)
+    torch.sin(theta, out=sin)
     if isinstance(speed, Tensor):
         trig.mul_(speed)  # speed [N] broadcast over both rows
     elif speed != 1.0:
         trig.mul_(_scalars(out.dtype, speed)[0])
     torch.add(x[:, :2], trig.mul_(_scalars(out.dtype, dt)[0]).T, out=out[:, :2])
-    if theta.data_ptr() != out[:, 2].data_ptr():  # the heading was computed apart (_next_state)
+    if apart:
         out[:, 2] = theta
     return out
 
@@ -249,8 +253,8 @@ class Dubins:
         _check_step_inputs(self, x, u, 1)
         # wrap_angle(x[:, 2] + u[:, 0] * dt), then x + speed cos(theta') dt, ...: the same arithmetic in place into the
         # new state (a dozen ops, no Python float wrapped per op); the values of _advance(x, theta, ...)
-        out, theta = _next_state(x, u, 3, out)  # [N, 3], [N]
-        return _move(x, _turn(x, u[:, 0], self.dt, theta), self.speed, self.dt, out)
+        out, theta, apart = _next_state(x, u, 3, out)  # [N, 3], [N]
+        return _move(x, _turn(x, u[:, 0], self.dt, theta), self.speed, self.dt, out, apart)
 
     def params(self) -> dict[str, Any]:
         return _params(self)
