@@ -143,10 +143,12 @@ def open_loop(system: System, start: Tensor, actions: Tensor) -> Tensor:
     n, horizon = actions.shape[0], actions.shape[1]
     d = start.shape[-1]
     x = start.expand(n, d) if start.ndim == 1 else start  # [N, d]
-    x = x.T.contiguous().T  # column-major [N, d]: every column a step reads is contiguous (faster)
+    column_major_ok = steps_column_major(system)
+    if column_major_ok:
+        x = x.T.contiguous().T  # column-major [N, d]: every column a step reads is contiguous (faster)
     states = [x]
     for t in range(horizon):
-        x = _step(system, x, actions[:, t], n, d)
+        x = _plain_step(system, x, actions[:, t], n, d, column_major_ok)
         states.append(x)
     return torch.stack(states, dim=1)  # [N, T+1, d]
 
@@ -168,13 +170,30 @@ def rollout_actions(system: System, x0: Tensor, actions: Tensor) -> Tensor:
     return open_loop(system, x0.detach(), actions.detach())
 
 
-def _steps_into(system: System) -> bool:
-    """Whether ``system.step`` takes ``out=``: the class that defines the ``step`` in use says ``step_out = True``
-    itself (a subclass that overrides ``step`` without saying so is stepped the plain way)."""
+def _step_declares(system: System, flag: str) -> bool:
+    """Whether the class that defines the ``step`` in use says ``flag = True`` itself (a subclass that overrides
+    ``step`` without saying so gets the plain treatment)."""
     for klass in type(system).__mro__:
         if "step" in vars(klass):
-            return vars(klass).get("step_out", False) is True
+            return vars(klass).get(flag, False) is True
     return False
+
+
+def _steps_into(system: System) -> bool:
+    """Whether ``system.step`` takes ``out=`` (its class says ``step_out = True``)."""
+    return _step_declares(system, "step_out")
+
+
+def steps_column_major(system: System) -> bool:
+    """Whether ``system.step`` may get column-major ``[N, d]`` states (its class says ``column_major_ok = True``,
+    as the built-in models do: each column contiguous makes their steps cheaper). Any other system's ``step`` gets
+    ordinary contiguous ``[N, d]`` tensors."""
+    return _step_declares(system, "column_major_ok") or _steps_into(system)
+
+
+def _plain_step(system: System, x: Tensor, u: Tensor, n: int, d: int, column_major_ok: bool) -> Tensor:
+    """:func:`_step` with ``x`` made contiguous for a system that did not opt in to column-major states."""
+    return _step(system, x if column_major_ok else x.contiguous(), u, n, d)
 
 
 @dataclass(frozen=True)
@@ -190,6 +209,8 @@ class RolloutPlan:
     step_out: bool = False
     """the system's ``step`` takes ``out=`` (its class says ``step_out = True``): each step writes a row of one
     preallocated ``[T+1, d, N]`` buffer, which the results are read from (no stack of T+1 states)"""
+    column_major_ok: bool = False
+    """the system's ``step`` may get column-major states (:func:`steps_column_major`); else contiguous ones"""
 
     @classmethod
     def of(cls, system: System, policy: object) -> RolloutPlan:
@@ -201,7 +222,7 @@ class RolloutPlan:
                              f"ActionSampler (sample)")
         traits = PolicyTraits.of(policy)
         return cls(sampler=sampler, relative=traits.start_relative and bool(system.se2_invariant), traits=traits,
-                   step_out=_steps_into(system))
+                   step_out=_steps_into(system), column_major_ok=steps_column_major(system))
 
     def check(self, x0: Tensor, horizon: int) -> None:
         """ValueError unless the policy serves ``horizon`` steps from ``x0`` (its device, finite)."""
@@ -244,7 +265,7 @@ class RolloutPlan:
             if buffer is not None and u.dtype == x.dtype and u.device == x.device:
                 x = system.step(x, u, out=buffer[t + 1].T)  # [N, d] into the buffer
             else:
-                x = _step(system, x, u, num_samples, d)
+                x = _plain_step(system, x, u, num_samples, d, self.column_major_ok)
                 if buffer is not None and x.dtype == buffer.dtype:
                     buffer[t + 1].T.copy_(x)
                 else:  # actions of another dtype promote the states: they are stacked from the list instead

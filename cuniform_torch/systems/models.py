@@ -179,6 +179,7 @@ class RandomWalk1D:
     name: ClassVar[str] = "random_walk_1d"
     periodic: ClassVar[tuple[bool, ...]] = (False,)
     se2_invariant: ClassVar[bool] = False
+    column_major_ok: ClassVar[bool] = True  # step indexes columns: rollout may pass column-major states
 
     def __post_init__(self) -> None:
         positive(self.name, dt=self.dt, max_speed=self.max_speed)
@@ -228,6 +229,7 @@ class Dubins:
     name: ClassVar[str] = "dubins"
     periodic: ClassVar[tuple[bool, ...]] = (False, False, True)
     se2_invariant: ClassVar[bool] = True
+    column_major_ok: ClassVar[bool] = True  # step indexes columns: rollout may pass column-major states
     step_out: ClassVar[bool] = True
     """``step`` takes ``out=`` (a rollout steps into its preallocated states)"""
 
@@ -295,6 +297,7 @@ class KinematicSingleTrack:
     name: ClassVar[str] = "ks"
     periodic: ClassVar[tuple[bool, ...]] = (False, False, True)
     se2_invariant: ClassVar[bool] = True
+    column_major_ok: ClassVar[bool] = True  # step indexes columns: rollout may pass column-major states
     default_horizon: ClassVar[int] = 15
 
     def __post_init__(self) -> None:
@@ -365,6 +368,7 @@ class KinematicSingleTrackSpeed:
     name: ClassVar[str] = "ks_speed"
     periodic: ClassVar[tuple[bool, ...]] = (False, False, True, False)
     se2_invariant: ClassVar[bool] = True
+    column_major_ok: ClassVar[bool] = True  # step indexes columns: rollout may pass column-major states
     default_horizon: ClassVar[int] = 10
 
     def __post_init__(self) -> None:
