@@ -31,25 +31,23 @@ controller never differentiates through its input).
 
 from __future__ import annotations
 
-import math
-import numbers
 from dataclasses import dataclass
 from typing import Callable, Protocol
 
 import torch
 from torch import Tensor
 
-from .proposals import (PROPOSAL_MEMBERS, BankProposal, BankRefreshWarning, Closeable, CompositeProposal,
-                        GaussianProposal, NormalLogNormalProposal, PolicyProposal, Proposal, check_positive_int,
-                        seeded_generator)
-from .rollout import check_generator, same_device
+from .bank import BankProposal, BankRefreshWarning
+from .controller_checks import (COST_CAP, _callable_name, _check_costs, _check_lambda, _check_seed,  # noqa: F401
+                                _describe, _finite_costs, check_positive_int, check_proposals, check_state,
+                                make_generator, seeded_generator)
+from .proposals import (PROPOSAL_MEMBERS, Closeable, CompositeProposal, GaussianProposal, NormalLogNormalProposal,
+                        PolicyProposal, Proposal)
+from .rollout import check_generator
 from .systems import System
 
 __all__ = ["CostFn", "MPPIResult", "mppi_weights", "MPPICore", "MPPI", "LogMPPI", "CUniformMPPI", "CUMPPI",
            "COST_CAP", "BankRefreshWarning"]
-
-COST_CAP = 1e10
-"""NaN / inf costs are replaced by this finite value before weighting"""
 
 
 class CostFn(Protocol):
@@ -82,11 +80,6 @@ class MPPIResult:
         return torch.argmin(self.costs)
 
 
-def _finite_costs(costs: Tensor) -> Tensor:
-    """NaN and +inf -> COST_CAP, -inf -> -COST_CAP, everything capped at COST_CAP."""
-    return torch.nan_to_num(costs, nan=COST_CAP, posinf=COST_CAP, neginf=-COST_CAP).clamp_(max=COST_CAP)
-
-
 def mppi_weights(costs: Tensor, lambda_: float) -> Tensor:
     """``softmax(-(cost - min) / lambda)`` over ``costs [K]``; ``lambda_ = 0`` puts all weight on the argmin.
 
@@ -100,58 +93,6 @@ def _weights(costs: Tensor, lambda_: float) -> Tensor:
     if lambda_ == 0:
         return torch.nn.functional.one_hot(torch.argmin(costs), costs.shape[0]).to(costs.dtype)
     return torch.softmax((costs - costs.min()).div_(-lambda_), dim=0)
-
-
-def _check_lambda(lambda_: float, dtype: torch.dtype) -> float:
-    """``lambda_`` as a float: 0, or a positive number that ``dtype`` holds as a normal number with a finite
-    inverse (else ``-(c - min) / lambda`` is 0 / 0 or inf - inf in that dtype, and the weights are NaN)."""
-    if isinstance(lambda_, bool) or not isinstance(lambda_, numbers.Real) or not (math.isfinite(lambda_) and lambda_ >= 0):
-        raise ValueError(f"lambda_ must be a finite number >= 0, got {lambda_!r}")
-    value = float(lambda_)
-    if value == 0:
-        return value
-    held = torch.tensor(value, dtype=dtype).item()  # lambda_ as the controller's dtype rounds it
-    inverse = torch.tensor(1.0 / held, dtype=dtype).item() if held > 0 else math.inf
-    if not (held >= torch.finfo(dtype).tiny and math.isfinite(held) and math.isfinite(inverse)):
-        info = torch.finfo(dtype)
-        raise ValueError(f"lambda_={lambda_!r} is out of range for {dtype}: it must be 0 or between {info.tiny:.3g} "
-                         f"and {info.max:.3g} with a finite 1/lambda_ (it becomes {held!r} in {dtype})")
-    return value
-
-
-def _check_seed(seed: int | None) -> int | None:
-    if seed is not None and (isinstance(seed, bool) or not isinstance(seed, numbers.Integral)):
-        raise TypeError(f"seed must be an int or None, got {type(seed).__name__} ({seed!r:.40})")
-    return None if seed is None else int(seed)
-
-
-def make_generator(seed: int | None, device: torch.device | str) -> torch.Generator:
-    """A controller's generator on ``device``, seeded by ``seed`` (TypeError unless it is an int or None)."""
-    return seeded_generator(_check_seed(seed), torch.device(device))
-
-
-def _callable_name(fn: object) -> str:
-    """A user callable's name for an error message: its ``__qualname__``, else a short repr."""
-    name = getattr(fn, "__qualname__", None)
-    if isinstance(name, str):
-        return name
-    text = repr(fn)
-    return text if len(text) <= 80 else f"{type(fn).__qualname__} object"
-
-
-def _check_costs(costs: object, who: str, fn: object, k: int, dtype: torch.dtype, device: torch.device) -> Tensor:
-    """``costs`` as returned by the user's ``fn``, checked to be a ``[k]`` tensor of ``dtype`` on ``device``."""
-    expected = f"expected a [{k}] tensor of {dtype} on {device} (one cost per proposal, the controller's dtype and device)"
-    if not isinstance(costs, Tensor):
-        raise ValueError(f"{who} {_callable_name(fn)} returned {type(costs).__name__} {costs!r:.60}; {expected}")
-    if costs.shape != (k,) or costs.dtype != dtype or not same_device(costs.device, device):
-        raise ValueError(f"{who} {_callable_name(fn)} returned a {list(costs.shape)} tensor of {costs.dtype} on "
-                         f"{costs.device}; {expected}")
-    return costs.detach()
-
-
-def _describe(x: object) -> str:
-    return f"{list(x.shape)} {x.dtype} on {x.device}" if isinstance(x, Tensor) else type(x).__name__
 
 
 class MPPICore:
@@ -236,27 +177,12 @@ class MPPICore:
 
     def _check_state(self, state: Tensor) -> Tensor:
         """``state [d]`` of the controller's dtype and device, finite; detached (a state is an observation)."""
-        if not isinstance(state, Tensor) or state.shape != (self.state_dim,):
-            raise ValueError(f"state must be a tensor of shape [{self.state_dim}], got {getattr(state, 'shape', state)!r}")
-        if not same_device(state.device, self.device):
-            raise ValueError(f"state is on {state.device} but the controller is on {self.device}")
-        if state.dtype != self.dtype:
-            raise ValueError(f"state is {state.dtype} but the controller is {self.dtype}; pass state.to({self.dtype})")
-        state = state.detach()
-        if not bool(torch.isfinite(state).all()):
-            raise ValueError(f"state contains NaN or infinite values: {state.tolist()}")
-        return state
+        return check_state(state, self.state_dim, self.dtype, self.device)
 
     def _check_proposals(self, states: object, actions: object) -> None:
         """What ``propose`` returned: ``[K, T+1, d]`` states and ``[K, T, q]`` actions of the dtype and device."""
-        k, t, d, q = self.num_samples, self.horizon, self.state_dim, self.action_dim
-        ok = (isinstance(states, Tensor) and isinstance(actions, Tensor) and states.shape == (k, t + 1, d)
-              and actions.shape == (k, t, q) and states.dtype == actions.dtype == self.dtype
-              and same_device(states.device, self.device) and same_device(actions.device, self.device))
-        if not ok:
-            raise ValueError(f"{type(self.proposal).__name__}.propose returned states {_describe(states)} and actions "
-                             f"{_describe(actions)}; expected [{k}, {t + 1}, {d}] and [{k}, {t}, {q}] of {self.dtype} "
-                             f"on {self.device}")
+        check_proposals(type(self.proposal).__name__, states, actions,
+                        (self.num_samples, self.horizon, self.state_dim, self.action_dim), self.dtype, self.device)
 
     def _evaluate(self, states: Tensor, actions: Tensor) -> tuple[Tensor, Tensor]:
         """Finite costs ``[K]`` of the proposals and their weights ``[K]``; the user's costs are checked first."""
