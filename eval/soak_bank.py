@@ -26,7 +26,7 @@ import torch
 from tqdm import tqdm
 
 from cuniform_torch import CUniformMPPI, Dubins, load_table
-from cuniform_torch.cli import ArgumentParser, check_output_file, cli_main
+from cuniform_torch.cli import ArgumentParser, add_system_module_arg, check_output_file, cli_main, import_system_modules
 from cuniform_torch.fileio import write_json
 from cuniform_torch.mppi import BankRefreshWarning
 
@@ -150,7 +150,9 @@ def main(argv=None) -> int:
     p.add_argument("--device", default="cpu")
     p.add_argument("--quiet", action="store_true")
     p.add_argument("--json", type=Path, default=None)
+    add_system_module_arg(p)
     args = p.parse_args(argv)
+    import_system_modules(args.system_module)
     if args.json is not None:
         check_output_file(args.json, "--json", "soak_bank.json")
     policy = _policy(args.table, args.horizon, args.device)
