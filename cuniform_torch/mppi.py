@@ -38,9 +38,8 @@ import torch
 from torch import Tensor
 
 from .bank import BankProposal, BankRefreshWarning
-from .controller_checks import (COST_CAP, _callable_name, _check_costs, _check_lambda, _check_seed,  # noqa: F401
-                                _describe, _finite_costs, check_positive_int, check_proposals, check_state,
-                                make_generator, seeded_generator)
+from .controller_checks import (COST_CAP, _callable_name, _check_costs, _check_lambda, _check_seed, _finite_costs,
+                                check_positive_int, check_proposals, check_state, make_generator)
 from .proposals import (PROPOSAL_MEMBERS, Closeable, CompositeProposal, GaussianProposal, NormalLogNormalProposal,
                         PolicyProposal, Proposal)
 from .rollout import check_generator

@@ -29,7 +29,6 @@ from __future__ import annotations
 import os
 from typing import Any, Callable
 
-import numpy as np
 import torch
 from torch import Tensor
 

@@ -31,8 +31,8 @@ from typing import TYPE_CHECKING, Protocol, runtime_checkable
 import torch
 from torch import Tensor
 
-from .bank import BANK_THREAD_PREFIX, BankProposal, BankRefreshWarning  # noqa: F401  (moved; importable here)
-from .controller_checks import _check_dtype, check_positive_int, seeded_generator  # noqa: F401  (moved)
+from .bank import BankProposal, BankRefreshWarning  # noqa: F401  (in __all__: every proposal importable here)
+from .controller_checks import _check_dtype, check_positive_int
 from .mlp import load_policy
 from .rollout import Policy, PolicyTraits, RolloutPlan, open_loop, same_device
 from .samplers import GaussianSampler, NormalLogNormalSampler

@@ -153,7 +153,7 @@ def read_table(path: str | os.PathLike, *, check_system: bool = True, graph: boo
     try:
         with zipfile.ZipFile(path) as zf:
             arrays = _read_members(zf, path, graph)
-    except (zipfile.BadZipFile, zipfile.LargeZipFile, OSError, EOFError, zlib.error, NotImplementedError) as exc:
+    except (zipfile.BadZipFile, zipfile.LargeZipFile, OSError, EOFError, zlib.error) as exc:
         raise TableError(f"{path}: not a readable .npz table ({type(exc).__name__}: {exc})") from None
     kwargs: dict[str, Any] = {k: v for k, v in arrays.items() if k != "format"}
     for key in ("system", *_OPTIONAL_STRINGS):
@@ -180,9 +180,13 @@ def _read_members(zf: zipfile.ZipFile, path: Path, graph: bool) -> dict[str, np.
         if info.filename in seen:
             raise TableError(f"{path}: the zip holds {info.filename!r} twice (which copy is meant is ambiguous)")
         seen.add(info.filename)
-    wanted = set(_REQUIRED) | set(_OPTIONAL_STRINGS) | (set(_OPTIONAL_ARRAYS) if graph else set())
+    wanted = _KNOWN_KEYS if graph else _KNOWN_KEYS - set(_OPTIONAL_ARRAYS)
     members = {info.filename[:-4]: info for info in infos
                if info.filename.endswith(".npy") and info.filename[:-4] in wanted}
+    for key, info in members.items():  # zipfile itself would say only "That compression method is not supported"
+        if info.compress_type not in (zipfile.ZIP_STORED, zipfile.ZIP_DEFLATED):
+            raise TableError(f"{path}: array {key!r} uses zip compression method {info.compress_type}; a table is "
+                             "stored or deflated")
     if "format" not in members:
         raise TableError(f"{path}: no 'format' key; this is not a cuniform table")
     budget = max(_MIN_BUDGET, MAX_EXPANSION * path.stat().st_size)

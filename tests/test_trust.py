@@ -355,3 +355,18 @@ def test_a_good_checkpoint_of_a_trusted_user_factory_loads(tmp_path):
         assert policy.action_probs(torch.zeros(3, 1), 0).shape == (3, 5)
     finally:
         _REGISTRY["random_walk_1d"] = RandomWalk1D
+
+
+def test_an_unsupported_compression_method_is_named(arrays, tmp_path):
+    path = tmp_path / "t.npz"
+    with zipfile.ZipFile(path, "w", compression=zipfile.ZIP_DEFLATED) as zf:
+        for key, value in arrays.items():
+            with zf.open(zipfile.ZipInfo(f"{key}.npy"), "w") as fh:
+                np.lib.format.write_array(fh, np.asarray(value), allow_pickle=False)
+    with zipfile.ZipFile(path) as zf:  # rewrite one member with bzip2, which no table writer uses
+        members = {i.filename: zf.read(i) for i in zf.infolist()}
+    with zipfile.ZipFile(path, "w") as zf:
+        for name, data in members.items():
+            zf.writestr(name, data, compress_type=zipfile.ZIP_BZIP2 if name == "cells.npy" else zipfile.ZIP_DEFLATED)
+    with pytest.raises(TableError, match=r"array 'cells' uses zip compression method 12; a table is stored or deflated"):
+        read_table(path)
