@@ -55,8 +55,8 @@ def register_system(name: str, factory: Callable[..., System], *, overwrite: boo
 
 def _same_definition(a: Any, b: Any) -> bool:
     """Two objects from the same definition (a re-run notebook cell or script, a reloaded module)."""
-    key = lambda f: (getattr(f, "__module__", None), getattr(f, "__qualname__", None))  # noqa: E731
-    return key(a) == key(b) and key(a)[1] is not None
+    path = _definition_path(a)
+    return path is not None and path == _definition_path(b)
 
 
 def known_systems() -> list[str]:
@@ -250,6 +250,7 @@ def system_from_json(text: str, *, trust_factory: str | Callable[..., Any] | Non
 
 
 def _definition_path(factory: Any) -> str | None:
+    """``"module:qualname"`` of where ``factory`` was defined (importable or not), else None."""
     module, qualname = getattr(factory, "__module__", None), getattr(factory, "__qualname__", None)
     return f"{module}:{qualname}" if module and qualname else None
 
