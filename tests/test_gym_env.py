@@ -182,7 +182,9 @@ def test_observation_is_the_sensed_environment(tasks):
 
 def test_register_make_and_render(tasks):
     register_envs()
-    register_envs()  # idempotent
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # gymnasium warns when an id is registered over
+        register_envs()  # idempotent
     env = gymnasium.make(ENV_ID, tasks=tasks["gaps"], render_mode="rgb_array")
     env.reset(seed=0)
     env.step(np.zeros(1, dtype=np.float32))
