@@ -71,21 +71,23 @@ def test_histogram_quantile_first_bin_reaching_q():
 
 def test_summarize_counts_and_rates():
     ms = cycle_histogram([2e-3] * 9 + [5e-2])  # median 2 ms, p95 50 ms
-    records = (paired("a", "ggct", hist=ms) + paired("b", "gg", budget=512)
+    records = (paired("a", "ggcct", hist=ms) + paired("b", "gg", budget=512)
                + [rec("a", 9, "goal", time=30.0, path_length=8.0)])
     rows = summarize(records)
     assert [(r["method"], r["budget"]) for r in rows] == [("a", 256), ("b", 512)]
     a = rows[0]
-    assert (a["n"], a["successes"], a["collisions"], a["timeouts"]) == (5, 3, 1, 1)
-    assert a["success_rate"] == pytest.approx(0.6) and a["collision_rate"] == pytest.approx(0.2)
-    assert (a["success_rate_low"], a["success_rate_high"]) == pytest.approx(wilson_interval(3, 5))
-    assert (a["timeout_rate_low"], a["timeout_rate_high"]) == pytest.approx(wilson_interval(1, 5))
+    assert (a["n"], a["successes"], a["collisions"], a["timeouts"]) == (6, 3, 2, 1)
+    assert a["success_rate"] == pytest.approx(0.5) and a["collision_rate"] == pytest.approx(1 / 3)
+    assert a["timeout_rate"] == pytest.approx(1 / 6)
+    assert (a["success_rate_low"], a["success_rate_high"]) == pytest.approx(wilson_interval(3, 6))
+    assert (a["collision_rate_low"], a["collision_rate_high"]) == pytest.approx(wilson_interval(2, 6))
+    assert (a["timeout_rate_low"], a["timeout_rate_high"]) == pytest.approx(wilson_interval(1, 6))
     # over the three successes only: times 10, 10, 30 and lengths 5, 5, 8
     assert a["time_mean"] == pytest.approx(50 / 3) and a["time_median"] == pytest.approx(10.0)
     assert a["path_length_mean"] == pytest.approx(6.0) and a["path_length_median"] == pytest.approx(5.0)
     assert a["cycle_ms_median"] == pytest.approx(2.0, rel=BIN - 1)
     assert a["cycle_ms_p95"] == pytest.approx(50.0, rel=BIN - 1)
-    assert a["wall_s"] == pytest.approx(5.0)
+    assert a["wall_s"] == pytest.approx(6.0)
     assert rows[1]["cycle_ms_median"] is None and rows[1]["success_rate"] == 1.0
     none = summarize(paired("c", "ct"))[0]
     assert none["time_mean"] is None and none["path_length_median"] is None
