@@ -1,0 +1,87 @@
+"""The navigation benchmark's tasks: the BARN maps as :class:`~eval.suites.NavTask`, and every suite by name.
+
+BARN (:func:`barn_tasks`): each map's cylinders become raw discs, inflated by the robot's radius; the start and
+goal are the BARN Challenge's (``run.py``: start (-2.25, 3) heading +y, goal 10 m ahead), reached within 1 m,
+within 100 s. The walls of a BARN map are cylinders too (three sides; the top is open toward the goal), so the
+workspace bounds are only a generous box around the map and the goal that keeps a lost robot from wandering
+off: (-6, -1.5) to (1.5, 15) m.
+
+:func:`make_tasks` makes any suite's tasks (``barn``, ``forest``, ``gaps``) and checks each one the same way
+(:func:`eval.suites.validate_task`): a start or goal in collision, or a goal that a certified flood fill cannot
+reach, is a :class:`~eval.suites.SuiteError` naming the task, raised before any episode runs.
+"""
+
+from __future__ import annotations
+
+import os
+from typing import Any, Sequence
+
+import numpy as np
+
+from .barn import CHALLENGE_GOAL, CHALLENGE_START, BarnMap, load_barn
+from .suites import NavTask, SuiteError, inflate, make_suite, validate_task
+
+__all__ = ["SUITES", "BARN_BOUNDS", "barn_task", "barn_tasks", "make_tasks", "DEFAULT_COUNTS"]
+
+SUITES = ("barn", "forest", "gaps")
+"""the suites of ``python -m eval.navigate``"""
+BARN_BOUNDS = (-6.0, -1.5, 1.5, 15.0)
+"""raw workspace bounds of every BARN task (m): the map (x in [-4.5, 0], y in [0, 9.6]) and its goal, with room"""
+DEFAULT_COUNTS = {"barn": None, "forest": 50, "gaps": 9}
+"""tasks per suite by default (None: every map of the file)"""
+
+
+def barn_task(m: BarnMap, robot_radius: float, goal_tolerance: float = 1.0, time_limit: float = 100.0,
+              start: tuple[float, float, float] = CHALLENGE_START,
+              goal: tuple[float, float] = CHALLENGE_GOAL) -> NavTask:
+    """One BARN map as a task (module docstring); not yet validated (see :func:`make_tasks`)."""
+    discs = np.concatenate((m.centers.astype(np.float64), np.full((m.centers.shape[0], 1), float(m.radius))), axis=1)
+    walls = np.zeros((0, 4))
+    return NavTask(suite="barn", task_id=int(m.map_id), discs=discs, walls=walls, bounds=BARN_BOUNDS,
+                   robot_radius=float(robot_radius), environment=inflate(discs, walls, BARN_BOUNDS, robot_radius),
+                   start=tuple(float(v) for v in start), goal=tuple(float(v) for v in goal),
+                   goal_tolerance=float(goal_tolerance), time_limit=float(time_limit), sensing_range=None,
+                   params=dict(goal_tolerance=goal_tolerance, time_limit=time_limit))
+
+
+def barn_tasks(robot_radius: float, path: str | os.PathLike | None = None, count: int | None = None,
+               **kwargs: Any) -> list[NavTask]:
+    """The first ``count`` (None: all) maps of the BARN file ``path`` (None: the shipped one) as tasks."""
+    maps = load_barn(path)
+    if count is not None:
+        maps = maps[:count]
+    return [barn_task(m, robot_radius, **kwargs) for m in maps]
+
+
+def make_tasks(suite: str, robot_radius: float, count: int | None = None, seed: int = 0,
+               barn_file: str | os.PathLike | None = None, sensing_range: float | None = 3.0,
+               resolution: float = 0.05, time_limits: dict[str, float] | None = None) -> list[NavTask]:
+    """The tasks of ``suite`` for a robot of ``robot_radius``, each validated (module docstring).
+
+    ``count``: tasks (None: :data:`DEFAULT_COUNTS`); ``seed``: the first forest seed; ``barn_file``: another
+    BARN file in the shipped format; ``sensing_range``: the forest's (None: all obstacles known);
+    ``resolution``: of the reachability flood fill (m); ``time_limits``: per suite, overriding the suites'
+    own (s).
+    """
+    if suite not in SUITES:
+        raise SuiteError(f"unknown suite {suite!r}; choose from {', '.join(SUITES)}")
+    if count is None:
+        count = DEFAULT_COUNTS[suite]
+    if count is not None and (isinstance(count, bool) or not isinstance(count, int) or count < 1):
+        raise SuiteError(f"the number of tasks must be an integer >= 1, got {count!r}")
+    limit = {} if not time_limits or suite not in time_limits else {"time_limit": float(time_limits[suite])}
+    if suite == "barn":
+        tasks = barn_tasks(robot_radius, barn_file, count, **limit)
+    elif suite == "forest":
+        tasks = make_suite("forest", count, seed=seed, robot_radius=robot_radius, sensing_range=sensing_range, **limit)
+    else:
+        tasks = make_suite("gaps", count, robot_radius=robot_radius, **limit)
+    for task in tasks:
+        validate_task(task, resolution=resolution)
+    return tasks
+
+
+def task_summary(tasks: Sequence[NavTask]) -> dict[str, Any]:
+    """A short JSON description of a task list (ids, obstacle counts), for the benchmark's record."""
+    return dict(count=len(tasks), task_ids=[t.task_id for t in tasks],
+                obstacles=[int(t.discs.shape[0] + t.walls.shape[0]) for t in tasks])
