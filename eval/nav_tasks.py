@@ -21,14 +21,18 @@ import numpy as np
 from .barn import CHALLENGE_GOAL, CHALLENGE_START, BarnMap, load_barn
 from .suites import NavTask, SuiteError, inflate, make_suite, validate_task
 
-__all__ = ["SUITES", "BARN_BOUNDS", "barn_task", "barn_tasks", "make_tasks", "DEFAULT_COUNTS"]
+__all__ = ["SUITES", "BARN_BOUNDS", "GAP_OFFSETS", "RESOLUTIONS", "barn_task", "barn_tasks", "make_tasks", "DEFAULT_COUNTS"]
 
 SUITES = ("barn", "forest", "gaps")
 """the suites of ``python -m eval.navigate``"""
 BARN_BOUNDS = (-6.0, -1.5, 1.5, 15.0)
 """raw workspace bounds of every BARN task (m): the map (x in [-4.5, 0], y in [0, 9.6]) and its goal, with room"""
 DEFAULT_COUNTS = {"barn": None, "forest": 50, "gaps": 9}
-"""tasks per suite by default (None: every map of the file)"""
+"""tasks per suite by default (None: every map of the file); 9 gaps: 3 widths x :data:`GAP_OFFSETS`"""
+GAP_OFFSETS = (0.0, 0.75, 1.5)
+"""m: where the gap sits off the start-goal line (an offset gap puts a wall between the robot and its goal)"""
+RESOLUTIONS = {"barn": 0.05, "forest": 0.1, "gaps": 0.02}
+"""m: flood-fill cell per suite (the gap suite's narrowest free band is 0.2 m wide for a 0.2 m robot)"""
 
 
 def barn_task(m: BarnMap, robot_radius: float, goal_tolerance: float = 1.0, time_limit: float = 100.0,
@@ -55,12 +59,12 @@ def barn_tasks(robot_radius: float, path: str | os.PathLike | None = None, count
 
 def make_tasks(suite: str, robot_radius: float, count: int | None = None, seed: int = 0,
                barn_file: str | os.PathLike | None = None, sensing_range: float | None = 3.0,
-               resolution: float = 0.05, time_limits: dict[str, float] | None = None) -> list[NavTask]:
+               resolution: float | None = None, time_limits: dict[str, float] | None = None) -> list[NavTask]:
     """The tasks of ``suite`` for a robot of ``robot_radius``, each validated (module docstring).
 
     ``count``: tasks (None: :data:`DEFAULT_COUNTS`); ``seed``: the first forest seed; ``barn_file``: another
     BARN file in the shipped format; ``sensing_range``: the forest's (None: all obstacles known);
-    ``resolution``: of the reachability flood fill (m); ``time_limits``: per suite, overriding the suites'
+    ``resolution``: of the reachability flood fill (m; None: :data:`RESOLUTIONS`); ``time_limits``: per suite, overriding the suites'
     own (s).
     """
     if suite not in SUITES:
@@ -75,9 +79,9 @@ def make_tasks(suite: str, robot_radius: float, count: int | None = None, seed: 
     elif suite == "forest":
         tasks = make_suite("forest", count, seed=seed, robot_radius=robot_radius, sensing_range=sensing_range, **limit)
     else:
-        tasks = make_suite("gaps", count, robot_radius=robot_radius, **limit)
+        tasks = make_suite("gaps", count, offsets=GAP_OFFSETS, robot_radius=robot_radius, **limit)
     for task in tasks:
-        validate_task(task, resolution=resolution)
+        validate_task(task, resolution=resolution or RESOLUTIONS[suite])
     return tasks
 
 

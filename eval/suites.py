@@ -320,22 +320,27 @@ def forest(seed: int, length: float = 35.0, width: float = 10.0, num_discs: tupl
 
 
 def gaps(width: float = 0.8, length: float = 1.0, room: float = 5.0, robot_radius: float = 0.25,
-         goal_tolerance: float = 0.5, time_limit: float = 30.0, task_id: int = 0) -> NavTask:
+         goal_tolerance: float = 0.5, time_limit: float = 30.0, task_id: int = 0, offset: float = 0.0) -> NavTask:
     """Two ``room`` x ``room`` rooms, ``[0, room]`` and ``[room + length, 2 room + length]`` in x, both
-    ``[-room/2, room/2]`` in y, joined through a wall ``length`` thick by a gap ``|y| < width / 2``. Start at
-    room 1's centre heading +x, goal at room 2's centre: the straight line ``y = 0`` runs through the gap with
-    clearance ``width / 2 - robot_radius``, so the goal is reachable by construction (no flood fill needed).
-    Refuses ``width <= 2 robot_radius`` (the inflated gap would be closed)."""
+    ``[-room/2, room/2]`` in y, joined through a wall ``length`` thick by a gap ``|y - offset| < width / 2``.
+    Start at room 1's centre heading +x, goal at room 2's centre. With ``offset = 0`` the straight line ``y = 0``
+    runs through the gap with clearance ``width / 2 - robot_radius``, so the goal is reachable by construction;
+    with an offset the straight line meets the wall (the distance-to-goal cost has a local minimum there, the
+    case that tells samplers apart) and the goal is checked by the flood fill (:func:`reachable`).
+    Refuses ``width <= 2 robot_radius`` (the inflated gap would be closed) and a gap that leaves the wall."""
     who = "gaps"
     w, L = _num(width, "width", who), _num(length, "length", who)
     S, r = _num(room, "room", who), _num(robot_radius, "robot_radius", who, positive=False)
+    o = _num(offset, "offset", who, positive=False) if offset >= 0 else -_num(-offset, "offset", who, positive=False)
     if not w > 2 * r:
         raise SuiteError(f"{who}: the gap width {w} m is not wider than the robot (2 x robot_radius = {2 * r} m)")
     if not w < S:
         raise SuiteError(f"{who}: the gap width {w} m must be smaller than the room ({S} m)")
     if not S > 2 * r:
         raise SuiteError(f"{who}: room ({S}) must exceed 2 x robot_radius ({2 * r})")
-    walls = np.array([[S, -S / 2, S + L, -w / 2], [S, w / 2, S + L, S / 2]])  # [2, 4]
+    if not abs(o) + w / 2 < S / 2:
+        raise SuiteError(f"{who}: a gap of width {w} m at offset {o} m leaves the wall (room half width {S / 2} m)")
+    walls = np.array([[S, -S / 2, S + L, o - w / 2], [S, o + w / 2, S + L, S / 2]])  # [2, 4]
     bounds = (0.0, -S / 2, 2 * S + L, S / 2)
     task = NavTask(
         suite=Suite.GAPS.value, task_id=_int(task_id, "task_id", who), discs=np.zeros((0, 3)), walls=walls,
@@ -343,16 +348,19 @@ def gaps(width: float = 0.8, length: float = 1.0, room: float = 5.0, robot_radiu
         start=(S / 2, 0.0, 0.0), goal=(1.5 * S + L, 0.0),
         goal_tolerance=_num(goal_tolerance, "goal_tolerance", who, positive=False),
         time_limit=_num(time_limit, "time_limit", who), sensing_range=None,
-        params=dict(width=w, length=L, room=S, robot_radius=r, goal_tolerance=goal_tolerance, time_limit=time_limit),
+        params=dict(width=w, length=L, room=S, robot_radius=r, goal_tolerance=goal_tolerance, time_limit=time_limit,
+                    offset=o),
     )
-    validate_task(task, check_reachable=False)
+    validate_task(task, resolution=0.02, check_reachable=o != 0)
     return task
 
 
-def make_suite(name: str, count: int, seed: int = 0, **params: Any) -> list[NavTask]:
-    """``count`` tasks of suite ``name``: forest seeds ``seed, seed + 1, ..., seed + count - 1``; gaps widths
-    ``numpy.linspace(*GAP_WIDTHS, count)`` (0.6 for ``count = 1``; ``seed`` unused). ``params`` go to
-    :func:`forest` or :func:`gaps` (not ``seed`` / ``width``, which the suite sets)."""
+def make_suite(name: str, count: int, seed: int = 0, offsets: tuple[float, ...] = (0.0,),
+               **params: Any) -> list[NavTask]:
+    """``count`` tasks of suite ``name``: forest seeds ``seed, seed + 1, ..., seed + count - 1``; gaps: the
+    first ``count`` of every (width, offset) pair, widths ``numpy.linspace(*GAP_WIDTHS, ceil(count /
+    len(offsets)))`` (0.6 for one width) outermost, ``offsets`` (m, gaps only) innermost; ``seed`` unused.
+    ``params`` go to :func:`forest` or :func:`gaps` (not ``seed`` / ``width`` / ``offset``, which the suite sets)."""
     try:
         suite = Suite.parse(name)
     except ValueError as err:
@@ -363,7 +371,12 @@ def make_suite(name: str, count: int, seed: int = 0, **params: Any) -> list[NavT
     seed = _int(seed, "seed", "make_suite")
     if suite is Suite.FOREST:
         return [forest(seed + k, **params) for k in range(count)]
-    if "width" in params:
-        raise SuiteError("make_suite: the gaps suite sets width itself (a sweep over GAP_WIDTHS); call gaps() for one")
-    widths = np.round(np.linspace(*GAP_WIDTHS, count), 12)  # [count], rounded: 0.8, not 0.7999999999999999
-    return [gaps(width=float(w), task_id=k, **params) for k, w in enumerate(widths)]
+    if "width" in params or "offset" in params:
+        raise SuiteError("make_suite: the gaps suite sets width and offset itself (a sweep over GAP_WIDTHS and "
+                         "offsets); call gaps() for one")
+    if not offsets:
+        raise SuiteError("make_suite: give at least one gap offset")
+    n_widths = math.ceil(count / len(offsets))
+    widths = np.round(np.linspace(*GAP_WIDTHS, n_widths), 12)  # rounded: 0.8, not 0.7999999999999999
+    pairs = [(float(w), float(o)) for w in widths for o in offsets][:count]
+    return [gaps(width=w, offset=o, task_id=k, **params) for k, (w, o) in enumerate(pairs)]

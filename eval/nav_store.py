@@ -1,0 +1,85 @@
+"""The navigation benchmark's output folder: its settings and its episode records, resumable.
+
+``DIR/settings.json`` holds every setting that changes what an episode does (the robot, the cost, the suite's
+parameters, the seeds). ``DIR/episodes.jsonl`` holds one JSON record per finished episode, appended and
+flushed to disk as each finishes. A rerun into the same folder with the same settings runs only the episodes
+whose key is not there yet (more tasks, methods, budgets or repeats extend a run); with different settings it
+is refused, naming the settings that differ, since its records would not be comparable. A line cut short by a
+crash (the last one) is dropped with a warning; a bad line elsewhere is an error.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import warnings
+from pathlib import Path
+from typing import Any
+
+from cuniform_torch.fileio import write_json
+
+__all__ = ["EpisodeStore", "StoreError"]
+
+
+class StoreError(ValueError):
+    """An output folder whose settings or records cannot be used for this run."""
+
+
+class EpisodeStore:
+    """``settings.json`` + ``episodes.jsonl`` under ``folder`` (module docstring)."""
+
+    def __init__(self, folder: str | os.PathLike):
+        self.folder = Path(folder)
+        self.settings_file = self.folder / "settings.json"
+        self.records_file = self.folder / "episodes.jsonl"
+
+    def open(self, settings: dict[str, Any]) -> dict[str, dict]:
+        """Check or write the settings; the records already there, by key."""
+        self.folder.mkdir(parents=True, exist_ok=True)
+        settings = json.loads(json.dumps(settings))  # JSON types: tuples compare as the lists they are stored as
+        if self.settings_file.exists():
+            try:
+                old = json.loads(self.settings_file.read_text())
+            except (OSError, ValueError) as err:
+                raise StoreError(f"{self.settings_file}: unreadable ({err}); use another --out") from None
+            differ = sorted(k for k in set(old) | set(settings) if old.get(k) != settings.get(k))
+            if differ:
+                shown = "; ".join(f"{k}: {old.get(k)!r} there, {settings.get(k)!r} now" for k in differ[:4])
+                raise StoreError(f"{self.folder} holds episodes run with other settings ({shown}); "
+                                 f"use another --out, or delete {self.folder} to start over")
+        else:
+            write_json(self.settings_file, settings)
+        return self._read()
+
+    def _read(self) -> dict[str, dict]:
+        if not self.records_file.exists():
+            return {}
+        data = self.records_file.read_bytes()
+        lines = data.split(b"\n")
+        records: dict[str, dict] = {}
+        good = 0  # bytes of complete, parsed lines
+        for i, line in enumerate(lines):
+            if not line.strip():
+                good += len(line) + 1
+                continue
+            try:
+                rec = json.loads(line)
+                key = rec["key"]
+            except (ValueError, KeyError, TypeError):
+                if i == len(lines) - 1:  # the last write, cut short
+                    warnings.warn(f"{self.records_file}: dropping an incomplete last line ({len(line)} bytes)",
+                                  stacklevel=2)
+                    with open(self.records_file, "r+b") as f:
+                        f.truncate(good)
+                    break
+                raise StoreError(f"{self.records_file}: line {i + 1} is not a record; fix or delete the file") from None
+            records[key] = rec
+            good += len(line) + 1
+        return records
+
+    def append(self, record: dict) -> None:
+        """Append one record and flush it to disk."""
+        with open(self.records_file, "ab") as f:
+            f.write(json.dumps(record, separators=(",", ":")).encode() + b"\n")
+            f.flush()
+            os.fsync(f.fileno())

@@ -1,0 +1,301 @@
+"""Closed-loop navigation benchmark: every method at every sample budget on the BARN, forest and gap suites.
+
+    python -m eval.navigate --suite barn --budgets 256 1024 --workers 2
+
+Runs each (task, method, budget, repeat) episode with the same cost, horizon and temperature for every method
+(:mod:`eval.nav_episode`), on the built-in robot (:mod:`eval.nav_robot`; its tables are built on first use and
+cached under ``--cache``) or a registered system (``--system``, ``--param``). Writes under ``--out``:
+``episodes.jsonl`` (one record per episode, resumable: a rerun skips finished episodes), ``results.md`` and
+``results.json`` (success / collision / timeout rates with 95% Wilson intervals, path length and time over
+successes, control-cycle wall times, paired comparisons with the best Gaussian baseline), ``success.png`` and
+TensorBoard scalars under ``tb/``. ``--workers N`` runs episodes in N processes, ``--ray [ADDRESS]`` as Ray
+tasks; the records are the same as a serial run's.
+
+Everything is checked before the first episode: the suite, the methods, the budgets (>= 2), the map file, every
+task's start and goal (in collision or unreachable: an error naming the task), the output folder's settings.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import sys
+import time
+import zlib
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+
+from cuniform_torch.cli import (ArgumentParser, add_dataclass_args, add_system_module_arg, cli_main,
+                                dataclass_from_args, import_system_modules)
+from cuniform_torch.fileio import exclusive_lock, write_bytes, write_json
+
+from . import config
+from .nav_episode import NavContext, NavJob
+from .nav_exec import execute
+from .nav_methods import GAUSSIAN_BASELINES, NAV_METHODS, parse_nav_methods
+from .nav_robot import NAV_ROBOT, RobotPreset, ensure_policy, ensure_table, preset_dict
+from .nav_stats import markdown, paired_comparisons, summarize
+from .nav_store import EpisodeStore
+from .nav_tasks import SUITES, make_tasks, task_summary
+from .suites import NavTask
+
+__all__ = ["NavConfig", "TIME_LIMITS", "REPEATS", "make_jobs", "run", "main", "controller_seed"]
+
+TIME_LIMITS = {"barn": 100.0, "forest": 120.0, "gaps": 30.0}
+"""s per episode: BARN's is the Challenge's; the forest's 120 s is 1.8x the straight drive at 0.5 m/s (33 m);
+the gaps' 30 s is 2.5x theirs (6 m)"""
+REPEATS = {"barn": 1, "forest": 1, "gaps": 5}
+"""controller seeds per task by default: the gap suite has few tasks (9 widths), so each runs 5 times"""
+
+
+@dataclass(frozen=True)
+class NavConfig:
+    """One benchmark run (every field is a flag)."""
+
+    suite: str = "barn"
+    """barn, forest or gaps"""
+    tasks: int | None = None
+    """how many tasks (BARN: the first maps of the file; forest: seeds from --seed; gaps: widths 0.6..1.2 m);
+    default: every BARN map, 50 forests, 9 gaps"""
+    budgets: tuple[int, ...] = (256, 1024)
+    """K, trajectories per control cycle (each >= 2)"""
+    methods: tuple[str, ...] | None = None
+    """method keys (default: all but cu_coverage and cu_mlp)"""
+    repeats: int | None = None
+    """controller seeds per task (default: 1, the gap suite 5)"""
+    seed: int = 0
+    """the first forest seed; controller seeds derive from it, the suite and the task"""
+    sensing_range: float = 3.0
+    """forest: obstacles are sensed within this distance of the robot (m)"""
+    horizon: int = 15
+    """controller horizon, steps (the built-in robot's table depth)"""
+    lambda_: float = config.LAMBDA
+    """MPPI temperature of every method"""
+    collision_penalty: float = 1e6
+    """cost of each colliding rollout state"""
+    cost_resolution: float = 0.01
+    """m: cell side of the rasterized cost map of BARN maps (eval.nav_episode)"""
+    workers: int = 1
+    """local processes running episodes"""
+    paths: bool = False
+    """keep each episode's driven path in its record"""
+
+
+def controller_seed(suite: str, task_id: int, repeat: int, seed: int) -> int:
+    """The controller seed of a task's repeat: the same for every method and budget (paired episodes)."""
+    words = np.random.SeedSequence([seed, zlib.crc32(suite.encode()), task_id, repeat]).generate_state(1)
+    return int(words[0] & 0x7FFFFFFF)
+
+
+def make_jobs(tasks: Sequence[NavTask], methods: Sequence[str], budgets: Sequence[int], repeats: int,
+              seed: int) -> list[NavJob]:
+    """Every (task, repeat, budget, method) job, tasks outermost (a partial run covers whole tasks first)."""
+    return [NavJob(task, m, k, controller_seed(task.suite, task.task_id, r, seed), r)
+            for task in tasks for r in range(repeats) for k in budgets for m in methods]
+
+
+def _check(cfg: NavConfig) -> None:
+    if cfg.suite not in SUITES:
+        raise ValueError(f"unknown suite {cfg.suite!r}; choose from {', '.join(SUITES)}")
+    parse_nav_methods(cfg.methods)
+    if not cfg.budgets:
+        raise ValueError("give at least one budget (--budgets)")
+    bad = [k for k in cfg.budgets if isinstance(k, bool) or not isinstance(k, int) or k < 2]
+    if bad:
+        raise ValueError(f"every budget must be an integer >= 2 (CU-MPPI splits it in two), got {bad}")
+    if len(set(cfg.budgets)) != len(cfg.budgets):
+        raise ValueError(f"a budget is given twice: {list(cfg.budgets)}")
+    for name in ("repeats", "tasks"):
+        v = getattr(cfg, name)
+        if v is not None and (isinstance(v, bool) or v < 1):
+            raise ValueError(f"--{name} must be >= 1, got {v}")
+    if cfg.workers < 1:
+        raise ValueError(f"--workers must be >= 1, got {cfg.workers}")
+    for name in ("sensing_range", "cost_resolution", "collision_penalty", "lambda_"):
+        v = getattr(cfg, name)
+        if not (np.isfinite(v) and v > 0):
+            raise ValueError(f"--{name.rstrip('_').replace('_', '-')} must be a finite number > 0, got {v}")
+
+
+def _file_digest(path: Path | None) -> str | None:
+    if path is None:
+        return None
+    import hashlib
+
+    return hashlib.sha256(Path(path).read_bytes()).hexdigest()[:16]
+
+
+def settings_record(cfg: NavConfig, robot: RobotPreset, barn_file: Path | None, sources: dict[str, str | None]) -> dict:
+    """What changes an episode's outcome (:mod:`eval.nav_store`): not the counts, methods, budgets or workers."""
+    keep = ("suite", "seed", "sensing_range", "horizon", "lambda_", "collision_penalty", "cost_resolution")
+    out: dict[str, Any] = {k: getattr(cfg, k) for k in keep}
+    out.update(robot=preset_dict(robot), time_limit=TIME_LIMITS[cfg.suite],
+               barn_file=_file_digest(barn_file) if cfg.suite == "barn" else None,
+               sources={k: _file_digest(Path(v)) if v else None for k, v in sources.items()})
+    return out
+
+
+def _sources(cfg: NavConfig, robot: RobotPreset, cache: Path, given: dict[str, Path | None],
+             quiet: bool) -> dict[str, str | None]:
+    """The files the methods need: given on the command line, else the robot's cached ones (built when missing)."""
+    methods = {m.source for m in parse_nav_methods(cfg.methods)}
+    table = given.get("table") or ensure_table(robot, cache, quiet=quiet)
+    coverage = given.get("coverage_table")
+    if "coverage_table" in methods and coverage is None:
+        coverage = ensure_table(robot, cache, method="coverage", quiet=quiet)
+    policy = given.get("policy")
+    if "policy" in methods and policy is None:
+        policy = ensure_policy(robot, cache, quiet=quiet)
+    for name, p in (("table", table), ("coverage_table", coverage), ("policy", policy)):
+        if p is not None and not Path(p).is_file():
+            raise FileNotFoundError(f"--{name.replace('_', '-')} {p} does not exist")
+    return {"table": str(table), "coverage_table": str(coverage) if coverage else None,
+            "policy": str(policy) if policy else None}
+
+
+def run(cfg: NavConfig, out: Path, robot: RobotPreset = NAV_ROBOT, cache: Path = Path("out/navigate/cache"),
+        barn_file: Path | None = None, given: dict[str, Path | None] | None = None,
+        ray_address: str | None = None, progress: bool = True) -> dict:
+    """Run (or resume) the benchmark ``cfg`` into the folder ``out``; the result that ``results.json`` holds."""
+    _check(cfg)
+    methods = [m.key for m in parse_nav_methods(cfg.methods)]
+    tasks = make_tasks(cfg.suite, robot.radius, cfg.tasks, seed=cfg.seed, barn_file=barn_file,
+                       sensing_range=cfg.sensing_range, time_limits=TIME_LIMITS)
+    repeats = cfg.repeats or REPEATS[cfg.suite]
+    jobs = make_jobs(tasks, methods, cfg.budgets, repeats, cfg.seed)
+    with exclusive_lock(Path(out) / ".lock", what=f"the benchmark folder {out}"):
+        sources = _sources(cfg, robot, cache, given or {}, quiet=not progress)
+        store = EpisodeStore(out)
+        done = store.open(settings_record(cfg, robot, barn_file, sources))
+        todo = [j for j in jobs if j.key not in done]
+        print(f"{cfg.suite}: {len(tasks)} tasks x {repeats} repeats x {len(cfg.budgets)} budgets x {len(methods)} "
+              f"methods = {len(jobs)} episodes; {len(jobs) - len(todo)} already in {store.records_file}")
+        ctx = NavContext(table=sources["table"], coverage_table=sources["coverage_table"], policy=sources["policy"],
+                         horizon=cfg.horizon, lambda_=cfg.lambda_, collision_penalty=cfg.collision_penalty,
+                         cost_resolution=cfg.cost_resolution, record_path=cfg.paths)
+        load0, t0 = os.getloadavg()[0], time.perf_counter()
+
+        def keep(rec: dict) -> None:
+            store.append(rec)
+            done[rec["key"]] = rec
+
+        execute(todo, ctx, keep, workers=cfg.workers, ray_address=ray_address, progress=progress,
+                desc=f"{cfg.suite} episodes")
+        wall = time.perf_counter() - t0
+        records = [done[j.key] for j in jobs]  # this run's episodes, in job order, whoever ran them
+        return result(cfg, records, tasks, methods, wall, load0, ray_address)
+
+
+def result(cfg: NavConfig, records: list[dict], tasks: Sequence[NavTask], methods: Sequence[str], wall: float,
+           load0: float, ray_address: str | None) -> dict:
+    """Summary rows, paired comparisons and the run's facts."""
+    summary = summarize(records)
+    baselines = [b for b in GAUSSIAN_BASELINES if b in methods]
+    comparisons = paired_comparisons(records, baselines) if baselines else []
+    return dict(config=dataclasses.asdict(cfg), tasks=task_summary(tasks), summary=summary, comparisons=comparisons,
+                run=dict(wall_s=round(wall, 1), load_before=round(load0, 2), load_after=round(os.getloadavg()[0], 2),
+                         cpus=os.cpu_count(), workers=cfg.workers, ray=ray_address, episodes=len(records)),
+                labels={m: NAV_METHODS[m].label for m in methods})
+
+
+def write_outputs(res: dict, out: Path) -> list[Path]:
+    """``results.json``, ``results.md``, ``success.png`` and TensorBoard scalars under ``out``."""
+    from .nav_figures import success_figure, write_tensorboard
+
+    md = render(res)
+    write_json(out / "results.json", res)
+    write_bytes(out / "results.md", md.encode())
+    colors = {m: NAV_METHODS[m].color for m in res["labels"]}
+    fig = success_figure(res["summary"], out / "success.png", labels=res["labels"], colors=colors)
+    write_tensorboard(res["summary"], out / "tb")
+    return [out / "results.json", out / "results.md", fig, out / "tb"]
+
+
+def render(res: dict) -> str:
+    """The markdown of a result: the run's facts, then :func:`eval.nav_stats.markdown`'s tables."""
+    r, c = res["run"], res["config"]
+    head = (f"# Navigation benchmark: {c['suite']}\n\n{res['tasks']['count']} tasks, budgets "
+            f"{', '.join(map(str, c['budgets']))}, {r['episodes']} episodes; {r['wall_s']:.0f} s wall on {r['cpus']} "
+            f"CPUs with {r['workers']} worker(s){' on Ray' if r['ray'] else ''} (1-min load {r['load_before']} before, "
+            f"{r['load_after']} after)\n\n")
+    return head + markdown(res["summary"], res["comparisons"])
+
+
+def make_parser() -> ArgumentParser:
+    p = ArgumentParser(prog="python -m eval.navigate", description=(__doc__ or "").split("\n\n")[0])
+    add_dataclass_args(p, NavConfig, flags={"lambda_": "--lambda"}, choices={"suite": SUITES},
+                       help={"methods": f"method keys, of {', '.join(NAV_METHODS)} (default: all but cu_coverage "
+                                        "and cu_mlp)"})
+    p.add_argument("--ray", nargs="?", const="local", default=None, metavar="ADDRESS",
+                   help="run episodes as Ray tasks: a local Ray runtime, or the cluster at ADDRESS ('auto', "
+                        "'ray://host:10001'); needs pip install -e '.[ray]'")
+    p.add_argument("--out", type=Path, default=None, help="output folder (default: out/navigate/<suite>)")
+    p.add_argument("--cache", type=Path, default=Path("out/navigate/cache"),
+                   help="where the robot's tables are built and kept (default: out/navigate/cache)")
+    p.add_argument("--barn-file", type=Path, default=None, help="BARN maps in the shipped format (eval/barn.py)")
+    p.add_argument("--barn-worlds", type=Path, default=None,
+                   help="a folder of BARN Gazebo world_<id>.world files (or one file), converted to --out/barn.npz")
+    p.add_argument("--table", type=Path, default=None, help="use this max-flow table (default: the robot's, cached)")
+    p.add_argument("--coverage-table", type=Path, default=None, help="use this coverage table (cu_coverage)")
+    p.add_argument("--policy", type=Path, default=None, help="use this distilled MLP (cu_mlp)")
+    p.add_argument("--system", default=None, help="drive a registered system instead of the built-in robot")
+    p.add_argument("--param", action="append", default=[], metavar="KEY=VALUE",
+                   help="a parameter of --system as JSON (repeatable)")
+    p.add_argument("--robot-radius", type=float, default=NAV_ROBOT.radius, help="m (default: 0.2)")
+    p.add_argument("--quiet", action="store_true", help="no progress bars")
+    add_system_module_arg(p)
+    return p
+
+
+def _robot(args, cfg: NavConfig) -> RobotPreset:
+    if args.system is None and args.param:
+        raise ValueError("--param needs --system (the built-in robot's parameters are fixed: eval/nav_robot.py)")
+    params = dict(NAV_ROBOT.params) if args.system is None else {}
+    for item in args.param:
+        key, sep, value = item.partition("=")
+        if not sep:
+            raise ValueError(f"--param {item!r}: expected KEY=VALUE")
+        try:
+            params[key] = json.loads(value)
+        except ValueError:
+            params[key] = value
+    radius = args.robot_radius
+    if not (np.isfinite(radius) and radius >= 0):
+        raise ValueError(f"--robot-radius must be a finite number >= 0, got {radius}")
+    robot = RobotPreset(system=args.system or NAV_ROBOT.system, params=params, radius=radius, horizon=cfg.horizon)
+    robot.make_system()  # a bad system or parameter fails here, before any work
+    return robot
+
+
+@cli_main()
+def main(argv: Sequence[str] | None = None) -> int:
+    args = make_parser().parse_args(argv)
+    import_system_modules(args.system_module)
+    cfg = dataclass_from_args(NavConfig, args)
+    _check(cfg)
+    robot = _robot(args, cfg)
+    out = args.out or Path("out/navigate") / cfg.suite
+    barn_file = args.barn_file
+    if args.barn_worlds is not None:
+        if barn_file is not None:
+            raise ValueError("give --barn-file or --barn-worlds, not both")
+        from .barn import convert_worlds, write_barn
+
+        barn_file = out / "barn.npz"
+        write_barn(barn_file, convert_worlds(args.barn_worlds))
+        print(f"converted {args.barn_worlds} into {barn_file}")
+    given = {"table": args.table, "coverage_table": args.coverage_table, "policy": args.policy}
+    res = run(cfg, out, robot, args.cache, barn_file, given, args.ray, progress=not args.quiet)
+    print(render(res))
+    for path in write_outputs(res, out):
+        print(f"wrote {path}")
+    sys.stdout.flush()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
