@@ -1,0 +1,197 @@
+"""The navigation benchmark (python -m eval.navigate): episodes, executors, resume, bad input."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import replace
+
+import numpy as np
+import pytest
+import torch
+
+from cuniform_torch import GaussianSampler
+from cuniform_torch.envs import Environment
+from eval import nav_methods
+from eval.barn import load_barn, write_barn, pack_maps
+from eval.methods import Method
+from eval.nav_episode import NavContext, NavJob, rasterize, run_nav_episode
+from eval.nav_exec import ray_available
+from eval.nav_robot import NAV_ROBOT, ensure_table
+from eval.nav_tasks import barn_task, make_tasks
+from eval.navigate import NavConfig, controller_seed, main, make_jobs, run
+from eval.suites import SuiteError, clearance, forest, gaps
+
+ROBOT = replace(NAV_ROBOT, horizon=6)  # a 6-step table builds in about a second
+OUTCOME_FIELDS = ("key", "outcome", "success", "steps", "time", "path_length", "seed")
+
+
+@pytest.fixture(scope="module")
+def cache(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("nav_cache")
+    ensure_table(ROBOT, folder, quiet=True)
+    return folder
+
+
+@pytest.fixture(scope="module")
+def ctx(cache):
+    return NavContext(table=str(ensure_table(ROBOT, cache, quiet=True)), horizon=6)
+
+
+def _cfg(**kw) -> NavConfig:
+    base = dict(suite="gaps", tasks=5, budgets=(16,), methods=("mppi_1.0", "cu_table"), repeats=1, horizon=6)
+    base.update(kw)
+    return NavConfig(**base)
+
+
+def _outcomes(records):
+    return sorted(tuple(r[f] for f in OUTCOME_FIELDS) for r in records)
+
+
+class Straight:
+    """A controller that always drives straight (turn rate 0), built the way a noise baseline is."""
+
+    def __init__(self, system, cost_fn, noise_std=None, **kwargs):
+        self.zero = torch.zeros(1)
+
+    def command(self, state):
+        return self.zero.to(state.dtype)
+
+
+def test_straight_controller_fails_with_an_obstacle_ahead_and_succeeds_without(monkeypatch, ctx):
+    monkeypatch.setitem(nav_methods.NAV_METHODS, "straight",
+                        Method("straight", "always straight", "mppi", Straight, GaussianSampler, 0.0))
+    empty = forest(0, length=12.0, num_discs=(0, 0), robot_radius=0.2, sensing_range=None)
+    blocked = gaps(width=0.6, offset=1.5, robot_radius=0.2)  # the wall sits on the straight line
+    open_gap = gaps(width=0.6, offset=0.0, robot_radius=0.2)
+    got = {name: run_nav_episode(NavJob(task, "straight", 8, seed=0), ctx)
+           for name, task in (("empty", empty), ("blocked", blocked), ("open", open_gap))}
+    assert got["empty"]["outcome"] == "goal" and got["open"]["outcome"] == "goal"
+    assert got["blocked"]["outcome"] == "collision"
+    # the collision happens at the wall: 2.5 m of driving minus the robot's radius, in 0.1 m steps
+    assert got["blocked"]["path_length"] == pytest.approx(2.5 - 0.2 + 0.1, abs=0.1)
+
+
+def test_rasterized_cost_map_is_conservative_and_tight():
+    task = barn_task(load_barn()[0], robot_radius=0.2)
+    raster = rasterize(task.environment, 0.01)
+    rng = np.random.default_rng(0)
+    xy = torch.from_numpy(rng.uniform((-6, -1.5), (1.5, 15), size=(200_000, 2)))
+    exact = task.environment.in_collision(xy)
+    grid = raster.in_collision(xy)
+    assert bool((grid | ~exact).all())  # every colliding point is marked (conservative)
+    marked = raster.obstacles[0].contains(xy).numpy()  # the grid alone (the bounds are exact)
+    d = clearance(Environment(task.environment.obstacles), xy.numpy())  # to the nearest inflated cylinder
+    assert bool((d[marked] < 0.01 * np.sqrt(2) + 1e-9).all())  # marked points are within one cell diagonal
+    assert marked.mean() < (d < 0).mean() * 1.2  # and the grid is tight: not much more than the obstacles
+
+
+def test_serial_workers_and_ray_give_the_same_episodes(tmp_path, cache):
+    cfg = _cfg()
+    serial = run(cfg, tmp_path / "serial", ROBOT, cache, progress=False)
+    workers = run(replace(cfg, workers=2), tmp_path / "workers", ROBOT, cache, progress=False)
+    assert serial["run"]["episodes"] == 10
+    assert _outcomes(serial_records(tmp_path / "serial")) == _outcomes(serial_records(tmp_path / "workers"))
+    assert {r["outcome"] for r in serial_records(tmp_path / "serial")} != {"goal"}  # not a trivial slice
+    assert [r["successes"] for r in serial["summary"]] == [r["successes"] for r in workers["summary"]]
+    if not ray_available():
+        pytest.skip("ray is not installed (pip install -e '.[ray]')")
+    run(cfg, tmp_path / "ray", ROBOT, cache, ray_address="local", progress=False)
+    assert _outcomes(serial_records(tmp_path / "serial")) == _outcomes(serial_records(tmp_path / "ray"))
+    assert workers["summary"][0]["n"] == 5
+
+
+def serial_records(folder):
+    return [json.loads(line) for line in (folder / "episodes.jsonl").read_text().splitlines() if line]
+
+
+def test_resume_skips_finished_episodes(tmp_path, cache, monkeypatch):
+    out = tmp_path / "run"
+    cfg = _cfg(tasks=2)
+    run(cfg, out, ROBOT, cache, progress=False)
+    first = serial_records(out)
+    assert len(first) == 4
+    ran = []
+    import eval.nav_exec as nav_exec
+    real = nav_exec.run_nav_episode
+    monkeypatch.setattr(nav_exec, "run_nav_episode", lambda job, c: ran.append(job.key) or real(job, c))
+    again = run(cfg, out, ROBOT, cache, progress=False)
+    assert ran == [] and again["run"]["episodes"] == 4
+    grown = run(replace(cfg, tasks=3, budgets=(16, 24)), out, ROBOT, cache, progress=False)
+    assert len(ran) == 12 - 4 and grown["run"]["episodes"] == 12
+    assert serial_records(out)[:4] == first  # finished records are kept as they were
+    # a record cut short by a crash is dropped (with a warning) and its episode rerun
+    with open(out / "episodes.jsonl", "ab") as f:
+        f.write(b'{"key": "gaps/0/mp')
+    ran.clear()
+    with pytest.warns(UserWarning, match="incomplete last line"):
+        run(replace(cfg, tasks=3, budgets=(16, 24)), out, ROBOT, cache, progress=False)
+    assert ran == []
+
+
+def test_resume_with_other_settings_is_refused(tmp_path, cache):
+    run(_cfg(tasks=1), tmp_path, ROBOT, cache, progress=False)
+    with pytest.raises(ValueError, match="lambda_"):
+        run(_cfg(tasks=1, lambda_=1.0), tmp_path, ROBOT, cache, progress=False)
+
+
+def test_controller_seeds_pair_methods_and_budgets():
+    tasks = make_tasks("gaps", 0.2, count=2)
+    jobs = make_jobs(tasks, ["mppi_1.0", "cu_table"], [16, 64], repeats=2, seed=3)
+    by_task = {}
+    for j in jobs:
+        by_task.setdefault((j.task.task_id, j.repeat), set()).add(j.seed)
+    assert all(len(s) == 1 for s in by_task.values())  # one seed per task and repeat, whatever the method
+    assert len({next(iter(s)) for s in by_task.values()}) == 4  # different across tasks and repeats
+    assert controller_seed("gaps", 0, 0, 3) != controller_seed("forest", 0, 0, 3)
+
+
+def exit_code(argv) -> int:
+    """main's exit code, whether it returns it or argparse exits with it."""
+    try:
+        return main(argv)
+    except SystemExit as stop:
+        return int(stop.code)
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--suite", "maze"], "maze"),
+    (["--methods", "mppi_1.0", "magic"], "unknown method"),
+    (["--budgets", "1", "64"], "budget must be an integer >= 2"),
+    (["--param", "speed=1"], "--param needs --system"),
+])
+def test_bad_flags_fail_before_any_episode(argv, message, tmp_path, capsys):
+    code = exit_code([*argv, "--out", str(tmp_path / "o"), "--cache", str(tmp_path / "c")])
+    assert code == 2
+    assert message in capsys.readouterr().err
+    assert not (tmp_path / "o" / "episodes.jsonl").exists() and not (tmp_path / "c").exists()
+
+
+def test_map_file_in_another_format_is_refused(tmp_path, capsys):
+    bad = tmp_path / "maps.npz"
+    np.savez(bad, centers=np.zeros((3, 2)))
+    assert exit_code(["--barn-file", str(bad), "--out", str(tmp_path / "o"), "--cache", str(tmp_path / "c")]) == 2
+    err = capsys.readouterr().err
+    assert "maps.npz" in err and err.count("\n") == 1
+
+
+def test_start_in_collision_is_refused_when_the_suite_is_made(tmp_path):
+    m = load_barn()[0]
+    arrays = pack_maps([m])
+    arrays["centers"] = np.concatenate((arrays["centers"], np.array([[-2.25, 3.0]], np.float32)))
+    arrays["offsets"] = np.array([0, arrays["centers"].shape[0]])
+    path = tmp_path / "blocked.npz"
+    write_barn(path, arrays)
+    with pytest.raises(SuiteError, match="barn task 0: the start"):
+        make_tasks("barn", 0.2, barn_file=path)
+
+
+def test_barn_file_flag_reads_another_file(tmp_path, cache, capsys):
+    path = tmp_path / "two.npz"
+    write_barn(path, load_barn()[:2])
+    code = main(["--barn-file", str(path), "--budgets", "8", "--methods", "mppi_1.0", "--horizon", "6",
+                 "--out", str(tmp_path / "o"), "--cache", str(cache), "--quiet",
+                 "--table", str(ensure_table(ROBOT, cache, quiet=True))])
+    assert code == 0
+    result = json.loads((tmp_path / "o" / "results.json").read_text())
+    assert result["tasks"]["task_ids"] == [m.map_id for m in load_barn()[:2]]
+    assert (tmp_path / "o" / "success.png").read_bytes()[:4] == b"\x89PNG"
