@@ -24,6 +24,7 @@ Collisions are always judged on the exact inflated geometry (:func:`cuniform_tor
 
 from __future__ import annotations
 
+import hashlib
 import math
 import time
 from dataclasses import dataclass
@@ -121,7 +122,9 @@ def rasterize(environment: Environment, resolution: float) -> Environment:
 def _cost_environment(task: NavTask, ctx: NavContext) -> Environment:
     if task.sensing_range is not None or len(task.environment.obstacles) <= RASTER_MIN_OBSTACLES:
         return task.environment
-    key = ("raster", task.suite, task.task_id, task.robot_radius, ctx.cost_resolution, id(task.environment))
+    # by content: each job brings its own (unpickled) copy of the task
+    geometry = hashlib.sha1(task.discs.tobytes() + task.walls.tobytes() + repr(task.bounds).encode()).hexdigest()
+    key = ("raster", geometry, task.robot_radius, ctx.cost_resolution)
     if key not in _CACHE:
         _CACHE[key] = rasterize(task.environment, ctx.cost_resolution)
     return _CACHE[key]
