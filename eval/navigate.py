@@ -43,7 +43,8 @@ from .nav_store import EpisodeStore
 from .nav_tasks import SUITES, make_tasks, task_summary
 from .suites import NavTask
 
-__all__ = ["NavConfig", "TIME_LIMITS", "REPEATS", "make_jobs", "run", "main", "controller_seed"]
+__all__ = ["NavConfig", "TIME_LIMITS", "REPEATS", "SHORT", "QUICK", "make_jobs", "run", "short_run", "render",
+           "write_outputs", "main", "controller_seed"]
 
 TIME_LIMITS = {"barn": 100.0, "forest": 120.0, "gaps": 30.0}
 """s per episode: BARN's is the Challenge's; the forest's 120 s is 1.8x the straight drive at 0.5 m/s (33 m);
@@ -223,6 +224,22 @@ def render(res: dict) -> str:
             f"CPUs with {r['workers']} worker(s){' on Ray' if r['ray'] else ''} (1-min load {r['load_before']} before, "
             f"{r['load_after']} after)\n\n")
     return head + markdown(res["summary"], res["comparisons"])
+
+
+SHORT = NavConfig(suite="barn", tasks=10, budgets=(64, 256))
+"""the short run of ``python -m eval.report``: the first 10 BARN maps, every default method, two budgets"""
+QUICK = NavConfig(suite="barn", tasks=2, budgets=(16, 64), methods=("mppi_1.0", "cu_table"), horizon=10)
+"""``python -m eval.report --quick``'s: 2 maps, 2 methods, a 10-step table (2 s of build instead of 8)"""
+
+
+def short_run(root: Path, quick: bool = False, progress: bool = True) -> dict:
+    """The report's short benchmark run (:data:`SHORT`, or :data:`QUICK`) under ``root`` (its results written too)."""
+    cfg = QUICK if quick else SHORT
+    out = Path(root) / ("barn_quick" if quick else "barn_short")
+    robot = dataclasses.replace(NAV_ROBOT, horizon=cfg.horizon)
+    res = run(cfg, out, robot, cache=Path(root) / "cache", progress=progress)
+    write_outputs(res, out)
+    return res
 
 
 def make_parser() -> ArgumentParser:

@@ -10,7 +10,8 @@ Stages (each prints its time; a finished stage is reused on the next run unless 
 2. the distilled MLP (``python -m training.distill`` on the 3 s max-flow table), unless present;
 3. experiments: :mod:`eval.coverage_experiment`, :mod:`eval.uniformity`, :mod:`eval.sudden_obstacle`,
    :mod:`eval.cluttered` (results as JSON in ``<out>/eval/``), each reused when its JSON holds a result of the same
-   config (so an interrupted report resumes);
+   config (so an interrupted report resumes), and a short run of the navigation benchmark
+   (:func:`eval.navigate.short_run`: 10 BARN maps at budgets 64 and 256; resumable, under ``<out>/navigate``);
 4. figures (``<out>/figures/*.png``), TensorBoard runs (``<runs>/<method>``, one per method, plus ``figures``;
    :mod:`eval.tensorboard`), and ``<out>/report.md`` with every table beside the paper's values, the machine, the
    commands and which stages were reused.
@@ -208,6 +209,13 @@ def _report(args) -> int:
             closed_md.append(module.markdown(closed[name]))
             closed_figs += module.figures(closed[name], paths.figures)
 
+    if not args.skip_closed_loop:
+        from . import navigate
+
+        nav = stages.stage("navigation (short)", lambda: navigate.short_run(paths.root / "navigate", args.quick,
+                                                                             progress=not args.quick))
+        closed_md.append(navigate.render(nav))
+
     def make_figures() -> dict:
         figs = {
             "coverage_vs_n": coverage_vs_samples(cov, paths.figures / "coverage_vs_n.png"),
@@ -222,7 +230,8 @@ def _report(args) -> int:
     sections = [
         ("Coverage (the paper's Table I)", coverage_experiment.markdown(cov) + "\n\n" + config.PAPER_COVERAGE_NOTE + "."),
         ("Uniformity per level", uniformity.markdown(uni)),
-        *([("Closed loop (the paper's Tables II and III)", "\n\n".join(closed_md))] if closed_md else []),
+        *([("Closed loop (the paper's Tables II and III, then the navigation benchmark's short run)",
+             "\n\n".join(closed_md))] if closed_md else []),
         ("Figures", figure_list),
     ]
     stages.timings["total"] = time.perf_counter() - total

@@ -130,7 +130,7 @@ def test_report_quick_runs_end_to_end(tmp_path, capsys):
     assert main(["--quick", "--out", str(tmp_path / "out"), "--runs", str(tmp_path / "runs")]) == 0
     root = tmp_path / "out" / "quick"
     text = (root / "report.md").read_text()
-    for heading in ("## Coverage", "## Uniformity", "## Figures", "Machine:"):
+    for heading in ("## Coverage", "## Uniformity", "## Figures", "Machine:", "# Navigation benchmark: barn"):
         assert heading in text
     figures = sorted((root / "figures").glob("*.png"))
     assert {"coverage_vs_n.png", "trajectory_fans.png", "uniformity_per_level.png"} <= {f.name for f in figures}
