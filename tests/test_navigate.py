@@ -195,3 +195,34 @@ def test_barn_file_flag_reads_another_file(tmp_path, cache, capsys):
     result = json.loads((tmp_path / "o" / "results.json").read_text())
     assert result["tasks"]["task_ids"] == [m.map_id for m in load_barn()[:2]]
     assert (tmp_path / "o" / "success.png").read_bytes()[:4] == b"\x89PNG"
+
+
+def test_barn_worlds_flag_converts_the_sample_world_to_shipped_map_0(tmp_path, cache):
+    from pathlib import Path
+
+    world = Path(__file__).parent / "data" / "barn" / "world_0.world"
+    code = main(["--barn-worlds", str(world), "--budgets", "8", "--methods", "mppi_1.0", "--horizon", "6",
+                 "--out", str(tmp_path / "o"), "--cache", str(cache), "--quiet",
+                 "--table", str(ensure_table(ROBOT, cache, quiet=True))])
+    assert code == 0
+    converted, shipped = load_barn(tmp_path / "o" / "barn.npz"), load_barn()[0]
+    assert [m.map_id for m in converted] == [0]
+    order = lambda c: c[np.lexsort((c[:, 1], c[:, 0]))]  # noqa: E731
+    np.testing.assert_allclose(order(converted[0].centers), order(shipped.centers), atol=1e-5)
+    assert json.loads((tmp_path / "o" / "results.json").read_text())["tasks"]["task_ids"] == [0]
+
+
+def test_opt_in_methods_run_from_given_files(tmp_path, cache):
+    """cu_coverage and cu_mlp read the files given (here the max-flow table and a briefly distilled MLP)."""
+    from training.distill import main as distill_main
+
+    table = ensure_table(ROBOT, cache, quiet=True)
+    policy = tmp_path / "p.pt"
+    assert distill_main(["--tables", str(table), "--out", str(policy), "--epochs", "2", "--quiet",
+                         "--logdir", str(tmp_path / "runs")]) == 0
+    res = run(_cfg(tasks=1, methods=("cu_coverage", "cu_mlp")), tmp_path / "o", ROBOT, cache,
+              given={"coverage_table": table, "policy": policy}, progress=False)
+    assert [r["method"] for r in res["summary"]] == ["cu_coverage", "cu_mlp"]
+    with pytest.raises(FileNotFoundError, match="--policy"):
+        run(_cfg(tasks=1, methods=("cu_mlp",)), tmp_path / "o2", ROBOT, cache,
+            given={"policy": tmp_path / "missing.pt"}, progress=False)
