@@ -51,12 +51,13 @@ def _panel(ax, rows: Sequence[Mapping], suite: str, methods: Sequence[str], labe
         mine = sorted((r for r in rows if r["method"] == m), key=lambda r: r["budget"])
         if not mine:
             continue
-        x = [r["budget"] for r in mine]
+        dodge = 2.0 ** (0.06 * (i - (len(methods) - 1) / 2))  # side by side, so the bars do not hide each other
+        x = [r["budget"] * dodge for r in mine]
         y = [r["success_rate"] for r in mine]
         yerr = [[r["success_rate"] - r["success_rate_low"] for r in mine],
                 [r["success_rate_high"] - r["success_rate"] for r in mine]]
-        ax.errorbar(x, y, yerr=yerr, marker="o", markersize=4, capsize=3, color=_color(m, i, colors),
-                    label=labels.get(m, m))
+        ax.errorbar(x, y, yerr=yerr, marker="o", markersize=4, capsize=2, color=_color(m, i, colors),
+                    label=labels.get(m, m), linewidth=1.2, elinewidth=0.8)
     ax.set_xscale("log", base=2)
     ax.set_xticks(budgets)
     ax.set_xticklabels([f"{b:g}" for b in budgets])
@@ -85,7 +86,7 @@ def success_figure(summary_rows: Sequence[Mapping], path: str | Path, labels: Ma
             ax.axis("off")
         for ax in axes[:, 0]:
             ax.set_ylabel("success rate")
-        axes.flat[0].legend(fontsize=7, loc="best")
+        axes.flat[len(suites) - 1].legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.02, 1.0))  # off the data
         fig.suptitle("Navigation success vs sample budget (bars: 95% Wilson intervals)", fontsize=10)
         return save_figure(fig, Path(path))
     finally:
