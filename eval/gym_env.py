@@ -20,7 +20,7 @@ Observation (a ``Dict``; the robot's centre is a point, every obstacle is alread
   then zero rows; ``"obstacle_mask"``: int8 ``[C]``, 1 for a real row;
 * ``"rects"``: float64 ``[R, 4]``, the sensed inflated rectangles (xmin, ymin, xmax, ymax), then zero rows;
   ``"rect_mask"``: int8 ``[R]``. (The suites' walls inflate to two rects and four corner circles each, see
-  :func:`eval.suites.inflate`; the circles go to ``"obstacles"``.)
+  :func:`eval.nav_geometry.inflate`; the circles go to ``"obstacles"``.)
 
 Reward per step: progress toward the goal (previous xy distance - new xy distance, m), plus
 :data:`GOAL_REWARD` on reaching the goal, minus :data:`COLLISION_PENALTY` on a collision (no goal bonus then).

@@ -39,7 +39,8 @@ from cuniform_torch.envs import Environment, NavigationCost, OccupancyGrid, simu
 from .methods import Sources, make_controller
 from .nav_methods import NAV_METHODS
 from .nav_stats import cycle_histogram
-from .suites import NavTask, clearance
+from .nav_geometry import clearance
+from .suites import NavTask
 
 __all__ = ["NavJob", "NavContext", "run_nav_episode", "rasterize", "episode_key", "RASTER_MIN_OBSTACLES"]
 

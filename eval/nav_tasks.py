@@ -19,7 +19,8 @@ from typing import Any, Sequence
 import numpy as np
 
 from .barn import CHALLENGE_GOAL, CHALLENGE_START, BarnMap, load_barn
-from .suites import NavTask, SuiteError, inflate, make_suite, validate_task
+from .nav_geometry import inflate
+from .suites import NavTask, SuiteError, make_suite, validate_task
 
 __all__ = ["SUITES", "BARN_BOUNDS", "GAP_OFFSETS", "RESOLUTIONS", "barn_task", "barn_tasks", "make_tasks", "DEFAULT_COUNTS"]
 

@@ -19,7 +19,8 @@ from eval.nav_exec import ray_available
 from eval.nav_robot import NAV_ROBOT, ensure_table
 from eval.nav_tasks import barn_task, make_tasks
 from eval.navigate import NavConfig, controller_seed, main, make_jobs, run
-from eval.suites import SuiteError, clearance, forest, gaps
+from eval.nav_geometry import clearance
+from eval.suites import SuiteError, forest, gaps
 
 ROBOT = replace(NAV_ROBOT, horizon=6)  # a 6-step table builds in about a second
 OUTCOME_FIELDS = ("key", "outcome", "success", "steps", "time", "path_length", "seed")

@@ -11,9 +11,8 @@ import torch
 
 from cuniform_torch.envs import Circle, Rect, simulate
 from cuniform_torch.systems import Dubins
-from eval.suites import (
-    GAP_WIDTHS, SuiteError, forest, gaps, inflate, make_suite, reachable, sensed, validate_task,
-)
+from eval.nav_geometry import inflate, reachable, sensed
+from eval.suites import GAP_WIDTHS, SuiteError, forest, gaps, make_suite, validate_task
 
 SEEDS = range(12)
 
