@@ -7,13 +7,17 @@ error bars, one panel per suite, and writes it atomically as a PNG (:func:`eval.
 
 from __future__ import annotations
 
+import json
 import math
+import sys
 from pathlib import Path
 from typing import Mapping, Sequence
 
+from cuniform_torch.cli import ArgumentParser, cli_main
+
 from .figures import method_style, plt, save_figure
 
-__all__ = ["TB_METRICS", "success_figure", "write_tensorboard"]
+__all__ = ["TB_METRICS", "success_figure", "write_tensorboard", "main"]
 
 TB_METRICS = ("success_rate", "collision_rate", "timeout_rate", "cycle_ms_median")
 """the summary-row fields logged to TensorBoard, one scalar per (suite, method) against the budget"""
@@ -111,3 +115,32 @@ def write_tensorboard(summary_rows: Sequence[Mapping], logdir: str | Path) -> No
                                       int(r["budget"]))
     finally:
         writer.close()
+
+
+@cli_main()
+def main(argv: Sequence[str] | None = None) -> int:
+    """``python -m eval.nav_figures RESULTS.json ... --out FIGURE.png``: one success figure over several runs'
+    ``results.json`` (one panel per suite)."""
+    p = ArgumentParser(prog="python -m eval.nav_figures",
+                       description="One success-vs-budget figure from several eval.navigate results.json files")
+    p.add_argument("results", type=Path, nargs="+", help="results.json files written by python -m eval.navigate")
+    p.add_argument("--out", type=Path, required=True, help="PNG to write")
+    args = p.parse_args(argv)
+    rows: list = []
+    labels: dict = {}
+    for path in args.results:
+        try:
+            res = json.loads(path.read_text())
+            rows += res["summary"]
+            labels.update(res["labels"])
+        except (OSError, ValueError, KeyError, TypeError) as err:
+            raise ValueError(f"{path}: not a results.json of python -m eval.navigate ({err})") from None
+    from .nav_methods import NAV_METHODS
+
+    colors = {m: NAV_METHODS[m].color for m in labels if m in NAV_METHODS}
+    print(f"wrote {success_figure(rows, args.out, labels=labels, colors=colors)}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
