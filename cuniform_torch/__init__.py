@@ -6,12 +6,12 @@ Systems, grid, table files, the table policy, batched rollouts, noise samplers, 
 
 from .frames import se2_to_local, se2_to_world
 from .grid import CellKeys, CellSet, Grid
-from .mlp import POLICY_FORMAT, MLPConfig, MLPPolicy, PolicyCheckpointError, load_policy, save_policy
+from .mlp import POLICY_FORMAT, MLPConfig, MLPPolicy, MLPSupport, PolicyCheckpointError, load_policy, save_policy
 from .mppi import COST_CAP, CUMPPI, MPPI, CostFn, CUniformMPPI, LogMPPI, MPPICore, MPPIResult, mppi_weights
 from .policy import Fallback, TablePolicy, UniformPolicy, load_table
 from .proposals import (BankProposal, BankRefreshWarning, CompositeProposal, GaussianProposal, NormalLogNormalProposal,
                         PolicyProposal, Proposal)
-from .rollout import ActionSampler, Policy, PolicyTraits, rollout, rollout_actions
+from .rollout import ActionSampler, Policy, PolicyTraits, StartMismatchWarning, rollout, rollout_actions
 from .samplers import GaussianSampler, NormalLogNormalSampler, lognormal_params
 from .systems import (
     KinematicSingleTrack,
@@ -30,12 +30,13 @@ from .systems import (
 from .table import TABLE_FORMAT, Table, TableError, read_table, write_table
 
 __all__ = [
-    "se2_to_local", "se2_to_world", "POLICY_FORMAT", "MLPConfig", "MLPPolicy", "PolicyCheckpointError",
+    "se2_to_local", "se2_to_world", "POLICY_FORMAT", "MLPConfig", "MLPPolicy", "MLPSupport", "PolicyCheckpointError",
     "load_policy", "save_policy", "CellKeys", "CellSet", "Grid",
     "COST_CAP", "CUMPPI", "MPPI", "CostFn", "CUniformMPPI", "LogMPPI", "MPPICore", "MPPIResult", "mppi_weights",
     "BankProposal", "BankRefreshWarning", "CompositeProposal", "GaussianProposal", "NormalLogNormalProposal",
     "PolicyProposal", "Proposal",
-    "Fallback", "TablePolicy", "UniformPolicy", "load_table", "ActionSampler", "Policy", "PolicyTraits", "rollout",
+    "Fallback", "TablePolicy", "UniformPolicy", "load_table", "ActionSampler", "Policy", "PolicyTraits",
+    "StartMismatchWarning", "rollout",
     "rollout_actions",
     "GaussianSampler", "NormalLogNormalSampler", "lognormal_params",
     "Dubins", "KinematicSingleTrack", "KinematicSingleTrackSpeed", "check_system", "RandomWalk1D", "System", "UnknownSystemError", "known_systems", "make_system", "register_system",

@@ -15,7 +15,18 @@ For Dubins that is ``(x / sx, y / sy, cos theta, sin theta, t / T)``. The networ
 Checkpoint (``.pt``, format ``cuniform-policy/1``): a dict of plain types and tensors that
 ``torch.load(path, weights_only=True)`` reads: ``format``, ``state_dict``, ``config`` (this module's
 :class:`MLPConfig` as a dict), ``system`` (the table's system JSON), ``actions`` ``[A, q]``, ``source`` (the
-table's path and sha256) and ``metrics`` (free-form numbers from the distillation).
+table's path and sha256) and ``metrics`` (free-form numbers from the distillation); optionally ``support``
+(:class:`MLPSupport` as a dict: ``cells`` int64 ``[C, d]`` and ``level_offsets`` int64 ``[T+2]``, the cells per
+level it was trained on, as in a table file).
+
+Support and fallback (as :class:`~cuniform_torch.policy.TablePolicy`'s, ``fallback=``): a state at level ``t``
+is *in the support* when its cell is one of level ``t``'s support cells; with ``"nearest"`` (default) a state
+whose cell is within one cell of them still gets the network's answer (counted in ``nearest_hits``), and any
+other state gets uniform probabilities (counted in ``misses``); with ``"uniform"`` every state outside the
+support gets them. A checkpoint without ``support`` (older ones) gives the box of the table's cells instead:
+each non-periodic dimension within ``feature_scale_i + cell_size_i / 2`` of 0 (``feature_scale`` is the
+largest |cell centre|, over all levels), angles anywhere; "within one cell" is that box grown by one cell.
+NaN or infinite states are always misses. Levels beyond the horizon are a ValueError, as for a table.
 """
 
 from __future__ import annotations
@@ -29,16 +40,21 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable
 
+import numpy as np
 import torch
 from torch import Tensor, nn
 
 from .fileio import write_bytes
 from .grid import Grid
-from .rollout import check_states
+from .lookup import MISS, NEAREST, Lookup, TableIndex, build_index
+from .policy import Fallback
+from .rollout import StartWatch, check_states
 from .systems import System, system_from_json
+from .table import Table
+from .torch_kernel import lookup_entries
 
-__all__ = ["POLICY_FORMAT", "MLPConfig", "MLPPolicy", "PolicyCheckpointError", "policy_checkpoint", "save_policy",
-           "load_policy", "file_sha256", "default_feature_scale"]
+__all__ = ["POLICY_FORMAT", "MLPConfig", "MLPPolicy", "MLPSupport", "PolicyCheckpointError", "policy_checkpoint",
+           "save_policy", "load_policy", "file_sha256", "default_feature_scale"]
 
 POLICY_FORMAT = "cuniform-policy/1"
 
@@ -96,13 +112,55 @@ class MLPConfig:
         return dataclasses.asdict(self)
 
 
+@dataclass(frozen=True)
+class MLPSupport:
+    """The cells per level a policy was trained on: ``cells [C, d]`` int64 grid cells (angles in ``0..K-1``),
+    level ``t`` being rows ``level_offsets[t]:level_offsets[t+1]`` of ``level_offsets [T+2]`` int64."""
+
+    cells: Tensor
+    level_offsets: Tensor
+
+    def check(self, grid: Grid, horizon: int) -> None:
+        """ValueError naming what does not describe cells per level of ``grid`` for levels ``0..horizon``."""
+        cells, offsets = self.cells, self.level_offsets
+        if not isinstance(cells, Tensor) or cells.dtype != torch.int64 or cells.ndim != 2 or cells.shape[1] != grid.dim:
+            raise ValueError(f"support cells must be an int64 [C, {grid.dim}] tensor, got "
+                             f"{getattr(cells, 'dtype', type(cells).__name__)} {list(getattr(cells, 'shape', []))}")
+        if not isinstance(offsets, Tensor) or offsets.dtype != torch.int64 or offsets.shape != (horizon + 2,):
+            raise ValueError(f"support level_offsets must be an int64 [{horizon + 2}] tensor (horizon {horizon}), got "
+                             f"{getattr(offsets, 'dtype', type(offsets).__name__)} {list(getattr(offsets, 'shape', []))}")
+        if int(offsets[0]) != 0 or int(offsets[-1]) != cells.shape[0] or bool((offsets.diff() < 0).any()):
+            raise ValueError(f"support level_offsets must rise from 0 to the {cells.shape[0]} cells, got "
+                             f"{offsets.tolist()[:8]}...")
+        for dim, k in enumerate(grid.num_angle_cells):
+            if k and cells.shape[0] and not (0 <= int(cells[:, dim].min()) and int(cells[:, dim].max()) < k):
+                raise ValueError(f"support cells of angle dimension {dim} must lie in 0..{k - 1}")
+
+    def index(self, grid: Grid, nearest: bool, dtype: torch.dtype, device: torch.device) -> TableIndex:
+        """A lookup index of these cells (one dummy action): entries below C are support cells, then the halo."""
+        C, d = self.cells.shape
+        zeros = np.zeros(len(self.level_offsets) - 2, dtype=np.int64)
+        table = Table(system="", actions=np.zeros((1, 1), np.float32), cell_size=np.array(grid.cell_size),
+                      periodic=np.array(grid.periodic), cell_offset=np.array(grid.offset),
+                      level_offsets=self.level_offsets.numpy(), cells=self.cells.numpy(),
+                      action_probs=np.ones((C, 1), np.float32), cell_probs=np.zeros(C), flow_value=zeros,
+                      flow_target=zeros)
+        return build_index(table, grid, nearest=nearest, lookup=Lookup.AUTO, dtype=dtype, device=device)
+
+    def to_dict(self) -> dict[str, Tensor]:
+        return {"cells": self.cells.cpu(), "level_offsets": self.level_offsets.cpu()}
+
+
 class MLPPolicy(nn.Module):
-    """pi(u | x, t): ``action_probs(x [N, d], t) -> [N, A]``; works in ``rollout`` and every controller."""
+    """pi(u | x, t): ``action_probs(x [N, d], t) -> [N, A]``; works in ``rollout`` and every controller.
 
-    start_relative = True
-    """like a table, it is trained on states relative to the start pose (SE(2)-invariant systems)"""
+    It knows its support (``support``, else the box of the table's cells; see the module docstring), counts the
+    states outside it (``queries``, ``nearest_hits``, ``misses``, ``miss_rate``) and answers them by
+    ``fallback`` as a table does.
+    """
 
-    def __init__(self, config: MLPConfig, system: System, actions: Tensor):
+    def __init__(self, config: MLPConfig, system: System, actions: Tensor, support: MLPSupport | None = None,
+                 fallback: str | Fallback = Fallback.NEAREST):
         super().__init__()
         if actions.ndim != 2 or actions.shape[0] != config.num_actions:
             raise ValueError(f"actions must be [{config.num_actions}, q], got {list(actions.shape)}")
@@ -123,6 +181,32 @@ class MLPPolicy(nn.Module):
             width = config.hidden
         layers.append(nn.Linear(width, config.num_actions))
         self.net = nn.Sequential(*layers)
+        self.fallback = Fallback.parse(fallback)
+        self._grid = Grid.of(system)
+        if support is not None:
+            support.check(self._grid, config.horizon)
+        self.support = support
+        self._support_index: TableIndex | None = None  # built on first use, on the device of the states
+        # the box of the table's cells (non-periodic dimensions), for a checkpoint without support
+        half = torch.tensor([s + c / 2 for s, c in zip(config.feature_scale, self._grid.cell_size)])
+        self._box = (half[self._linear], torch.tensor(self._grid.cell_size)[self._linear])  # [d_lin] each
+        self._start_watch = StartWatch(f"MLP policy ({system.name})", system)
+        self.reset_counters()
+
+    @property
+    def start_relative(self) -> bool:
+        """True only for an SE(2)-invariant system (states relative to the start pose, as for its table)."""
+        return bool(self.system.se2_invariant)
+
+    @property
+    def build_start(self) -> Tensor:
+        """The start its table was built from, ``[d]`` float64 (the zero state)."""
+        return self._start_watch.build_start
+
+    def watch_start(self, x0: Tensor, relative: bool) -> Callable[[], None] | None:
+        """What :func:`~cuniform_torch.rollout.rollout` calls before a rollout from ``x0`` (see
+        :class:`~cuniform_torch.rollout.StartWatch`)."""
+        return self._start_watch.begin(self, x0, relative)
 
     @property
     def device(self) -> torch.device:
@@ -152,8 +236,10 @@ class MLPPolicy(nn.Module):
         """Softmax of the logits: ``x [N, d]`` at level ``t`` -> ``[N, A]``, checked as a TablePolicy checks.
 
         ``t`` must be an int in ``0..horizon`` and ``x`` of the policy's dtype and device (ValueError otherwise;
-        no silent conversion). A state with a NaN or infinite coordinate gets the uniform row, as a table's
-        "not found" state does, and is counted in :attr:`misses`; ``queries`` counts every state looked up.
+        no silent conversion). A state outside the support gets the fallback (module docstring): the uniform row
+        (counted in :attr:`misses`, as are NaN or infinite states) or, within one cell of it with
+        ``fallback="nearest"``, the network's answer (counted in :attr:`nearest_hits`); ``queries`` counts every
+        state looked up.
         """
         if isinstance(t, bool) or not isinstance(t, int) or not 0 <= t <= self.horizon:
             raise ValueError(f"level t={t!r} is outside the policy's levels 0..{self.horizon} (an integer)")
@@ -162,28 +248,88 @@ class MLPPolicy(nn.Module):
             raise ValueError(f"states are {x.dtype} but the policy is {self.dtype}")
         with torch.no_grad():
             probs = torch.softmax(self(x, t), dim=1)  # [N, A]
-            bad = ~torch.isfinite(x).all(dim=1, keepdim=True)  # [N, 1]: cos(inf) and NaN give NaN logits
-            self._count_misses(x.shape[0], bad)
-            return torch.where(bad, torch.full_like(probs[:1], 1.0 / probs.shape[1]), probs)
+            code = self.support_codes(x, t)  # [N]
+            self._count(x.shape[0], code)
+            miss = (code >= MISS).unsqueeze(1)  # [N, 1]
+            return torch.where(miss, torch.full_like(probs[:1], 1.0 / probs.shape[1]), probs)
 
-    def _count_misses(self, n: int, bad: Tensor) -> None:
-        """Add ``n`` queries and the ``bad [N, 1]`` rows to the counters (a device tensor: counting never syncs)."""
-        misses = getattr(self, "_misses", None)
-        if misses is None or misses.device != bad.device:  # not a buffer: counters stay out of the checkpoint
-            self._misses, self._queries = torch.zeros((), dtype=torch.int64, device=bad.device), 0
+    def support_codes(self, x: Tensor, t: int) -> Tensor:
+        """Fallback code of each state ``x [N, d]`` at level ``t``: ``[N]`` int64, 0 in the support,
+        :data:`~cuniform_torch.lookup.NEAREST` within one cell of it (``fallback="nearest"`` only),
+        :data:`~cuniform_torch.lookup.MISS` outside (and for NaN or infinite states)."""
+        if self.support is not None:
+            code = self._support_codes_exact(x, t)
+        else:
+            code = self._support_codes_box(x)
+        finite = torch.isfinite(x).all(dim=1)  # [N]: cos(inf) and NaN give NaN logits
+        return torch.where(finite, code, MISS)
+
+    def _support_codes_exact(self, x: Tensor, t: int) -> Tensor:
+        index = self._support_index
+        if index is None or index.entry_code.device != x.device:
+            index = self._support_index = self.support.index(self._grid, self.fallback is Fallback.NEAREST,
+                                                             self.dtype, x.device)
+        entry = lookup_entries(index, x, t)  # [N] int32
+        return index.entry_code.index_select(0, entry)
+
+    def _support_codes_box(self, x: Tensor) -> Tensor:
+        half, size = (v.to(device=x.device, dtype=x.dtype) for v in self._box)
+        if self._linear:  # cells beyond the box, in the worst dimension
+            excess = ((x[:, self._linear].abs() - half) / size).amax(dim=1)  # [N]
+        else:
+            excess = x.new_full((x.shape[0],), -1.0)
+        near = self.fallback is Fallback.NEAREST
+        code = torch.where(excess <= 0, 0, torch.where((excess <= 1) & near, NEAREST, MISS))
+        return torch.where(torch.isnan(excess), MISS, code)
+
+    def reset_counters(self) -> None:
+        """Zero ``queries`` (a host int), ``nearest_hits`` and ``misses`` (device tensors: counting never syncs)."""
+        self._queries, self._code = 0, None
+
+    def _count(self, n: int, code: Tensor) -> None:
+        """Add ``n`` queries with fallback codes ``code [N]`` (nearest hits + 2^32 x misses, summed on the
+        device; one packed count is safe up to 2^31 queries, then folded into the split counters)."""
+        if self._code is None or self._code.device != code.device or self._queries_packed + n >= 2**31:
+            self._fold(code.device)
         self._queries += n
-        self._misses += bad.sum()
+        self._queries_packed += n
+        self._code += code.sum()
+
+    def _fold(self, device: torch.device) -> None:
+        hits, misses = self._split()
+        zero = torch.zeros((), dtype=torch.int64, device=device)
+        self._hits, self._misses, self._code, self._queries_packed = hits.to(device), misses.to(device), zero, 0
+
+    def _split(self) -> tuple[Tensor, Tensor]:
+        if self._code is None:
+            zero = torch.zeros((), dtype=torch.int64, device=self.device)
+            return zero, zero.clone()
+        return self._hits + (self._code & 0xFFFFFFFF), self._misses + (self._code >> 32)
 
     @property
     def queries(self) -> int:
         """States looked up by :meth:`action_probs` so far (a host int)."""
-        return getattr(self, "_queries", 0)
+        return self._queries
+
+    @property
+    def nearest_hits(self) -> Tensor:
+        """States within one cell of the support, answered by the network (a 0-d device tensor)."""
+        return self._split()[0]
 
     @property
     def misses(self) -> Tensor:
-        """States given the uniform row by :meth:`action_probs` (NaN or infinite ones; a 0-d device tensor)."""
-        misses = getattr(self, "_misses", None)
-        return misses.clone() if misses is not None else torch.zeros((), dtype=torch.int64, device=self.device)
+        """States given the uniform row (outside the support, NaN or infinite; a 0-d device tensor)."""
+        return self._split()[1]
+
+    @property
+    def miss_rate(self) -> float:
+        """Share of lookups so far given the uniform row (syncs the device)."""
+        return int(self.misses) / self._queries if self._queries else 0.0
+
+    @property
+    def nearest_rate(self) -> float:
+        """Share of lookups so far within one cell of the support (syncs the device)."""
+        return int(self.nearest_hits) / self._queries if self._queries else 0.0
 
 
 def file_sha256(path: str | os.PathLike) -> str:
@@ -205,6 +351,7 @@ def policy_checkpoint(policy: MLPPolicy, system_json: str, source: dict[str, str
         "actions": policy.actions.detach().cpu(),
         "source": dict(source or {}),
         "metrics": dict(metrics or {}),
+        **({"support": policy.support.to_dict()} if policy.support is not None else {}),
     }
 
 
@@ -216,14 +363,16 @@ def save_policy(path: str | os.PathLike, checkpoint: dict[str, Any]) -> None:
 
 
 def load_policy(source: str | os.PathLike | dict, device: torch.device | str = "cpu", *,
-                trust_factory: str | Callable[..., Any] | None = None) -> MLPPolicy:
+                trust_factory: str | Callable[..., Any] | None = None,
+                fallback: str | Fallback = Fallback.NEAREST) -> MLPPolicy:
     """A ready :class:`MLPPolicy` from a checkpoint path or an already loaded dict; errors are clear.
 
     The file is read with ``torch.load(weights_only=True)`` and its system is rebuilt from the registry or from
     ``trust_factory`` (see :func:`~cuniform_torch.systems.system_from_json`): nothing it names is imported. Every
     field has one source of truth, checked against the others: the actions (system, top level, state_dict),
     the feature scales (config, state_dict), the horizon and angle dimensions (config, system); weights must
-    be finite, and the network may not be larger than the weights the file holds.
+    be finite, and the network may not be larger than the weights the file holds. An optional ``support`` dict
+    (``cells``, ``level_offsets``: :class:`MLPSupport`) must describe cells per level of the system's grid.
     """
     where = str(source) if not isinstance(source, dict) else "checkpoint dict"
     if isinstance(source, dict):
@@ -281,12 +430,28 @@ def load_policy(source: str | os.PathLike | dict, device: torch.device | str = "
     expect_inv = 1.0 / torch.tensor(config.feature_scale, dtype=torch.float32)
     if not isinstance(inv_scale, Tensor) or inv_scale.shape != expect_inv.shape or not torch.equal(inv_scale.float(), expect_inv):
         fail("state_dict['inv_scale'] does not match config.feature_scale")
+    support = _read_support(ckpt.get("support"), Grid.of(system), config.horizon, fail)
     try:
-        policy = MLPPolicy(config, system, actions)
+        policy = MLPPolicy(config, system, actions, support=support, fallback=fallback)
         policy.load_state_dict(state, strict=True)
     except (RuntimeError, TypeError, ValueError, AttributeError) as exc:
         fail(f"state_dict does not match the network of its config ({str(exc)[:300]})")
     return policy.to(device).eval()
+
+
+def _read_support(value: Any, grid: Grid, horizon: int, fail: Callable[[str], None]) -> MLPSupport | None:
+    """The checkpoint's optional ``support`` (None when absent); ``fail`` names what is wrong with it."""
+    if value is None:
+        return None
+    if not isinstance(value, dict) or set(value) != {"cells", "level_offsets"}:
+        fail(f"support must be a dict of cells and level_offsets, got "
+             f"{sorted(value) if isinstance(value, dict) else type(value).__name__}")
+    support = MLPSupport(value["cells"], value["level_offsets"])
+    try:
+        support.check(grid, horizon)
+    except ValueError as exc:
+        fail(str(exc))
+    return support
 
 
 def default_feature_scale(cells_centres: Tensor, grid: Grid) -> list[float]:

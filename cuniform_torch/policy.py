@@ -19,9 +19,12 @@ Fallback for a state whose cell is not in L_t (``fallback=``):
   of L_t (counted in ``nearest_hits``), else uniform over the actions (counted in ``misses``);
 * ``"uniform"``: uniform over the actions (counted in ``misses``).
 
-Tables are built from the origin. For an SE(2)-invariant system (``system.se2_invariant``), states given to
-``action_probs`` are in the frame of the start pose; :func:`~cuniform_torch.rollout.rollout` does that change
-of frame, so one table serves every start pose (``start_relative = True``).
+Tables are built from the origin (:attr:`TablePolicy.build_start`, the zero state). For an SE(2)-invariant
+system (``system.se2_invariant``), states given to ``action_probs`` are in the frame of the start pose;
+:func:`~cuniform_torch.rollout.rollout` does that change of frame, so one table serves every start pose
+(``start_relative`` is True). For any other system a table is valid from its build start only: a rollout from
+another start (or, SE(2)-relative, with other speeds or steering angles than the build start's) warns once per
+policy (:class:`~cuniform_torch.rollout.StartMismatchWarning`), with that rollout's miss rate.
 """
 
 from __future__ import annotations
@@ -36,7 +39,7 @@ from . import cpu_kernels
 from .grid import Grid
 from .lookup import Lookup, TableIndex, build_index
 from .options import Option, option_label
-from .rollout import check_generator, check_states
+from .rollout import StartWatch, check_generator, check_states
 from .systems import System
 from .table import Table, read_table
 from .torch_kernel import lookup_and_draw, lookup_entries
@@ -80,9 +83,6 @@ class TablePolicy:
     T = 15 on our 2-core machine.
     """
 
-    start_relative = True
-    """for SE(2)-invariant systems, states are relative to the start pose (the table is built at the origin)"""
-
     def __init__(
         self,
         table: Table,
@@ -109,6 +109,7 @@ class TablePolicy:
         self.entry_row = self.index.entry_row  # [C + H] table row of each entry
         self.num_cells = self.index.num_cells
         self.num_halo = self.index.num_entries - self.num_cells
+        self._start_watch = StartWatch(f"table policy ({self.system.name})", self.system)
         self.kernel = self._choose_kernel(Kernel.parse(kernel), compile)
         # the numba kernel compiles (or loads from numba's disk cache) now, not in the first control cycle
         self._numba = cpu_kernels.NumbaKernel(self.index) if self.kernel is Kernel.NUMBA else None
@@ -128,6 +129,22 @@ class TablePolicy:
                 raise ValueError(f"kernel='numba' cannot be used: {'; '.join(unmet)}")
             return Kernel.TORCH
         return Kernel.NUMBA
+
+    @property
+    def start_relative(self) -> bool:
+        """True only for an SE(2)-invariant system: then states are relative to the start pose (the table is
+        built at the origin); else they are used as they are, and the table holds from :attr:`build_start`."""
+        return bool(self.system.se2_invariant)
+
+    @property
+    def build_start(self) -> Tensor:
+        """The start the table was built from, ``[d]`` float64 (the zero state)."""
+        return self._start_watch.build_start
+
+    def watch_start(self, x0: Tensor, relative: bool) -> Callable[[], None] | None:
+        """What :func:`~cuniform_torch.rollout.rollout` calls before a rollout from ``x0``: see
+        :class:`~cuniform_torch.rollout.StartWatch`."""
+        return self._start_watch.begin(self, x0, relative)
 
     @property
     def num_actions(self) -> int:

@@ -14,23 +14,33 @@ What :func:`rollout` reads from a policy, besides the protocol's members, is dec
 :class:`PolicyTraits` (optional attributes, each with its default): ``horizon`` (longest rollout it serves),
 ``device`` (where the start must be), ``dtype`` (what a controller around it runs in) and ``start_relative`` (a table or MLP built at the origin:
 on an SE(2)-invariant system it is rolled out from the origin and its states are moved to the start pose by a
-rigid transform).
+rigid transform) and ``watch_start`` (a table or MLP valid from one start: :class:`StartWatch` warns once,
+:class:`StartMismatchWarning`, when it is rolled out from another).
 """
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
-from typing import Protocol, runtime_checkable
+from typing import Callable, Protocol, runtime_checkable
 
 import torch
 from torch import Tensor
 
 from . import rollout_kernels
 from .frames import se2_to_world
+from .grid import Grid
 from .systems import System
 
-__all__ = ["Policy", "ActionSampler", "PolicyTraits", "RolloutPlan", "rollout", "rollout_actions", "check_states",
-           "check_generator", "same_device"]
+__all__ = ["Policy", "ActionSampler", "PolicyTraits", "RolloutPlan", "StartMismatchWarning", "StartWatch", "rollout",
+           "rollout_actions", "check_states", "check_generator", "same_device"]
+
+OWN_ROBOT = 'README, "Your own robot"'
+
+
+class StartMismatchWarning(UserWarning):
+    """A table (or an MLP distilled from one) rolled out from a start it was not built for: its probabilities
+    there are mostly the fallback's (uniform actions), not C-Uniform ones."""
 
 
 @runtime_checkable
@@ -69,7 +79,8 @@ class PolicyTraits:
     """the policy's dtype (what a controller around it runs in; None: float32). A policy checks the states it is
     given itself: a uniform policy serves any dtype"""
     start_relative: bool = False
-    """True: the policy was built at the origin (tables, MLPs), its probabilities are in the start pose's frame"""
+    """True: the policy was built at the origin of an SE(2)-invariant system (tables, MLPs), its probabilities are
+    in the start pose's frame"""
 
     @classmethod
     def of(cls, policy: object) -> PolicyTraits:
@@ -211,6 +222,8 @@ class RolloutPlan:
     preallocated ``[T+1, d, N]`` buffer, which the results are read from (no stack of T+1 states)"""
     column_major_ok: bool = False
     """the system's ``step`` may get column-major states (:func:`steps_column_major`); else contiguous ones"""
+    watch_start: Callable[[Tensor, bool], Callable[[], None] | None] | None = None
+    """the policy's ``watch_start(x0, relative)`` (a :class:`StartWatch`'s ``begin``), when it has one"""
 
     @classmethod
     def of(cls, system: System, policy: object) -> RolloutPlan:
@@ -221,8 +234,10 @@ class RolloutPlan:
             raise ValueError(f"{type(policy).__name__} is neither a Policy (actions, action_probs) nor an "
                              f"ActionSampler (sample)")
         traits = PolicyTraits.of(policy)
+        watch = getattr(policy, "watch_start", None)
         return cls(sampler=sampler, relative=traits.start_relative and bool(system.se2_invariant), traits=traits,
-                   step_out=_steps_into(system), column_major_ok=steps_column_major(system))
+                   step_out=_steps_into(system), column_major_ok=steps_column_major(system),
+                   watch_start=watch if callable(watch) else None)
 
     def check(self, x0: Tensor, horizon: int) -> None:
         """ValueError unless the policy serves ``horizon`` steps from ``x0`` (its device, finite)."""
@@ -238,6 +253,7 @@ class RolloutPlan:
             generator: torch.Generator | None) -> tuple[Tensor, Tensor]:
         """The rollout itself, for checked input (``x0 [d]`` or ``[N, d]``, detached, finite, on the policy's
         device; a generator on it): ``states [N, T+1, d]``, ``actions [N, T, q]``."""
+        report = self.watch_start(x0, self.relative) if self.watch_start is not None else None
         d = x0.shape[-1]
         start = x0.unsqueeze(0).expand(num_samples, d) if x0.ndim == 1 else x0  # [N, d]
         # column-major [N, d] states: every column a policy or a step reads is contiguous (faster). With step_out all
@@ -296,7 +312,61 @@ class RolloutPlan:
             q = (policy.actions.shape[1] if hasattr(policy, "actions")
                  else system.action_set(dtype=x0.dtype, device=x0.device).shape[1])
             actions_t = x0.new_zeros((num_samples, 0, q))
+        if report is not None:
+            report()
         return states_t, actions_t
+
+
+class StartWatch:
+    """Warns once per policy (:class:`StartMismatchWarning`) when a policy valid from one start is rolled out
+    from another.
+
+    ``build_start [d]`` is the start the table was built from (the zero state: tables record no other). A start
+    *differs* when its cell (:class:`~cuniform_torch.grid.Grid`) differs from the build start's in a dimension
+    the rollout does not move into the start's frame: every dimension, or for an SE(2)-relative rollout the
+    dimensions after ``(x, y, theta)`` (speeds, steering angles: a frame change does not move them). A pose-only
+    SE(2) rollout is never watched; any other costs one host read of the start per rollout until it warns.
+    """
+
+    def __init__(self, who: str, system: System, build_start: Tensor | None = None):
+        self.who = who
+        self.system = system
+        self.grid = Grid.of(system)
+        d = self.grid.dim
+        start = torch.zeros(d, dtype=torch.float64) if build_start is None else build_start.detach().double().cpu()
+        if start.shape != (d,):
+            raise ValueError(f"{who}: build_start must have shape [{d}], got {list(start.shape)}")
+        self.build_start = start  # [d] float64
+        self._build_cell = self.grid.cells(start)  # [d] int64
+        self.warned = False
+
+    def begin(self, policy: object, x0: Tensor, relative: bool) -> Callable[[], None] | None:
+        """Before a rollout from ``x0 [d]`` (or ``[N, d]``): None when there is nothing to say, else the call that
+        warns after the rollout, with the miss rate of that rollout (``policy.queries`` and ``policy.misses``)."""
+        first = 3 if relative else 0
+        if self.warned or first >= self.grid.dim:
+            return None
+        cells = self.grid.cells(x0.detach().double().cpu())[..., first:]  # [d - first] or [N, d - first]
+        if bool((cells == self._build_cell[first:]).all()):
+            return None
+        queries, misses = int(getattr(policy, "queries", 0)), getattr(policy, "misses", None)
+        misses = misses.clone() if isinstance(misses, Tensor) else None  # 0-d device tensor: no sync yet
+        return lambda: self._warn(policy, x0, relative, queries, misses)
+
+    def _warn(self, policy: object, x0: Tensor, relative: bool, queries: int, misses: Tensor | None) -> None:
+        self.warned = True
+        asked = int(getattr(policy, "queries", 0)) - queries
+        missed = int(getattr(policy, "misses")) - int(misses) if misses is not None else 0
+        rate = f"{missed / asked:.3f} ({missed} of {asked} lookups)" if asked else "not counted"
+        name = getattr(self.system, "name", type(self.system).__name__)
+        why = (f"{name}'s dimensions after (x, y, theta) are not moved by the frame change" if relative
+               else f"{name} is not SE(2)-invariant, so no frame change moves the table to another start")
+        start = [round(v, 4) for v in (x0 if x0.ndim == 1 else x0[0]).tolist()]
+        warnings.warn(
+            f"{self.who} is valid from its build start {self.build_start.tolist()} only and is rolled out from {start}; "
+            f"{why}. Miss rate on this rollout: {rate}; a miss gets the fallback's uniform actions, not C-Uniform "
+            f"ones. Build a table at that start, or a table set over the starts you need (see {OWN_ROBOT}). "
+            f"Warned once per policy.", StartMismatchWarning, stacklevel=5)
 
 
 def rollout(

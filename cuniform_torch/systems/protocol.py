@@ -142,9 +142,15 @@ def se2_invariance_gap(system: System, states: Tensor | None = None, num_states:
 
     ``states [N, d]`` are the local states to test (default: ``num_states`` random ``x, y`` in [-2, 2] m and
     headings, other dimensions 0); each gets a random pose and a random action. About 1e-15 for an
-    SE(2)-invariant system; order 1 for one that is not.
+    SE(2)-invariant system; order 1 for one that is not. ValueError for a system whose state is not
+    ``(x, y, theta, *rest)`` (x, y not angles, theta an angle): there is no planar motion to commute with.
     """
-    d = len(system.periodic)
+    periodic = tuple(system.periodic)
+    d = len(periodic)
+    if d < 3 or periodic[:3] != (False, False, True):
+        who = getattr(system, "name", type(system).__name__)
+        raise ValueError(f"se2_invariance_gap: system {who!r} has {d} state dimension(s) with periodic {periodic}; "
+                         "it needs the state (x, y, theta, ...) with x, y not periodic and theta periodic")
     gen = torch.Generator().manual_seed(seed)
     if states is None:
         states = torch.zeros((num_states, d), dtype=torch.float64)
