@@ -189,7 +189,9 @@ class MLPPolicy(nn.Module):
         self._support_index: TableIndex | None = None  # built on first use, on the device of the states
         # the box of the table's cells (non-periodic dimensions), for a checkpoint without support
         half = torch.tensor([s + c / 2 for s, c in zip(config.feature_scale, self._grid.cell_size)])
-        self._box = (half[self._linear], torch.tensor(self._grid.cell_size)[self._linear])  # [d_lin] each
+        # not persistent: they follow .to() but stay out of the state_dict (the config holds them)
+        self.register_buffer("_box_half", half[self._linear], persistent=False)  # [d_lin]
+        self.register_buffer("_box_cell", torch.tensor(self._grid.cell_size)[self._linear], persistent=False)
         self._start_watch = StartWatch(f"MLP policy ({system.name})", system)
         self.reset_counters()
 
@@ -273,7 +275,7 @@ class MLPPolicy(nn.Module):
         return index.entry_code.index_select(0, entry)
 
     def _support_codes_box(self, x: Tensor) -> Tensor:
-        half, size = (v.to(device=x.device, dtype=x.dtype) for v in self._box)
+        half, size = self._box_half.to(x.dtype), self._box_cell.to(x.dtype)  # [d_lin] each
         if self._linear:  # cells beyond the box, in the worst dimension
             excess = ((x[:, self._linear].abs() - half) / size).amax(dim=1)  # [N]
         else:

@@ -137,8 +137,9 @@ def test_mlp_rollout_from_a_wrong_start_warns_and_misses(walk_table):
 
 
 def test_mlp_exact_support_from_a_checkpoint_counts_cells_outside_the_level(walk_table):
-    """Level 1 of the walk: the cells one step reaches. Level 0's single cell is in the box of the table but
-    not in L_t for t >= 2 far enough out: exact support says so, the box cannot."""
+    """Level 1 of the walk (the cells one step reaches), exact support read from a checkpoint dict: a cell three
+    beyond L_1 lies in the box of all levels (the box calls it inside) but is a miss; one beyond is a nearest
+    hit with ``fallback="nearest"``, a miss with ``"uniform"``."""
     system = walk_table.make_system()
     ckpt = policy_checkpoint(_mlp(walk_table, support=True), system_to_json(system, walk_table.horizon))
     assert set(ckpt["support"]) == {"cells", "level_offsets"}
