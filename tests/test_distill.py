@@ -253,3 +253,16 @@ def test_two_tables_of_one_system_are_pooled(walk_path, tmp_path):
     ckpt = torch.load(tmp_path / "walk.policy.pt", weights_only=True)
     assert len(json.loads(ckpt["source"]["all_tables"])) == 2
     assert np.isfinite(ckpt["metrics"]["kl_centres_mean"])
+
+
+def test_checkpoint_records_the_tables_cells_as_support(trained, walk_path):
+    """The loaded MLP knows exactly the cells it was trained on (and falls back outside them, as a table)."""
+
+    table = read_table(walk_path)
+    ckpt = torch.load(trained["out"], weights_only=True)
+    np.testing.assert_array_equal(ckpt["support"]["cells"].numpy(), table.cells)
+    np.testing.assert_array_equal(ckpt["support"]["level_offsets"].numpy(), table.level_offsets)
+    policy = load_policy(trained["out"])
+    far = torch.tensor([[float(table.cells.max()) * 0.1 + 5.0]])  # beyond level 1's cells and their halo
+    probs = policy.action_probs(far, 1)
+    assert torch.allclose(probs, torch.full_like(probs, 1 / probs.shape[1])) and int(policy.misses) == 1

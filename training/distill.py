@@ -62,6 +62,7 @@ from cuniform_torch.rollout import rollout
 from cuniform_torch.table import Table, read_table
 
 from .evaluate import cell_centres, cell_levels, compare, jitter_cells, kl_per_level, kl_rows, sizes
+from .support import pooled_support
 
 plt.switch_backend("Agg")  # figures are only rendered into TensorBoard
 TRAIN_STATE_FORMAT = "cuniform-distill-state/1"
@@ -325,7 +326,8 @@ def _distill(cfg: DistillConfig) -> int:
     mlp_config = MLPConfig(state_dim=grid.dim, num_actions=table.actions.shape[0], horizon=T,
                            periodic=list(grid.periodic), feature_scale=default_feature_scale(centres, grid),
                            hidden=cfg.hidden, layers=cfg.layers)
-    model = MLPPolicy(mlp_config, system, torch.from_numpy(table.actions)).to(device)
+    model = MLPPolicy(mlp_config, system, torch.from_numpy(table.actions),
+                      support=pooled_support(tables, T)).to(device)  # the cells it may answer confidently
     optimizer = torch.optim.Adam(model.parameters(), lr=cfg.lr)
     scheduler = torch.optim.lr_scheduler.CosineAnnealingLR(optimizer, T_max=cfg.epochs, eta_min=cfg.lr / 100)
 
