@@ -223,7 +223,37 @@ def render(res: dict) -> str:
             f"{', '.join(map(str, c['budgets']))}, {r['episodes']} episodes; {r['wall_s']:.0f} s wall on {r['cpus']} "
             f"CPUs with {r['workers']} worker(s){' on Ray' if r['ray'] else ''} (1-min load {r['load_before']} before, "
             f"{r['load_after']} after)\n\n")
-    return head + markdown(res["summary"], res["comparisons"])
+    return head + success_pivot(res["summary"], res["comparisons"]) + "\n\n" + markdown(res["summary"], res["comparisons"])
+
+
+def success_pivot(summary: Sequence[dict], comparisons: Sequence[dict]) -> str:
+    """Success rate [95% CI] per method (rows) and budget (columns), each marked against the best Gaussian
+    baseline at that budget: ``+`` better, ``-`` worse (exact McNemar p < 0.05), nothing for a tie; ``(best)``
+    on the baseline itself."""
+    from .nav_stats import fmt_rate
+
+    budgets = sorted({r["budget"] for r in summary})
+    verdict = {(c["suite"], c["budget"], c["method"]): c["verdict"] for c in comparisons}
+    best = {(c["suite"], c["budget"]): c["baseline"] for c in comparisons}
+    mark = {"better": " +", "worse": " -", "tie": ""}
+    out = []
+    for suite in dict.fromkeys(r["suite"] for r in summary):
+        rows = {(r["method"], r["budget"]): r for r in summary if r["suite"] == suite}
+        lines = [f"Success on {suite} (+ / -: better / worse than the best Gaussian baseline, McNemar p < 0.05):", "",
+                 "| method | " + " | ".join(f"K = {k}" for k in budgets) + " |",
+                 "|---|" + "---|" * len(budgets)]
+        for m in dict.fromkeys(r["method"] for r in summary if r["suite"] == suite):
+            cells = []
+            for k in budgets:
+                r = rows.get((m, k))
+                if r is None:
+                    cells.append("")
+                    continue
+                tag = " (best)" if best.get((suite, k)) == m else mark.get(verdict.get((suite, k, m), "tie"), "")
+                cells.append(fmt_rate(r, "success") + tag)
+            lines.append(f"| {m} | " + " | ".join(cells) + " |")
+        out.append("\n".join(lines))
+    return "\n\n".join(out)
 
 
 SHORT = NavConfig(suite="barn", tasks=10, budgets=(64, 256))

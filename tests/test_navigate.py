@@ -227,3 +227,19 @@ def test_opt_in_methods_run_from_given_files(tmp_path, cache):
     with pytest.raises(FileNotFoundError, match="--policy"):
         run(_cfg(tasks=1, methods=("cu_mlp",)), tmp_path / "o2", ROBOT, cache,
             given={"policy": tmp_path / "missing.pt"}, progress=False)
+
+
+def test_success_pivot_marks_methods_against_the_best_baseline():
+    from eval.navigate import success_pivot
+
+    def row(method, budget, rate):
+        return dict(suite="barn", method=method, budget=budget, success_rate=rate, success_rate_low=rate - 0.1,
+                    success_rate_high=min(1.0, rate + 0.1))
+
+    summary = [row("mppi_1.0", 64, 0.9), row("cu_table", 64, 0.5), row("uniform", 64, 0.95)]
+    comparisons = [dict(suite="barn", budget=64, method="cu_table", baseline="mppi_1.0", verdict="worse"),
+                   dict(suite="barn", budget=64, method="uniform", baseline="mppi_1.0", verdict="tie")]
+    lines = success_pivot(summary, comparisons).splitlines()
+    assert "| mppi_1.0 | 0.90 [0.80, 1.00] (best) |" in lines
+    assert "| cu_table | 0.50 [0.40, 0.60] - |" in lines
+    assert "| uniform | 0.95 [0.85, 1.00] |" in lines
