@@ -188,18 +188,20 @@ def run(cfg: NavConfig, out: Path, robot: RobotPreset = NAV_ROBOT, cache: Path =
                 desc=f"{cfg.suite} episodes")
         wall = time.perf_counter() - t0
         records = [done[j.key] for j in jobs]  # this run's episodes, in job order, whoever ran them
-        return result(cfg, records, tasks, methods, wall, load0, ray_address)
+        return result(cfg, records, tasks, methods, wall, load0, ray_address, ran=len(todo))
 
 
 def result(cfg: NavConfig, records: list[dict], tasks: Sequence[NavTask], methods: Sequence[str], wall: float,
-           load0: float, ray_address: str | None) -> dict:
+           load0: float, ray_address: str | None, ran: int | None = None) -> dict:
     """Summary rows, paired comparisons and the run's facts."""
     summary = summarize(records)
     baselines = [b for b in GAUSSIAN_BASELINES if b in methods]
     comparisons = paired_comparisons(records, baselines) if baselines else []
     return dict(config=dataclasses.asdict(cfg), tasks=task_summary(tasks), summary=summary, comparisons=comparisons,
                 run=dict(wall_s=round(wall, 1), load_before=round(load0, 2), load_after=round(os.getloadavg()[0], 2),
-                         cpus=os.cpu_count(), workers=cfg.workers, ray=ray_address, episodes=len(records)),
+                         cpus=os.cpu_count(), workers=cfg.workers, ray=ray_address, episodes=len(records),
+                         ran=len(records) if ran is None else ran,
+                         episode_compute_s=round(sum(r.get("wall_s", 0.0) for r in records), 1)),
                 labels={m: NAV_METHODS[m].label for m in methods})
 
 
@@ -219,10 +221,13 @@ def write_outputs(res: dict, out: Path) -> list[Path]:
 def render(res: dict) -> str:
     """The markdown of a result: the run's facts, then :func:`eval.nav_stats.markdown`'s tables."""
     r, c = res["run"], res["config"]
+    ran = r.get("ran", r["episodes"])
+    earlier = f", {r['episodes'] - ran} from earlier runs" if ran < r["episodes"] else ""
     head = (f"# Navigation benchmark: {c['suite']}\n\n{res['tasks']['count']} tasks, budgets "
-            f"{', '.join(map(str, c['budgets']))}, {r['episodes']} episodes; {r['wall_s']:.0f} s wall on {r['cpus']} "
-            f"CPUs with {r['workers']} worker(s){' on Ray' if r['ray'] else ''} (1-min load {r['load_before']} before, "
-            f"{r['load_after']} after)\n\n")
+            f"{', '.join(map(str, c['budgets']))}, {r['episodes']} episodes ({ran} run now{earlier}; "
+            f"{r.get('episode_compute_s', 0):.0f} s of episode compute in all); this run took {r['wall_s']:.0f} s "
+            f"wall on {r['cpus']} CPUs with {r['workers']} worker(s){' on Ray' if r['ray'] else ''} (1-min load "
+            f"{r['load_before']} before, {r['load_after']} after)\n\n")
     return head + success_pivot(res["summary"], res["comparisons"]) + "\n\n" + markdown(res["summary"], res["comparisons"])
 
 

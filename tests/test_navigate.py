@@ -116,7 +116,7 @@ def test_resume_skips_finished_episodes(tmp_path, cache, monkeypatch):
     real = nav_exec.run_nav_episode
     monkeypatch.setattr(nav_exec, "run_nav_episode", lambda job, c: ran.append(job.key) or real(job, c))
     again = run(cfg, out, ROBOT, cache, progress=False)
-    assert ran == [] and again["run"]["episodes"] == 4
+    assert ran == [] and again["run"]["episodes"] == 4 and again["run"]["ran"] == 0
     grown = run(replace(cfg, tasks=3, budgets=(16, 24)), out, ROBOT, cache, progress=False)
     assert len(ran) == 12 - 4 and grown["run"]["episodes"] == 12
     assert serial_records(out)[:4] == first  # finished records are kept as they were
