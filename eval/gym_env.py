@@ -48,6 +48,7 @@ except ImportError as err:  # gymnasium is the optional extra "gym"
 
 from cuniform_torch.envs import COLLISION, GOAL, TIMEOUT, Circle, Environment, Rect
 from eval.nav_robot import NAV_ROBOT
+from eval.nav_tasks import DEFAULT_COUNTS, make_tasks
 from eval.suites import NavTask, make_suite
 
 __all__ = ["NavigationEnv", "register_envs", "make_env", "ENV_ID", "MAX_CIRCLES", "MAX_RECTS", "GOAL_REWARD",
@@ -310,15 +311,22 @@ def register_envs() -> None:
 
 def make_env(suite: str, index: int | None = 0, count: int | None = None, seed: int = 0,
              system: Any = None, render_mode: str | None = None, **suite_params: Any) -> NavigationEnv:
-    """A :class:`NavigationEnv` on task ``index`` of ``make_suite(suite, count, seed, **suite_params)``
-    (``"forest"`` or ``"gaps"``); ``index=None``: on all ``count`` tasks, one per reset. ``count`` defaults to
-    ``index + 1`` (forest: task ``index`` is seed ``seed + index``); the gaps widths sweep over ``count``
-    tasks, so pass ``count`` for a gaps task."""
+    """A :class:`NavigationEnv` on task ``index`` of a suite (``index=None``: all ``count`` tasks, one per
+    reset).
+
+    Without ``suite_params``: the benchmark's own tasks (:func:`eval.nav_tasks.make_tasks`: ``barn``, ``forest``
+    or ``gaps``, the benchmark robot's radius and time limits); ``count`` defaults to ``index + 1`` (BARN: the
+    first maps; forest: task ``index`` is seed ``seed + index``), for gaps to the benchmark's 9 tasks, so that
+    gap task ``index`` is the benchmark's. With ``suite_params``: ``eval.suites.make_suite(suite, count, seed,
+    **suite_params)`` (forest or gaps with other parameters)."""
     if index is not None and (isinstance(index, bool) or not isinstance(index, (int, np.integer)) or index < 0):
         raise ValueError(f"make_env: index must be an integer >= 0 or None, got {index!r}")
-    if count is None:
-        count = 1 if index is None else int(index) + 1
-    tasks = make_suite(suite, count, seed, **suite_params)
+    if suite_params:
+        tasks = make_suite(suite, count or (1 if index is None else int(index) + 1), seed, **suite_params)
+    else:
+        if count is None:
+            count = DEFAULT_COUNTS["gaps"] if suite == "gaps" else (None if index is None else int(index) + 1)
+        tasks = make_tasks(suite, NAV_ROBOT.radius, count, seed=seed)
     if index is not None and index >= len(tasks):
         raise ValueError(f"make_env: index {index} is past the {len(tasks)} tasks of the suite (count={count})")
     chosen = tasks if index is None else tasks[index]

@@ -22,7 +22,7 @@ from .barn import CHALLENGE_GOAL, CHALLENGE_START, BarnMap, load_barn
 from .nav_geometry import inflate
 from .suites import NavTask, SuiteError, make_suite, validate_task
 
-__all__ = ["SUITES", "BARN_BOUNDS", "GAP_OFFSETS", "RESOLUTIONS", "barn_task", "barn_tasks", "make_tasks", "DEFAULT_COUNTS"]
+__all__ = ["SUITES", "BARN_BOUNDS", "GAP_OFFSETS", "RESOLUTIONS", "TIME_LIMITS", "barn_task", "barn_tasks", "make_tasks", "DEFAULT_COUNTS"]
 
 SUITES = ("barn", "forest", "gaps")
 """the suites of ``python -m eval.navigate``"""
@@ -30,6 +30,9 @@ BARN_BOUNDS = (-6.0, -1.5, 1.5, 15.0)
 """raw workspace bounds of every BARN task (m): the map (x in [-4.5, 0], y in [0, 9.6]) and its goal, with room"""
 DEFAULT_COUNTS = {"barn": None, "forest": 50, "gaps": 9}
 """tasks per suite by default (None: every map of the file); 9 gaps: 3 widths x :data:`GAP_OFFSETS`"""
+TIME_LIMITS = {"barn": 100.0, "forest": 120.0, "gaps": 30.0}
+"""s per episode: BARN's is the Challenge's; the forest's 120 s is 1.8x the straight drive at 0.5 m/s (33 m);
+the gaps' 30 s is 2.5x theirs (6 m)"""
 GAP_OFFSETS = (0.0, 0.75, 1.5)
 """m: where the gap sits off the start-goal line (an offset gap puts a wall between the robot and its goal)"""
 RESOLUTIONS = {"barn": 0.05, "forest": 0.1, "gaps": 0.02}
@@ -60,13 +63,13 @@ def barn_tasks(robot_radius: float, path: str | os.PathLike | None = None, count
 
 def make_tasks(suite: str, robot_radius: float, count: int | None = None, seed: int = 0,
                barn_file: str | os.PathLike | None = None, sensing_range: float | None = 3.0,
-               resolution: float | None = None, time_limits: dict[str, float] | None = None) -> list[NavTask]:
+               resolution: float | None = None, time_limits: dict[str, float] | None = TIME_LIMITS) -> list[NavTask]:
     """The tasks of ``suite`` for a robot of ``robot_radius``, each validated (module docstring).
 
     ``count``: tasks (None: :data:`DEFAULT_COUNTS`); ``seed``: the first forest seed; ``barn_file``: another
     BARN file in the shipped format; ``sensing_range``: the forest's (None: all obstacles known);
     ``resolution``: of the reachability flood fill (m; None: :data:`RESOLUTIONS`); ``time_limits``: per suite, overriding the suites'
-    own (s).
+    own (s; default :data:`TIME_LIMITS`, the benchmark's).
     """
     if suite not in SUITES:
         raise SuiteError(f"unknown suite {suite!r}; choose from {', '.join(SUITES)}")

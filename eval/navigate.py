@@ -40,15 +40,12 @@ from .nav_methods import GAUSSIAN_BASELINES, NAV_METHODS, parse_nav_methods
 from .nav_robot import NAV_ROBOT, RobotPreset, ensure_policy, ensure_table, preset_dict
 from .nav_stats import markdown, paired_comparisons, summarize
 from .nav_store import EpisodeStore
-from .nav_tasks import SUITES, make_tasks, task_summary
+from .nav_tasks import SUITES, TIME_LIMITS, make_tasks, task_summary
 from .suites import NavTask
 
-__all__ = ["NavConfig", "TIME_LIMITS", "REPEATS", "SHORT", "QUICK", "make_jobs", "run", "short_run", "render",
+__all__ = ["NavConfig", "REPEATS", "SHORT", "QUICK", "make_jobs", "run", "short_run", "render",
            "write_outputs", "main", "controller_seed"]
 
-TIME_LIMITS = {"barn": 100.0, "forest": 120.0, "gaps": 30.0}
-"""s per episode: BARN's is the Challenge's; the forest's 120 s is 1.8x the straight drive at 0.5 m/s (33 m);
-the gaps' 30 s is 2.5x theirs (6 m)"""
 REPEATS = {"barn": 1, "forest": 1, "gaps": 5}
 """controller seeds per task by default: the gap suite has few tasks (9 widths), so each runs 5 times"""
 

@@ -194,8 +194,11 @@ def test_register_make_and_render(tasks):
 
 
 def test_make_env_picks_the_suite_task():
-    assert make_env("forest", index=1).tasks[0].task_id == 1
-    assert make_env("gaps", index=2, count=3).tasks[0].params["width"] == pytest.approx(1.2)
+    forest1 = make_env("forest", index=1).tasks[0]
+    assert forest1.task_id == 1 and forest1.robot_radius == 0.2 and forest1.time_limit == 120.0
+    gap = make_env("gaps", index=5).tasks[0]  # the benchmark's gap task 5: width 0.9 m, 1.5 m off the line
+    assert (gap.params["width"], gap.params["offset"], gap.robot_radius) == pytest.approx((0.9, 1.5, 0.2))
+    assert make_env("barn", index=0).tasks[0].start == pytest.approx((-2.25, 3.0, 1.57))
     with pytest.raises(ValueError, match="past the 3 tasks"):
         make_env("gaps", index=3, count=3)
 
