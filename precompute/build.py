@@ -71,7 +71,7 @@ def _defaults_of(field: str) -> str:
 
 MAXFLOW_ONLY = ("points", "points_per_cell", "resume", "max_memory", "ties")
 """flags of --method maxflow only (given with --method coverage they are refused)"""
-COVERAGE_ONLY = ("target_samples", "merge_resolution", "steps", "lr")
+COVERAGE_ONLY = ("target_samples", "merge_resolution", "steps", "lr", "state_budget", "tol")
 """flags of --method coverage only: fields of :class:`~precompute.coverage_method.CoverageConfig`"""
 
 

@@ -10,12 +10,16 @@ level sets. This method works on the states that real rollouts can reach:
    fall in the same sub-cell bin (``merge_resolution`` bins per cell and dimension; each bin keeps its first
    state as the representative, so the approximation error is below 1/merge_resolution of a cell per step).
    The level set L_t is the set of cells of these states: exactly the cells real rollouts reach.
+   A level that would hold more than ``state_budget`` merged states is merged more coarsely (the resolution
+   is cut by a quarter, from that level on, until it fits): the cost of every later stage is linear in the merged states,
+   whose number grows geometrically with the horizon at a fixed resolution (``state_budget=0``: never coarsen).
 2. **Propagate** the state distribution exactly: a state in cell c takes action u with probability
    ``softmax(theta[t, c])[u]`` and moves deterministically to its successor state.
 3. **Maximize** the expected number of distinct cells that N samples cover at every level,
    ``sum_t sum_c 1 - (1 - P_t(c))^N`` (``target_samples`` = N), over the logits theta by gradient ascent (Adam,
    autograd through the propagation). Perfect uniformity over L_t is the optimum when N is large; a finite N
-   trades uniformity for reaching more cells.
+   trades uniformity for reaching more cells. The ascent stops early once the objective gained less than
+   ``tol`` (relative) over the last ``CONVERGENCE_WINDOW`` steps (``tol=0``: always ``steps`` iterations).
 
 The table has the same format as the max-flow tables (``method`` = "coverage"): its level sets are the reachable
 cells, ``cell_probs`` the exact propagated cell masses, ``transitions`` the mass-weighted fraction of each
@@ -38,6 +42,9 @@ from cuniform_torch.grid import CellKeys, Grid
 from cuniform_torch.systems import System
 from cuniform_torch.table import Table, system_fields
 
+CONVERGENCE_WINDOW = 10
+"""steps over which the early stop (``CoverageConfig.tol``) measures the objective's relative gain"""
+
 __all__ = ["CoverageConfig", "ReachableLevels", "enumerate_reachable", "optimize_coverage", "build_coverage_table"]
 
 
@@ -59,6 +66,11 @@ class CoverageConfig:
     tie-breaker towards uniformity on levels that N samples already cover completely"""
     max_states: int = 20_000_000
     """refuse to enumerate a level with more merged states than this (lower merge_resolution instead)"""
+    state_budget: int = 2_000_000
+    """merged states per level: a level with more is merged with a quarter less resolution (repeatedly, and so
+    are the later levels) until it fits; 0 keeps merge_resolution on every level (the unapproximated enumeration)"""
+    tol: float = 1e-3
+    """stop the ascent when the objective gained less than this fraction over the last 10 steps; 0 runs all steps"""
     float32: bool = True
     """run the gradient ascent in float32 (about 2x faster); the final propagation is float64"""
 
@@ -69,6 +81,10 @@ class CoverageConfig:
                 raise ValueError(f"{name} must be a positive integer, got {value!r}")
         if not (self.lr > 0 and math.isfinite(self.lr)):
             raise ValueError(f"lr must be positive, got {self.lr!r}")
+        if isinstance(self.state_budget, bool) or not isinstance(self.state_budget, int) or self.state_budget < 0:
+            raise ValueError(f"state_budget must be a non-negative integer (0: no budget), got {self.state_budget!r}")
+        if not (self.tol >= 0 and math.isfinite(self.tol)):
+            raise ValueError(f"tol must be non-negative (0: no early stop), got {self.tol!r}")
 
 
 @dataclass
@@ -82,6 +98,8 @@ class ReachableLevels:
     successor: list[torch.Tensor] = field(default_factory=list)
     """per level t < T: ``[M_t, A]`` index of the successor state in level t+1"""
     num_states: list[int] = field(default_factory=list)
+    resolution: list[int] = field(default_factory=list)
+    """per level: the merge resolution its states were merged with (level 0: the origin alone)"""
 
 
 def _index_cells(cells: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -91,38 +109,62 @@ def _index_cells(cells: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     return keys.unpack(uniq), inverse
 
 
+def _merge(nxt: torch.Tensor, cell_size: torch.Tensor, resolution: int) -> tuple[int, torch.Tensor]:
+    """Merge states ``[K, d]`` per bin of ``cell_size / resolution``: the number of bins and each state's bin."""
+    binned = torch.round(nxt / (cell_size / resolution)).long()
+    keys = CellKeys.covering(binned)
+    uniq, inverse = torch.unique(keys.pack(binned), return_inverse=True)
+    return len(uniq), inverse
+
+
+def _merge_within(nxt: torch.Tensor, cell_size: torch.Tensor, resolution: int,
+                  budget: int) -> tuple[int, torch.Tensor, int]:
+    """:func:`_merge` at the finest resolution (``resolution`` cut by a quarter, down to 1) whose bins number at
+    most ``budget`` (0: no budget); returns the bins, each state's bin and the resolution used."""
+    count, inverse = _merge(nxt, cell_size, resolution)
+    while budget and count > budget and resolution > 1:  # about (3/4)^d fewer bins per cut: few cuts per level
+        resolution = min(resolution - 1, resolution * 3 // 4)
+        count, inverse = _merge(nxt, cell_size, resolution)
+    return count, inverse, resolution
+
+
 def enumerate_reachable(system: System, horizon: int, merge_resolution: int = 32, max_states: int = 20_000_000,
-                        progress: Callable[[int, int, int], None] | None = None) -> ReachableLevels:
-    """Reachable states from the origin, merged per sub-cell bin, with their cells and successors."""
+                        progress: Callable[[int, int, int], None] | None = None,
+                        state_budget: int = 0) -> ReachableLevels:
+    """Reachable states from the origin, merged per sub-cell bin, with their cells and successors.
+
+    ``state_budget`` > 0: a level with more merged states is merged with a quarter less resolution until it
+    fits (or the resolution is 1); the later levels keep the coarser resolution (states never split again)."""
     grid = Grid.of(system)
     actions = system.action_set(dtype=torch.float64)  # [A, q]
     A = actions.shape[0]
-    sub = torch.tensor(grid.cell_size, dtype=torch.float64) / merge_resolution  # [d]
+    cell_size = torch.tensor(grid.cell_size, dtype=torch.float64)  # [d]
     x = torch.zeros((1, grid.dim), dtype=torch.float64)
     levels = ReachableLevels()
     cells, inv = _index_cells(grid.cells(x))
     levels.cells.append(cells)
     levels.state_cell.append(inv)
     levels.num_states.append(1)
+    levels.resolution.append(merge_resolution)
+    resolution = merge_resolution
     for t in range(horizon):
         M = x.shape[0]
         nxt = system.step(x.repeat_interleave(A, dim=0), actions.repeat(M, 1))  # [M*A, d]
-        binned = torch.round(nxt / sub).long()
-        keys = CellKeys.covering(binned)
-        uniq, inverse = torch.unique(keys.pack(binned), return_inverse=True)
-        if len(uniq) > max_states:
-            raise ValueError(f"level {t + 1} has {len(uniq)} merged states (> max_states={max_states}); "
+        count, inverse, resolution = _merge_within(nxt, cell_size, resolution, state_budget)
+        if count > max_states:
+            raise ValueError(f"level {t + 1} has {count} merged states (> max_states={max_states}); "
                              f"lower --merge-resolution")
-        first = torch.full((len(uniq),), M * A, dtype=torch.int64).scatter_reduce(
+        first = torch.full((count,), M * A, dtype=torch.int64).scatter_reduce(
             0, inverse, torch.arange(M * A), reduce="amin")
         x = nxt[first]  # representatives [M', d]
         levels.successor.append(inverse.view(M, A))
         cells, inv = _index_cells(grid.cells(x))
         levels.cells.append(cells)
         levels.state_cell.append(inv)
-        levels.num_states.append(len(uniq))
+        levels.num_states.append(count)
+        levels.resolution.append(resolution)
         if progress is not None:
-            progress(t, len(uniq), len(cells))
+            progress(t, count, len(cells))
     return levels
 
 
@@ -154,13 +196,21 @@ def normalized_entropy(cell_mass: torch.Tensor) -> torch.Tensor:
     return -(cell_mass * torch.log(p)).sum() / math.log(len(cell_mass))
 
 
+def _converged(history: list[float], tol: float) -> bool:
+    """Whether the objective gained less than ``tol`` (relative) over the last CONVERGENCE_WINDOW steps."""
+    if tol <= 0 or len(history) <= CONVERGENCE_WINDOW:
+        return False
+    gain = history[-1] - history[-1 - CONVERGENCE_WINDOW]
+    return gain < tol * abs(history[-1])
+
+
 def optimize_coverage(levels: ReachableLevels, num_actions: int, config: CoverageConfig,
                       progress: Callable[[int, float], None] | None = None) -> tuple[list[torch.Tensor], list[float]]:
     """Logits ``[n_t, A]`` per level t < T maximizing the summed expected coverage; and the history of the objective."""
     dtype = torch.float32 if config.float32 else torch.float64
     logits = [torch.zeros((len(c), num_actions), dtype=dtype, requires_grad=True) for c in levels.cells[:-1]]
     opt = torch.optim.Adam(logits, lr=config.lr)
-    history = []
+    history: list[float] = []
     for step in range(config.steps):
         opt.zero_grad()
         masses = _propagate(levels, logits)
@@ -173,6 +223,8 @@ def optimize_coverage(levels: ReachableLevels, num_actions: int, config: Coverag
         history.append(float(objective.detach()))
         if progress is not None:
             progress(step, history[-1])
+        if _converged(history, config.tol):
+            break
     return [l.detach().double() for l in logits], history
 
 
@@ -181,7 +233,8 @@ def build_coverage_table(system: System, config: CoverageConfig = CoverageConfig
     """Enumerate, optimize and assemble the table; returns it with build facts (timings, predicted coverage)."""
     t0 = time.perf_counter()
     levels = enumerate_reachable(system, config.horizon, config.merge_resolution, config.max_states,
-                                 None if progress is None else (lambda t, m, n: progress("enumerate", t, m)))
+                                 None if progress is None else (lambda t, m, n: progress("enumerate", t, m)),
+                                 state_budget=config.state_budget)
     t1 = time.perf_counter()
     A = system.action_set().shape[0]
     logits, history = optimize_coverage(levels, A, config,
@@ -221,12 +274,15 @@ def build_coverage_table(system: System, config: CoverageConfig = CoverageConfig
     facts = {
         "seconds": {"enumerate": t1 - t0, "optimize": t2 - t1, "assemble": time.perf_counter() - t2},
         "merged_states": levels.num_states,
+        "merge_resolutions": levels.resolution,
+        "steps_run": len(history),
         "objective_first_last": [history[0], history[-1]] if history else [],
         "predicted_coverage_per_level": predicted,
     }
     build_info = {"method": "coverage", "target_samples": config.target_samples,
                   "merge_resolution": config.merge_resolution, "steps": config.steps, "lr": config.lr,
-                  "merged_states": levels.num_states}
+                  "merged_states": levels.num_states, "state_budget": config.state_budget,
+                  "merge_resolutions": levels.resolution, "tol": config.tol, "steps_run": len(history)}
     cell_probs = torch.cat(masses).numpy()
     table = Table(
         **system_fields(system, config.horizon),

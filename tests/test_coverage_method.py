@@ -17,14 +17,19 @@ from precompute.coverage_method import CoverageConfig, build_coverage_table, enu
 
 @pytest.fixture(scope="module")
 def small_dubins():
+    """The unapproximated method (no state budget, no early stop) beside the max-flow table."""
     system = make_system("dubins")
-    cov, facts = build_coverage_table(system, CoverageConfig(horizon=6, steps=150, target_samples=500))
+    cov, facts = build_coverage_table(system, CoverageConfig(horizon=6, steps=150, target_samples=500,
+                                                             state_budget=0, tol=0.0))
     flow, _ = build_table(system, BuildConfig(horizon=6))
     return cov, facts, flow
 
 
 def test_random_walk_is_uniform():
-    table, _ = build_coverage_table(make_system("random_walk_1d"), CoverageConfig(horizon=4, steps=400, target_samples=50))
+    # tol=0: every step; the entropy tie-breaker makes fully covered levels uniform only slowly (the early stop
+    # ends the ascent once the objective, already within 0.5% of its optimum, stops moving)
+    table, _ = build_coverage_table(make_system("random_walk_1d"),
+                                    CoverageConfig(horizon=4, steps=400, target_samples=50, tol=0.0))
     assert table.level_sizes == [1, 5, 9, 13, 17]
     for t in range(1, table.horizon + 1):
         p = table.cell_probs[table.level(t)]
@@ -92,11 +97,67 @@ def test_cli_coverage_method(tmp_path):
     report = json.loads((tmp_path / "c.report.json").read_text())
     assert report["method"] == "coverage" and report["flow_ratio"] is None
     assert report["coverage_method"]["merged_states"][0] == 1
+    out2 = tmp_path / "c2.npz"
+    assert build_cli.main(["--system", "dubins", "--method", "coverage", "--horizon", "4", "--steps", "30",
+                           "--state-budget", "100", "--tol", "0", "--out", str(out2), "--quiet", "--no-report"]) == 0
+    facts = json.loads((tmp_path / "c2.report.json").read_text())["coverage_method"]
+    assert facts["steps_run"] == 30 and facts["merge_resolutions"][-1] < 32
+    info = json.loads(read_table(out2).build_info)
+    assert info["state_budget"] == 100 and info["tol"] == 0.0
     assert read_table(out).method == "coverage"
 
 
 def test_bad_settings_are_clear_errors():
     with pytest.raises(ValueError, match="target_samples"):
         CoverageConfig(target_samples=0)
+    with pytest.raises(ValueError, match="state_budget"):
+        CoverageConfig(state_budget=-1)
+    with pytest.raises(ValueError, match="tol"):
+        CoverageConfig(tol=float("nan"))
     with pytest.raises(ValueError, match="max_states"):
         enumerate_reachable(make_system("dubins"), 6, max_states=10)
+
+
+def test_state_budget_coarsens_the_levels_that_exceed_it():
+    system = make_system("dubins")
+    exact = enumerate_reachable(system, 6)
+    assert exact.resolution == [32] * 7
+    budget = 2000
+    assert max(exact.num_states) > budget  # the budget must bind for the test to mean anything
+    coarse = enumerate_reachable(system, 6, state_budget=budget)
+    res = coarse.resolution
+    assert all(a >= b for a, b in zip(res, res[1:])) and res[-1] < 32, res
+    for t in range(7):
+        assert coarse.num_states[t] <= budget or res[t] == 1, (t, coarse.num_states[t], res)
+        if res[t] == 32:  # levels within the budget are merged exactly as without one
+            assert coarse.num_states[t] == exact.num_states[t]
+            assert torch.equal(coarse.cells[t], exact.cells[t])
+    # the coarsened levels still reach (almost) every reachable cell
+    assert len(coarse.cells[6]) >= 0.97 * len(exact.cells[6])
+
+
+def test_early_stop_and_the_exact_ascent():
+    system = make_system("dubins")
+    _, stopped = build_coverage_table(system, CoverageConfig(horizon=4, steps=300, tol=1e-3))
+    _, full = build_coverage_table(system, CoverageConfig(horizon=4, steps=300, tol=0.0))
+    assert full["steps_run"] == 300
+    assert 10 < stopped["steps_run"] < 300
+    first, last = stopped["objective_first_last"]
+    assert first == full["objective_first_last"][0]  # the same ascent, cut short
+    assert last >= 0.99 * full["objective_first_last"][1]
+
+
+def test_approximations_keep_real_coverage(small_dubins):
+    """A state budget that coarsens the last levels and the early stop cost at most a few % of real coverage."""
+    exact, _, _ = small_dubins
+    system = make_system("dubins")
+    approx, facts = build_coverage_table(system, CoverageConfig(horizon=6, steps=150, target_samples=500,
+                                                                 state_budget=1000))
+    assert facts["merge_resolutions"][-1] < 32 and facts["steps_run"] < 150
+    totals = {}
+    for name, table in (("exact", exact), ("approx", approx)):
+        policy = TablePolicy(table)
+        totals[name] = np.mean([coverage(rollout(system, policy, torch.zeros(3), 500, 6,
+                                                 torch.Generator().manual_seed(seed))[0], policy.grid).total
+                                for seed in range(3)])
+    assert totals["approx"] >= 0.95 * totals["exact"], totals
