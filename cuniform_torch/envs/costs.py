@@ -28,7 +28,7 @@ from typing import Any, Protocol, Sequence
 import torch
 from torch import Tensor
 
-from .shapes import Environment
+from .environment import Environment
 
 __all__ = ["TrajectoryCost", "NavigationCost", "goal_cost", "collision_mask"]
 

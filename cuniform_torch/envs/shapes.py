@@ -1,7 +1,8 @@
-"""2-D obstacles and the environment that holds them: batched containment and signed distance, any device.
+"""2-D obstacles: circles, rectangles and polygons, with batched containment and signed distance, any device.
 
-Shapes used in this module: ``...`` any batch shape (e.g. ``[N, T]``), V polygon vertices (= edges),
-H x W occupancy grid cells.
+Shapes used in this module: ``...`` any batch shape (e.g. ``[N, T]``), V polygon vertices (= edges).
+The occupancy grid is :mod:`.occupancy`'s, the environment that holds obstacles :mod:`.environment`'s, the
+paper's U-shaped trap :mod:`.scenes`'.
 
 Every obstacle has ``contains(xy [..., 2]) -> bool [...]`` and an ``appear_time`` (s): an obstacle is
 physically present from the start, but the robot only *senses* it from ``appear_time`` on (the paper's
@@ -10,8 +11,7 @@ time it is what the robot knows then. Circles, rectangles and polygons also have
 ``signed_distance(xy [..., 2]) -> [...]`` (Euclidean, negative inside).
 
 Queries are pure tensor ops in the dtype and on the device of ``xy``: geometry given as Python numbers is
-used as scalars, and polygon vertices are copied once per (dtype, device) and cached. An occupancy grid keeps
-the user's tensor and requires ``xy`` on its device (see :meth:`OccupancyGrid.to`).
+used as scalars, and polygon vertices are copied once per (dtype, device) and cached.
 
 Boundaries: circles and rectangles are closed (a point on the boundary is inside). A polygon uses the
 even-odd crossing rule, which is half-open: a point exactly on a polygon edge may go either way.
@@ -21,23 +21,13 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Any, Protocol, Sequence, runtime_checkable
+from typing import Any, Protocol, runtime_checkable
 
 import torch
 from torch import Tensor
 
-from ..options import Option, option_label
 
-__all__ = [
-    "Obstacle",
-    "Circle",
-    "Rect",
-    "Polygon",
-    "OccupancyGrid",
-    "Opening",
-    "u_shape",
-    "Environment",
-]
+__all__ = ["Obstacle", "Circle", "Rect", "Polygon"]
 
 
 @runtime_checkable
@@ -290,182 +280,3 @@ class Polygon:
         _check_xy(xy, "Polygon.signed_distance")
         dist = self.boundary_distance(xy)
         return torch.where(self.contains(xy), -dist, dist)
-
-
-@dataclass(frozen=True, eq=False)
-class OccupancyGrid:
-    """A boolean occupancy grid: cell ``(i, j)`` (row i, column j) covers
-    ``x in [x0 + j res, x0 + (j+1) res)`` and ``y in [y0 + i res, y0 + (i+1) res)``. Points outside are free.
-
-    ``contains`` needs ``xy`` on the device of ``occupied``; use :meth:`to` for a copy on another device.
-    """
-
-    occupied: Tensor
-    """``bool [H, W]``; row index i is y, column index j is x"""
-    origin: tuple[float, float] = (0.0, 0.0)
-    """(x0, y0): the lower-left corner of cell (0, 0), m"""
-    resolution: float = 1.0
-    """cell side, m, > 0"""
-    appear_time: float = 0.0
-    """time (s) from which the robot senses it"""
-
-    def __post_init__(self) -> None:
-        occ = self.occupied
-        if not isinstance(occ, torch.Tensor):
-            raise ValueError(f"OccupancyGrid: occupied must be a bool torch.Tensor [H, W], got {type(occ).__name__}")
-        if occ.dtype != torch.bool:
-            raise ValueError(f"OccupancyGrid: occupied must have dtype torch.bool, got {occ.dtype}")
-        if occ.ndim != 2 or occ.shape[0] < 1 or occ.shape[1] < 1:
-            raise ValueError(f"OccupancyGrid: occupied must have shape [H, W] with H, W >= 1, got {list(occ.shape)}")
-        object.__setattr__(self, "origin", _point(self.origin, "origin", "OccupancyGrid"))
-        res = _number(self.resolution, "resolution", "OccupancyGrid")
-        if res <= 0:
-            raise ValueError(f"OccupancyGrid: resolution must be > 0, got {self.resolution!r}")
-        object.__setattr__(self, "resolution", res)
-        object.__setattr__(self, "appear_time", _appear_time(self.appear_time, "OccupancyGrid"))
-
-    def to(self, device: torch.device | str) -> "OccupancyGrid":
-        """The same grid with ``occupied`` on ``device``."""
-        return OccupancyGrid(self.occupied.to(device), self.origin, self.resolution, self.appear_time)
-
-    def cell_index(self, xy: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-        """``xy [..., 2]`` -> ``(i, j, inside)``: int64 row and column ``[...]`` (0 outside), ``bool [...]``."""
-        _check_xy(xy, "OccupancyGrid.cell_index")
-        H, W = self.occupied.shape
-        fx = (xy[..., 0] - self.origin[0]) / self.resolution  # [...] column coordinate
-        fy = (xy[..., 1] - self.origin[1]) / self.resolution  # [...] row coordinate
-        inside = (fx >= 0) & (fx < W) & (fy >= 0) & (fy < H)  # NaN -> outside
-        j = torch.where(inside, fx, torch.zeros_like(fx)).floor().long().clamp(0, W - 1)
-        i = torch.where(inside, fy, torch.zeros_like(fy)).floor().long().clamp(0, H - 1)
-        return i, j, inside
-
-    def contains(self, xy: Tensor) -> Tensor:
-        """``xy [..., 2]`` -> ``bool [...]``: whether the cell under each point is occupied."""
-        _check_xy(xy, "OccupancyGrid.contains")
-        if xy.device != self.occupied.device:
-            raise ValueError(
-                f"OccupancyGrid.contains: xy is on {xy.device} but the grid is on {self.occupied.device}; "
-                f"use grid.to({str(xy.device)!r})"
-            )
-        i, j, inside = self.cell_index(xy)
-        W = self.occupied.shape[1]
-        return self.occupied.reshape(-1)[i * W + j] & inside
-
-
-# ------------------------------------------------------------------------------------------------ U-shape
-
-@option_label('opening')
-class Opening(Option):
-    """Which way the pocket of a :func:`u_shape` opens."""
-
-    POS_X = "+x"
-    NEG_X = "-x"
-    POS_Y = "+y"
-    NEG_Y = "-y"
-
-
-
-def u_shape(
-    center: Sequence[float],
-    width: float,
-    depth: float,
-    thickness: float,
-    opening: str | Opening = "+x",
-    appear_time: float = 0.0,
-) -> Polygon:
-    """A U-shaped trap as one 8-vertex :class:`Polygon`.
-
-    Geometry, for ``opening="+x"`` (the other openings are the same shape turned by 90, 180 or 270 degrees
-    about ``center``): the outer outline is the ``depth`` (along x) by ``width`` (along y) rectangle centred at
-    ``center = (cx, cy)``. Its base wall is the strip ``x in [cx - depth/2, cx - depth/2 + thickness]``; the two
-    side walls are the strips ``y in [cy - width/2, cy - width/2 + thickness]`` and
-    ``y in [cy + width/2 - thickness, cy + width/2]``, running the full depth. The free pocket is
-    ``x in (cx - depth/2 + thickness, cx + depth/2]``, ``y in (cy - width/2 + thickness, cy + width/2 - thickness)``,
-    open towards +x. A robot that approaches from the +x side and aims at a goal beyond the base (at -x) drives
-    into the pocket: the paper's U-shaped trap.
-
-    Needs ``width > 2 thickness`` and ``depth > thickness`` (so the pocket is not empty).
-    """
-    cx, cy = _point(center, "center", "u_shape")
-    w = _number(width, "width", "u_shape")
-    dpt = _number(depth, "depth", "u_shape")
-    t = _number(thickness, "thickness", "u_shape")
-    if w <= 0 or dpt <= 0 or t <= 0:
-        raise ValueError(f"u_shape: width, depth and thickness must be > 0, got {width!r}, {depth!r}, {thickness!r}")
-    if not w > 2 * t:
-        raise ValueError(f"u_shape: width ({w}) must exceed twice the thickness ({t}) to leave a pocket")
-    if not dpt > t:
-        raise ValueError(f"u_shape: depth ({dpt}) must exceed the thickness ({t}) to leave a pocket")
-    a, b = 0.5 * dpt, 0.5 * w
-    local = [  # opening towards +x, counter-clockwise
-        (a, b), (-a, b), (-a, -b), (a, -b),
-        (a, -b + t), (-a + t, -b + t), (-a + t, b - t), (a, b - t),
-    ]
-    turn = {  # exact quarter turns of the local frame
-        Opening.POS_X: lambda x, y: (x, y),
-        Opening.POS_Y: lambda x, y: (-y, x),
-        Opening.NEG_X: lambda x, y: (-x, -y),
-        Opening.NEG_Y: lambda x, y: (y, -x),
-    }[Opening.parse(opening)]
-    verts = [(cx + px, cy + py) for px, py in (turn(x, y) for x, y in local)]
-    return Polygon(verts, appear_time=appear_time)
-
-
-# ------------------------------------------------------------------------------------------------ environment
-
-@dataclass
-class Environment:
-    """Obstacles and optional workspace bounds.
-
-    ``bounds = (xmin, ymin, xmax, ymax)``: points outside (strictly) count as collisions.
-    """
-
-    obstacles: list = field(default_factory=list)
-    """objects with ``contains(xy [..., 2]) -> bool [...]`` and ``appear_time`` (see :class:`Obstacle`)"""
-    bounds: tuple[float, float, float, float] | None = None
-    """(xmin, ymin, xmax, ymax) of the workspace, or None for an unbounded plane"""
-
-    def __post_init__(self) -> None:
-        if isinstance(self.obstacles, (str, bytes)) or not isinstance(self.obstacles, (list, tuple)):
-            raise ValueError(f"Environment: obstacles must be a list, got {type(self.obstacles).__name__}")
-        self.obstacles = list(self.obstacles)
-        for k, obs in enumerate(self.obstacles):
-            if not callable(getattr(obs, "contains", None)) or not hasattr(obs, "appear_time"):
-                raise ValueError(
-                    f"Environment: obstacle {k} ({type(obs).__name__}) needs a contains(xy) method and an appear_time"
-                )
-            _appear_time(obs.appear_time, f"Environment: obstacle {k}")
-        if self.bounds is not None:
-            try:
-                b = tuple(float(v) for v in self.bounds)
-            except (TypeError, ValueError):
-                raise ValueError(f"Environment: bounds must be (xmin, ymin, xmax, ymax), got {self.bounds!r}") from None
-            if len(b) != 4 or not all(math.isfinite(v) for v in b):
-                raise ValueError(
-                    f"Environment: bounds must be 4 finite numbers (xmin, ymin, xmax, ymax), got {self.bounds!r}"
-                )
-            if not (b[0] < b[2] and b[1] < b[3]):
-                raise ValueError(f"Environment: bounds need xmin < xmax and ymin < ymax, got {b}")
-            self.bounds = b  # type: ignore[assignment]
-
-    def visible(self, time: float | None = None) -> list:
-        """The obstacles sensed at ``time`` (``appear_time <= time``); all of them for ``time=None``."""
-        if time is None:
-            return list(self.obstacles)
-        if isinstance(time, bool) or not isinstance(time, (int, float)) or math.isnan(time):
-            raise ValueError(f"Environment: time must be a number or None, got {time!r}")
-        return [obs for obs in self.obstacles if obs.appear_time <= time]
-
-    def in_collision(self, xy: Tensor, time: float | None = None) -> Tensor:
-        """``xy [..., 2]`` -> ``bool [...]``: inside an obstacle sensed at ``time`` (all for None), or outside
-        ``bounds``. Non-finite points count as collisions."""
-        _check_xy(xy, "Environment.in_collision")
-        obstacles = self.visible(time)
-        hit = ~torch.isfinite(xy).all(dim=-1)  # [...]
-        if self.bounds is not None:
-            xmin, ymin, xmax, ymax = self.bounds
-            x, y = xy[..., 0], xy[..., 1]
-            hit |= (x < xmin) | (x > xmax) | (y < ymin) | (y > ymax)
-        for obs in obstacles:
-            hit |= obs.contains(xy)
-        return hit

@@ -20,7 +20,7 @@ import torch
 from torch import Tensor
 
 from ..systems import System
-from .shapes import Environment
+from .environment import Environment
 
 __all__ = ["Controller", "SimResult", "simulate", "GOAL", "COLLISION", "TIMEOUT"]
 
