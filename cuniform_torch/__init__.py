@@ -6,7 +6,8 @@ Systems, grid, table files, the table policy, batched rollouts, noise samplers, 
 
 from .frames import se2_to_local, se2_to_world
 from .grid import CellKeys, CellSet, Grid
-from .mlp import POLICY_FORMAT, MLPConfig, MLPPolicy, MLPSupport, PolicyCheckpointError, load_policy, save_policy
+from .checkpoint import POLICY_FORMAT, PolicyCheckpointError, load_policy, save_policy
+from .mlp import MLPConfig, MLPPolicy, MLPSupport
 from .mppi import COST_CAP, CUMPPI, MPPI, CostFn, CUniformMPPI, LogMPPI, MPPICore, MPPIResult, mppi_weights
 from .policy import Fallback, TablePolicy, UniformPolicy, load_table
 from .proposals import (BankProposal, BankRefreshWarning, CompositeProposal, GaussianProposal, NormalLogNormalProposal,

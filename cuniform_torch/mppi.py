@@ -255,7 +255,7 @@ class CUniformMPPI(MPPICore):
     """C-Uniform MPPI: C-Uniform rollouts of ``policy`` from the robot's pose, softmax-weighted (paper 1).
 
     ``policy`` is a table, an MLP, any Policy with a ``system``, or a distilled checkpoint dict
-    (:func:`~cuniform_torch.mlp.load_policy` loads it). ``lambda_ = 0`` commands the best proposal's first action
+    (:func:`~cuniform_torch.checkpoint.load_policy` loads it). ``lambda_ = 0`` commands the best proposal's first action
     (as the reference robot code does). Without ``bank_size`` the proposal is a
     :class:`~cuniform_torch.proposals.PolicyProposal` (fresh rollouts every command). With ``bank_size`` it is a
     :class:`~cuniform_torch.proposals.BankProposal`: ``bank_size`` rollouts pre-sampled at the origin

@@ -33,7 +33,7 @@ from torch import Tensor
 
 from .bank import BankProposal, BankRefreshWarning  # noqa: F401  (in __all__: every proposal importable here)
 from .controller_checks import _check_dtype, check_positive_int
-from .mlp import load_policy
+from .checkpoint import load_policy
 from .rollout import Policy, PolicyTraits, RolloutPlan, open_loop, same_device
 from .samplers import GaussianSampler, NormalLogNormalSampler
 from .systems import System
@@ -170,7 +170,7 @@ class NormalLogNormalProposal(GaussianProposal):
 
 def _as_policy(policy: object, device: torch.device | None) -> Policy:
     """A Policy object, or a distilled-policy checkpoint dict (``torch.load(path, weights_only=True)``), loaded by
-    :func:`~cuniform_torch.mlp.load_policy` (which knows the format)."""
+    :func:`~cuniform_torch.checkpoint.load_policy` (which knows the format)."""
     if isinstance(policy, dict):
         return load_policy(policy, device=device)
     if not isinstance(policy, Policy):

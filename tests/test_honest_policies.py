@@ -12,7 +12,8 @@ import torch
 from cuniform_torch import (CUniformMPPI, MLPConfig, MLPPolicy, MLPSupport, PolicyCheckpointError,
                             StartMismatchWarning, TablePolicy, load_policy, make_system, rollout, system_to_json)
 from cuniform_torch.grid import Grid
-from cuniform_torch.mlp import default_feature_scale, policy_checkpoint
+from cuniform_torch.checkpoint import policy_checkpoint
+from cuniform_torch.mlp import default_feature_scale
 from cuniform_torch.rollout import RolloutPlan
 from cuniform_torch.systems import se2_invariance_gap
 from precompute.builder import BuildConfig, build_table

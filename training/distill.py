@@ -56,7 +56,8 @@ from cuniform_torch.cli import (OUT, RUNS, ArgumentParser, add_dataclass_args, a
 from cuniform_torch.metrics import coverage, uniform_ceiling
 from cuniform_torch.fileio import exclusive_lock, write_bytes, write_json
 from cuniform_torch.grid import Grid
-from cuniform_torch.mlp import MLPConfig, MLPPolicy, default_feature_scale, file_sha256, policy_checkpoint, save_policy
+from cuniform_torch.checkpoint import file_sha256, policy_checkpoint, save_policy
+from cuniform_torch.mlp import MLPConfig, MLPPolicy, default_feature_scale
 from cuniform_torch.policy import TablePolicy
 from cuniform_torch.rollout import rollout
 from cuniform_torch.table import Table, read_table
