@@ -4,7 +4,9 @@
 parameters, the seeds). ``DIR/episodes.jsonl`` holds one JSON record per finished episode, appended and
 flushed to disk as each finishes. A rerun into the same folder with the same settings runs only the episodes
 whose key is not there yet (more tasks, methods, budgets or repeats extend a run); with different settings it
-is refused, naming the settings that differ, since its records would not be comparable. A line cut short by a
+is refused, naming the settings that differ, since its records would not be comparable. The digests of the
+files the methods read (:data:`MERGED`) merge: a method that reads a new file (the MLP, say) may join later,
+but a different file under the same name is refused. A line cut short by a
 crash (the last one) is dropped with a warning; a bad line elsewhere is an error.
 """
 
@@ -25,6 +27,22 @@ class StoreError(ValueError):
     """An output folder whose settings or records cannot be used for this run."""
 
 
+MERGED = "sources"
+"""the settings key whose entries (file digests of the methods' sources) merge: a source a run does not use is
+None and matches anything, so a run that adds a method reading a new file extends the folder"""
+
+
+def _merge_files(old: dict, new: dict) -> tuple[dict, list[str]]:
+    """``old`` updated with ``new``'s non-None entries, and the keys where both are set and differ."""
+    clash = sorted(k for k in set(old) & set(new) if None not in (old[k], new[k]) and old[k] != new[k])
+    return {**old, **{k: v for k, v in new.items() if v is not None}}, clash
+
+
+def _get(settings: dict, key: str):
+    head, _, sub = key.partition(".")
+    return (settings.get(head) or {}).get(sub) if sub else settings.get(head)
+
+
 class EpisodeStore:
     """``settings.json`` + ``episodes.jsonl`` under ``folder`` (module docstring)."""
 
@@ -42,11 +60,15 @@ class EpisodeStore:
                 old = json.loads(self.settings_file.read_text())
             except (OSError, ValueError) as err:
                 raise StoreError(f"{self.settings_file}: unreadable ({err}); use another --out") from None
-            differ = sorted(k for k in set(old) | set(settings) if old.get(k) != settings.get(k))
+            differ = sorted(k for k in set(old) | set(settings) if k != MERGED and old.get(k) != settings.get(k))
+            merged, clash = _merge_files(old.get(MERGED) or {}, settings.get(MERGED) or {})
+            differ += [f"{MERGED}.{k}" for k in clash]
             if differ:
-                shown = "; ".join(f"{k}: {old.get(k)!r} there, {settings.get(k)!r} now" for k in differ[:4])
+                shown = "; ".join(f"{k}: {_get(old, k)!r} there, {_get(settings, k)!r} now" for k in differ[:4])
                 raise StoreError(f"{self.folder} holds episodes run with other settings ({shown}); "
                                  f"use another --out, or delete {self.folder} to start over")
+            if merged != (old.get(MERGED) or {}):  # a method read a file for the first time: remember it
+                write_json(self.settings_file, {**old, MERGED: merged})
         else:
             write_json(self.settings_file, settings)
         return self._read()

@@ -243,3 +243,17 @@ def test_success_pivot_marks_methods_against_the_best_baseline():
     assert "| mppi_1.0 | 0.90 [0.80, 1.00] (best) |" in lines
     assert "| cu_table | 0.50 [0.40, 0.60] - |" in lines
     assert "| uniform | 0.95 [0.85, 1.00] |" in lines
+
+
+def test_store_merges_new_source_files_and_refuses_changed_ones(tmp_path):
+    from eval.nav_store import EpisodeStore, StoreError
+
+    base = dict(suite="barn", lambda_=0.5, sources=dict(table="aa", policy=None))
+    EpisodeStore(tmp_path).open(base)
+    EpisodeStore(tmp_path).open({**base, "sources": dict(table="aa", policy="pp")})  # the MLP joins
+    assert json.loads((tmp_path / "settings.json").read_text())["sources"] == dict(table="aa", policy="pp")
+    EpisodeStore(tmp_path).open(base)  # a later run without the MLP still fits
+    with pytest.raises(StoreError, match="sources.policy"):
+        EpisodeStore(tmp_path).open({**base, "sources": dict(table="aa", policy="other")})
+    with pytest.raises(StoreError, match="sources.table"):
+        EpisodeStore(tmp_path).open({**base, "sources": dict(table="bb", policy=None)})
