@@ -11,14 +11,15 @@ level sets. This method works on the states that real rollouts can reach:
    state as the representative, so the approximation error is below 1/merge_resolution of a cell per step).
    The level set L_t is the set of cells of these states: exactly the cells real rollouts reach.
    A level that would hold more than ``state_budget`` merged states is merged more coarsely (the resolution
-   is cut by a quarter, from that level on, until it fits): the cost of every later stage is linear in the merged states,
-   whose number grows geometrically with the horizon at a fixed resolution (``state_budget=0``: never coarsen).
+   is cut by a quarter, from that level on, until it fits): the cost of every later stage is linear in the
+   merged states, whose number grows geometrically with the horizon at a fixed resolution (``state_budget=0``:
+   never coarsen).
 2. **Propagate** the state distribution exactly: a state in cell c takes action u with probability
    ``softmax(theta[t, c])[u]`` and moves deterministically to its successor state.
 3. **Maximize** the expected number of distinct cells that N samples cover at every level,
-   ``sum_t sum_c 1 - (1 - P_t(c))^N`` (``target_samples`` = N), over the logits theta by gradient ascent (Adam,
-   autograd through the propagation). Perfect uniformity over L_t is the optimum when N is large; a finite N
-   trades uniformity for reaching more cells. The ascent stops early once the objective gained less than
+   ``sum_t sum_c 1 - (1 - P_t(c))^N`` (``target_samples`` = N), over the logits theta by gradient ascent (Adam;
+   the gradient by the adjoint of the propagation, :mod:`precompute.coverage_adjoint`). Perfect uniformity over
+   L_t is the optimum when N is large; a finite N trades uniformity for reaching more cells. The ascent stops early once the objective gained less than
    ``tol`` (relative) over the last ``CONVERGENCE_WINDOW`` steps (``tol=0``: always ``steps`` iterations).
 
 The table has the same format as the max-flow tables (``method`` = "coverage"): its level sets are the reachable
@@ -42,10 +43,13 @@ from cuniform_torch.grid import CellKeys, Grid
 from cuniform_torch.systems import System
 from cuniform_torch.table import Table, system_fields
 
+from .coverage_adjoint import StatePropagator
+
 CONVERGENCE_WINDOW = 10
 """steps over which the early stop (``CoverageConfig.tol``) measures the objective's relative gain"""
 
-__all__ = ["CoverageConfig", "ReachableLevels", "enumerate_reachable", "optimize_coverage", "build_coverage_table"]
+__all__ = ["CoverageConfig", "ReachableLevels", "enumerate_reachable", "coverage_objective", "optimize_coverage",
+           "build_coverage_table"]
 
 
 @dataclass(frozen=True)
@@ -204,23 +208,42 @@ def _converged(history: list[float], tol: float) -> bool:
     return gain < tol * abs(history[-1])
 
 
+def coverage_objective(cell_masses: list[torch.Tensor], config: CoverageConfig) -> torch.Tensor:
+    """The ascent's objective from the cell masses ``[n_t]`` of levels 1..T: summed expected coverage of
+    ``target_samples`` draws plus the entropy tie-breaker."""
+    objective = sum(expected_coverage(m, config.target_samples) for m in cell_masses)
+    if config.entropy_weight:
+        objective = objective + config.entropy_weight * sum(normalized_entropy(m) for m in cell_masses if len(m) > 1)
+    return objective
+
+
+def _ascent_step(propagator: StatePropagator, logits: list[torch.Tensor], config: CoverageConfig) -> float:
+    """Set ``logits[t].grad`` to minus the objective's gradient (the adjoint over the states, autograd over the
+    small per-cell parts); returns the objective."""
+    probs = [torch.softmax(l, dim=1) for l in logits]  # [n_t, A], differentiable in the logits
+    with torch.no_grad():
+        cells = propagator.forward([p.detach() for p in probs])
+    leaves = [c.requires_grad_() for c in cells[1:]]
+    objective = coverage_objective(leaves, config)
+    cell_grads = [torch.zeros_like(cells[0])] + list(torch.autograd.grad(objective, leaves))
+    with torch.no_grad():
+        prob_grads = propagator.backward([p.detach() for p in probs], cell_grads)
+    torch.autograd.backward(probs, [-g for g in prob_grads])
+    return float(objective.detach())
+
+
 def optimize_coverage(levels: ReachableLevels, num_actions: int, config: CoverageConfig,
                       progress: Callable[[int, float], None] | None = None) -> tuple[list[torch.Tensor], list[float]]:
     """Logits ``[n_t, A]`` per level t < T maximizing the summed expected coverage; and the history of the objective."""
     dtype = torch.float32 if config.float32 else torch.float64
     logits = [torch.zeros((len(c), num_actions), dtype=dtype, requires_grad=True) for c in levels.cells[:-1]]
     opt = torch.optim.Adam(logits, lr=config.lr)
+    propagator = StatePropagator(levels, num_actions, dtype)
     history: list[float] = []
     for step in range(config.steps):
         opt.zero_grad()
-        masses = _propagate(levels, logits)
-        objective = sum(expected_coverage(m, config.target_samples) for m in masses[1:])
-        if config.entropy_weight:
-            objective = objective + config.entropy_weight * sum(
-                normalized_entropy(m) for m in masses[1:] if len(m) > 1)
-        (-objective).backward()
+        history.append(_ascent_step(propagator, logits, config))
         opt.step()
-        history.append(float(objective.detach()))
         if progress is not None:
             progress(step, history[-1])
         if _converged(history, config.tol):
