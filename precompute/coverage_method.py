@@ -116,8 +116,12 @@ def _index_cells(cells: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
 def _merge(nxt: torch.Tensor, cell_size: torch.Tensor, resolution: int) -> tuple[int, torch.Tensor]:
     """Merge states ``[K, d]`` per bin of ``cell_size / resolution``: the number of bins and each state's bin."""
     binned = torch.round(nxt / (cell_size / resolution)).long()
-    keys = CellKeys.covering(binned)
-    uniq, inverse = torch.unique(keys.pack(binned), return_inverse=True)
+    box = CellKeys.covering(binned)  # refuses a box too large for int64 keys
+    lo, span = box.lo.tolist(), box.span.tolist()
+    keys = binned[:, 0] - lo[0]
+    for i in range(1, binned.shape[1]):  # mixed radix over d dims; CellKeys.pack's inside test is moot here
+        keys = keys.mul_(span[i]).add_(binned[:, i]).sub_(lo[i])
+    uniq, inverse = torch.unique(keys, return_inverse=True)
     return len(uniq), inverse
 
 
