@@ -19,8 +19,9 @@ level sets. This method works on the states that real rollouts can reach:
 3. **Maximize** the expected number of distinct cells that N samples cover at every level,
    ``sum_t sum_c 1 - (1 - P_t(c))^N`` (``target_samples`` = N), over the logits theta by gradient ascent (Adam;
    the gradient by the adjoint of the propagation, :mod:`precompute.coverage_adjoint`). Perfect uniformity over
-   L_t is the optimum when N is large; a finite N trades uniformity for reaching more cells. The ascent stops early once the objective gained less than
-   ``tol`` (relative) over the last ``CONVERGENCE_WINDOW`` steps (``tol=0``: always ``steps`` iterations).
+   L_t is the optimum when N is large; a finite N trades uniformity for reaching more cells. The ascent stops
+   early once the objective gained less than ``tol`` (relative) over the last ``CONVERGENCE_WINDOW`` steps
+   (``tol=0``: always ``steps`` iterations).
 
 The table has the same format as the max-flow tables (``method`` = "coverage"): its level sets are the reachable
 cells, ``cell_probs`` the exact propagated cell masses, ``transitions`` the mass-weighted fraction of each
@@ -161,7 +162,7 @@ def enumerate_reachable(system: System, horizon: int, merge_resolution: int = 32
         count, inverse, resolution = _merge_within(nxt, cell_size, resolution, state_budget)
         if count > max_states:
             raise ValueError(f"level {t + 1} has {count} merged states (> max_states={max_states}); "
-                             f"lower --merge-resolution")
+                             f"lower --merge-resolution or --state-budget")
         first = torch.full((count,), M * A, dtype=torch.int64).scatter_reduce(
             0, inverse, torch.arange(M * A), reduce="amin")
         x = nxt[first]  # representatives [M', d]
