@@ -62,7 +62,7 @@ class NavConfig:
     budgets: tuple[int, ...] = (256, 1024)
     """K, trajectories per control cycle (each >= 2)"""
     methods: tuple[str, ...] | None = None
-    """method keys (default: all but cu_coverage and cu_mlp)"""
+    """method keys (default: all but cu_mlp)"""
     repeats: int | None = None
     """controller seeds per task (default: 1, the gap suite 5)"""
     seed: int = 0
@@ -277,8 +277,7 @@ def short_run(root: Path, quick: bool = False, progress: bool = True) -> dict:
 def make_parser() -> ArgumentParser:
     p = ArgumentParser(prog="python -m eval.navigate", description=(__doc__ or "").split("\n\n")[0])
     add_dataclass_args(p, NavConfig, flags={"lambda_": "--lambda"}, choices={"suite": SUITES},
-                       help={"methods": f"method keys, of {', '.join(NAV_METHODS)} (default: all but cu_coverage "
-                                        "and cu_mlp)"})
+                       help={"methods": f"method keys, of {', '.join(NAV_METHODS)} (default: all but cu_mlp)"})
     p.add_argument("--ray", nargs="?", const="local", default=None, metavar="ADDRESS",
                    help="run episodes as Ray tasks: a local Ray runtime, or the cluster at ADDRESS ('auto', "
                         "'ray://host:10001'); needs pip install -e '.[ray]'")
