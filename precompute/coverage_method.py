@@ -74,8 +74,9 @@ class CoverageConfig:
     state_budget: int = 2_000_000
     """merged states per level: a level with more is merged with a quarter less resolution (repeatedly, and so
     are the later levels) until it fits; 0 keeps merge_resolution on every level (the unapproximated enumeration)"""
-    tol: float = 1e-3
-    """stop the ascent when the objective gained less than this fraction over the last 10 steps; 0 runs all steps"""
+    tol: float = 0.0
+    """stop the ascent when the objective gained less than this fraction over the last 10 steps; 0 (default) runs
+    all steps. 1e-3 halves the default preset's build (89 of 300 steps) for 0.6% less coverage at N = 1000"""
     float32: bool = True
     """run the gradient ascent in float32 (about 2x faster); the final propagation is float64"""
 
