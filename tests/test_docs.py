@@ -98,3 +98,14 @@ def test_readme_command_parses(command, monkeypatch, tmp_path, capsys, registry_
     except SystemExit as exc:  # --help exits 0; a bad flag exits 2 with its error line
         code = exc.code
     assert code == 0, f"README command does not parse: {command}\n{capsys.readouterr().err}"
+
+
+def test_readme_gymnasium_example_runs():
+    """The README's gymnasium example, executed as shown."""
+    pytest.importorskip("gymnasium")
+    block = next(b for b in re.findall(r"```python\n(.*?)```", README.read_text(), flags=re.S)
+                 if "from eval.gym_env import make_env" in b)
+    scope: dict = {}
+    exec(compile(block, "README.md", "exec"), scope)
+    assert scope["env"].observation_space.contains(scope["obs"])
+    assert scope["info"]["outcome"] in (None, "goal", "collision", "timeout")
