@@ -175,7 +175,10 @@ class MLPPolicy(nn.Module):
         # not persistent: they follow .to() but stay out of the state_dict (the config holds them)
         self.register_buffer("_box_half", half[self._linear], persistent=False)  # [d_lin]
         self.register_buffer("_box_cell", torch.tensor(self._grid.cell_size)[self._linear], persistent=False)
-        self._start_watch = StartWatch(f"MLP policy ({system.name})", system)
+        # the build start: the centre of the support's level-0 cell (a table built at a start other than the zero
+        # state), else the zero state
+        start = None if support is None else self._grid.centers(support.cells[:1])[0]
+        self._start_watch = StartWatch(f"MLP policy ({system.name})", system, start)
         self.reset_counters()
 
     @property

@@ -109,7 +109,8 @@ class TablePolicy:
         self.entry_row = self.index.entry_row  # [C + H] table row of each entry
         self.num_cells = self.index.num_cells
         self.num_halo = self.index.num_entries - self.num_cells
-        self._start_watch = StartWatch(f"table policy ({self.system.name})", self.system)
+        build_start = None if getattr(table, "start", None) is None else torch.from_numpy(table.start)
+        self._start_watch = StartWatch(f"table policy ({self.system.name})", self.system, build_start)
         self.kernel = self._choose_kernel(Kernel.parse(kernel), compile)
         # the numba kernel compiles (or loads from numba's disk cache) now, not in the first control cycle
         self._numba = cpu_kernels.NumbaKernel(self.index) if self.kernel is Kernel.NUMBA else None
@@ -138,7 +139,7 @@ class TablePolicy:
 
     @property
     def build_start(self) -> Tensor:
-        """The start the table was built from, ``[d]`` float64 (the zero state)."""
+        """The start the table was built from, ``[d]`` float64 (the table's ``start``, else the zero state)."""
         return self._start_watch.build_start
 
     def watch_start(self, x0: Tensor, relative: bool) -> Callable[[], None] | None:

@@ -51,7 +51,9 @@ _OPTIONAL_ARRAYS: dict[str, tuple[np.dtype, int]] = {
     "transition_frac": (np.dtype(np.float64), 1),
 }
 _OPTIONAL_STRINGS = ("method", "build_info")
-_KNOWN_KEYS = {"format", *_REQUIRED, *_OPTIONAL_ARRAYS, *_OPTIONAL_STRINGS}
+_OPTIONAL_META: dict[str, tuple[np.dtype, int]] = {"start": (np.dtype(np.float64), 1)}
+"""optional arrays a policy reads (unlike the graph's): ``start [d]``, the state the table was built from"""
+_KNOWN_KEYS = {"format", *_REQUIRED, *_OPTIONAL_ARRAYS, *_OPTIONAL_STRINGS, *_OPTIONAL_META}
 
 
 
@@ -78,6 +80,7 @@ class Table:
     flow_target: np.ndarray  # [T] int64
     method: str | None = None
     build_info: str | None = None
+    start: np.ndarray | None = None  # [d] float64: the build start; None: the zero state
     arc_offsets: np.ndarray | None = None  # [T+1] int64
     arcs: np.ndarray | None = None  # [E, 2] int64
     arc_flow: np.ndarray | None = None  # [E] int64
@@ -218,7 +221,7 @@ def _read_members(zf: zipfile.ZipFile, path: Path, graph: bool) -> dict[str, np.
     missing = sorted(set(_REQUIRED) - set(members))
     if missing:
         raise TableError(f"{path}: missing required key(s) {', '.join(missing)}")
-    for key, (dtype, ndim) in {**_REQUIRED, **_OPTIONAL_ARRAYS}.items():
+    for key, (dtype, ndim) in {**_REQUIRED, **_OPTIONAL_ARRAYS, **_OPTIONAL_META}.items():
         if key in headers and dtype is not None and (headers[key][1] != dtype or len(headers[key][0]) != ndim):
             raise TableError(f"{path}: key {key!r} must be {dtype} with {ndim} dimension(s), "
                              f"got {headers[key][1]} {list(headers[key][0])}")
@@ -228,6 +231,7 @@ def _read_members(zf: zipfile.ZipFile, path: Path, graph: bool) -> dict[str, np.
         read(key)
     C, d, A = int(arrays["level_offsets"][-1]) if len(arrays["level_offsets"]) else 0, len(arrays["cell_size"]), \
         len(arrays["actions"])
+    read("start", (d,))
     read("cells", (C, d))
     read("action_probs", (C, A))
     read("cell_probs", (C,))

@@ -85,7 +85,14 @@ def validate_table(table: Any, source: str = "table", check_system: bool = True,
             fail(f"cells of angle dimension {dim} must lie in [0, {k})")
     if table.method is not None and table.method not in KNOWN_METHODS:
         fail(f"unknown method {table.method!r}; known: {', '.join(KNOWN_METHODS)}")
-    _validate_cells(table, T, fail)
+    start_cell = np.zeros(d, dtype=np.int64)
+    start = getattr(table, "start", None)
+    if start is not None:
+        start = np.asarray(start)
+        if start.shape != (d,) or start.dtype != np.float64 or not np.all(np.isfinite(start)):
+            fail(f"start must be {d} finite float64 numbers (the build start), got {start.dtype} {list(start.shape)}")
+        start_cell = grid.cells(torch.from_numpy(start)[None])[0].numpy()
+    _validate_cells(table, T, fail, start_cell)
     _validate_graph(table, "arc", ("arcs", "arc_flow"), 2, T, C, A, fail)
     _validate_graph(table, "transition", ("transitions", "transition_frac"), 3, T, C, A, fail)
     if check_system:
@@ -96,8 +103,8 @@ _MAX_KEY_CELLS = 2**53  # the runtime packs a cell exactly into a float64 key
 _MAX_PACKED = 2**62  # (level, cell) keys in int64, as cuniform_torch.grid.CellKeys packs them
 
 
-def _validate_cells(table: Any, T: int, fail) -> None:
-    """Level 0 is the start cell; every level's cells are distinct, in ascending (row-major) order, as the
+def _validate_cells(table: Any, T: int, fail, start_cell: np.ndarray) -> None:
+    """Level 0 is the start cell (of ``start``, else the zero state); every level's cells are distinct, in ascending (row-major) order, as the
     builders write them; the (level, cell) box with its one-cell halo packs into the runtime's keys."""
     cells, lo = table.cells, table.level_offsets
     box = 1
@@ -109,8 +116,8 @@ def _validate_cells(table: Any, T: int, fail) -> None:
     if box >= _MAX_KEY_CELLS or box * (T + 1) >= _MAX_PACKED:
         fail(f"the cells span a box of {box} cells (with the runtime's one-cell halo), too large to pack into keys "
              f"(at most 2^53); cell indices range over {cells.min(axis=0).tolist()} .. {cells.max(axis=0).tolist()}")
-    if lo[1] != 1 or np.any(cells[0] != 0):
-        fail(f"level 0 must be the single start cell {[0] * cells.shape[1]} (the zero state's cell), got "
+    if lo[1] != 1 or np.any(cells[0] != start_cell):
+        fail(f"level 0 must be the single start cell {start_cell.tolist()} (the build start's cell), got "
              f"{lo[1]} cell(s) starting with {cells[0].tolist()}")
     if len(cells) > 1:
         diff = cells[1:] - cells[:-1]  # [C-1, d]: the first non-zero entry of each row gives the order

@@ -95,7 +95,10 @@ def make_parser() -> argparse.ArgumentParser:
     parser.add_argument("--out", type=Path, default=None, help=f"table file to write (default: {OUT}/<system>.npz)")
     parser.add_argument("--horizon", type=int, default=None,
                         help=f"number of steps T (default: the system's default_horizon, else {DEFAULT_HORIZON})")
-    add_dataclass_args(parser, BuildConfig, only=("points", "points_per_cell", "seed", "ties"), help={
+    add_dataclass_args(parser, BuildConfig, only=("points", "points_per_cell", "seed", "ties", "start"), help={
+        "start": "the state to build from, one number per state dimension (default: the zero state); an "
+                 "SE(2)-invariant system's x, y, theta must be 0 (its table serves every pose), e.g. --system ks_speed "
+                 "--start 0 0 0 0.5",
         "points": "sample points per cell: centers (level sets from cell centres, transitions from the 3^d "
                   "lattice), lattice (level sets from all lattice points), random (centre + K random points)",
         "points_per_cell": "K random points per cell for --points random",

@@ -31,6 +31,7 @@ from cuniform_torch.table import Table, system_fields
 
 from .levels import LevelStep, PointMode, TieRule, next_level
 from .maxflow import action_probs_from_flow, solve_maxflow, unique_arcs
+from .start import check_start, start_array, start_state
 
 __all__ = ["BuildConfig", "BuildStats", "ResumeError", "build_settings", "check_resume", "build_table", "propagate_cell_probs", "SizeGuide", "project_level_sizes",
            "estimate_build_bytes", "available_memory_bytes"]
@@ -47,12 +48,15 @@ class BuildConfig:
     ties: TieRule = TieRule.SYMMETRIC
     """how a step onto a cell boundary is assigned: ``symmetric`` (away from its source cell, the authors' level
     sets) or ``grid`` (the state's own cell; the grid offset decides)"""
+    start: tuple[float, ...] | None = None
+    """the state the table is built from (default: the zero state); an SE(2)-invariant system's pose must be 0"""
 
     def __post_init__(self) -> None:
         if isinstance(self.horizon, bool) or not isinstance(self.horizon, int) or self.horizon < 1:
             raise ValueError(f"horizon must be a positive integer (steps), got {self.horizon!r}")
         object.__setattr__(self, "points", PointMode.parse(self.points))
         object.__setattr__(self, "ties", TieRule.parse(self.ties))
+        object.__setattr__(self, "start", check_start(self.start))
         if self.points is PointMode.RANDOM and self.points_per_cell < 1:
             raise ValueError(f"points_per_cell must be >= 1, got {self.points_per_cell}")
 
@@ -184,7 +188,8 @@ def build_table(
     progress: Callable[[int, StepResult], None] | None = None,
     method: str = "maxflow",
 ) -> tuple[Table, BuildStats]:
-    """Build the C-Uniform table of ``system`` from the origin for ``config.horizon`` steps.
+    """Build the C-Uniform table of ``system`` from ``config.start`` (default: the zero state) for
+    ``config.horizon`` steps.
 
     ``progress(t, step)`` is called after each step t -> t+1. With ``checkpoint_dir`` every step is saved there,
     with the build's settings (:func:`build_settings`); ``resume=True`` reuses the saved steps of a build with
@@ -196,7 +201,7 @@ def build_table(
     if ckpt is not None:
         write_json(ckpt / MANIFEST, build_settings(system, config))
     grid = Grid.of(system)
-    x0 = torch.zeros((1, len(system.periodic)), dtype=torch.float64)
+    x0 = start_state(system, config.start)  # [1, d]
     level_cells = [grid.cells(x0).numpy()]  # L_0: the start cell
     steps: list[StepResult] = []
     for t in range(config.horizon):
@@ -242,7 +247,7 @@ def _assemble(system: System, config: BuildConfig, level_cells: list[np.ndarray]
         "points_per_cell": config.points_per_cell if config.points is PointMode.RANDOM else None,
         "seed": config.seed if config.points is PointMode.RANDOM else None,
         "lattice_scale": "delta/2.01",
-        "origin": "start cell of the zero state",
+        "origin": "start cell of the zero state" if config.start is None else f"start cell of {list(config.start)}",
         "zero_outflow_cells": [s.zero_outflow for s in steps],
         "versions": {"python": platform.python_version(), "numpy": np.__version__, "scipy": scipy.__version__,
                      "torch": torch.__version__.split("+")[0]},
@@ -257,6 +262,7 @@ def _assemble(system: System, config: BuildConfig, level_cells: list[np.ndarray]
         flow_target=(sizes[:-1] * sizes[1:]).astype(np.int64),
         method=method,
         build_info=json.dumps(build_info, sort_keys=True),
+        start=start_array(config.start),
         arc_offsets=np.concatenate(([0], np.cumsum(arc_counts))).astype(np.int64),
         arcs=arcs.astype(np.int64),
         arc_flow=np.concatenate([s.arc_flow for s in steps]).astype(np.int64),

@@ -71,7 +71,7 @@ def uniformity_report(
         raise ValueError(f"num_rollouts must be positive, got {N}")
     policy = TablePolicy(table, device=device)
     gen = torch.Generator(device=policy.device).manual_seed(seed)
-    x0 = torch.zeros(policy.grid.dim, device=policy.device)
+    x0 = policy.build_start.to(device=policy.device, dtype=torch.float32)  # [d] the table's start
     states, _ = rollout(policy.system, policy, x0, N, table.horizon, generator=gen)  # [N, T+1, d]
     floor_gen = torch.Generator().manual_seed(seed + 1)
     levels = []

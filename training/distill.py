@@ -355,7 +355,7 @@ def _distill(cfg: DistillConfig) -> int:
             writer.add_text("hyperparameters", "|param|value|\n|-|-|\n" + "\n".join(
                 f"|{k}|{v}|" for k, v in dataclasses.asdict(cfg).items()))
         table_policy = TablePolicy(table, device=device)
-        x0 = torch.zeros(grid.dim, device=device)
+        x0 = table_policy.build_start.to(device=device, dtype=torch.float32)  # [d] the table's start
         figure_n = cfg.eval_samples[0]
         table_paths, _ = rollout(system, table_policy, x0, 200, T, torch.Generator(device).manual_seed(cfg.seed))
         table_states, _ = rollout(system, table_policy, x0, figure_n, T, torch.Generator(device).manual_seed(cfg.seed))

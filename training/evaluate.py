@@ -123,7 +123,7 @@ def coverage_comparison(policy: Policy, table: Table, num_samples: int, seed: in
     grid = Grid.of(system)
     T = table.horizon
     tp = table_policy if table_policy is not None else TablePolicy(table, device=device)
-    x0 = torch.zeros(grid.dim, dtype=tp.dtype, device=tp.device)
+    x0 = tp.build_start.to(dtype=tp.dtype, device=tp.device)  # [d] the table's start
     result: dict[str, Any] = {"num_samples": num_samples}
     for name, pol in (("table", tp), ("policy", policy)):
         gen = torch.Generator(device=tp.device).manual_seed(seed)
