@@ -115,6 +115,13 @@ def make_parser() -> argparse.ArgumentParser:
     docs = field_docs(CoverageConfig)
     add_dataclass_args(parser, CoverageConfig, only=COVERAGE_ONLY,
                        help={name: f"coverage method: {docs[name]}" for name in COVERAGE_ONLY})
+    parser.add_argument("--starts", default=None, metavar="SPEC",
+                        help="build a table set, one table per start, into the folder --out: a grid 'DIM=LO:HI:N ...' "
+                             "or a seeded sample 'random:N DIM=LO:HI ...' over the non-pose dimensions "
+                             "(precompute/table_set.py)")
+    parser.add_argument("--workers", type=int, default=1, help="with --starts: tables built in parallel processes")
+    parser.add_argument("--ray", nargs="?", const="local", default=None, metavar="ADDRESS",
+                        help="with --starts: tables as Ray tasks (a local runtime, or the cluster at ADDRESS)")
     parser.add_argument("--resume", action="store_true", help="continue an interrupted build from its checkpoints (maxflow)")
     parser.add_argument("--rollouts", type=int, default=None, help="rollouts for the report (default: 10 x largest level)")
     parser.add_argument("--no-report", action="store_true", help="skip the uniformity report")
@@ -265,23 +272,17 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.threads:
         torch.set_num_threads(args.threads)
     try:
-        return _run(args)
+        return _run(args, argv)
     finally:  # a caller in the same process (eval.report) keeps its own setting
         torch.set_num_threads(previous)
 
 
-def _run(args: argparse.Namespace) -> int:
-    params = {k[4:]: v for k, v in vars(args).items() if k.startswith("sys_") and v is not None}
-    for key, value in params.items():
-        if isinstance(value, list):
-            params[key] = tuple(value)
-    extra_params = _parse_params(args.param)
-    both = sorted(set(params) & set(extra_params))
-    if both:
-        raise ValueError(f"parameter(s) {', '.join(both)} given both as a flag and as --param")
-    params.update({k: tuple(v) if isinstance(v, list) else v for k, v in extra_params.items()})
-    name = resolve_system(args.system)
-    system = _make_system(args.system, name, params)
+def _run(args: argparse.Namespace, argv: Sequence[str] = ()) -> int:
+    name, system = _system_of(args)
+    if args.starts is not None:
+        return _run_set(args, argv, name, system)
+    if args.workers != 1 or args.ray is not None:
+        raise ValueError("--workers and --ray build a table set: give --starts too")
     horizon = system_horizon(system) if args.horizon is None else args.horizon
     config = dataclass_from_args(BuildConfig, args, horizon=horizon)
     out: Path = args.out or OUT / f"{name}.npz"
@@ -293,6 +294,38 @@ def _run(args: argparse.Namespace) -> int:
     _check_device(args.device)
     with exclusive_lock(out.with_name(out.name + ".lock"), what=f"--out {out}"):
         return _build(args, system, horizon, config, out)
+
+
+def _run_set(args: argparse.Namespace, argv: Sequence[str], name: str, system) -> int:
+    """``--starts``: every start's table into the folder ``--out`` (:mod:`precompute.table_set`)."""
+    from .table_set import build_set, parse_starts
+
+    if getattr(args, "start", None) is not None:
+        raise ValueError("give --start (one table) or --starts (a table set), not both")
+    if args.workers < 1:
+        raise ValueError(f"--workers must be >= 1, got {args.workers}")
+    starts = parse_starts(args.starts, system, seed=getattr(args, "seed", 0))
+    out: Path = args.out or OUT / f"{name}_set"
+    if out.suffix == ".npz":
+        raise ValueError(f"--out {out}: a table set is a folder (e.g. --out out/{name}_set)")
+    with exclusive_lock(out / ".lock", what=f"the table set {out}"):
+        return build_set(argv, system, starts, out, workers=args.workers, ray_address=args.ray, method=args.method,
+                         quiet=args.quiet)
+
+
+def _system_of(args: argparse.Namespace):
+    """The registry name and the system the flags describe."""
+    params = {k[4:]: v for k, v in vars(args).items() if k.startswith("sys_") and v is not None}
+    for key, value in params.items():
+        if isinstance(value, list):
+            params[key] = tuple(value)
+    extra_params = _parse_params(args.param)
+    both = sorted(set(params) & set(extra_params))
+    if both:
+        raise ValueError(f"parameter(s) {', '.join(both)} given both as a flag and as --param")
+    params.update({k: tuple(v) if isinstance(v, list) else v for k, v in extra_params.items()})
+    name = resolve_system(args.system)
+    return name, _make_system(args.system, name, params)
 
 
 def _build(args: argparse.Namespace, system, horizon: int, config: BuildConfig, out: Path) -> int:

@@ -271,7 +271,7 @@ def test_the_build_runs_on_one_thread_and_gives_the_caller_its_own_back(tmp_path
     monkeypatch.setattr(torch, "set_num_threads", lambda n: (calls.append(n), real(n))[1])
     before = torch.get_num_threads()
     seen = []
-    monkeypatch.setattr(build_cli, "_run", lambda args: seen.append(torch.get_num_threads()) or 0)
+    monkeypatch.setattr(build_cli, "_run", lambda args, argv=(): seen.append(torch.get_num_threads()) or 0)
     assert build_cli.main(["--horizon", "2", "--out", str(tmp_path / "t.npz"), "--quiet"]) == 0
     assert seen == [1] and torch.get_num_threads() == before and calls == [1, before]
     calls.clear()

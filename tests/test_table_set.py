@@ -1,0 +1,84 @@
+"""Table sets: ``python -m precompute.build --starts SPEC --out DIR`` (precompute/table_set.py)."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from cuniform_torch import make_system, read_table
+from precompute.build import main
+from precompute.table_set import parse_starts
+
+WALK = ["--system", "random_walk_1d", "--horizon", "4", "--quiet"]
+
+
+def _build(folder, *extra) -> int:
+    return main([*WALK, "--starts", "0=-1:1:5", "--out", str(folder), *extra])
+
+
+def _tables(folder) -> dict[str, bytes]:
+    return {p.name: p.read_bytes() for p in sorted(folder.glob("start_*.npz"))}
+
+
+def test_serial_and_parallel_sets_are_the_same_tables(tmp_path):
+    assert _build(tmp_path / "serial") == 0
+    assert _build(tmp_path / "workers", "--workers", "2") == 0
+    serial = _tables(tmp_path / "serial")
+    assert len(serial) == 5 and serial == _tables(tmp_path / "workers")  # byte for byte
+    index = json.loads((tmp_path / "serial" / "tables.json").read_text())
+    assert index["format"] == "cuniform-table-set/1" and index["system"] == "random_walk_1d"
+    starts = [t["start"] for t in index["tables"]]
+    assert starts == [[-1.0], [-0.5], [0.0], [0.5], [1.0]]
+    for entry in index["tables"]:  # each table records its start, and level 0 is that start's cell
+        table = read_table(tmp_path / "serial" / entry["file"])
+        assert table.start.tolist() == entry["start"]
+        assert table.cells[0].tolist() == [round(entry["start"][0] / 0.5)]
+    alone = tmp_path / "alone.npz"  # a table of the set is the table built alone from its start
+    assert main([*WALK, "--start", "0.5", "--out", str(alone), "--no-report"]) == 0
+    assert alone.read_bytes() == serial["start_0003.npz"]
+
+
+def test_a_set_resumes_per_table(tmp_path, capsys):
+    assert _build(tmp_path) == 0
+    (tmp_path / "start_0002.npz").unlink()
+    before = {p: p.stat().st_mtime_ns for p in tmp_path.glob("start_*.npz")}
+    capsys.readouterr()
+    assert main([*WALK[:-1], "--starts", "0=-1:1:5", "--out", str(tmp_path)]) == 0
+    assert "4 already built" in capsys.readouterr().out
+    assert {p: p.stat().st_mtime_ns for p in before} == before  # the others were not rebuilt
+    assert (tmp_path / "start_0002.npz").exists()
+
+
+def test_ray_set_is_the_same_tables(tmp_path):
+    pytest.importorskip("ray")
+    assert _build(tmp_path / "serial") == 0
+    assert _build(tmp_path / "ray", "--ray") == 0
+    assert _tables(tmp_path / "serial") == _tables(tmp_path / "ray")
+
+
+def test_random_starts_are_seeded():
+    ks = make_system("ks_speed")
+    a, b = parse_starts("random:6 3=0:1", ks, seed=1), parse_starts("random:6 3=0:1", ks, seed=1)
+    np.testing.assert_array_equal(a, b)
+    assert a.shape == (6, 4) and (a[:, :3] == 0).all() and ((0 <= a[:, 3]) & (a[:, 3] <= 1)).all()
+    assert not np.array_equal(a, parse_starts("random:6 3=0:1", ks, seed=2))
+    grid = parse_starts("3=0:1:3", ks)
+    assert grid[:, 3].tolist() == [0.0, 0.5, 1.0]
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--system", "dubins", "--starts", "2=0:1:3"], "SE(2)-invariant"),
+    (["--system", "random_walk_1d", "--starts", "1=0:1:3"], "dimension 1 does not exist"),
+    (["--system", "random_walk_1d", "--starts", "0=0:1"], "needs :N"),
+    (["--system", "random_walk_1d", "--starts", "0=1:0:3"], "LO <= HI"),
+    (["--system", "random_walk_1d", "--starts", "speed"], "not DIM=LO:HI:N"),
+    (["--system", "random_walk_1d", "--starts", "0=0:1:3", "--start", "0.5"], "not both"),
+    (["--system", "random_walk_1d", "--workers", "2"], "give --starts too"),
+])
+def test_bad_set_requests_are_one_clear_error(argv, message, tmp_path, capsys):
+    assert main([*argv, "--horizon", "3", "--quiet", "--out", str(tmp_path / "set")]) == 2
+    err = capsys.readouterr().err
+    assert message in err and err.count("\n") == 1
+    assert not list(tmp_path.glob("set/start_*.npz"))
