@@ -190,6 +190,9 @@ def _build_coverage(system, config, bar):
             bar.update(1)
 
     table, facts = build_coverage_table(system, config, progress)
+    if bar is not None and bar.n < bar.total:  # the ascent stopped early (--tol): the bar ends full, not short
+        bar.total = bar.n
+        bar.refresh()
     stats = BuildStats(seconds={**facts["seconds"], "write": 0.0})
     return table, stats, {"coverage_method": {k: v for k, v in facts.items() if k != "seconds"}}
 
