@@ -9,7 +9,8 @@ from .grid import CellKeys, CellSet, Grid
 from .checkpoint import POLICY_FORMAT, PolicyCheckpointError, load_policy, save_policy
 from .mlp import MLPConfig, MLPPolicy, MLPSupport
 from .mppi import COST_CAP, CUMPPI, MPPI, CostFn, CUniformMPPI, LogMPPI, MPPICore, MPPIResult, mppi_weights
-from .policy import Fallback, TablePolicy, UniformPolicy, load_table
+from .policy import Fallback, TablePolicy, UniformPolicy
+from .table_set import TableSetPolicy, load_table, load_table_set
 from .proposals import (BankProposal, BankRefreshWarning, CompositeProposal, GaussianProposal, NormalLogNormalProposal,
                         PolicyProposal, Proposal)
 from .rollout import ActionSampler, Policy, PolicyTraits, StartMismatchWarning, rollout, rollout_actions
@@ -41,6 +42,6 @@ __all__ = [
     "rollout_actions",
     "GaussianSampler", "NormalLogNormalSampler", "lognormal_params",
     "Dubins", "KinematicSingleTrack", "KinematicSingleTrackSpeed", "check_system", "RandomWalk1D", "System", "UnknownSystemError", "known_systems", "make_system", "register_system",
-    "system_from_json", "system_to_json", "TABLE_FORMAT", "Table", "TableError", "read_table", "write_table",
+    "system_from_json", "system_to_json", "TABLE_FORMAT", "Table", "TableError", "read_table", "write_table", "TableSetPolicy", "load_table_set",
 ]
 __version__ = "0.1.0"

@@ -253,7 +253,8 @@ def load_table(
 ) -> TablePolicy:
     """Read and validate a table file (not its flow graph, which a policy does not use), and return its
     :class:`TablePolicy` on ``device``. The table's system comes from the registry or ``trust_factory``
-    (see :func:`~cuniform_torch.systems.system_from_json`); nothing the file names is imported."""
+    (see :func:`~cuniform_torch.systems.system_from_json`); nothing the file names is imported. (The package's
+    ``cuniform_torch.load_table`` also reads a table-set folder: :func:`cuniform_torch.table_set.load_table`.)"""
     table = read_table(path, graph=False, trust_factory=trust_factory)
     return TablePolicy(table, device=device, dtype=dtype, fallback=fallback,
                        compile=compile, lookup=lookup, kernel=kernel)

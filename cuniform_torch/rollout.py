@@ -253,7 +253,13 @@ class RolloutPlan:
             generator: torch.Generator | None) -> tuple[Tensor, Tensor]:
         """The rollout itself, for checked input (``x0 [d]`` or ``[N, d]``, detached, finite, on the policy's
         device; a generator on it): ``states [N, T+1, d]``, ``actions [N, T, q]``."""
-        report = self.watch_start(x0, self.relative) if self.watch_start is not None else None
+        select = getattr(policy, "for_start", None)
+        if callable(select):  # a table set: the table nearest to this start, and its start check
+            policy = select(x0)
+            watch = getattr(policy, "watch_start", None)
+        else:
+            watch = self.watch_start
+        report = watch(x0, self.relative) if watch is not None else None
         d = x0.shape[-1]
         start = x0.unsqueeze(0).expand(num_samples, d) if x0.ndim == 1 else x0  # [N, d]
         # column-major [N, d] states: every column a policy or a step reads is contiguous (faster). With step_out all
