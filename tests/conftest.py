@@ -20,3 +20,23 @@ def walk_table():
     """The default 1-D random walk table, 8 levels."""
     table, _ = build_table(make_system("random_walk_1d"), BuildConfig(horizon=8))
     return table
+
+
+@pytest.fixture
+def start_warnings():
+    """``start_warnings(policy, x0, n=300)``: the StartMismatchWarnings of one seeded rollout from ``x0`` (the
+    policy's counters reset first, so ``policy.miss_rate`` is that rollout's)."""
+    import warnings
+
+    import torch
+
+    from cuniform_torch import StartMismatchWarning, rollout
+
+    def run(policy, x0, n: int = 300) -> list:
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            policy.reset_counters()
+            rollout(policy.system, policy, torch.tensor(x0), n, policy.horizon, torch.Generator().manual_seed(0))
+        return [w for w in caught if issubclass(w.category, StartMismatchWarning)]
+
+    return run

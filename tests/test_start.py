@@ -2,30 +2,20 @@
 
 from __future__ import annotations
 
-import warnings
 from dataclasses import replace
 
 import numpy as np
 import pytest
-import torch
 
-from cuniform_torch import StartMismatchWarning, TablePolicy, TableError, make_system, read_table, rollout, write_table
+from cuniform_torch import TablePolicy, TableError, make_system, read_table, write_table
 from cuniform_torch.fileio import write_npz
 from precompute.build import main as build_main
 from precompute.builder import BuildConfig, build_table
 from precompute.coverage_method import CoverageConfig, build_coverage_table
 
 
-def _rollout_warnings(policy, x0, n=300):
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
-        policy.reset_counters()
-        rollout(policy.system, policy, torch.tensor(x0), n, policy.horizon, torch.Generator().manual_seed(0))
-    return [w for w in caught if issubclass(w.category, StartMismatchWarning)]
-
-
 @pytest.mark.parametrize("method", ["maxflow", "coverage"])
-def test_walk_table_from_a_start_is_recorded_and_serves_that_start(method, tmp_path):
+def test_walk_table_from_a_start_is_recorded_and_serves_that_start(method, tmp_path, start_warnings):
     walk = make_system("random_walk_1d")
     if method == "maxflow":
         table, _ = build_table(walk, BuildConfig(horizon=4, start=(0.3,)))
@@ -39,8 +29,8 @@ def test_walk_table_from_a_start_is_recorded_and_serves_that_start(method, tmp_p
     np.testing.assert_array_equal(back.start, [0.3])
     policy = TablePolicy(back)
     assert policy.build_start.tolist() == [0.3]
-    assert _rollout_warnings(policy, [0.3]) == [] and policy.miss_rate == 0.0
-    assert len(_rollout_warnings(TablePolicy(back), [0.0])) == 1  # the zero state is now the wrong start
+    assert start_warnings(policy, [0.3]) == [] and policy.miss_rate == 0.0
+    assert len(start_warnings(TablePolicy(back), [0.0])) == 1  # the zero state is now the wrong start
 
 
 def test_zero_start_table_is_unchanged():
@@ -52,16 +42,16 @@ def test_zero_start_table_is_unchanged():
     np.testing.assert_array_equal(plain.action_probs, explicit.action_probs)
 
 
-def test_ks_speed_table_from_a_speed_serves_every_pose_at_that_speed():
+def test_ks_speed_table_from_a_speed_serves_every_pose_at_that_speed(start_warnings):
     ks = make_system("ks_speed")
     d = len(ks.periodic)
     start = (0.0, 0.0, 0.0) + (0.5,) + (0.0,) * (d - 4)
     table, _ = build_table(ks, BuildConfig(horizon=3, start=start))
     policy = TablePolicy(table)
     pose = (1.0, -2.0, 2.5) + start[3:]
-    assert _rollout_warnings(policy, list(pose)) == [] and policy.miss_rate < 0.05
+    assert start_warnings(policy, list(pose)) == [] and policy.miss_rate < 0.05
     zero_speed = TablePolicy(build_table(ks, BuildConfig(horizon=3))[0])
-    assert len(_rollout_warnings(zero_speed, list(pose))) == 1
+    assert len(start_warnings(zero_speed, list(pose))) == 1
 
 
 def test_pose_start_of_an_se2_system_is_refused(capsys, tmp_path):

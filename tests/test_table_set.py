@@ -86,34 +86,20 @@ def test_bad_set_requests_are_one_clear_error(argv, message, tmp_path, capsys):
 
 # ------------------------------------------------------------------------------------------------ the runtime
 
-def _rollout(policy, x0, n=300):
-    import warnings
-
-    import torch
-
-    from cuniform_torch import StartMismatchWarning, rollout
-
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
-        policy.reset_counters()
-        rollout(policy.system, policy, torch.tensor(x0), n, policy.horizon, torch.Generator().manual_seed(0))
-    return [w for w in caught if issubclass(w.category, StartMismatchWarning)]
-
-
-def test_a_set_rolls_each_start_out_with_its_nearest_table(tmp_path):
+def test_a_set_rolls_each_start_out_with_its_nearest_table(tmp_path, start_warnings):
     from cuniform_torch import TableSetPolicy, load_table
 
     assert _build(tmp_path) == 0
     policy = load_table(tmp_path)
     assert isinstance(policy, TableSetPolicy) and policy.starts[:, 0].tolist() == [-1.0, -0.5, 0.0, 0.5, 1.0]
-    assert _rollout(policy, [0.5]) == [] and policy.last_index == 3 and policy.miss_rate == 0.0
-    assert _rollout(policy, [-0.4]) == [] and policy.last_index == 1  # within the nearest start's cell
+    assert start_warnings(policy, [0.5]) == [] and policy.last_index == 3 and policy.miss_rate == 0.0
+    assert start_warnings(policy, [-0.4]) == [] and policy.last_index == 1  # within the nearest start's cell
     assert policy.last_start_distance == pytest.approx(0.2)  # cells (of 0.5)
-    assert len(_rollout(policy, [6.0])) == 1 and policy.last_index == 4  # far beyond the set: said, once
+    assert len(start_warnings(policy, [6.0])) == 1 and policy.last_index == 4  # far beyond the set: said, once
     assert policy.last_start_distance == pytest.approx(10.0)
 
 
-def test_a_speed_set_serves_the_speeds_between_its_starts(tmp_path):
+def test_a_speed_set_serves_the_speeds_between_its_starts(tmp_path, start_warnings):
     import torch
 
     from cuniform_torch import CUniformMPPI, load_table
@@ -123,8 +109,8 @@ def test_a_speed_set_serves_the_speeds_between_its_starts(tmp_path):
     assert main([*ks, "--out", str(tmp_path / "zero.npz"), "--no-report"]) == 0
     pose = [1.0, -2.0, 2.5, 0.5]
     one, many = load_table(tmp_path / "zero.npz"), load_table(tmp_path / "set")
-    assert len(_rollout(one, pose)) == 1  # the zero-speed table from 0.5 m/s: warned
-    assert _rollout(many, pose) == [] and many.last_index == 1 and many.miss_rate < 0.05
+    assert len(start_warnings(one, pose)) == 1  # the zero-speed table from 0.5 m/s: warned
+    assert start_warnings(many, pose) == [] and many.last_index == 1 and many.miss_rate < 0.05
     ctrl = CUniformMPPI(many, lambda s, a: s[:, -1, 0] ** 2, num_samples=64, seed=0)
     u = ctrl.command(torch.tensor(pose))
     assert u.shape == (many.actions.shape[1],) and bool(torch.isfinite(u).all())
