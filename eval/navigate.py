@@ -18,7 +18,6 @@ task's start and goal (in collision or unreachable: an error naming the task), t
 from __future__ import annotations
 
 import dataclasses
-import json
 import os
 import sys
 import time
@@ -302,15 +301,9 @@ def make_parser() -> ArgumentParser:
 def _robot(args, cfg: NavConfig) -> RobotPreset:
     if args.system is None and args.param:
         raise ValueError("--param needs --system (the built-in robot's parameters are fixed: eval/nav_robot.py)")
-    params = dict(NAV_ROBOT.params) if args.system is None else {}
-    for item in args.param:
-        key, sep, value = item.partition("=")
-        if not sep:
-            raise ValueError(f"--param {item!r}: expected KEY=VALUE")
-        try:
-            params[key] = json.loads(value)
-        except ValueError:
-            params[key] = value
+    from precompute.build import parse_params
+
+    params = dict(NAV_ROBOT.params) if args.system is None else parse_params(args.param)
     radius = args.robot_radius
     if not (np.isfinite(radius) and radius >= 0):
         raise ValueError(f"--robot-radius must be a finite number >= 0, got {radius}")

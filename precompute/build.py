@@ -247,7 +247,8 @@ def _make_system(spec: str, name: str, params: dict[str, Any]):
         raise  # a built-in system that fails is a bug
 
 
-def _parse_params(items: list[str]) -> dict[str, Any]:
+def parse_params(items: list[str]) -> dict[str, Any]:
+    """``--param KEY=VALUE`` items -> ``{key: value}`` (JSON values; anything else a plain string)."""
     out: dict[str, Any] = {}
     for item in items:
         key, sep, value = item.partition("=")
@@ -322,7 +323,7 @@ def _system_of(args: argparse.Namespace):
     for key, value in params.items():
         if isinstance(value, list):
             params[key] = tuple(value)
-    extra_params = _parse_params(args.param)
+    extra_params = parse_params(args.param)
     both = sorted(set(params) & set(extra_params))
     if both:
         raise ValueError(f"parameter(s) {', '.join(both)} given both as a flag and as --param")

@@ -18,15 +18,14 @@ per table its file and start.
 from __future__ import annotations
 
 import json
-import multiprocessing
 import re
-from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 from typing import Sequence
 
 import numpy as np
 
 from cuniform_torch.fileio import write_json
+from cuniform_torch.parallel import run_jobs
 from cuniform_torch.systems import System
 from cuniform_torch.table import TableError, read_table
 
@@ -130,20 +129,8 @@ def build_set(argv: Sequence[str], system: System, starts: np.ndarray, out: Path
         f"({'Ray' if ray_address else f'{workers} worker(s)'})")
     from tqdm.auto import tqdm
 
-    codes = []
     with tqdm(total=len(todo), desc="tables", unit="table", disable=quiet) as bar:
-        if ray_address is not None:
-            codes = _run_ray([a for _, a in todo], ray_address, workers, bar)
-        elif workers > 1 and len(todo) > 1:
-            ctx = multiprocessing.get_context("spawn")
-            with ProcessPoolExecutor(max_workers=min(workers, len(todo)), mp_context=ctx) as pool:
-                for code in pool.map(_build_one, [a for _, a in todo]):
-                    codes.append(code)
-                    bar.update()
-        else:
-            for _, a in todo:
-                codes.append(_build_one(a))
-                bar.update()
+        codes = run_jobs(_build_one, [(a,) for _, a in todo], workers, ray_address, lambda i, code: bar.update())
     failed = [(i, c) for (i, _), c in zip(todo, codes) if c != 0]
     if failed:
         i, code = failed[0]
@@ -156,25 +143,3 @@ def build_set(argv: Sequence[str], system: System, starts: np.ndarray, out: Path
     say(f"wrote {len(starts)} tables and {out / INDEX}")
     return 0
 
-
-def _run_ray(argvs: list[list[str]], address: str, workers: int, bar) -> list[int]:
-    try:
-        import ray
-    except ImportError:
-        raise RuntimeError('--ray needs Ray: pip install -e ".[ray]"') from None
-    started = not ray.is_initialized()
-    if started:
-        kwargs = dict(include_dashboard=False, log_to_driver=False, configure_logging=False)
-        ray.init(**({"num_cpus": workers if workers > 1 else None} if address == "local" else {"address": address}),
-                 **kwargs)
-    try:
-        remote = ray.remote(num_cpus=1)(_build_one)
-        refs = [remote.remote(a) for a in argvs]
-        codes = []
-        for ref in refs:
-            codes.append(ray.get(ref))
-            bar.update()
-        return codes
-    finally:
-        if started:
-            ray.shutdown()

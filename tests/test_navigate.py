@@ -15,7 +15,7 @@ from eval import nav_methods
 from eval.barn import load_barn, write_barn, pack_maps
 from eval.methods import Method
 from eval.nav_episode import NavContext, NavJob, rasterize, run_nav_episode
-from eval.nav_exec import ray_available
+from cuniform_torch.parallel import ray_available
 from eval.nav_robot import NAV_ROBOT, ensure_table
 from eval.nav_tasks import barn_task, make_tasks
 from eval.navigate import NavConfig, controller_seed, main, make_jobs, run
