@@ -1,0 +1,201 @@
+"""How well a table set serves starts it was not built at: ``python -m eval.start_aware``.
+
+A table set (``python -m precompute.build --starts SPEC``) is read as one start-aware policy
+(:class:`~cuniform_torch.table_set.TableSetPolicy`: each rollout uses the table whose start is nearest). This
+command draws random starts inside the set's start box (and, for an SE(2)-invariant system, random poses), builds
+the table of each exact start, rolls both out N times from that start, and prints per start: the set's miss rate
+(lookups that fell back), whether it warned, its real-rollout coverage (distinct cells reached) and the ratio to
+the exact-start table's coverage. The targets it checks: miss rate < 5%, coverage within 10% of the exact table.
+
+The set is built on first use into ``--cache`` (one folder per settings hash, resumable) unless ``--set DIR`` names
+one; the exact tables are built in this process (``precompute.builder``).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import warnings
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+import torch
+
+from cuniform_torch import StartMismatchWarning, TablePolicy, load_table, rollout
+from cuniform_torch.cli import ArgumentParser, add_system_module_arg, check_output_file, cli_main, import_system_modules
+from cuniform_torch.fileio import write_json
+from cuniform_torch.metrics import coverage
+from cuniform_torch.systems import System, make_system, resolve_system
+from cuniform_torch.table_set import TableSetPolicy
+from precompute.build import main as build_main
+from precompute.build import parse_params
+from precompute.builder import BuildConfig, build_table
+from precompute.table_set import parse_starts
+
+__all__ = ["StartRow", "random_starts", "measure_start", "main"]
+
+MISS_TARGET = 0.05
+COVERAGE_TARGET = 0.9
+POSE_RANGE = 5.0  # m: random poses of an SE(2)-invariant system are drawn in [-5, 5]^2 x [-pi, pi)
+
+
+@dataclass
+class StartRow:
+    """One random start's measurement."""
+
+    start: list[float]
+    set_distance: float
+    """cells from the start to the chosen table's start (over the dimensions that choose it)"""
+    set_miss_rate: float
+    warned: bool
+    set_coverage: int
+    exact_coverage: int
+    exact_miss_rate: float
+
+    @property
+    def ratio(self) -> float:
+        return self.set_coverage / self.exact_coverage if self.exact_coverage else float("nan")
+
+
+def set_folder(cache: Path, system: str, params: dict[str, Any], horizon: int, spec: str) -> Path:
+    """The cache folder of a set's settings."""
+    blob = json.dumps(dict(system=system, params=params, horizon=horizon, starts=spec), sort_keys=True)
+    return cache / f"{system}-h{horizon}-{hashlib.sha256(blob.encode()).hexdigest()[:12]}"
+
+
+def random_starts(system: System, set_starts: np.ndarray, count: int, seed: int) -> np.ndarray:
+    """``count`` starts ``[count, d]``: uniform in the set's start box over the dimensions the set varies, and a
+    uniform pose (x, y in +-POSE_RANGE, theta in [-pi, pi)) for an SE(2)-invariant system; others 0."""
+    rng = np.random.default_rng(seed)
+    lo, hi = set_starts.min(axis=0), set_starts.max(axis=0)
+    starts = rng.uniform(lo, hi, size=(count, len(lo)))
+    if getattr(system, "se2_invariant", False):
+        starts[:, :2] = rng.uniform(-POSE_RANGE, POSE_RANGE, size=(count, 2))
+        starts[:, 2] = rng.uniform(-math.pi, math.pi, size=count)
+    return starts
+
+
+def measure_start(system: System, policy: TableSetPolicy, start: np.ndarray, horizon: int, samples: int,
+                  seed: int) -> StartRow:
+    """Roll the set and the exact-start table out ``samples`` times from ``start [d]``."""
+    x0 = torch.tensor(start, dtype=policy.dtype)
+    build_start = np.array(start, dtype=np.float64)
+    if getattr(system, "se2_invariant", False):
+        build_start[:3] = 0.0  # the exact table is built at the origin pose and moved by the frame change
+    exact = TablePolicy(build_table(system, BuildConfig(horizon=horizon, start=tuple(build_start.tolist())))[0])
+    policy.reset_counters()
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", StartMismatchWarning)
+        states, _ = rollout(system, policy, x0, samples, horizon, torch.Generator().manual_seed(seed))
+    warned = any(issubclass(w.category, StartMismatchWarning) for w in caught)
+    set_cov = coverage(states, policy.grid).total
+    set_miss = policy.miss_rate
+    exact.reset_counters()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", StartMismatchWarning)
+        states, _ = rollout(system, exact, x0.to(exact.dtype), samples, horizon, torch.Generator().manual_seed(seed))
+    return StartRow(start=[float(v) for v in start], set_distance=policy.last_start_distance, set_miss_rate=set_miss,
+                    warned=warned, set_coverage=set_cov, exact_coverage=coverage(states, exact.grid).total,
+                    exact_miss_rate=exact.miss_rate)
+
+
+def summary(rows: list[StartRow]) -> dict[str, Any]:
+    """Worst and mean miss rate and coverage ratio, and whether the targets hold."""
+    miss = np.array([r.set_miss_rate for r in rows])
+    ratio = np.array([r.ratio for r in rows])
+    return dict(starts=len(rows), miss_max=float(miss.max()), miss_mean=float(miss.mean()),
+                ratio_min=float(ratio.min()), ratio_mean=float(ratio.mean()), warned=int(sum(r.warned for r in rows)),
+                miss_ok=bool(miss.max() < MISS_TARGET), coverage_ok=bool(ratio.min() >= COVERAGE_TARGET))
+
+
+def format_rows(rows: list[StartRow], dims: list[int]) -> str:
+    """The per-start table, then the summary line."""
+    head = "  ".join(f"x[{k}]".rjust(7) for k in dims)
+    lines = [f"{head}  {'cells':>6}  {'miss':>6}  {'warn':>4}  {'cov set':>8}  {'cov exact':>9}  {'ratio':>6}"]
+    for r in rows:
+        vals = "  ".join(f"{r.start[k]:7.3f}" for k in dims)
+        lines.append(f"{vals}  {r.set_distance:6.2f}  {r.set_miss_rate:6.3f}  {'yes' if r.warned else 'no':>4}  "
+                     f"{r.set_coverage:8d}  {r.exact_coverage:9d}  {r.ratio:6.3f}")
+    s = summary(rows)
+    lines.append(f"{s['starts']} starts: set miss rate max {s['miss_max']:.3f} (mean {s['miss_mean']:.3f}, target < "
+                 f"{MISS_TARGET}) {'ok' if s['miss_ok'] else 'MISSED'}; coverage / exact-start table min "
+                 f"{s['ratio_min']:.3f} (mean {s['ratio_mean']:.3f}, target >= {COVERAGE_TARGET}) "
+                 f"{'ok' if s['coverage_ok'] else 'MISSED'}; {s['warned']} start(s) warned")
+    return "\n".join(lines)
+
+
+def make_parser() -> ArgumentParser:
+    p = ArgumentParser(prog="python -m eval.start_aware", description=(__doc__ or "").split("\n\n")[0])
+    p.add_argument("--system", default="ks_speed", help="registered system (or module:factory)")
+    add_system_module_arg(p)
+    p.add_argument("--param", action="append", default=[], metavar="KEY=VALUE", help="a system parameter")
+    p.add_argument("--horizon", type=int, default=5)
+    p.add_argument("--starts", default="3=0:1:5", metavar="SPEC",
+                   help="the set's starts (precompute.build --starts; default: 5 speeds of ks_speed)")
+    p.add_argument("--set", type=Path, default=None, metavar="DIR", help="a built set to measure instead")
+    p.add_argument("--random", type=int, default=20, help="random starts to measure")
+    p.add_argument("--seed", type=int, default=0, help="seed of the random starts and the rollouts")
+    p.add_argument("--samples", type=int, default=1000, help="rollouts per start and policy")
+    p.add_argument("--workers", type=int, default=1, help="processes for building the set")
+    p.add_argument("--cache", type=Path, default=Path("out/start_aware"), help="where built sets are kept")
+    p.add_argument("--json", type=Path, default=None, help="write the rows and the summary here")
+    p.add_argument("--quiet", action="store_true")
+    return p
+
+
+def _check(args) -> None:
+    for name, low in (("horizon", 1), ("random", 1), ("samples", 2), ("workers", 1)):
+        if getattr(args, name) < low:
+            raise ValueError(f"--{name} must be >= {low}, got {getattr(args, name)}")
+    if args.json is not None:
+        check_output_file(args.json, "--json")
+
+
+@cli_main()
+def main(argv: Sequence[str] | None = None) -> int:
+    args = make_parser().parse_args(argv)
+    _check(args)
+    torch.set_num_threads(1)
+    import_system_modules(args.system_module)
+    name, params = resolve_system(args.system), parse_params(args.param)
+    system = make_system(name, **params)
+    parse_starts(args.starts, system)  # a bad SPEC: its own message, before anything is built
+    folder = args.set
+    if folder is None:
+        folder = set_folder(args.cache, name, params, args.horizon, args.starts)
+        build_argv = ["--system", args.system, "--horizon", str(args.horizon), "--starts", args.starts,
+                      "--out", str(folder), "--workers", str(args.workers), "--no-report"]
+        build_argv += [w for item in args.param for w in ("--param", item)]
+        build_argv += [w for m in args.system_module for w in ("--system-module", m)]
+        if args.quiet:
+            build_argv.append("--quiet")
+        code = build_main(build_argv)
+        if code:
+            return code
+    policy = load_table(folder)
+    if not isinstance(policy, TableSetPolicy):
+        raise ValueError(f"--set {folder} is one table, not a table set (a folder with tables.json)")
+    set_starts = policy.starts.numpy()
+    dims = [k for k in range(set_starts.shape[1]) if np.ptp(set_starts[:, k]) > 0]
+    if getattr(system, "se2_invariant", False):
+        dims = sorted({0, 1, 2, *dims})
+    starts = random_starts(system, set_starts, args.random, args.seed)
+    from tqdm.auto import tqdm
+
+    rows = [measure_start(system, policy, s, args.horizon, args.samples, args.seed + i)
+            for i, s in enumerate(tqdm(starts, desc="starts", disable=args.quiet))]
+    print(f"{name} horizon {args.horizon}: set of {len(set_starts)} starts ({folder}), {args.samples} rollouts per "
+          f"start and policy")
+    print(format_rows(rows, dims))
+    if args.json is not None:
+        write_json(args.json, dict(system=name, params=params, horizon=args.horizon, set=str(folder),
+                                   starts_spec=args.starts, rows=[asdict(r) | {"ratio": r.ratio} for r in rows],
+                                   summary=summary(rows)))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
