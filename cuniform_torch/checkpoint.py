@@ -5,7 +5,10 @@ Checkpoint (``.pt``, format ``cuniform-policy/1``): a dict of plain types and te
 (:class:`~cuniform_torch.mlp.MLPConfig` as a dict), ``system`` (the table's system JSON), ``actions`` ``[A, q]``,
 ``source`` (the table's path and sha256) and ``metrics`` (free-form numbers from the distillation); optionally
 ``support`` (:class:`~cuniform_torch.mlp.MLPSupport` as a dict: ``cells`` int64 ``[C, d]`` and
-``level_offsets`` int64 ``[T+2]``, the cells per level it was trained on, as in a table file).
+``level_offsets`` int64 ``[T+2]``, the cells per level it was trained on, as in a table file); and, for a
+start-conditioned policy (:mod:`cuniform_torch.mlp_start`, whose config has ``start_dims``), ``start_region``
+(:class:`~cuniform_torch.mlp_start.StartRegion` as a dict: ``starts`` float64 ``[S, k]``, the set's starts over
+``dims [k]``). A checkpoint without ``start_region`` loads as an :class:`~cuniform_torch.mlp.MLPPolicy`.
 """
 
 from __future__ import annotations
@@ -22,6 +25,7 @@ from torch import Tensor
 from .fileio import write_bytes
 from .grid import Grid
 from .mlp import MLPConfig, MLPPolicy, MLPSupport
+from .mlp_start import StartMLPPolicy, StartRegion
 from .policy import Fallback
 from .systems import system_from_json
 
@@ -54,6 +58,7 @@ def policy_checkpoint(policy: MLPPolicy, system_json: str, source: dict[str, str
         "source": dict(source or {}),
         "metrics": dict(metrics or {}),
         **({"support": policy.support.to_dict()} if policy.support is not None else {}),
+        **({"start_region": policy.region.to_dict()} if isinstance(policy, StartMLPPolicy) else {}),
     }
 
 
@@ -133,8 +138,12 @@ def load_policy(source: str | os.PathLike | dict, device: torch.device | str = "
     if not isinstance(inv_scale, Tensor) or inv_scale.shape != expect_inv.shape or not torch.equal(inv_scale.float(), expect_inv):
         fail("state_dict['inv_scale'] does not match config.feature_scale")
     support = _read_support(ckpt.get("support"), Grid.of(system), config.horizon, fail)
+    region = _read_region(ckpt.get("start_region"), config, system, fail)
     try:
-        policy = MLPPolicy(config, system, actions, support=support, fallback=fallback)
+        if region is None:
+            policy = MLPPolicy(config, system, actions, support=support, fallback=fallback)
+        else:
+            policy = StartMLPPolicy(config, system, actions, region, support=support, fallback=fallback)
         policy.load_state_dict(state, strict=True)
     except (RuntimeError, TypeError, ValueError, AttributeError) as exc:
         fail(f"state_dict does not match the network of its config ({str(exc)[:300]})")
@@ -154,3 +163,24 @@ def _read_support(value: Any, grid: Grid, horizon: int, fail: Callable[[str], No
     except ValueError as exc:
         fail(str(exc))
     return support
+
+
+def _read_region(value: Any, config: MLPConfig, system: Any, fail: Callable[[str], None]) -> StartRegion | None:
+    """The checkpoint's optional ``start_region`` (None when absent, as for a pi(u | x, t) policy); it and
+    ``config.start_dims`` come together or not at all."""
+    if value is None:
+        if config.start_dims:
+            fail(f"config.start_dims is {config.start_dims} but the checkpoint has no start_region")
+        return None
+    if not isinstance(value, dict) or set(value) != {"starts", "dims"}:
+        fail(f"start_region must be a dict of starts and dims, got "
+             f"{sorted(value) if isinstance(value, dict) else type(value).__name__}")
+    dims = value["dims"]
+    if not isinstance(dims, list) or dims != list(config.start_dims):
+        fail(f"start_region dims {dims!r} differ from config.start_dims {config.start_dims}")
+    region = StartRegion(value["starts"], dims)
+    try:
+        region.check(system)
+    except ValueError as exc:
+        fail(str(exc))
+    return region

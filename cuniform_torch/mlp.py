@@ -28,7 +28,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any, Callable
 
 import numpy as np
@@ -61,6 +61,8 @@ class MLPConfig:
     """divisor of each non-periodic dimension (ignored on angle dimensions)"""
     hidden: int = 256
     layers: int = 3
+    start_dims: list[int] = field(default_factory=list)
+    """state dimensions of the start x0 the network also reads (:mod:`cuniform_torch.mlp_start`); empty: pi(u | x, t)"""
 
     def __post_init__(self) -> None:
         for name in ("state_dim", "num_actions", "horizon", "hidden", "layers"):
@@ -77,10 +79,20 @@ class MLPConfig:
         if any(isinstance(s, bool) or not isinstance(s, (int, float)) or not (0 < s < math.inf)
                for s in self.feature_scale):
             raise ValueError(f"MLPConfig: feature_scale must be positive finite numbers, got {self.feature_scale}")
+        dims = self.start_dims
+        if not isinstance(dims, (list, tuple)) or not all(type(i) is int and 0 <= i < self.state_dim for i in dims) \
+                or list(dims) != sorted(set(dims)):
+            raise ValueError(f"MLPConfig: start_dims must be distinct ascending dimensions in 0..{self.state_dim - 1}, "
+                             f"got {dims!r}")
+
+    @property
+    def num_state_features(self) -> int:
+        """Features of the state and the time (the start's come after them)."""
+        return sum(2 if p else 1 for p in self.periodic) + 1
 
     @property
     def num_features(self) -> int:
-        return sum(2 if p else 1 for p in self.periodic) + 1
+        return self.num_state_features + sum(2 if self.periodic[i] else 1 for i in self.start_dims)
 
     @property
     def num_weights(self) -> int:
@@ -92,7 +104,11 @@ class MLPConfig:
         return total + (width + 1) * self.num_actions
 
     def to_dict(self) -> dict[str, Any]:
-        return dataclasses.asdict(self)
+        """A plain dict; ``start_dims`` only when there are some (a pi(u | x, t) checkpoint keeps its old keys)."""
+        out = dataclasses.asdict(self)
+        if not out["start_dims"]:
+            del out["start_dims"]
+        return out
 
 
 @dataclass(frozen=True)
@@ -142,6 +158,9 @@ class MLPPolicy(nn.Module):
     ``fallback`` as a table does.
     """
 
+    reads_start = False
+    """whether the network reads start features after the state's (:class:`~cuniform_torch.mlp_start.StartMLPPolicy`)"""
+
     def __init__(self, config: MLPConfig, system: System, actions: Tensor, support: MLPSupport | None = None,
                  fallback: str | Fallback = Fallback.NEAREST):
         super().__init__()
@@ -149,6 +168,9 @@ class MLPPolicy(nn.Module):
             raise ValueError(f"actions must be [{config.num_actions}, q], got {list(actions.shape)}")
         if len(system.periodic) != config.state_dim:
             raise ValueError(f"system {system.name} has {len(system.periodic)} state dims, config says {config.state_dim}")
+        if config.start_dims and not self.reads_start:
+            raise ValueError("a config with start_dims describes a start-conditioned policy: "
+                             "cuniform_torch.mlp_start.StartMLPPolicy")
         self.config = config
         self.system = system
         self.horizon = config.horizon

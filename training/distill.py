@@ -35,7 +35,6 @@ path that cannot be written, checked before training starts, a full disk, a refu
 from __future__ import annotations
 
 import dataclasses
-import io
 import json
 import math
 import sys
@@ -45,7 +44,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Optional, Sequence
 
-import matplotlib.pyplot as plt
 import torch
 from torch.utils.tensorboard import SummaryWriter
 from tqdm import tqdm
@@ -53,8 +51,8 @@ from tqdm import tqdm
 from cuniform_torch.cli import (OUT, RUNS, ArgumentParser, add_dataclass_args, add_system_module_arg,
                                 check_output_file, check_output_folder, cli_main, dataclass_from_args,
                                 import_system_modules)
-from cuniform_torch.metrics import coverage, uniform_ceiling
-from cuniform_torch.fileio import exclusive_lock, write_bytes, write_json
+from cuniform_torch.metrics import coverage
+from cuniform_torch.fileio import exclusive_lock, write_json
 from cuniform_torch.grid import Grid
 from cuniform_torch.checkpoint import file_sha256, policy_checkpoint, save_policy
 from cuniform_torch.mlp import MLPConfig, MLPPolicy, default_feature_scale
@@ -62,11 +60,12 @@ from cuniform_torch.policy import TablePolicy
 from cuniform_torch.rollout import rollout
 from cuniform_torch.table import Table, read_table
 
-from .evaluate import cell_centres, cell_levels, compare, jitter_cells, kl_per_level, kl_rows, sizes
+from .evaluate import cell_centres, cell_levels, compare, kl_per_level, kl_rows, sizes
+from .figures import coverage_figure, trajectory_figure
 from .support import pooled_support
+from .samples import level_weights, make_samples
+from .train_state import RESUME_KEYS, TRAIN_STATE_FORMAT, UsageError, load_train_state, save_train_state
 
-plt.switch_backend("Agg")  # figures are only rendered into TensorBoard
-TRAIN_STATE_FORMAT = "cuniform-distill-state/1"
 
 
 @dataclass
@@ -74,7 +73,8 @@ class DistillConfig:
     """Settings of one distillation; every field is a flag (``--batch-size``, ...)."""
 
     tables: list[str] = field(default_factory=list)
-    """table files (.npz) to distil; several must share the system JSON and actions (their cells are pooled)"""
+    """table files (.npz) to distil; several must share the system JSON and actions (their cells are pooled); or
+    one table-set folder (python -m precompute.build --starts): a start-conditioned policy (training.distill_set)"""
     hidden: int = 256
     """hidden units per layer"""
     layers: int = 3
@@ -116,14 +116,6 @@ class DistillConfig:
     """modules to import first (--system-module, repeatable): they register the user systems the tables name"""
 
 
-# the settings a training state must share with the run that resumes it (the others change no weight)
-RESUME_KEYS = ("hidden", "layers", "epochs", "lr", "batch_size", "seed", "jitter", "val_points", "patience")
-
-
-class UsageError(ValueError):
-    """A bad flag, an inconsistent set of tables, or a refused resume: reported as ``error: ...``, exit code 2."""
-
-
 class _Parser(ArgumentParser):
     def error(self, message: str) -> typing.NoReturn:  # main returns 2 rather than exiting
         raise UsageError(message)
@@ -158,8 +150,10 @@ def parse_args(argv: Sequence[str] | None = None) -> DistillConfig:
         raise UsageError(f"--device {cfg.device!r}: {exc}") from None
     if device.type == "cuda" and not torch.cuda.is_available():
         raise UsageError(f"--device {cfg.device}: CUDA is not available here")
+    if any(Path(p).is_dir() for p in cfg.tables) and len(cfg.tables) > 1:
+        raise UsageError("--tables: a table-set folder is distilled alone (give the folder, or table files)")
     for path in cfg.tables:
-        if not Path(path).is_file():
+        if not Path(path).is_file() and not Path(path).is_dir():
             raise UsageError(f"--tables: no table file at {path}")
     if cfg.out is None:
         cfg.out = str(OUT / f"{Path(cfg.tables[0]).stem}.policy.pt")
@@ -197,96 +191,15 @@ def read_tables(paths: Sequence[str]) -> list[Table]:
     return tables
 
 
-def make_samples(centres: torch.Tensor, grid: Grid, jitter: int, with_centres: bool,
-                 generator: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
-    """Sample rows (cells) and states of one pass: the centres (when asked) + ``jitter`` points per cell.
-
-    Returns ``rows [N]`` and ``x [N, d]`` float64; every cell gets the same number k of samples.
-    """
-    C = centres.shape[0]
-    jittered = torch.arange(C).repeat(jitter)  # [C * jitter]
-    x = jitter_cells(centres, grid, jittered, generator)
-    if with_centres:
-        return torch.cat((torch.arange(C), jittered)), torch.cat((centres, x))
-    return jittered, x
-
-
-def level_weights(sample_group: torch.Tensor, num_groups: int) -> torch.Tensor:
-    """Weight of each sample ``[N]``: 1 / (samples of its (table, level) group) / (number of groups); sums to 1."""
-    per_group = torch.bincount(sample_group, minlength=num_groups).double()  # [G]
-    return 1.0 / (per_group[sample_group] * num_groups)
-
-
-def trajectory_figure(table_states: torch.Tensor, mlp_states: torch.Tensor, title: str) -> plt.Figure:
-    """xy paths (or x against t for a 1-D system) of table rollouts and MLP rollouts, side by side."""
-    fig, axes = plt.subplots(1, 2, figsize=(10, 4.5))
-    for ax, states, name in zip(axes, (table_states, mlp_states), ("table", "MLP")):
-        s = states.detach().cpu().numpy()  # [N, T+1, d]
-        if s.shape[2] >= 2:
-            color = "tab:blue" if name == "table" else "tab:orange"
-            ax.plot(s[:, :, 0].T, s[:, :, 1].T, lw=0.5, alpha=0.35, color=color)
-            ax.set_xlabel("x")
-            ax.set_ylabel("y")
-            ax.set_aspect("equal", adjustable="box")
-        else:
-            ax.plot(s[:, :, 0].T, lw=0.5, alpha=0.35)
-            ax.set_xlabel("t")
-            ax.set_ylabel("x")
-        ax.set_title(f"{name}: {s.shape[0]} rollouts")
-    axes[1].set_xlim(axes[0].get_xlim())  # the same view on both sides
-    axes[1].set_ylim(axes[0].get_ylim())
-    fig.suptitle(title)
-    fig.tight_layout()
-    return fig
-
-
-def coverage_figure(table_cov: list[int], mlp_cov: list[int], level_sizes: list[int], n: int, title: str) -> plt.Figure:
-    """Cells of L_t reached at step t by n rollouts, table vs MLP, with |L_t| and the uniform-draw ceiling."""
-    fig, ax = plt.subplots(figsize=(7, 4.5))
-    t = range(len(level_sizes))
-    ax.plot(t, level_sizes, "k:", label="|L_t|")
-    ax.plot(t, [uniform_ceiling(m, n) for m in level_sizes], "k--", lw=0.8, label=f"{n} uniform draws over L_t")
-    ax.plot(t, table_cov, "o-", label=f"table ({sum(table_cov)})")
-    ax.plot(t, mlp_cov, "s--", label=f"MLP ({sum(mlp_cov)})")
-    ax.set_yscale("log")
-    ax.set_xlabel("level t")
-    ax.set_ylabel(f"cells of L_t reached by {n} rollouts")
-    ax.set_title(title)
-    ax.legend()
-    fig.tight_layout()
-    return fig
-
-
-def save_train_state(path: Path, state: dict[str, Any]) -> None:
-    """Write the training state atomically (a dict of plain types and tensors: ``weights_only`` loadable)."""
-    buf = io.BytesIO()
-    torch.save(state, buf)
-    write_bytes(path, buf.getvalue())
-
-
-def load_train_state(path: Path, fingerprint: dict[str, Any]) -> dict[str, Any]:
-    """The saved training state, after checking it belongs to this config and these tables (:class:`UsageError`)."""
-    if not path.is_file():
-        raise UsageError(f"--resume: no training state at {path} (run without --resume first)")
-    try:
-        state = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as exc:  # truncated or foreign file
-        raise UsageError(f"--resume: {path} is not a readable training state ({type(exc).__name__}: {exc})") from None
-    if not isinstance(state, dict) or state.get("format") != TRAIN_STATE_FORMAT:
-        raise UsageError(f"--resume: {path} is not a training state of format {TRAIN_STATE_FORMAT!r}")
-    saved = state.get("fingerprint", {})
-    differ = [k for k in fingerprint if saved.get(k) != fingerprint[k]]
-    if differ:
-        detail = "; ".join(f"{k}: saved {saved.get(k)!r}, now {fingerprint[k]!r}" for k in differ)
-        raise UsageError(f"--resume: {path} was written by a different run ({detail})")
-    return state
-
-
 def distill(cfg: DistillConfig) -> int:
     """Train, checkpoint and compare (see the module docstring)."""
     import_system_modules(cfg.system_module)
     out = output_paths(cfg)[0]
     with exclusive_lock(out.with_name(out.name + ".lock"), what=f"--out {out}"):
+        if Path(cfg.tables[0]).is_dir():
+            from .distill_set import distill_set  # a table set: pi(u | x, t, x0)
+
+            return distill_set(cfg)
         return _distill(cfg)
 
 
