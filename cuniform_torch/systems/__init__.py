@@ -9,6 +9,8 @@ the dtype and device of its inputs. Where each thing lives:
   ``MAX_HORIZON`` and ``DEFAULT_HORIZON``.
 * :mod:`.models`: the built-in ``random_walk_1d`` (:class:`RandomWalk1D`), ``dubins`` (:class:`Dubins`), ``ks``
   (:class:`KinematicSingleTrack`) and ``ks_speed`` (:class:`KinematicSingleTrackSpeed`).
+* :mod:`.classic`: the built-in ``double_integrator`` (:class:`DoubleIntegrator`) and ``mountain_car``
+  (:class:`MountainCar`, gymnasium's MountainCarContinuous-v0), which are not SE(2)-invariant.
 * :mod:`.registry`: :func:`register_system`, :func:`make_system`, :func:`resolve_system`, factories by
   ``"module:qualname"`` path, and the system JSON of table and checkpoint files (:func:`system_to_json`,
   :func:`system_from_json`).
@@ -25,6 +27,7 @@ registers the system first, or pass ``trust_factory="my_robots:MyRobot"``.
 """
 
 from ..checks import wrap_angle
+from .classic import DoubleIntegrator, MountainCar
 from .models import Dubins, KinematicSingleTrack, KinematicSingleTrackSpeed, RandomWalk1D
 from .protocol import (DEFAULT_HORIZON, MAX_ACTIONS, MAX_HORIZON, System, check_system, se2_invariance_gap,
                        system_horizon)
@@ -38,6 +41,8 @@ __all__ = [
     "Dubins",
     "KinematicSingleTrack",
     "KinematicSingleTrackSpeed",
+    "DoubleIntegrator",
+    "MountainCar",
     "UnknownSystemError",
     "register_system",
     "make_system",

@@ -16,6 +16,7 @@ from typing import Any, Callable
 
 from ..checks import positive_int
 from . import models
+from .classic import DoubleIntegrator, MountainCar
 from .models import Dubins, KinematicSingleTrack, KinematicSingleTrackSpeed, RandomWalk1D
 from .protocol import MAX_HORIZON, System, check_system
 
@@ -264,5 +265,5 @@ def _unknown_message(name: str, named: str | None) -> str:
             f"--system-module {module}")
 
 
-for _builtin in (RandomWalk1D, Dubins, KinematicSingleTrack, KinematicSingleTrackSpeed):
+for _builtin in (RandomWalk1D, Dubins, KinematicSingleTrack, KinematicSingleTrackSpeed, DoubleIntegrator, MountainCar):
     register_system(_builtin.name, _builtin)
