@@ -44,6 +44,9 @@ class RobotPreset:
     """m: the robot is a disc of this radius (obstacles are inflated by it)"""
     horizon: int = 15
     """controller horizon and table depth, steps"""
+    starts: str | None = None
+    """a table set over these starts (``precompute.build --starts SPEC``) instead of one table: a system whose
+    state has more than a pose (a speed) needs tables from the starts it meets; each rollout uses the nearest"""
 
     def make_system(self):
         """The system these parameters describe."""
@@ -51,8 +54,10 @@ class RobotPreset:
 
     def fingerprint(self, method: str = "maxflow") -> str:
         """A short hash of everything that defines this robot's table of ``method``."""
-        blob = json.dumps(dict(system=self.system, params=self.params, horizon=self.horizon, method=method),
-                          sort_keys=True)
+        record = dict(system=self.system, params=self.params, horizon=self.horizon, method=method)
+        if self.starts is not None:  # absent otherwise, so the one-table robots keep their cached files
+            record["starts"] = self.starts
+        blob = json.dumps(record, sort_keys=True)
         return hashlib.sha256(blob.encode()).hexdigest()[:10]
 
 
@@ -61,8 +66,9 @@ NAV_ROBOT = RobotPreset()
 
 
 def table_file(robot: RobotPreset, cache: Path, method: str = "maxflow") -> Path:
-    """Where ``robot``'s table of ``method`` (``maxflow`` or ``coverage``) is cached."""
-    return Path(cache) / f"{robot.system}-{robot.fingerprint(method)}-{method}.npz"
+    """Where ``robot``'s table of ``method`` (``maxflow`` or ``coverage``) is cached: a file, or a set's folder."""
+    stem = f"{robot.system}-{robot.fingerprint(method)}-{method}"
+    return Path(cache) / (f"{stem}-set" if robot.starts is not None else f"{stem}.npz")
 
 
 def policy_file(robot: RobotPreset, cache: Path) -> Path:
@@ -80,24 +86,30 @@ def _build_args(robot: RobotPreset) -> list[str]:
 def ensure_table(robot: RobotPreset, cache: Path, method: str = "maxflow", quiet: bool = False) -> Path:
     """``robot``'s table of ``method``, built by ``python -m precompute.build`` when not cached yet."""
     path = table_file(robot, cache, method)
-    if path.exists():
+    done = path / "tables.json" if robot.starts is not None else path
+    if done.exists():
         return path
     from precompute.build import main as build_main
 
     path.parent.mkdir(parents=True, exist_ok=True)
-    print(f"building the {method} table of the navigation robot into {path} (once; cached)")
+    what = f"table set (starts {robot.starts})" if robot.starts is not None else "table"
+    print(f"building the {method} {what} of the navigation robot into {path} (once; cached)")
     # the coverage ascent of this 15-step robot stops early (--tol 1e-3: about 105 of 300 steps; within 0.3% of
     # the full ascent's coverage at N = 1000 and 10 000), which keeps its first build to about 80 s
     approx = ["--tol", "1e-3"] if method == "coverage" else []
-    args = [*_build_args(robot), "--method", method, *approx, "--out", str(path), *(["--quiet"] if quiet else [])]
+    starts = ["--starts", robot.starts] if robot.starts is not None else []
+    args = [*_build_args(robot), "--method", method, *approx, *starts, "--out", str(path),
+            *(["--quiet"] if quiet else [])]
     code = build_main(args)
-    if code != 0 or not path.exists():
+    if code != 0 or not done.exists():
         raise RuntimeError(f"building {path} failed (python -m precompute.build {' '.join(args)}; exit {code})")
     return path
 
 
 def ensure_policy(robot: RobotPreset, cache: Path, quiet: bool = False) -> Path:
     """The MLP distilled from ``robot``'s max-flow table (:data:`DISTILL_EPOCHS` epochs), trained when not cached."""
+    if robot.starts is not None:
+        raise ValueError("cu_mlp with --starts: give a policy distilled from the set (--policy FILE)")
     path = policy_file(robot, cache)
     if path.exists():
         return path
@@ -114,5 +126,9 @@ def ensure_policy(robot: RobotPreset, cache: Path, quiet: bool = False) -> Path:
 
 
 def preset_dict(robot: RobotPreset) -> dict[str, Any]:
-    """The preset as JSON types, for the benchmark's config record."""
-    return asdict(robot)
+    """The preset as JSON types, for the benchmark's config record (``starts`` only when set, so the records of
+    one-table runs stay as they were)."""
+    out = asdict(robot)
+    if out["starts"] is None:
+        del out["starts"]
+    return out

@@ -119,11 +119,17 @@ def _check(cfg: NavConfig) -> None:
 
 
 def _file_digest(path: Path | None) -> str | None:
+    """A short sha256 of a file, or of a table set's index and tables."""
     if path is None:
         return None
     import hashlib
 
-    return hashlib.sha256(Path(path).read_bytes()).hexdigest()[:16]
+    path = Path(path)
+    files = [path / "tables.json", *sorted(path.glob("*.npz"))] if path.is_dir() else [path]
+    h = hashlib.sha256()
+    for f in files:
+        h.update(f.read_bytes())
+    return h.hexdigest()[:16]
 
 
 def settings_record(cfg: NavConfig, robot: RobotPreset, barn_file: Path | None, sources: dict[str, str | None]) -> dict:
@@ -148,8 +154,9 @@ def _sources(cfg: NavConfig, robot: RobotPreset, cache: Path, given: dict[str, P
     if "policy" in methods and policy is None:
         policy = ensure_policy(robot, cache, quiet=quiet)
     for name, p in (("table", table), ("coverage_table", coverage), ("policy", policy)):
-        if p is not None and not Path(p).is_file():
-            raise FileNotFoundError(f"--{name.replace('_', '-')} {p} does not exist")
+        if p is not None and not (Path(p).is_file() or (Path(p) / "tables.json").is_file()):
+            raise FileNotFoundError(f"--{name.replace('_', '-')} {p} does not exist (a table file or a table set's "
+                                    "folder)")
     return {"table": str(table), "coverage_table": str(coverage) if coverage else None,
             "policy": str(policy) if policy else None}
 
@@ -293,6 +300,9 @@ def make_parser() -> ArgumentParser:
     p.add_argument("--param", action="append", default=[], metavar="KEY=VALUE",
                    help="a parameter of --system as JSON (repeatable)")
     p.add_argument("--robot-radius", type=float, default=NAV_ROBOT.radius, help="m (default: 0.2)")
+    p.add_argument("--starts", default=None, metavar="SPEC",
+                   help="with --system: the robot's tables are a set over these starts (precompute.build --starts), "
+                        "e.g. '3=0:1:6' for ks_speed's speed")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     add_system_module_arg(p)
     return p
@@ -307,8 +317,15 @@ def _robot(args, cfg: NavConfig) -> RobotPreset:
     radius = args.robot_radius
     if not (np.isfinite(radius) and radius >= 0):
         raise ValueError(f"--robot-radius must be a finite number >= 0, got {radius}")
-    robot = RobotPreset(system=args.system or NAV_ROBOT.system, params=params, radius=radius, horizon=cfg.horizon)
-    robot.make_system()  # a bad system or parameter fails here, before any work
+    if args.starts is not None and args.system is None:
+        raise ValueError("--starts needs --system (the built-in robot's state is a pose: one table serves it)")
+    robot = RobotPreset(system=args.system or NAV_ROBOT.system, params=params, radius=radius, horizon=cfg.horizon,
+                        starts=args.starts)
+    system = robot.make_system()  # a bad system or parameter fails here, before any work
+    if args.starts is not None:
+        from precompute.table_set import parse_starts
+
+        parse_starts(args.starts, system)  # a bad SPEC too
     return robot
 
 

@@ -16,7 +16,7 @@ from eval.barn import load_barn, write_barn, pack_maps
 from eval.methods import Method
 from eval.nav_episode import NavContext, NavJob, rasterize, run_nav_episode
 from cuniform_torch.parallel import ray_available
-from eval.nav_robot import NAV_ROBOT, ensure_table
+from eval.nav_robot import NAV_ROBOT, ensure_table, preset_dict
 from eval.nav_tasks import barn_task, make_tasks
 from eval.navigate import NavConfig, controller_seed, main, make_jobs, run
 from eval.nav_geometry import clearance
@@ -159,6 +159,8 @@ def exit_code(argv) -> int:
     (["--methods", "mppi_1.0", "magic"], "unknown method"),
     (["--budgets", "1", "64"], "budget must be an integer >= 2"),
     (["--param", "speed=1"], "--param needs --system"),
+    (["--starts", "3=0:1:3"], "--starts needs --system"),
+    (["--system", "ks_speed", "--starts", "1=0:1:3"], "SE(2)-invariant"),
 ])
 def test_bad_flags_fail_before_any_episode(argv, message, tmp_path, capsys):
     code = exit_code([*argv, "--out", str(tmp_path / "o"), "--cache", str(tmp_path / "c")])
@@ -227,6 +229,21 @@ def test_opt_in_methods_run_from_given_files(tmp_path, cache):
     with pytest.raises(FileNotFoundError, match="--policy"):
         run(_cfg(tasks=1, methods=("cu_mlp",)), tmp_path / "o2", ROBOT, cache,
             given={"policy": tmp_path / "missing.pt"}, progress=False)
+
+
+def test_a_robot_with_a_speed_drives_from_a_table_set(tmp_path):
+    """--system ks_speed --starts SPEC: the robot's tables are a set over the speed, built once into the cache and
+    recorded in the settings (a one-table robot's records keep no starts key)."""
+    argv = ["--suite", "gaps", "--tasks", "1", "--repeats", "1", "--budgets", "8", "--methods", "cu_table",
+            "--system", "ks_speed", "--starts", "3=0:1:3", "--horizon", "3", "--out", str(tmp_path / "o"),
+            "--cache", str(tmp_path / "c"), "--quiet"]
+    assert main(argv) == 0
+    [folder] = [p for p in (tmp_path / "c").iterdir() if p.is_dir()]
+    index = json.loads((folder / "tables.json").read_text())
+    assert [t["start"][3] for t in index["tables"]] == [0.0, 0.5, 1.0]
+    settings = json.loads((tmp_path / "o" / "settings.json").read_text())
+    assert settings["robot"]["starts"] == "3=0:1:3" and settings["sources"]["table"]
+    assert "starts" not in preset_dict(ROBOT)
 
 
 def test_success_pivot_marks_methods_against_the_best_baseline():
