@@ -39,7 +39,8 @@ from torch import Tensor
 from .grid import Grid
 from .mlp import MLPConfig, MLPPolicy, MLPSupport
 from .policy import Fallback
-from .rollout import OWN_ROBOT, StartMismatchWarning
+from .lookup import MISS
+from .rollout import OWN_ROBOT, StartMismatchWarning, check_states
 from .systems import System
 
 __all__ = ["StartRegion", "StartMLPPolicy", "start_dims_of"]
@@ -111,6 +112,8 @@ class StartMLPPolicy(MLPPolicy):
         first[dims] = region.starts[0]
         self.register_buffer("_start", first.float(), persistent=False)  # [d] the current start
         self._warned = False
+        self._fold_key: tuple | None = None
+        self._folded_layer: tuple | None = None
 
     @property
     def build_start(self) -> Tensor:
@@ -130,20 +133,80 @@ class StartMLPPolicy(MLPPolicy):
         return torch.cat(parts, dim=1)
 
     def forward(self, x: Tensor, t: int | Tensor, start: Tensor | None = None) -> Tensor:
-        """Logits ``[N, A]`` of ``x [N, d]`` at ``t`` from ``start [N, d]`` (training), or from the current start
-        (``None``: its features folded into the first layer's bias)."""
-        feats = self.features(x, t)  # [N, F0]
-        first = self.net[0]
+        """Logits ``[N, A]`` of ``x [N, d]`` at ``t`` (int or ``[N]``) from ``start [N, d]`` (training), or from
+        the current start (``None``; without gradients, through the folded layers of :meth:`_folded`)."""
+        if start is None and torch.is_grad_enabled():  # the folded layer is detached: gradients need the plain one
+            start = self._start.expand(x.shape[0], -1)
         if start is not None:
-            h = first(torch.cat((feats, self.start_features(start)), dim=1))
+            h = self.net[0](torch.cat((self.features(x, t), self.start_features(start)), dim=1))
         else:
-            f0 = self.config.num_state_features
-            s = self.start_features(self._start.unsqueeze(0)).squeeze(0)  # [Fs]
-            bias = torch.addmv(first.bias, first.weight[:, f0:], s)  # [H]
-            h = torch.addmm(bias, feats, first.weight[:, :f0].T)
+            check_states(x, self.config.state_dim, self.device)
+            wx, wcs, bias, rest = self._folded()
+            bias_t = bias[t] if isinstance(t, int) else bias.index_select(0, t.long())  # [H] or [N, H]
+            h = torch.addmm(bias_t, x.to(self.dtype), wx)
+            if self._angle:
+                ang = x[:, self._angle].to(self.dtype)
+                h.addmm_(torch.cat((torch.cos(ang), torch.sin(ang)), dim=1), wcs)
+            for w_t, b in rest:  # SiLU in place, then the next linear layer (no module calls: a query is short)
+                h = torch.addmm(b, torch.nn.functional.silu(h, inplace=True), w_t)
+            return h
         for layer in self._rest:
             h = layer(h)
         return h
+
+    def _folded(self) -> tuple[Tensor, Tensor, Tensor, list[tuple[Tensor, Tensor]]]:
+        """The first layer for the current start with the feature scales, the time and the start folded in:
+        ``wx [d, H]`` (scaled rows for the non-periodic dimensions, zero rows for the angles), ``wcs [2a, H]``
+        (cos, sin of the angles) and ``bias [T+1, H]``, so that ``x @ wx + [cos, sin] @ wcs + bias[t]`` is the
+        first layer's output; and the later linear layers as ``(weight.T, bias)``. Rebuilt when the weights or
+        the start change (their version counters)."""
+        first = self.net[0]
+        key = (tuple((p._version, p.data_ptr()) for p in self.net.parameters()), self._start._version,
+               self._start.data_ptr())
+        if self._fold_key != key:
+            with torch.no_grad():
+                w = first.weight.detach()  # [H, F]
+                nl, na, f0 = len(self._linear), len(self._angle), self.config.num_state_features
+                wx = w.new_zeros((self.config.state_dim, w.shape[0]))
+                wx[self._linear] = (w[:, :nl] * self.inv_scale[self._linear]).T
+                wcs = w[:, nl:nl + 2 * na].T.contiguous()  # [2a, H]
+                s = self.start_features(self._start.unsqueeze(0)).squeeze(0)  # [Fs]
+                base = first.bias.detach() + w[:, f0:] @ s  # [H]
+                steps = torch.arange(self.horizon + 1, dtype=w.dtype, device=w.device) / self.horizon
+                bias = base + steps.unsqueeze(1) * w[:, f0 - 1]  # [T+1, H]: the time feature t / T
+                rest = [(m.weight.detach().T.contiguous(), m.bias.detach()) for m in self._rest
+                        if isinstance(m, torch.nn.Linear)]  # [in, out], [out] of the layers after the first
+            self._folded_layer, self._fold_key = (wx, wcs, bias, rest), key
+        return self._folded_layer
+
+    def _weights(self, x: Tensor, t: int) -> Tensor:
+        """Unnormalised probabilities ``[N, A]`` of checked states (ones on the rows the fallback answers
+        uniformly), the lookups counted as :meth:`MLPPolicy.action_probs` counts them."""
+        if isinstance(t, bool) or not isinstance(t, int) or not 0 <= t <= self.horizon:
+            raise ValueError(f"level t={t!r} is outside the policy's levels 0..{self.horizon} (an integer)")
+        check_states(x, self.config.state_dim, self.device)
+        if x.dtype != self.dtype:
+            raise ValueError(f"states are {x.dtype} but the policy is {self.dtype}")
+        with torch.no_grad():
+            logits = self(x, t)  # [N, A]
+            e = (logits - logits.amax(dim=1, keepdim=True)).exp_()  # torch.softmax is slow on few actions
+            code = self.support_codes(x, t)  # [N]
+            self._count(x.shape[0], code)
+            return torch.where((code >= MISS).unsqueeze(1), torch.ones_like(e[:1]), e)
+
+    def action_probs(self, x: Tensor, t: int) -> Tensor:
+        """``x [N, d]`` at level ``t`` from the current start -> ``[N, A]``, checked and counted, with the
+        fallback, as :meth:`MLPPolicy.action_probs`."""
+        e = self._weights(x, t)
+        return e / e.sum(dim=1, keepdim=True)
+
+    def sample(self, x: Tensor, t: int, generator: torch.Generator | None = None) -> Tensor:
+        """Actions ``[N, q]`` drawn from :meth:`action_probs` (inverse CDF, one uniform per state: cheaper than
+        ``torch.multinomial``); what a rollout draws through."""
+        cdf = self._weights(x, t).cumsum(dim=1)  # [N, A]
+        u = torch.rand((x.shape[0], 1), generator=generator, dtype=cdf.dtype, device=cdf.device) * cdf[:, -1:]
+        pick = (cdf <= u).sum(dim=1).clamp_max_(cdf.shape[1] - 1)  # the first action whose cdf exceeds u
+        return self.actions.to(x.dtype).index_select(0, pick)
 
     def for_start(self, x0: Tensor) -> StartMLPPolicy:
         """Serve rollouts from ``x0 [d]`` (or the first row of ``[N, d]``) from now on; returns ``self``."""

@@ -61,6 +61,7 @@ from cuniform_torch.rollout import rollout
 from cuniform_torch.table import Table, read_table
 
 from .evaluate import cell_centres, cell_levels, compare, kl_per_level, kl_rows, sizes
+from .distill_set import distill_set
 from .figures import coverage_figure, trajectory_figure
 from .support import pooled_support
 from .samples import level_weights, make_samples
@@ -197,9 +198,7 @@ def distill(cfg: DistillConfig) -> int:
     out = output_paths(cfg)[0]
     with exclusive_lock(out.with_name(out.name + ".lock"), what=f"--out {out}"):
         if Path(cfg.tables[0]).is_dir():
-            from .distill_set import distill_set  # a table set: pi(u | x, t, x0)
-
-            return distill_set(cfg)
+            return distill_set(cfg, *output_paths(cfg))  # a table set: pi(u | x, t, x0)
         return _distill(cfg)
 
 
