@@ -1,0 +1,128 @@
+"""The map-conditioned policy's checkpoint file (format ``cuniform-map-policy/1``): written atomically, read with
+``torch.load(weights_only=True)``, every key checked.
+
+Keys (nothing else is accepted): ``format``; ``state_dict`` (name -> finite float tensor, exactly the network's);
+``config`` (:class:`~cuniform_torch.map_policy.MapPolicyConfig` as a dict, patch spec included); ``system`` (the
+data set's system JSON); ``actions`` ``[A, q]`` (the system's); ``source`` (str -> str: the data sets and their
+digests); ``metrics`` (str -> number or string: the training's).
+"""
+
+from __future__ import annotations
+
+import io
+import math
+import os
+from pathlib import Path
+from typing import Any, Callable
+
+import torch
+from torch import Tensor
+
+from .fileio import write_bytes
+from .map_policy import MapPolicy, MapPolicyConfig
+from .systems import system_from_json
+
+__all__ = ["MAP_POLICY_FORMAT", "MapCheckpointError", "map_policy_checkpoint", "save_map_policy", "load_map_policy"]
+
+MAP_POLICY_FORMAT = "cuniform-map-policy/1"
+_KEYS = {"format", "state_dict", "config", "system", "actions", "source", "metrics"}
+
+
+class MapCheckpointError(ValueError):
+    """A map-policy checkpoint that is missing, corrupt, of an unknown format, or does not match its network."""
+
+
+def map_policy_checkpoint(policy: MapPolicy, system_json: str, source: dict[str, str] | None = None,
+                          metrics: dict[str, Any] | None = None) -> dict[str, Any]:
+    """The checkpoint dict (plain types and CPU tensors; ``weights_only`` loadable)."""
+    return {
+        "format": MAP_POLICY_FORMAT,
+        "state_dict": {k: v.detach().cpu() for k, v in policy.state_dict().items()},
+        "config": policy.config.to_dict(),
+        "system": system_json,
+        "actions": policy.actions.detach().cpu(),
+        "source": dict(source or {}),
+        "metrics": dict(metrics or {}),
+    }
+
+
+def save_map_policy(path: str | os.PathLike, checkpoint: dict[str, Any]) -> None:
+    """Write a checkpoint dict atomically."""
+    buf = io.BytesIO()
+    torch.save(checkpoint, buf)
+    write_bytes(path, buf.getvalue())
+
+
+def load_map_policy(source: str | os.PathLike | dict, device: torch.device | str = "cpu", *,
+                    trust_factory: str | Callable[..., Any] | None = None) -> MapPolicy:
+    """A ready :class:`MapPolicy` (eval mode, on ``device``, no map set) from a path or a loaded dict;
+    :class:`MapCheckpointError` naming the first key that is wrong."""
+    where = "checkpoint dict" if isinstance(source, dict) else str(source)
+    if isinstance(source, dict):
+        ckpt = source
+    else:
+        path = Path(source)
+        if not path.is_file():
+            raise MapCheckpointError(f"{path}: no checkpoint file there")
+        try:
+            ckpt = torch.load(path, map_location="cpu", weights_only=True)
+        except Exception as exc:  # corrupt, truncated, or holding objects that need arbitrary unpickling
+            raise MapCheckpointError(f"{path}: not a readable map-policy checkpoint ({type(exc).__name__}: "
+                                     f"{str(exc)[:200]})") from None
+
+    def fail(msg: str) -> None:
+        raise MapCheckpointError(f"{where}: {msg}")
+
+    if not isinstance(ckpt, dict):
+        fail(f"a checkpoint must be a dict, got {type(ckpt).__name__}")
+    if ckpt.get("format") != MAP_POLICY_FORMAT:
+        fail(f"unknown format {ckpt.get('format')!r}; this reader knows {MAP_POLICY_FORMAT!r}")
+    if set(ckpt) != _KEYS:
+        missing, extra = sorted(_KEYS - set(ckpt)), sorted(set(ckpt) - _KEYS)
+        fail("; ".join(([f"missing key(s) {', '.join(missing)}"] if missing else [])
+                       + ([f"unknown key(s) {', '.join(map(str, extra))}"] if extra else [])))
+    state = ckpt["state_dict"]
+    if not isinstance(state, dict) or not all(isinstance(k, str) and isinstance(v, Tensor) for k, v in state.items()):
+        fail("state_dict must map names to tensors")
+    for key, value in state.items():
+        if not value.is_floating_point() or not bool(torch.isfinite(value).all()):
+            fail(f"state_dict[{key!r}] holds non-finite or non-float values")
+    if not isinstance(ckpt["config"], dict):
+        fail(f"config must be a dict, got {type(ckpt['config']).__name__}")
+    try:
+        config = MapPolicyConfig(**ckpt["config"])
+    except (TypeError, ValueError) as exc:
+        fail(f"config does not describe a map policy ({exc})")
+    try:
+        system, horizon = system_from_json(ckpt["system"], trust_factory=trust_factory)
+    except ValueError as exc:  # includes UnknownSystemError
+        fail(f"the system cannot be rebuilt: {exc}")
+    if config.horizon != horizon:
+        fail(f"config.horizon is {config.horizon} but the system JSON says {horizon}")
+    if list(config.periodic) != list(system.periodic):
+        fail(f"config.periodic {list(config.periodic)} does not match the system's {list(system.periodic)}")
+    expect = system.action_set(dtype=torch.float32)
+    for name, value in (("actions", ckpt["actions"]), ("state_dict['actions']", state.get("actions"))):
+        if not isinstance(value, Tensor) or value.shape != expect.shape or not torch.allclose(expect, value.float(),
+                                                                                              atol=1e-6):
+            fail(f"{name} does not match the actions of the system {system.name!r}")
+    inv_scale = state.get("inv_scale")
+    expect_inv = 1.0 / torch.tensor(config.feature_scale, dtype=torch.float32)
+    if not isinstance(inv_scale, Tensor) or inv_scale.shape != expect_inv.shape \
+            or not torch.equal(inv_scale.float(), expect_inv):
+        fail("state_dict['inv_scale'] does not match config.feature_scale")
+    for name in ("source", "metrics"):
+        value = ckpt[name]
+        if not isinstance(value, dict) or not all(isinstance(k, str) for k in value):
+            fail(f"{name} must be a dict with string keys")
+    if not all(isinstance(v, str) for v in ckpt["source"].values()):
+        fail("source values must be strings")
+    if not all(isinstance(v, str) or (isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v))
+               for v in ckpt["metrics"].values()):
+        fail("metrics values must be finite numbers or strings")
+    try:
+        policy = MapPolicy(config, system, ckpt["actions"])
+        policy.load_state_dict(state, strict=True)
+    except (RuntimeError, TypeError, ValueError) as exc:
+        fail(f"state_dict does not match the network of its config ({str(exc)[:300]})")
+    return policy.to(device).eval()

@@ -1,0 +1,256 @@
+"""The map-conditioned policy pi(u | x, t, local map) of C-Free-Uniform (arXiv 2510.16905).
+
+Shapes: N states, d state dimensions, F state features, E map embedding, Hd hidden units, A actions, H x W patch.
+
+:class:`MapPolicy` is a :class:`~cuniform_torch.map_encoder.MapEncoder` over the robot-frame occupancy patch
+(computed *once* per map: :meth:`MapPolicy.set_map`) and an MLP over the state / time features of
+:class:`~cuniform_torch.mlp.MLPPolicy` (``x_i / scale_i`` per non-periodic dimension, ``cos``, ``sin`` per angle,
+``t / T``) together with that embedding. The first layer is split, ``W_x f + W_e e + b``, so ``W_e e + b`` is
+computed with the embedding and a lookup costs what an MLPPolicy's does. It answers ``action_probs(x, t)``
+and ``sample(x, t, generator)`` for the map last set, so it drops into :func:`~cuniform_torch.rollout.rollout`
+and every controller (:class:`~cuniform_torch.map_policy_mppi.CFUMPPI` sets the map each command).
+
+States are in the start pose's frame (``start_relative`` on an SE(2)-invariant system), like the patch.
+Support: the box of the training cells, as an MLPPolicy without ``support``: each non-periodic dimension
+within ``feature_scale_i + cell_size_i / 2`` of 0 is answered by the network; within one more cell too, counted
+in ``nearest_hits``; beyond, or NaN / infinite, the uniform row, counted in ``misses``. The safe cells differ
+from map to map, so no per-cell support is kept.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+from typing import Any, Callable
+
+import torch
+from torch import Tensor, nn
+
+from .grid import Grid
+from .map_encoder import MapEncoder, PatchSpec
+from .rollout import StartWatch, check_states
+from .systems import System
+
+__all__ = ["MapPolicyConfig", "MapPolicy", "MAX_MAP_HIDDEN", "MAX_MAP_LAYERS"]
+
+MAX_MAP_HIDDEN = 1 << 14
+MAX_MAP_LAYERS = 16
+
+
+@dataclass
+class MapPolicyConfig:
+    """Sizes, input features and patch spec of a :class:`MapPolicy` (stored in the checkpoint as a dict)."""
+
+    state_dim: int
+    num_actions: int
+    horizon: int
+    periodic: list[bool]
+    feature_scale: list[float]
+    """divisor of each non-periodic dimension (ignored on angle dimensions)"""
+    patch: dict[str, Any]
+    """the :class:`PatchSpec` as a dict (shape, resolution, origin)"""
+    hidden: int = 128
+    layers: int = 2
+    embed: int = 32
+    """map embedding size E"""
+    channels: int = 8
+    """the encoder's base channel count c"""
+
+    def __post_init__(self) -> None:
+        for name in ("state_dim", "num_actions", "horizon", "hidden", "layers", "embed", "channels"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+                raise ValueError(f"MapPolicyConfig.{name} must be a positive integer, got {value!r}")
+        if max(self.hidden, self.embed, self.channels) > MAX_MAP_HIDDEN or self.layers > MAX_MAP_LAYERS:
+            raise ValueError(f"MapPolicyConfig: at most {MAX_MAP_LAYERS} layers and {MAX_MAP_HIDDEN} units or "
+                             f"channels, got layers {self.layers}, hidden {self.hidden}, embed {self.embed}, "
+                             f"channels {self.channels}")
+        if not isinstance(self.periodic, (list, tuple)) or not all(isinstance(p, bool) for p in self.periodic):
+            raise ValueError(f"MapPolicyConfig: periodic must be a list of bools, got {self.periodic!r}")
+        if not isinstance(self.feature_scale, (list, tuple)) or len(self.periodic) != self.state_dim \
+                or len(self.feature_scale) != self.state_dim:
+            raise ValueError(f"MapPolicyConfig: periodic and feature_scale need {self.state_dim} entries each")
+        if any(isinstance(s, bool) or not isinstance(s, (int, float)) or not (0 < s < math.inf)
+               for s in self.feature_scale):
+            raise ValueError(f"MapPolicyConfig: feature_scale must be positive finite numbers, got {self.feature_scale}")
+        self.patch = PatchSpec.from_dict(self.patch).to_dict()  # checked, normalised
+
+    @property
+    def patch_spec(self) -> PatchSpec:
+        return PatchSpec.from_dict(self.patch)
+
+    @property
+    def num_features(self) -> int:
+        return sum(2 if p else 1 for p in self.periodic) + 1
+
+    def to_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+
+class MapPolicy(nn.Module):
+    """pi(u | x, t, map): ``set_map(patch)`` once, then ``action_probs(x [N, d], t) -> [N, A]`` for that map.
+
+    ``encode(occupancy [B, H, W]) -> [B, E]`` and ``logits(x, t, embedding)`` are the training path (one embedding
+    per state, ``[N, E]``); ``encodes`` counts the embeddings computed by :meth:`set_map`.
+    """
+
+    def __init__(self, config: MapPolicyConfig, system: System, actions: Tensor):
+        super().__init__()
+        if not isinstance(actions, Tensor) or actions.ndim != 2 or actions.shape[0] != config.num_actions:
+            raise ValueError(f"actions must be [{config.num_actions}, q], got {list(getattr(actions, 'shape', []))}")
+        if list(system.periodic) != list(config.periodic):
+            raise ValueError(f"system {system.name} has periodic {list(system.periodic)}, config says {config.periodic}")
+        self.config, self.system, self.horizon = config, system, config.horizon
+        self.patch_spec = config.patch_spec
+        self.register_buffer("actions", actions.detach().clone().float())  # [A, q]
+        self.register_buffer("inv_scale", 1.0 / torch.tensor(config.feature_scale, dtype=torch.float32))  # [d]
+        self._angle = [i for i, p in enumerate(config.periodic) if p]
+        self._linear = [i for i, p in enumerate(config.periodic) if not p]
+        self.encoder = MapEncoder(self.patch_spec.shape, config.embed, config.channels)
+        self.inp_x = nn.Linear(config.num_features, config.hidden)
+        self.inp_e = nn.Linear(config.embed, config.hidden, bias=False)
+        body: list[nn.Module] = []
+        for _ in range(config.layers - 1):
+            body += [nn.SiLU(), nn.Linear(config.hidden, config.hidden)]
+        body += [nn.SiLU(), nn.Linear(config.hidden, config.num_actions)]
+        self.body = nn.Sequential(*body)
+        grid = Grid.of(system)
+        half = torch.tensor([s + c / 2 for s, c in zip(config.feature_scale, grid.cell_size)])
+        self.register_buffer("_box_half", half[self._linear], persistent=False)  # [d_lin]
+        self.register_buffer("_box_cell", torch.tensor(grid.cell_size)[self._linear], persistent=False)
+        self._start_watch = StartWatch(f"map policy ({system.name})", system)
+        self._map_bias: Tensor | None = None  # [Hd]: W_e e + b of the map last set
+        self.encodes = 0
+        self.reset_counters()
+
+    # -------------------------------------------------------------------------------- traits
+    @property
+    def device(self) -> torch.device:
+        return self.actions.device
+
+    @property
+    def dtype(self) -> torch.dtype:
+        return self.actions.dtype
+
+    @property
+    def start_relative(self) -> bool:
+        """True on an SE(2)-invariant system: states and patch are in the start pose's frame."""
+        return bool(self.system.se2_invariant)
+
+    @property
+    def build_start(self) -> Tensor:
+        return self._start_watch.build_start
+
+    def watch_start(self, x0: Tensor, relative: bool) -> Callable[[], None] | None:
+        return self._start_watch.begin(self, x0, relative)
+
+    @property
+    def num_parameters(self) -> int:
+        return sum(p.numel() for p in self.parameters())
+
+    # -------------------------------------------------------------------------------- the network
+    def features(self, x: Tensor, t: int | Tensor) -> Tensor:
+        """``x [N, d]``, ``t`` (int or ``[N]``) -> ``[N, F]`` (MLPPolicy's features)."""
+        x = x.to(self.dtype)
+        parts = [x[:, self._linear] * self.inv_scale[self._linear]]
+        if self._angle:
+            ang = x[:, self._angle]
+            parts += [torch.cos(ang), torch.sin(ang)]
+        tt = torch.as_tensor(t, dtype=x.dtype, device=x.device) / self.config.horizon
+        parts.append(tt.expand(x.shape[0]).unsqueeze(1) if tt.ndim == 0 else tt.unsqueeze(1))
+        return torch.cat(parts, dim=1)
+
+    def encode(self, occupancy: Tensor) -> Tensor:
+        """``[B, H, W]`` (bool or 0 / 1) -> ``[B, E]`` map embeddings."""
+        return self.encoder(occupancy.to(self.dtype))
+
+    def logits(self, x: Tensor, t: int | Tensor, embedding: Tensor) -> Tensor:
+        """``x [N, d]``, ``t``, ``embedding [N, E]`` (or ``[1, E]``) -> logits ``[N, A]`` (differentiable)."""
+        return self.body(self.inp_x(self.features(x, t)) + self.inp_e(embedding))
+
+    def forward(self, x: Tensor, t: int | Tensor, embedding: Tensor) -> Tensor:
+        return self.logits(x, t, embedding)
+
+    # -------------------------------------------------------------------------------- one map, many lookups
+    def set_map(self, patch: object) -> None:
+        """Encode ``patch`` (a robot-frame OccupancyGrid of this policy's :class:`PatchSpec`, on its device) once;
+        every lookup until the next call is for that map. ValueError naming a wrong shape, resolution or origin."""
+        occupied = self.patch_spec.check(patch)
+        if occupied.device != self.device:
+            raise ValueError(f"the patch is on {occupied.device} but the policy is on {self.device}")
+        with torch.no_grad():
+            embedding = self.encode(occupied.unsqueeze(0))  # [1, E]
+            self._map_bias = (self.inp_x.bias + self.inp_e(embedding)[0]).detach()  # [Hd]
+        self.encodes += 1
+
+    def clear_map(self) -> None:
+        """Forget the map: lookups are refused until :meth:`set_map`."""
+        self._map_bias = None
+
+    def action_probs(self, x: Tensor, t: int) -> Tensor:
+        """Softmax of the logits for the map last set: ``x [N, d]`` (policy dtype and device) at level ``t`` ->
+        ``[N, A]``; states outside the box get the uniform row (module docstring)."""
+        if self._map_bias is None:
+            raise ValueError("no map set: call set_map(patch) before looking up actions")
+        if isinstance(t, bool) or not isinstance(t, int) or not 0 <= t <= self.horizon:
+            raise ValueError(f"level t={t!r} is outside the policy's levels 0..{self.horizon} (an integer)")
+        check_states(x, self.config.state_dim, self.device)
+        if x.dtype != self.dtype:
+            raise ValueError(f"states are {x.dtype} but the policy is {self.dtype}")
+        with torch.no_grad():
+            h = torch.nn.functional.linear(self.features(x, t), self.inp_x.weight, self._map_bias)  # [N, Hd]
+            probs = torch.softmax(self.body(h), dim=1)  # [N, A]
+            code = self._support_codes(x)  # [N]: 0 in, 1 near, 2 miss
+            self._queries += x.shape[0]
+            self._near = self._near + (code == 1).sum()
+            self._miss = self._miss + (code == 2).sum()
+            return torch.where((code == 2).unsqueeze(1), torch.full_like(probs[:1], 1.0 / probs.shape[1]), probs)
+
+    def sample(self, x: Tensor, t: int, generator: torch.Generator | None) -> Tensor:
+        """``x [N, d]`` at level ``t`` -> actions ``[N, q]`` drawn from :meth:`action_probs`."""
+        idx = torch.multinomial(self.action_probs(x, t), 1, generator=generator).squeeze(1)  # [N]
+        return self.actions.index_select(0, idx)
+
+    def _support_codes(self, x: Tensor) -> Tensor:
+        half, size = self._box_half.to(x.dtype), self._box_cell.to(x.dtype)
+        if self._linear:
+            excess = ((x[:, self._linear].abs() - half) / size).amax(dim=1)  # [N] cells beyond the box
+        else:
+            excess = x.new_full((x.shape[0],), -1.0)
+        code = torch.where(excess <= 0, 0, torch.where(excess <= 1, 1, 2))
+        return torch.where(torch.isfinite(x).all(dim=1) & ~torch.isnan(excess), code, 2)
+
+    # -------------------------------------------------------------------------------- honest-support counters
+    def reset_counters(self) -> None:
+        """Zero ``queries`` (host int), ``nearest_hits`` and ``misses`` (device tensors: counting never syncs)."""
+        self._queries = 0
+        self._near = torch.zeros((), dtype=torch.int64, device=self.device)
+        self._miss = torch.zeros((), dtype=torch.int64, device=self.device)
+
+    @property
+    def queries(self) -> int:
+        return self._queries
+
+    @property
+    def nearest_hits(self) -> Tensor:
+        return self._near
+
+    @property
+    def misses(self) -> Tensor:
+        return self._miss
+
+    @property
+    def miss_rate(self) -> float:
+        return int(self._miss) / self._queries if self._queries else 0.0
+
+    @property
+    def nearest_rate(self) -> float:
+        return int(self._near) / self._queries if self._queries else 0.0
+
+    def _apply(self, fn, recurse: bool = True):  # .to(device) moves the map and the counters with the module
+        super()._apply(fn, recurse)
+        if self._map_bias is not None:
+            self._map_bias = fn(self._map_bias)
+        self._near, self._miss = self._near.to(self.device), self._miss.to(self.device)
+        return self
