@@ -50,9 +50,16 @@ _OPTIONAL_ARRAYS: dict[str, tuple[np.dtype, int]] = {
     "transitions": (np.dtype(np.int64), 2),
     "transition_frac": (np.dtype(np.float64), 1),
 }
-_OPTIONAL_STRINGS = ("method", "build_info")
-_OPTIONAL_META: dict[str, tuple[np.dtype, int]] = {"start": (np.dtype(np.float64), 1)}
-"""optional arrays a policy reads (unlike the graph's): ``start [d]``, the state the table was built from"""
+_OPTIONAL_STRINGS = ("method", "build_info", "map_sha256")
+_OPTIONAL_META: dict[str, tuple[np.dtype, int]] = {
+    "start": (np.dtype(np.float64), 1),
+    "map_origin": (np.dtype(np.float64), 1),
+    "map_resolution": (np.dtype(np.float64), 0),
+    "map_shape": (np.dtype(np.int64), 1),
+    "map_radius": (np.dtype(np.float64), 0),
+}
+"""optional arrays a policy reads (unlike the graph's): ``start [d]``, the state the table was built from; the
+local map of a safe table (with ``map_sha256``; see :data:`~cuniform_torch.table_checks.MAP_KEYS`)"""
 _KNOWN_KEYS = {"format", *_REQUIRED, *_OPTIONAL_ARRAYS, *_OPTIONAL_STRINGS, *_OPTIONAL_META}
 
 
@@ -65,6 +72,9 @@ class Table:
     ``arc_offsets [T+1]``; ``transitions`` (global row from, action, global row to) with ``transition_frac``, the
     fraction of the (cell, action)'s kept sample points that land in the next cell, grouped by
     ``transition_offsets [T+1]``.
+
+    Optional map keys (a safe table, whose levels exclude the cells in collision with a local map inflated by
+    ``map_radius``): ``map_sha256``, ``map_origin``, ``map_resolution``, ``map_shape``, ``map_radius``, all or none.
     """
 
     system: str
@@ -87,6 +97,11 @@ class Table:
     transition_offsets: np.ndarray | None = None  # [T+1] int64
     transitions: np.ndarray | None = None  # [K, 3] int64
     transition_frac: np.ndarray | None = None  # [K] float64
+    map_sha256: str | None = None  # a safe table's local map: sha256 of its uint8 [H, W] occupancy bytes
+    map_origin: np.ndarray | None = None  # [2] float64, m: the map's cell (0, 0) corner in the start frame
+    map_resolution: np.ndarray | None = None  # [] float64, m
+    map_shape: np.ndarray | None = None  # [2] int64: H, W
+    map_radius: np.ndarray | None = None  # [] float64, m: the robot radius the obstacles were inflated by
     extra: dict[str, np.ndarray] = field(default_factory=dict)
     """more keys to write, beyond the format's (readers ignore keys they do not know: :func:`read_table` never
     reads them)"""
@@ -172,7 +187,7 @@ MAX_EXPANSION = 200
 
 _MIN_BUDGET = 64 << 20
 _MAX_DIM = 64  # state and action dimensions
-_MAX_STRING = {"format": 64, "system": 1 << 20, "method": 64, "build_info": 1 << 22}  # characters
+_MAX_STRING = {"format": 64, "system": 1 << 20, "method": 64, "build_info": 1 << 22, "map_sha256": 64}  # characters
 
 
 def _read_members(zf: zipfile.ZipFile, path: Path, graph: bool) -> dict[str, np.ndarray]:
@@ -232,6 +247,8 @@ def _read_members(zf: zipfile.ZipFile, path: Path, graph: bool) -> dict[str, np.
     C, d, A = int(arrays["level_offsets"][-1]) if len(arrays["level_offsets"]) else 0, len(arrays["cell_size"]), \
         len(arrays["actions"])
     read("start", (d,))
+    for key, shape in (("map_origin", (2,)), ("map_resolution", ()), ("map_shape", (2,)), ("map_radius", ())):
+        read(key, shape)
     read("cells", (C, d))
     read("action_probs", (C, A))
     read("cell_probs", (C,))

@@ -16,7 +16,7 @@ import torch
 from .grid import Grid, check_grid
 from .systems import system_from_json
 
-__all__ = ["TableError", "KNOWN_METHODS", "validate_table"]
+__all__ = ["TableError", "KNOWN_METHODS", "MAP_KEYS", "validate_table"]
 
 
 class TableError(ValueError):
@@ -28,6 +28,10 @@ _LEVEL_SUM_TOL = 1e-6  # float64 cell probabilities per level
 
 KNOWN_METHODS = ("maxflow", "coverage")
 """the builders whose tables this reader knows (the optional ``method`` key)"""
+
+MAP_KEYS = ("map_sha256", "map_origin", "map_resolution", "map_shape", "map_radius")
+"""the optional keys of a safe table's local map, stored all together or not at all"""
+_MAX_MAP_SIDE = 4096
 
 
 def validate_table(table: Any, source: str = "table", check_system: bool = True,
@@ -92,6 +96,7 @@ def validate_table(table: Any, source: str = "table", check_system: bool = True,
         if start.shape != (d,) or start.dtype != np.float64 or not np.all(np.isfinite(start)):
             fail(f"start must be {d} finite float64 numbers (the build start), got {start.dtype} {list(start.shape)}")
         start_cell = grid.cells(torch.from_numpy(start)[None])[0].numpy()
+    _validate_map(table, fail)
     _validate_cells(table, T, fail, start_cell)
     _validate_graph(table, "arc", ("arcs", "arc_flow"), 2, T, C, A, fail)
     _validate_graph(table, "transition", ("transitions", "transition_frac"), 3, T, C, A, fail)
@@ -133,6 +138,33 @@ def _validate_cells(table: Any, T: int, fail, start_cell: np.ndarray) -> None:
             what = "repeats" if sign[bad[0]] == 0 else "comes before"
             fail(f"cells of level {level} must be distinct and in ascending order; row {row} {cells[row].tolist()} "
                  f"{what} row {row - 1} {cells[row - 1].tolist()}")
+
+
+def _validate_map(table: Any, fail) -> None:
+    """The map keys: all or none; a 64-digit hex sha256, a finite origin [2], a resolution > 0, a shape [2] of
+    1..4096 cells, a radius >= 0 (m)."""
+    values = {key: getattr(table, key, None) for key in MAP_KEYS}
+    given = [key for key, value in values.items() if value is not None]
+    if not given:
+        return
+    if len(given) != len(MAP_KEYS):
+        fail(f"the map keys {', '.join(MAP_KEYS)} must be stored together; missing "
+             f"{', '.join(k for k in MAP_KEYS if values[k] is None)}")
+    sha = values["map_sha256"]
+    if not isinstance(sha, str) or len(sha) != 64 or any(c not in "0123456789abcdef" for c in sha):
+        fail(f"map_sha256 must be 64 lowercase hex digits, got {sha!r}")
+    arrays = {key: np.asarray(values[key]) for key in MAP_KEYS[1:]}
+    for key, dtype, shape in (("map_origin", np.float64, (2,)), ("map_resolution", np.float64, ()),
+                              ("map_shape", np.int64, (2,)), ("map_radius", np.float64, ())):
+        arr = arrays[key]
+        if arr.dtype != dtype or arr.shape != shape or not np.all(np.isfinite(arr)):
+            fail(f"{key} must be finite {np.dtype(dtype)} of shape {list(shape)}, got {arr.dtype} {list(arr.shape)}")
+    if not arrays["map_resolution"] > 0:
+        fail(f"map_resolution must be > 0 (m), got {float(arrays['map_resolution'])}")
+    if not arrays["map_radius"] >= 0:
+        fail(f"map_radius must be >= 0 (m), got {float(arrays['map_radius'])}")
+    if np.any(arrays["map_shape"] < 1) or np.any(arrays["map_shape"] > _MAX_MAP_SIDE):
+        fail(f"map_shape must be 1..{_MAX_MAP_SIDE} cells per side, got {arrays['map_shape'].tolist()}")
 
 
 def _validate_graph(table: Any, prefix: str, keys: tuple[str, str], width: int, T: int, C: int, A: int, fail) -> None:

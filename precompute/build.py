@@ -40,6 +40,7 @@ from cuniform_torch.table import write_table
 from .builder import BuildConfig, SizeGuide, available_memory_bytes, build_table, check_resume
 from .levels import PointMode
 from .report import format_report, uniformity_report
+from .safe_map import map_overrides
 
 
 def _system_fields() -> dict[str, dataclasses.Field]:
@@ -106,6 +107,11 @@ def make_parser() -> argparse.ArgumentParser:
         "ties": "symmetric: a step onto a cell boundary rounds away from its source cell (mirror-symmetric level "
                 "sets, the authors' sizes); grid: the state's own cell (the grid offset decides)",
     })
+    parser.add_argument("--map", dest="map_file", type=Path, default=None, metavar="FILE",
+                        help="a local map in the start frame (precompute/safe_map.py): safe level sets, without the "
+                             "cells within --radius of its obstacles (SE(2)-invariant systems)")
+    parser.add_argument("--radius", dest="map_radius", type=float, default=None, metavar="R",
+                        help="with --map: the robot's radius (m) its obstacles are inflated by (default 0)")
     parser.add_argument("--threads", type=int, default=1,
                         help="torch CPU threads (0: torch's choice, one per core). 1 by default: the build's tensors "
                              "are small, and on a busy machine extra threads only wait for each other")
@@ -288,7 +294,8 @@ def _run(args: argparse.Namespace, argv: Sequence[str] = ()) -> int:
     if args.workers != 1 or args.ray is not None:
         raise ValueError("--workers and --ray build a table set: give --starts too")
     horizon = system_horizon(system) if args.horizon is None else args.horizon
-    config = dataclass_from_args(BuildConfig, args, horizon=horizon)
+    map_fields = map_overrides(args, system)
+    config = dataclass_from_args(BuildConfig, args, horizon=horizon, **map_fields)
     out: Path = args.out or OUT / f"{name}.npz"
     if args.max_memory is not None and not args.max_memory > 0:
         raise ValueError(f"--max-memory must be a positive number of GB, got {args.max_memory}")
@@ -306,6 +313,8 @@ def _run_set(args: argparse.Namespace, argv: Sequence[str], name: str, system) -
 
     if getattr(args, "start", None) is not None:
         raise ValueError("give --start (one table) or --starts (a table set), not both")
+    if args.map_file is not None:
+        raise ValueError("--map builds one safe table; a table set (--starts) takes no map (see precompute.map_farm)")
     if args.workers < 1:
         raise ValueError(f"--workers must be >= 1, got {args.workers}")
     starts = parse_starts(args.starts, system, seed=getattr(args, "seed", 0))
@@ -346,7 +355,8 @@ def _build(args: argparse.Namespace, system, horizon: int, config: BuildConfig, 
     if args.method == "coverage":
         from .coverage_method import CoverageConfig
 
-        coverage_config = dataclass_from_args(CoverageConfig, args, horizon=horizon)
+        coverage_config = dataclass_from_args(CoverageConfig, args, horizon=horizon, local_map=config.local_map,
+                                              radius=config.radius)
     detail = (f"points={config.points.value}" if coverage_config is None
               else f"target N={coverage_config.target_samples}")
     say(f"building {system.name} table ({args.method}): {system.params()} horizon={horizon} {detail}")

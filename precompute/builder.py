@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import math
 import platform
 import time
 from dataclasses import dataclass, field
@@ -29,11 +28,13 @@ from cuniform_torch.grid import Grid
 from cuniform_torch.systems import System, system_to_json
 from cuniform_torch.table import Table, system_fields
 
-from .levels import LevelStep, PointMode, TieRule, next_level
+from .levels import EmptyLevelError, LevelStep, PointMode, TieRule, next_level
 from .maxflow import action_probs_from_flow, solve_maxflow, unique_arcs
+from .safe_map import LocalMap, MapError, SafeCells
+from .size_guide import SizeGuide, available_memory_bytes, estimate_build_bytes, project_level_sizes
 from .start import check_start, start_array, start_state
 
-__all__ = ["BuildConfig", "BuildStats", "ResumeError", "build_settings", "check_resume", "build_table", "propagate_cell_probs", "SizeGuide", "project_level_sizes",
+__all__ = ["BuildConfig", "MapError", "BuildStats", "ResumeError", "build_settings", "check_resume", "build_table", "propagate_cell_probs", "SizeGuide", "project_level_sizes",
            "estimate_build_bytes", "available_memory_bytes"]
 
 
@@ -50,6 +51,11 @@ class BuildConfig:
     sets) or ``grid`` (the state's own cell; the grid offset decides)"""
     start: tuple[float, ...] | None = None
     """the state the table is built from (default: the zero state); an SE(2)-invariant system's pose must be 0"""
+    local_map: LocalMap | None = None
+    """a local map in the start frame (:mod:`precompute.safe_map`): safe level sets, the cells within ``radius``
+    of its obstacles pruned from every level before the max-flow (None: the blind table)"""
+    radius: float = 0.0
+    """the robot's radius (m) the map's obstacles are inflated by"""
 
     def __post_init__(self) -> None:
         if isinstance(self.horizon, bool) or not isinstance(self.horizon, int) or self.horizon < 1:
@@ -119,7 +125,8 @@ def propagate_cell_probs(prev: np.ndarray, probs: np.ndarray, src, act, dst, fra
 def _fingerprint(system: System, config: BuildConfig) -> str:
     spec = {"system": system_to_json(system, config.horizon), "points": config.points.value,
             "points_per_cell": config.points_per_cell if config.points is PointMode.RANDOM else None,
-            "seed": config.seed if config.points is PointMode.RANDOM else None, "ties": config.ties.value}
+            "seed": config.seed if config.points is PointMode.RANDOM else None, "ties": config.ties.value,
+            **_map_settings(config)}
     return hashlib.sha256(json.dumps(spec, sort_keys=True).encode()).hexdigest()
 
 
@@ -137,7 +144,16 @@ def build_settings(system: System, config: BuildConfig) -> dict:
     return json.loads(json.dumps({
         "system": system.name, **system.params(), "horizon": config.horizon, "points": config.points.value,
         "points_per_cell": config.points_per_cell if random else None, "seed": config.seed if random else None,
-        "ties": config.ties.value}))
+        "ties": config.ties.value, **_map_settings(config)}))
+
+
+def _map_settings(config: BuildConfig) -> dict:
+    """The map's part of the build settings: nothing for a blind build, else its sha256, frame and radius."""
+    m = config.local_map
+    if m is None:
+        return {}
+    return {"map_sha256": m.sha256(), "map_origin": list(m.origin), "map_resolution": m.resolution,
+            "map_shape": list(m.shape), "map_radius": float(config.radius)}
 
 
 def check_resume(checkpoint_dir: str | Path, system: System, config: BuildConfig) -> None:
@@ -158,19 +174,30 @@ def check_resume(checkpoint_dir: str | Path, system: System, config: BuildConfig
                           "resume with the old values, or rerun without --resume to start over")
 
 
-def _solve_step(system: System, cells: np.ndarray, config: BuildConfig, t: int, stats: BuildStats) -> StepResult:
+def _solve_step(system: System, cells: np.ndarray, config: BuildConfig, t: int, stats: BuildStats,
+                safe: SafeCells | None = None) -> StepResult:
     A = system.action_set().shape[0]
     t0 = time.perf_counter()
     gen = None
     if config.points is PointMode.RANDOM:
         gen = torch.Generator().manual_seed(config.seed * 1_000_003 + t)  # per-step stream: resumable
-    lvl: LevelStep = next_level(system, cells, config.points, config.points_per_cell, gen, config.ties)
+    try:
+        lvl: LevelStep = next_level(system, cells, config.points, config.points_per_cell, gen, config.ties,
+                                    keep=None if safe is None else safe.keep)
+    except EmptyLevelError:
+        raise MapError(f"the map leaves no free cell at level {t + 1}: every cell reachable in {t + 1} step(s) lies "
+                       f"within --radius {safe.radius:g} m of an obstacle (the start is boxed in)") from None
     t1 = time.perf_counter()
     n, m = len(cells), len(lvl.next_cells)
     arc_src, arc_dst, arc_index = unique_arcs(lvl.src, lvl.dst, m)
     flow = solve_maxflow(n, m, arc_src, arc_dst)
     t2 = time.perf_counter()
     probs, zero = action_probs_from_flow(n, A, lvl.src, lvl.act, arc_index, lvl.frac, flow)
+    if safe is not None and zero.any():  # a cell without flow: uniform over its actions that stay free
+        free = np.zeros((n, A), dtype=bool)
+        free[lvl.src, lvl.act] = True
+        some = zero & free.any(axis=1)
+        probs[some] = free[some] / free[some].sum(axis=1, keepdims=True)
     t3 = time.perf_counter()
     stats.seconds["levels"] += lvl.seconds[0]
     stats.seconds["arcs"] += (t1 - t0) - lvl.seconds[0]
@@ -202,6 +229,9 @@ def build_table(
         write_json(ckpt / MANIFEST, build_settings(system, config))
     grid = Grid.of(system)
     x0 = start_state(system, config.start)  # [1, d]
+    safe = None if config.local_map is None else SafeCells(system, config.local_map, config.radius)
+    if safe is not None:
+        safe.check_start(grid.cells(x0), x0)
     level_cells = [grid.cells(x0).numpy()]  # L_0: the start cell
     steps: list[StepResult] = []
     for t in range(config.horizon):
@@ -210,7 +240,7 @@ def build_table(
         if step is not None and len(step.probs) == len(level_cells[-1]):
             stats.resumed_steps += 1
         else:
-            step = _solve_step(system, level_cells[-1], config, t, stats)
+            step = _solve_step(system, level_cells[-1], config, t, stats, safe)
             if path is not None:
                 step.save(path, fingerprint)
         steps.append(step)
@@ -221,19 +251,25 @@ def build_table(
             progress(t, step)
 
     t0 = time.perf_counter()
-    table = _assemble(system, config, level_cells, steps, method)
+    table = _assemble(system, config, level_cells, steps, method, safe)
     stats.seconds["probabilities"] += time.perf_counter() - t0
     return table, stats
 
 
-def _assemble(system: System, config: BuildConfig, level_cells: list[np.ndarray], steps: list[StepResult], method: str) -> Table:
+def _assemble(system: System, config: BuildConfig, level_cells: list[np.ndarray], steps: list[StepResult], method: str,
+              safe: SafeCells | None = None) -> Table:
     A = system.action_set().shape[0]
     sizes = np.array([len(c) for c in level_cells], dtype=np.int64)
     offsets = np.concatenate(([0], np.cumsum(sizes))).astype(np.int64)
     probs = [s.probs for s in steps] + [np.full((sizes[-1], A), 1.0 / A)]  # last level: uniform
     cell_probs = [np.ones(1)]
     for t, s in enumerate(steps):
-        cell_probs.append(propagate_cell_probs(cell_probs[-1], s.probs, s.src, s.act, s.dst, s.frac, int(sizes[t + 1])))
+        nxt = propagate_cell_probs(cell_probs[-1], s.probs, s.src, s.act, s.dst, s.frac, int(sizes[t + 1]))
+        if safe is not None:  # the mass of the actions into obstacles is gone: the distribution given no collision
+            if not nxt.sum() > 0:
+                raise MapError(f"every trajectory of the table collides before level {t + 1}")
+            nxt = nxt / nxt.sum()
+        cell_probs.append(nxt)
 
     arc_counts = np.array([len(s.arc_src) for s in steps], dtype=np.int64)
     trans_counts = np.array([len(s.src) for s in steps], dtype=np.int64)
@@ -269,136 +305,5 @@ def _assemble(system: System, config: BuildConfig, level_cells: list[np.ndarray]
         transition_offsets=np.concatenate(([0], np.cumsum(trans_counts))).astype(np.int64),
         transitions=transitions.astype(np.int64),
         transition_frac=np.concatenate([s.frac for s in steps]).astype(np.float64),
+        **({} if safe is None else safe.table_keys()),
     )
-
-
-# ------------------------------------------------------------------------------------------ size guidance
-
-# Peak memory model of a maxflow build plus its report, calibrated on the ks preset at horizons 10 and 15
-# (peak RSS 1.27 GB and 11.0 GB; the model says 1.33 GB and 11.3 GB): every recorded transition and flow arc is
-# held per step, then concatenated into the table, and the report's TablePolicy indexes every cell with its
-# 3^d - 1 neighbours (the nearest-cell halo). Transitions and arcs per cell are those of the latest step,
-# applied to every level, which leans high.
-_BASE_BYTES = 400e6  # python, torch, scipy
-_BYTES_PER_TRANSITION = 84  # src, act, dst, frac per step; the table's transitions [K, 3] and frac; copies
-_BYTES_PER_ARC = 56  # arc_src, arc_dst, arc_flow per step; arcs [E, 2], arc_flow; the flow network
-_HALO_BYTES = 17  # per halo entry and key component: int64 keys, sort orders and the sorted copy
-
-
-def project_level_sizes(sizes: list[int], horizon: int, num_actions: int) -> list[int]:
-    """Extrapolate measured level sizes ``n_0..n_t`` (t >= 3) to ``n_0..n_horizon``: an upper-leaning estimate.
-
-    Level sets of vehicles grow like a power of t whose local exponent ``p_t = log(n_t / n_{t-1}) / log(t / (t-1))``
-    still rises over the first levels; the projection continues the last exponent and its last rise
-    (``n_s = n_{s-1} (s / (s-1))^p``, ``p`` += the last rise, never falling), and caps every level at A times
-    the one before. Projected from level 6 on, the final level of the ks, ks_speed and Dubins presets comes out
-    at 0.8-3x its true size; earlier projections can be far off, so :class:`SizeGuide` re-makes it every level.
-    """
-    t = len(sizes) - 1
-    if t < 3 or any(n < 1 for n in sizes):
-        raise ValueError(f"a projection needs levels 0..3 or more with cells, got {sizes}")
-    out = [int(n) for n in sizes]
-    p1 = math.log(sizes[t] / sizes[t - 1]) / math.log(t / (t - 1))
-    p0 = math.log(sizes[t - 1] / sizes[t - 2]) / math.log((t - 1) / (t - 2))
-    rise, p, n = max(0.0, p1 - p0), p1, float(sizes[t])
-    for s in range(t + 1, horizon + 1):
-        p += rise
-        n = min(n * (s / (s - 1)) ** max(p, 0.0), n * num_actions)
-        out.append(int(math.ceil(n)))
-    return out
-
-
-def estimate_build_bytes(sizes: list[int], transitions_per_cell: float, arcs_per_cell: float, state_dim: int,
-                         num_actions: int, report: bool = True) -> float:
-    """Estimated peak memory (bytes) of building (and, with ``report``, reporting on) a table with these level
-    sizes, when each cell of a level has ``transitions_per_cell`` recorded transitions and ``arcs_per_cell``
-    flow arcs into the next level."""
-    total = float(sum(sizes))
-    sources = float(sum(sizes[:-1]))
-    bytes_ = _BASE_BYTES + sources * (transitions_per_cell * _BYTES_PER_TRANSITION + arcs_per_cell * _BYTES_PER_ARC)
-    bytes_ += total * (state_dim * 8 + num_actions * 12)  # cells, probabilities
-    if report:
-        bytes_ += total * (3 ** state_dim - 1) * (1 + state_dim) * _HALO_BYTES
-    return bytes_
-
-
-def available_memory_bytes() -> int | None:
-    """``MemAvailable`` of /proc/meminfo (Linux), else physical memory from sysconf, else None."""
-    try:
-        with open("/proc/meminfo") as fh:
-            for line in fh:
-                if line.startswith("MemAvailable:"):
-                    return int(line.split()[1]) * 1024
-    except OSError:
-        pass
-    try:
-        import os
-
-        return int(os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES"))
-    except (ValueError, OSError, AttributeError):
-        return None
-
-
-@dataclass
-class SizeGuide:
-    """Build-size guidance: fed every finished step, it projects the level sizes and the build's peak memory
-    from level ``first_level`` on and says when the projection exceeds ``budget_bytes``.
-
-    :meth:`update` returns the lines to print: the projection (when first made, and again when the projected
-    total changes by more than 2x); a warning, which names the flags that make the build smaller, when the
-    projection first exceeds the budget; and a note when a later (better) projection fits again. Level 5 is the
-    first projection because earlier ones are far off (on ks at level 4: 6.6 million cells against 1.1 million).
-    """
-
-    horizon: int
-    num_actions: int
-    state_dim: int
-    budget_bytes: float | None
-    report: bool = True
-    first_level: int = 5
-    sizes: list[int] = field(default_factory=lambda: [1])
-    transitions: list[int] = field(default_factory=list)
-    arcs: list[int] = field(default_factory=list)
-    projection: list[int] | None = None
-    """the latest projected level sizes"""
-    estimate_bytes: float | None = None
-    """the latest projected peak memory"""
-    warned: bool = False
-    """whether a warning was given"""
-    exceeds: bool = False
-    """whether the latest projection exceeds the budget"""
-    _printed_total: int | None = None
-
-    def update(self, step: "StepResult") -> list[str]:
-        self.transitions.append(len(step.src))
-        self.arcs.append(len(step.arc_src))
-        self.sizes.append(len(step.next_cells))
-        t = len(self.sizes) - 1
-        if t < self.first_level or t >= self.horizon:
-            return []
-        proj = project_level_sizes(self.sizes, self.horizon, self.num_actions)
-        per_trans = self.transitions[-1] / self.sizes[-2]  # of the latest step, per source cell (still rising)
-        per_arc = self.arcs[-1] / self.sizes[-2]
-        estimate = estimate_build_bytes(proj, per_trans, per_arc, self.state_dim, self.num_actions, self.report)
-        self.projection, self.estimate_bytes = proj, estimate
-        lines = []
-        total = sum(proj)
-        if self._printed_total is None or not 0.5 <= total / self._printed_total <= 2.0:
-            self._printed_total = total
-            lines.append(f"projected level sizes after {t} levels (an upper-leaning estimate): {proj[t + 1:]} for "
-                         f"levels {t + 1}..{self.horizon}; about {total:,} cells, {estimate / 1e9:.1f} GB peak memory")
-        over = self.budget_bytes is not None and estimate > self.budget_bytes
-        if self.exceeds and not over:
-            lines.append(f"the projection now fits in the {self.budget_bytes / 1e9:.1f} GB available "
-                         f"(about {estimate / 1e9:.1f} GB); the warning above no longer applies")
-        if over and not self.exceeds:
-            self.warned = True
-            fits = [h for h in range(1, self.horizon + 1) if estimate_build_bytes(
-                proj[:h + 1], per_trans, per_arc, self.state_dim, self.num_actions, self.report) <= self.budget_bytes]
-            shorter = f"--horizon {max(fits)} fits" if fits else "even --horizon 1 may not fit"
-            extra = "; --no-report saves the report's lookup index" if self.report else ""
-            lines.append(f"warning: this build is projected to need about {estimate / 1e9:.1f} GB, more than the "
-                         f"{self.budget_bytes / 1e9:.1f} GB available (--max-memory); make it smaller with a shorter "
-                         f"--horizon ({shorter}) or a coarser --cell-size{extra}")
-        self.exceeds = over
-        return lines

@@ -49,7 +49,9 @@ class StatePropagator:
         self.states = list(levels.num_states)  # M_t
         self.state_cell = [sc.to(torch.int32) for sc in levels.state_cell]  # [M_t]
         self.members = [cell_membership(sc, n, dtype) for sc, n in zip(levels.state_cell, self.sizes)]  # [n_t, M_t]
-        self.successor = [s.reshape(-1).to(torch.int32) for s in levels.successor]  # [M_t * A]
+        # a successor pruned by a map (-1) points at state 0 with a weight of 0: its mass and gradient are dropped
+        self.alive = [None if bool((s >= 0).all()) else (s >= 0).to(dtype) for s in levels.successor]  # [M_t, A]
+        self.successor = [s.clamp(min=0).reshape(-1).to(torch.int32) for s in levels.successor]  # [M_t * A]
         self.mass = [torch.zeros(M, dtype=dtype) for M in self.states]  # [M_t] of the last forward
         widest = max(M * num_actions for M in self.states[:-1]) if len(self.states) > 1 else 0
         self._pairs = (torch.empty(widest, dtype=dtype), torch.empty(widest, dtype=dtype))
@@ -66,6 +68,8 @@ class StatePropagator:
         for t, pi in enumerate(probs):
             q = torch.index_select(pi, 0, self.state_cell[t], out=self._pair_view(0, t))
             q.mul_(self.mass[t].unsqueeze(1))
+            if self.alive[t] is not None:
+                q.mul_(self.alive[t])
             self.mass[t + 1].zero_().index_add_(0, self.successor[t], q.view(-1))
         return [(C @ m.unsqueeze(1)).squeeze(1) for C, m in zip(self.members, self.mass)]
 
@@ -78,6 +82,8 @@ class StatePropagator:
         for t in reversed(range(T)):
             ahead = torch.index_select(lam, 0, self.successor[t], out=self._pair_view(0, t).view(-1))
             ahead = ahead.view(-1, self.A)  # lam_{t+1} of each (state, action)'s successor [M_t, A]
+            if self.alive[t] is not None:
+                ahead.mul_(self.alive[t])
             weighted = torch.mul(ahead, self.mass[t].unsqueeze(1), out=self._pair_view(1, t))
             grads[t] = self.members[t] @ weighted
             if t > 0:  # lam_0 is not needed: level 0 holds the origin alone

@@ -45,6 +45,7 @@ from cuniform_torch.systems import System
 from cuniform_torch.table import Table, system_fields
 
 from .coverage_adjoint import StatePropagator
+from .safe_map import LocalMap, MapError, SafeCells, map_table_keys
 from .start import check_start, start_array, start_state
 
 CONVERGENCE_WINDOW = 10
@@ -82,6 +83,11 @@ class CoverageConfig:
     all steps. 1e-3 halves the default preset's build (89 of 300 steps) for 0.6% less coverage at N = 1000"""
     float32: bool = True
     """run the gradient ascent in float32 (about 2x faster); the final propagation is float64"""
+    local_map: LocalMap | None = None
+    """a local map in the start frame (:mod:`precompute.safe_map`): states whose cell lies within ``radius`` of
+    its obstacles are dropped (their successor is -1: the mass of that action is lost), None: blind"""
+    radius: float = 0.0
+    """the robot's radius (m) the map's obstacles are inflated by"""
 
     def __post_init__(self) -> None:
         for name in ("horizon", "target_samples", "merge_resolution", "steps", "max_states"):
@@ -106,7 +112,7 @@ class ReachableLevels:
     state_cell: list[torch.Tensor] = field(default_factory=list)
     """per level: ``[M_t]`` index of each state's cell in ``cells[t]``"""
     successor: list[torch.Tensor] = field(default_factory=list)
-    """per level t < T: ``[M_t, A]`` index of the successor state in level t+1"""
+    """per level t < T: ``[M_t, A]`` index of the successor state in level t+1 (-1: pruned by a map)"""
     num_states: list[int] = field(default_factory=list)
     resolution: list[int] = field(default_factory=list)
     """per level: the merge resolution its states were merged with (level 0: the origin alone)"""
@@ -144,16 +150,20 @@ def _merge_within(nxt: torch.Tensor, cell_size: torch.Tensor, resolution: int,
 
 def enumerate_reachable(system: System, horizon: int, merge_resolution: int = 32, max_states: int = 20_000_000,
                         progress: Callable[[int, int, int], None] | None = None,
-                        state_budget: int = 0, start: tuple[float, ...] | None = None) -> ReachableLevels:
+                        state_budget: int = 0, start: tuple[float, ...] | None = None,
+                        safe: SafeCells | None = None) -> ReachableLevels:
     """Reachable states from ``start`` (None: the origin), merged per sub-cell bin, with their cells and successors.
 
     ``state_budget`` > 0: a level with more merged states is merged with a quarter less resolution until it
-    fits (or the resolution is 1); the later levels keep the coarser resolution (states never split again)."""
+    fits (or the resolution is 1); the later levels keep the coarser resolution (states never split again).
+    ``safe``: states whose cell is not free are dropped (successor -1)."""
     grid = Grid.of(system)
     actions = system.action_set(dtype=torch.float64)  # [A, q]
     A = actions.shape[0]
     cell_size = torch.tensor(grid.cell_size, dtype=torch.float64)  # [d]
     x = start_state(system, start)  # [1, d]
+    if safe is not None:
+        safe.check_start(grid.cells(x), x)
     levels = ReachableLevels()
     cells, inv = _index_cells(grid.cells(x))
     levels.cells.append(cells)
@@ -164,13 +174,21 @@ def enumerate_reachable(system: System, horizon: int, merge_resolution: int = 32
     for t in range(horizon):
         M = x.shape[0]
         nxt = system.step(x.repeat_interleave(A, dim=0), actions.repeat(M, 1))  # [M*A, d]
-        count, inverse, resolution = _merge_within(nxt, cell_size, resolution, state_budget)
+        pair = torch.arange(M * A)
+        if safe is not None:
+            ok = safe.keep(grid.cells(nxt))  # [M*A]
+            if not ok.any():
+                raise MapError(f"the map leaves no free cell at level {t + 1}: every state reachable in {t + 1} "
+                               f"steps lies within --radius {safe.radius:g} m of an obstacle (the start is boxed in)")
+            pair = pair[ok]
+        count, inverse, resolution = _merge_within(nxt[pair], cell_size, resolution, state_budget)
         if count > max_states:
             raise ValueError(f"level {t + 1} has {count} merged states (> max_states={max_states}); "
                              f"lower --merge-resolution or --state-budget")
-        first = torch.full((count,), M * A, dtype=torch.int64).scatter_reduce(
-            0, inverse, torch.arange(M * A), reduce="amin")
+        first = torch.full((count,), M * A, dtype=torch.int64).scatter_reduce(0, inverse, pair, reduce="amin")
         x = nxt[first]  # representatives [M', d]
+        if safe is not None:
+            inverse = torch.full((M * A,), -1, dtype=torch.int64).index_put_((pair,), inverse)
         levels.successor.append(inverse.view(M, A))
         cells, inv = _index_cells(grid.cells(x))
         levels.cells.append(cells)
@@ -192,9 +210,10 @@ def _propagate(levels: ReachableLevels, logits: list[torch.Tensor]) -> list[torc
         out.append(torch.zeros(n, dtype=dtype).index_add(0, levels.state_cell[t], mass))
         if t < len(levels.successor):
             probs = torch.softmax(logits[t], dim=1)[levels.state_cell[t]]  # [M_t, A]
-            succ = levels.successor[t]
-            mass = torch.zeros(levels.num_states[t + 1], dtype=dtype).index_add(
-                0, succ.reshape(-1), (mass.unsqueeze(1) * probs).reshape(-1))
+            succ = levels.successor[t].reshape(-1)
+            moved = (mass.unsqueeze(1) * probs).reshape(-1)
+            ok = succ >= 0  # a pruned successor's mass is lost
+            mass = torch.zeros(levels.num_states[t + 1], dtype=dtype).index_add(0, succ[ok], moved[ok])
     return out
 
 
@@ -267,7 +286,9 @@ def build_coverage_table(system: System, config: CoverageConfig = CoverageConfig
     t0 = time.perf_counter()
     levels = enumerate_reachable(system, config.horizon, config.merge_resolution, config.max_states,
                                  None if progress is None else (lambda t, m, n: progress("enumerate", t, m)),
-                                 state_budget=config.state_budget, start=config.start)
+                                 state_budget=config.state_budget, start=config.start,
+                                 safe=None if config.local_map is None else
+                                 SafeCells(system, config.local_map, config.radius))
     t1 = time.perf_counter()
     A = system.action_set().shape[0]
     logits, history = optimize_coverage(levels, A, config,
@@ -283,10 +304,11 @@ def build_coverage_table(system: System, config: CoverageConfig = CoverageConfig
     for t in range(config.horizon):
         sc, succ = levels.state_cell[t], levels.successor[t]  # [M], [M, A]
         n, m = len(levels.cells[t]), len(levels.cells[t + 1])
-        src = sc.unsqueeze(1).expand_as(succ).reshape(-1)
-        act = torch.arange(A).repeat(len(sc))
-        dst = levels.state_cell[t + 1][succ.reshape(-1)]
-        weight = state_mass.unsqueeze(1).expand_as(succ).reshape(-1)  # mass of each state before acting
+        ok = (succ >= 0).reshape(-1)  # all but the pairs a map pruned
+        src = sc.unsqueeze(1).expand_as(succ).reshape(-1)[ok]
+        act = torch.arange(A).repeat(len(sc))[ok]
+        dst = levels.state_cell[t + 1][succ.reshape(-1)[ok]]
+        weight = state_mass.unsqueeze(1).expand_as(succ).reshape(-1)[ok]  # mass of each state before acting
         key = (src * A + act) * m + dst
         uniq, inv = torch.unique(key, return_inverse=True)
         w = torch.zeros(len(uniq), dtype=torch.float64).index_add(0, inv, weight)
@@ -302,7 +324,7 @@ def build_coverage_table(system: System, config: CoverageConfig = CoverageConfig
         trans_counts.append(len(uniq))
         p_state = probs[t][sc]  # [M, A]
         state_mass = torch.zeros(levels.num_states[t + 1], dtype=torch.float64).index_add(
-            0, succ.reshape(-1), (state_mass.unsqueeze(1) * p_state).reshape(-1))
+            0, succ.reshape(-1)[ok], (state_mass.unsqueeze(1) * p_state).reshape(-1)[ok])
     predicted = {str(N): [float(expected_coverage(mm, N)) for mm in masses] for N in (250, 1000, 10000)}
     facts = {
         "seconds": {"enumerate": t1 - t0, "optimize": t2 - t1, "assemble": time.perf_counter() - t2},
@@ -331,5 +353,6 @@ def build_coverage_table(system: System, config: CoverageConfig = CoverageConfig
         transition_offsets=np.concatenate(([0], np.cumsum(trans_counts))).astype(np.int64),
         transitions=torch.cat(transitions).numpy().astype(np.int64),
         transition_frac=torch.cat(fracs).numpy(),
+        **({} if config.local_map is None else map_table_keys(config.local_map, config.radius)),
     )
     return table, facts

@@ -21,6 +21,7 @@ from __future__ import annotations
 import itertools
 import time
 from dataclasses import dataclass
+from typing import Callable
 
 import numpy as np
 import torch
@@ -30,7 +31,7 @@ from cuniform_torch.grid import CellKeys, CellSet, Grid
 from cuniform_torch.options import Option, option_label
 from cuniform_torch.systems import System
 
-__all__ = ["PointMode", "LevelStep", "cell_sample_offsets", "next_level", "LATTICE_SCALE"]
+__all__ = ["PointMode", "LevelStep", "EmptyLevelError", "cell_sample_offsets", "next_level", "LATTICE_SCALE"]
 
 LATTICE_SCALE = 1.0 / 2.01
 """lattice points sit at {-1, 0, +1} x delta x LATTICE_SCALE around the centre (delta/2.01, as the reference)"""
@@ -57,6 +58,10 @@ class PointMode(Option):
     LATTICE = "lattice"
     RANDOM = "random"
 
+
+
+class EmptyLevelError(ValueError):
+    """Every cell of the next level was pruned (``next_level``'s ``keep`` kept none)."""
 
 
 @dataclass
@@ -122,8 +127,13 @@ def next_level(
     points_per_cell: int = 8,
     generator: torch.Generator | None = None,
     ties: TieRule | str = TieRule.SYMMETRIC,
+    keep: Callable[[Tensor], Tensor] | None = None,
 ) -> LevelStep:
-    """Build L_{t+1} and the transitions from the cells of L_t (``cells [n, d]`` int64)."""
+    """Build L_{t+1} and the transitions from the cells of L_t (``cells [n, d]`` int64).
+
+    ``keep(cells [m, d]) -> bool [m]`` prunes L_{t+1} (safe level sets: the cells in collision with a map)
+    before the transitions are recorded, so points landing in a pruned cell are dropped like points that leave
+    the level set; :class:`EmptyLevelError` when it keeps no cell."""
     mode = PointMode.parse(mode)
     ties = TieRule.parse(ties)
     grid = Grid.of(system)
@@ -157,6 +167,11 @@ def next_level(
     keys = CellKeys.covering(reached)
     next_keys = torch.unique(keys.pack(reached))  # sorted ascending
     next_cells = keys.unpack(next_keys)  # [m, d]
+    if keep is not None:
+        free = keep(next_cells)  # [m] bool
+        next_keys, next_cells = next_keys[free], next_cells[free]
+        if len(next_keys) == 0:
+            raise EmptyLevelError("no cell of the next level is free")
     next_set = CellSet(keys, next_keys, torch.arange(len(next_keys)))
     m = len(next_keys)
 

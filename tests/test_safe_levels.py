@@ -1,0 +1,167 @@
+"""Safe level sets (C-Free-Uniform): the cells within the radius of a local map's obstacles are pruned from every
+level before the max-flow / coverage step; the table records the map; bad maps and blocked starts are one error."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from cuniform_torch.grid import Grid
+from cuniform_torch.systems import make_system
+from cuniform_torch.table import TableError, read_table, write_table
+from precompute.build import main as build_main
+from precompute.builder import BuildConfig, build_table
+from precompute.coverage_method import CoverageConfig, build_coverage_table
+from precompute.levels import next_level
+from precompute.safe_map import LocalMap, MapError, SafeCells, write_map_file
+
+ROBOT = dict(speed=0.5, dt=0.2, max_omega=1.5, num_actions=7, cell_size=(0.05, 0.05, 2 * math.pi / 36))
+PARAMS = ["--system", "dubins"] + [f"--param={k}={list(v) if isinstance(v, tuple) else v}" for k, v in ROBOT.items()]
+
+
+def robot():
+    return make_system("dubins", **ROBOT)
+
+
+def random_map(seed: int = 3, side: int = 24, fill: float = 0.08) -> LocalMap:
+    occ = (np.random.default_rng(seed).random((side, side)) < fill).astype(np.uint8)
+    c = side // 2
+    occ[c - 3:c + 3, c - 3:] = 0  # a free start and a free lane ahead; the random cells prune the turns
+    return LocalMap(occ, (-side * 0.05 / 2, -side * 0.05 / 2), 0.05)
+
+
+def wall_map(x_wall: float = 0.5) -> LocalMap:
+    occ = np.zeros((72, 72), np.uint8)
+    j = int(round((x_wall + 1.8) / 0.05))
+    occ[:, j:j + 2] = 1
+    return LocalMap(occ, (-1.8, -1.8), 0.05)
+
+
+def brute_blocked(local: LocalMap, radius: float, centres: np.ndarray) -> np.ndarray:
+    """Per cell centre (x, y): the map cell under it lies within ``radius`` of an occupied map cell (loops)."""
+    occupied = np.argwhere(local.occupied == 1)
+    H, W = local.shape
+    out = []
+    for x, y in centres[:, :2].tolist():
+        j = math.floor((x - local.origin[0]) / local.resolution)
+        i = math.floor((y - local.origin[1]) / local.resolution)
+        if not (0 <= i < H and 0 <= j < W):
+            out.append(False)
+            continue
+        out.append(any(math.hypot(a - i, b - j) * local.resolution <= radius + 1e-9 for a, b in occupied.tolist()))
+    return np.array(out, dtype=bool)
+
+
+def levels_of(table):
+    return [table.cells[table.level(t)] for t in range(table.horizon + 1)]
+
+
+def test_pruning_removes_exactly_the_cells_in_the_inflated_obstacles():
+    """Against a brute force: every safe level is the previous safe level's successors minus the blocked ones
+    (radius 0.1 m = 2 map cells exactly, so the tie at the radius counts)."""
+    system, local, radius = robot(), random_map(), 0.1
+    table, _ = build_table(system, BuildConfig(horizon=4, local_map=local, radius=radius))
+    grid = Grid.of(system)
+    levels = levels_of(table)
+    removed = 0
+    for t in range(table.horizon):
+        reached = next_level(system, levels[t]).next_cells  # the unpruned successors of the safe level t
+        blocked = brute_blocked(local, radius, grid.centers(torch.from_numpy(reached)).numpy())
+        removed += int(blocked.sum())
+        np.testing.assert_array_equal(levels[t + 1], reached[~blocked])
+    assert removed > 10  # the map does prune
+
+
+def test_a_wall_ahead_removes_the_cells_beyond_it():
+    system, radius = robot(), 0.2
+    blind, _ = build_table(system, BuildConfig(horizon=6))
+    safe, _ = build_table(system, BuildConfig(horizon=6, local_map=wall_map(0.5), radius=radius))
+    grid = Grid.of(system)
+    for t in range(1, 7):
+        x_safe = grid.centers(torch.from_numpy(safe.cells[safe.level(t)]))[:, 0]
+        assert float(x_safe.max()) < 0.5 - radius  # nothing within the radius of the wall or beyond it
+    x_blind = grid.centers(torch.from_numpy(blind.cells[blind.level(6)]))[:, 0]
+    assert float(x_blind.max()) > 0.5
+    assert safe.level_sizes[:3] == blind.level_sizes[:3]  # the wall is not reached in 2 steps of 0.1 m
+    assert sum(safe.level_sizes) < sum(blind.level_sizes) / 5
+    np.testing.assert_allclose(np.add.reduceat(safe.cell_probs, safe.level_offsets[:-1]), 1.0)
+
+
+def test_the_coverage_method_prunes_the_same_wall():
+    system, radius = robot(), 0.2
+    config = CoverageConfig(horizon=4, steps=5, local_map=wall_map(0.6), radius=radius)
+    table, _ = build_coverage_table(system, config)
+    blind, _ = build_coverage_table(system, CoverageConfig(horizon=4, steps=5))
+    safe = SafeCells(system, config.local_map, radius)
+    assert bool(safe.keep(torch.from_numpy(table.cells)).all())
+    assert not bool(safe.keep(torch.from_numpy(blind.cells)).all())
+    assert table.map_sha256 == config.local_map.sha256()
+    np.testing.assert_allclose(np.add.reduceat(table.cell_probs, table.level_offsets[:-1]), 1.0)
+
+
+def test_a_table_with_a_map_round_trips_and_its_keys_are_validated(tmp_path):
+    local = random_map()
+    table, _ = build_table(robot(), BuildConfig(horizon=3, local_map=local, radius=0.1))
+    write_table(tmp_path / "safe.npz", table)
+    back = read_table(tmp_path / "safe.npz")
+    assert back.map_sha256 == local.sha256() and back.map_shape.tolist() == [24, 24]
+    assert float(back.map_radius) == 0.1 and back.map_origin.tolist() == list(local.origin)
+    blind, _ = build_table(robot(), BuildConfig(horizon=3))
+    assert not any(k.startswith("map_") for k in blind.to_arrays())  # old tables: no new keys
+    bad = {"map_radius": None, "map_sha256": "xyz", "map_resolution": np.array(-1.0),
+           "map_shape": np.array([24.0, 24.0]), "map_origin": np.array([np.nan, 0.0])}
+    for key, value in bad.items():
+        broken = read_table(tmp_path / "safe.npz")
+        setattr(broken, key, value)
+        with pytest.raises(TableError, match="map"):
+            write_table(tmp_path / "broken.npz", broken)
+
+
+def test_a_start_inside_an_obstacle_is_one_clear_error(tmp_path, capsys):
+    occ = np.zeros((24, 24), np.uint8)
+    occ[12, 14] = 1  # 0.1 m ahead of the start cell's centre (map cell (12, 12) is centred on the origin)
+    write_map_file(tmp_path / "m.npz", LocalMap(occ, (-0.625, -0.625), 0.05))
+    code = build_main(PARAMS + ["--horizon", "2", "--map", str(tmp_path / "m.npz"), "--radius", "0.1",
+                                "--out", str(tmp_path / "t.npz"), "--quiet", "--no-report"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1 and "inside an obstacle" in err[0] and "--radius 0.1 " in err[0]
+    assert build_main(PARAMS + ["--horizon", "2", "--map", str(tmp_path / "m.npz"), "--radius", "0",
+                                "--out", str(tmp_path / "t.npz"), "--quiet", "--no-report"]) == 0
+
+
+def _map_file(path, **arrays):
+    base = {"format": np.array("cuniform-local-map/1"), "occupied": np.zeros((8, 8), np.uint8),
+            "origin": np.array([-0.2, -0.2]), "resolution": np.array(0.05)}
+    base.update(arrays)
+    np.savez(path, **{k: v for k, v in base.items() if v is not None})
+    return path
+
+
+@pytest.mark.parametrize("arrays, words", [
+    ({"occupied": None}, "missing key(s) occupied"),
+    ({"format": np.array("other/1")}, "format must be"),
+    ({"occupied": np.zeros((8, 8), np.float32)}, "'occupied' must be uint8"),
+    ({"occupied": np.full((8, 8), 2, np.uint8)}, "only 0 (free) and 1"),
+    ({"origin": np.array([0.0, np.inf])}, "'origin' must be 2 finite"),
+    ({"resolution": np.array(0.0)}, "'resolution' must be one finite float > 0"),
+    ({"occupied": np.array([None, 1], dtype=object)}, "not a readable .npz map"),
+])
+def test_a_bad_map_file_is_one_clear_error(tmp_path, capsys, arrays, words):
+    path = _map_file(tmp_path / "bad.npz", **arrays)
+    code = build_main(PARAMS + ["--horizon", "2", "--map", str(path), "--out", str(tmp_path / "t.npz"), "--quiet"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1 and words in err[0] and str(path) in err[0], err
+
+
+def test_maps_need_a_pose_system_and_radius_needs_a_map(tmp_path, capsys):
+    path = _map_file(tmp_path / "ok.npz")
+    assert build_main(["--system", "random_walk_1d", "--horizon", "2", "--map", str(path), "--quiet",
+                       "--out", str(tmp_path / "t.npz")]) == 2
+    assert "does not take a map" in capsys.readouterr().err
+    assert build_main(PARAMS + ["--horizon", "2", "--radius", "0.2", "--out", str(tmp_path / "t.npz")]) == 2
+    assert "give --map too" in capsys.readouterr().err
+    with pytest.raises(MapError, match="boxed in"):
+        build_table(robot(), BuildConfig(horizon=6, local_map=wall_map(0.35), radius=0.2))
