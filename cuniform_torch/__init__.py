@@ -9,6 +9,11 @@ from .grid import CellKeys, CellSet, Grid
 from .checkpoint import POLICY_FORMAT, PolicyCheckpointError, load_policy, save_policy
 from .mlp import MLPConfig, MLPPolicy, MLPSupport
 from .mppi import COST_CAP, CUMPPI, MPPI, CostFn, CUniformMPPI, LogMPPI, MPPICore, MPPIResult, mppi_weights
+from .map_checkpoint import MAP_POLICY_FORMAT, MapCheckpointError, load_map_policy, map_policy_checkpoint, save_map_policy
+from .map_encoder import MapEncoder, PatchSpec
+from .map_policy import MapPolicy, MapPolicyConfig
+from .map_policy_mppi import CFUMPPI, SensedMapPolicy
+from .sensing import local_map, sense_patch
 from .policy import Fallback, TablePolicy, UniformPolicy
 from .table_set import TableSetPolicy, load_table, load_table_set
 from .proposals import (BankProposal, BankRefreshWarning, CompositeProposal, GaussianProposal, NormalLogNormalProposal,
@@ -43,5 +48,7 @@ __all__ = [
     "GaussianSampler", "NormalLogNormalSampler", "lognormal_params",
     "Dubins", "KinematicSingleTrack", "KinematicSingleTrackSpeed", "check_system", "RandomWalk1D", "System", "UnknownSystemError", "known_systems", "make_system", "register_system",
     "system_from_json", "system_to_json", "TABLE_FORMAT", "Table", "TableError", "read_table", "write_table", "TableSetPolicy", "load_table_set",
+    "MAP_POLICY_FORMAT", "MapCheckpointError", "load_map_policy", "map_policy_checkpoint", "save_map_policy",
+    "MapEncoder", "PatchSpec", "MapPolicy", "MapPolicyConfig", "CFUMPPI", "SensedMapPolicy", "local_map", "sense_patch",
 ]
 __version__ = "0.1.0"
