@@ -120,9 +120,10 @@ def test_train_and_test_splits_share_no_map():
 
 
 def test_a_crop_is_the_world_in_the_robot_frame():
-    """A disc 1 m along +x of the world, seen from a robot at the origin heading +y, lies 1 m to its right."""
-    world = World("t", 1, "t:1", np.array([[1.0, 0.0, 0.12]]), np.zeros((0, 4)), None, (-1, -1, 1, 1))
-    patch = crop_patch(world, np.array([0.0, 0.0, math.pi / 2]), (60, 60), 0.05, (-1.5, -1.5))
+    """A disc at (1, 0.4) in the world, seen from a robot at (0.2, 0) heading +y, lies 0.8 m to its right and 0.4 m
+    ahead: at (0.4, -0.8) in the robot frame."""
+    world = World("t", 1, "t:1", np.array([[1.0, 0.4, 0.12]]), np.zeros((0, 4)), None, (-1, -1, 1, 1))
+    patch = crop_patch(world, np.array([0.2, 0.0, math.pi / 2]), (60, 60), 0.05, (-1.5, -1.5))
     i, j = np.argwhere(patch == 1).mean(axis=0)
-    assert abs((-1.5 + (j + 0.5) * 0.05) - 0.0) < 0.03 and abs((-1.5 + (i + 0.5) * 0.05) + 1.0) < 0.03
+    assert abs((-1.5 + (j + 0.5) * 0.05) - 0.4) < 0.03 and abs((-1.5 + (i + 0.5) * 0.05) + 0.8) < 0.03
     assert 15 <= patch.sum() <= 25  # about pi 0.12^2 / 0.05^2 = 18 cells
