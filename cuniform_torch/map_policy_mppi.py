@@ -18,6 +18,7 @@ from typing import Callable
 import torch
 from torch import Tensor
 
+from .envs.environment import Environment
 from .envs.occupancy import OccupancyGrid
 from .map_checkpoint import load_map_policy
 from .map_policy import MapPolicy
@@ -33,7 +34,7 @@ class SensedMapPolicy:
     ``for_start(x0)`` once per rollout, which senses the patch at the pose ``x0[:3]`` (range ``max_range``),
     sets it (one encoding) and returns the policy; every lookup of that rollout is for that map."""
 
-    def __init__(self, policy: MapPolicy, world: OccupancyGrid, max_range: float | None = None):
+    def __init__(self, policy: MapPolicy, world: OccupancyGrid | Environment, max_range: float | None = None):
         if not isinstance(policy, MapPolicy):
             raise ValueError(f"policy must be a MapPolicy, got {type(policy).__name__}")
         if not policy.system.se2_invariant or len(policy.system.periodic) < 3:
@@ -44,17 +45,24 @@ class SensedMapPolicy:
         self.device, self.dtype, self.start_relative = policy.device, policy.dtype, policy.start_relative
         self.set_world(world)
 
-    def set_world(self, world: OccupancyGrid) -> None:
+        self.time: float | None = None
+        """an Environment world's obstacles sensed by this time (s) are seen (None: all); see :meth:`set_time`"""
+
+    def set_world(self, world: OccupancyGrid | Environment) -> None:
         """Sense ``world`` from the next rollout on (a map that changed: a new obstacle)."""
-        if not isinstance(world, OccupancyGrid):
-            raise ValueError(f"world must be an OccupancyGrid, got {type(world).__name__}")
-        self.world = world.to(self.device)
+        if not isinstance(world, (OccupancyGrid, Environment)):
+            raise ValueError(f"world must be an OccupancyGrid or an Environment, got {type(world).__name__}")
+        self.world = world.to(self.device) if isinstance(world, OccupancyGrid) else world
+
+    def set_time(self, time: float | None) -> None:
+        """See an Environment's obstacles sensed by ``time`` (s) from the next rollout on (None: all)."""
+        self.time = time
 
     def for_start(self, x0: Tensor) -> MapPolicy:
         """Sense and set the patch at ``x0 [d]`` (world pose first); the policy to roll out."""
         if x0.ndim != 1:
             raise ValueError(f"a map policy rolls out from one start [d], got {list(x0.shape)}")
-        self.policy.set_map(local_map(self.world, x0[:3], self.policy.patch_spec, self.max_range))
+        self.policy.set_map(local_map(self.world, x0[:3], self.policy.patch_spec, self.max_range, self.time))
         return self.policy
 
     def action_probs(self, x: Tensor, t: int) -> Tensor:
@@ -67,14 +75,15 @@ class SensedMapPolicy:
 
 class CFUMPPI(CUMPPI):
     """CFU-MPPI: ``policy`` (a :class:`MapPolicy`, a checkpoint path or a loaded checkpoint dict) sensing
-    ``world`` (an OccupancyGrid, world frame, not inflated) seeds one local MPPI pass; see the module docstring.
+    ``world`` (an OccupancyGrid or an Environment, world frame, not inflated) seeds one local MPPI pass; see the
+    module docstring.
 
     The arguments after ``world`` are :class:`~cuniform_torch.mppi.CUMPPI`'s (``cuniform_fraction`` of the
     budget are map-policy rollouts); ``max_range`` (m) limits the sensed patch like a costmap. The device is the
     policy's (a checkpoint is loaded onto ``device``, default the CPU). :meth:`set_world` swaps the world map.
     """
 
-    def __init__(self, policy: MapPolicy | dict | str | os.PathLike, world: OccupancyGrid, cost_fn: CostFn,
+    def __init__(self, policy: MapPolicy | dict | str | os.PathLike, world: OccupancyGrid | Environment, cost_fn: CostFn,
                  num_samples: int = 1000, cuniform_fraction: float = 0.5, lambda_: float = 0.567,
                  noise_std: float | Tensor = 0.1, local: str = "mppi", horizon: int | None = None,
                  max_range: float | None = None, terminal_cost: Callable[[Tensor], Tensor] | None = None,
@@ -92,6 +101,10 @@ class CFUMPPI(CUMPPI):
     def map_policy(self) -> MapPolicy:
         return self.sensed.policy
 
-    def set_world(self, world: OccupancyGrid) -> None:
+    def set_world(self, world: OccupancyGrid | Environment) -> None:
         """Sense ``world`` from the next command on."""
         self.sensed.set_world(world)
+
+    def set_time(self, time: float | None) -> None:
+        """Sense an Environment world's obstacles that appeared by ``time`` (s) from the next command on."""
+        self.sensed.set_time(time)

@@ -8,6 +8,10 @@ all cells (and all poses), no loop. Like a costmap it is range-limited: a cell w
 ``max_range`` from the robot reads free, and so does everything outside the world grid (the
 :class:`~cuniform_torch.envs.OccupancyGrid` convention). :func:`local_map` wraps one pose's patch as a robot-frame
 ``OccupancyGrid``, the type :meth:`MapPolicy.set_map <cuniform_torch.map_policy.MapPolicy.set_map>` takes.
+
+The world may also be an :class:`~cuniform_torch.envs.Environment` (shapes): a cell is then occupied when its
+centre is inside an obstacle sensed at ``time`` or outside the bounds (``Environment.in_collision``, the map
+farm's rule for its patches), at one ``contains`` per obstacle instead of one gather.
 """
 
 from __future__ import annotations
@@ -17,6 +21,7 @@ import math
 import torch
 from torch import Tensor
 
+from .envs.environment import Environment
 from .envs.occupancy import OccupancyGrid
 from .map_encoder import PatchSpec
 
@@ -34,18 +39,20 @@ def patch_centres(spec: PatchSpec, dtype: torch.dtype = torch.float32,
     return grid.to(dtype=dtype, device=device)
 
 
-def sense_patch(world: OccupancyGrid, pose: Tensor, spec: PatchSpec, max_range: float | None = None) -> Tensor:
+def sense_patch(world: OccupancyGrid | Environment, pose: Tensor, spec: PatchSpec, max_range: float | None = None,
+                time: float | None = None) -> Tensor:
     """``pose [3]`` (or ``[B, 3]``: world x, y, heading) -> ``bool [H, W]`` (or ``[B, H, W]``) occupancy of the
-    patch in that pose's frame. ``world`` must be on the pose's device; ``max_range`` (m) limits what is seen."""
-    if not isinstance(world, OccupancyGrid):
-        raise ValueError(f"world must be an OccupancyGrid, got {type(world).__name__}")
+    patch in that pose's frame. A grid ``world`` must be on the pose's device; ``max_range`` (m) limits what is
+    seen; ``time`` (s) selects an Environment's obstacles sensed by then (None: all)."""
+    if not isinstance(world, (OccupancyGrid, Environment)):
+        raise ValueError(f"world must be an OccupancyGrid or an Environment, got {type(world).__name__}")
     if not isinstance(pose, Tensor) or not pose.is_floating_point() or pose.shape[-1:] != (3,) or pose.ndim > 2:
         raise ValueError(f"pose must be a floating-point [3] or [B, 3] tensor (x, y, heading), got "
                          f"{list(pose.shape) if isinstance(pose, Tensor) else type(pose).__name__}")
     if max_range is not None and (isinstance(max_range, bool) or not isinstance(max_range, (int, float))
                                   or not max_range > 0 or math.isnan(max_range)):
         raise ValueError(f"max_range must be a positive number (m) or None, got {max_range!r}")
-    if world.occupied.device != pose.device:
+    if isinstance(world, OccupancyGrid) and world.occupied.device != pose.device:
         raise ValueError(f"pose is on {pose.device} but the world grid is on {world.occupied.device}; "
                          f"use world.to({str(pose.device)!r})")
     poses = pose.reshape(-1, 3)  # [B, 3]
@@ -54,14 +61,16 @@ def sense_patch(world: OccupancyGrid, pose: Tensor, spec: PatchSpec, max_range: 
     lx, ly = local[..., 0], local[..., 1]  # [H, W]
     wx = poses[:, 0].view(-1, 1, 1) + c * lx - s * ly  # [B, H, W]
     wy = poses[:, 1].view(-1, 1, 1) + s * lx + c * ly
-    seen = world.contains(torch.stack((wx, wy), dim=-1))  # [B, H, W]
+    xy = torch.stack((wx, wy), dim=-1)  # [B, H, W, 2]
+    seen = world.contains(xy) if isinstance(world, OccupancyGrid) else world.in_collision(xy, time)  # [B, H, W]
     if max_range is not None:
         seen = seen & (lx.square() + ly.square() <= max_range * max_range)
     return seen if pose.ndim == 2 else seen[0]
 
 
-def local_map(world: OccupancyGrid, pose: Tensor, spec: PatchSpec, max_range: float | None = None) -> OccupancyGrid:
+def local_map(world: OccupancyGrid | Environment, pose: Tensor, spec: PatchSpec, max_range: float | None = None,
+              time: float | None = None) -> OccupancyGrid:
     """The patch at ``pose [3]`` as a robot-frame OccupancyGrid (its origin and resolution are ``spec``'s)."""
     if isinstance(pose, Tensor) and pose.ndim != 1:
         raise ValueError(f"local_map takes one pose [3], got {list(pose.shape)}; sense_patch takes a batch")
-    return OccupancyGrid(sense_patch(world, pose, spec, max_range), spec.origin, spec.resolution)
+    return OccupancyGrid(sense_patch(world, pose, spec, max_range, time), spec.origin, spec.resolution)

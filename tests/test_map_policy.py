@@ -166,6 +166,22 @@ def test_sensing_crops_the_world_in_the_robot_frame():
     assert local_map(world, pose, SPEC).origin == SPEC.origin
 
 
+def test_sensing_an_environment_of_shapes():
+    """A rectangle 1 m ahead, sensed from shapes: the same cells as from its grid; beyond the bounds: occupied;
+    an obstacle appearing later is unseen until then."""
+    from cuniform_torch.envs import Environment, Rect
+    env = Environment([Rect(0.9, -0.1, 1.1, 0.1), Rect(-0.6, -0.1, -0.4, 0.1, appear_time=5.0)],
+                      bounds=(-5.0, -5.0, 5.0, 5.0))
+    occ = torch.zeros(100, 100, dtype=torch.bool)
+    occ[49:51, 59:61] = True  # the cells of [0.9, 1.1) x [-0.1, 0.1) on a 0.1 m grid from (-5, -5)
+    grid = OccupancyGrid(occ, (-5.0, -5.0), 0.1)
+    pose = torch.zeros(3)
+    assert torch.equal(sense_patch(env, pose, SPEC, time=0.0), sense_patch(grid, pose, SPEC))
+    assert int(sense_patch(env, pose, SPEC).sum()) == 8  # the later obstacle too, with time=None
+    edge = sense_patch(env, torch.tensor([4.5, 0.0, 0.0]), SPEC, time=0.0)
+    assert bool(edge[:, -1].all()) and not bool(edge[:, 12].any())  # past x = 5: out of bounds
+
+
 def _world() -> OccupancyGrid:
     occ = torch.zeros(80, 80, dtype=torch.bool)  # 0.1 m cells from (-2, -4)
     occ[35:45, 30:34] = True  # a wall 1 m ahead of the start
