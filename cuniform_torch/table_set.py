@@ -91,10 +91,20 @@ class TableSetPolicy:
         return sum((m.misses for m in self.members), torch.zeros((), device=self.device))
 
     @property
+    def nearest_hits(self) -> Tensor:
+        return sum((m.nearest_hits for m in self.members), torch.zeros((), device=self.device))
+
+    @property
     def miss_rate(self) -> float:
-        """Share of lookups over every table so far that fell back (syncs the device)."""
+        """Share of lookups over every table so far that fell back to uniform actions (syncs the device)."""
         q = self.queries
         return float(self.misses) / q if q else 0.0
+
+    @property
+    def nearest_rate(self) -> float:
+        """Share of lookups over every table so far answered by the nearest cell's row (syncs the device)."""
+        q = self.queries
+        return float(self.nearest_hits) / q if q else 0.0
 
 
 def load_table_set(folder: str | os.PathLike, device: torch.device | str = "cpu", **kwargs: Any) -> TableSetPolicy:

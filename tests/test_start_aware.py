@@ -23,6 +23,7 @@ def test_a_set_one_cell_apart_serves_every_start_like_its_own_table(tmp_path, ca
     s = result["summary"]
     assert s["miss_max"] == 0.0 and s["warned"] == 0
     assert s["ratio_min"] == pytest.approx(1.0) and s["miss_ok"] and s["coverage_ok"]
+    assert s["nearest_mean"] == pytest.approx(s["exact_nearest_mean"])
     assert all(-2 <= r["start"][0] <= 2 for r in result["rows"])
     assert "6 starts: set miss rate max 0.000" in capsys.readouterr().out
 
