@@ -28,6 +28,7 @@ from cuniform_torch.rollout import rollout
 from cuniform_torch.sensing import local_map, patch_centres
 from cuniform_torch.systems import make_system, system_to_json
 from precompute.builder import BuildConfig, build_table
+from precompute.map_dataset import MapDatasetError
 from training.map_data import MapDataError, load_map_data
 
 T = 4
@@ -224,13 +225,24 @@ def test_a_resume_with_other_settings_is_refused(dataset, tmp_path, capsys):
     assert "hidden: saved 8, now 16" in capsys.readouterr().err
 
 
+def test_data_sets_of_other_patches_are_not_pooled(dataset, table, tmp_path):
+    meta = json.loads((dataset / "dataset.json").read_text())
+    other = write_dataset(tmp_path / "other", table, MAPS[:1])
+    changed = json.loads((other / "dataset.json").read_text())
+    changed["patch"]["origin"] = [-1.0, -1.2]
+    (other / "dataset.json").write_text(json.dumps(changed))
+    assert meta["patch"] != changed["patch"]
+    with pytest.raises(MapDataError, match="its patch differs"):
+        load_map_data([dataset, other])
+
+
 def test_broken_data_sets_are_one_clear_error(dataset, tmp_path, capsys):
     import shutil
     bad = tmp_path / "bad"
     shutil.copytree(dataset, bad)
     shard = bad / "shard-00000.npz"
     shard.write_bytes(shard.read_bytes()[:-10])
-    with pytest.raises(MapDataError, match="sha256 differs"):
+    with pytest.raises(MapDatasetError, match="sha256 does not match"):
         load_map_data([bad])
     assert distill_maps.main(["--maps", str(bad), "--out", str(tmp_path / "x.pt"), "--quiet"]) == 2
     err = capsys.readouterr().err.strip()

@@ -4,7 +4,8 @@ Shapes: M entries (maps), H x W patch cells, R rows (cells of every level of eve
 A actions, T horizon.
 
 :func:`load_map_data` reads one or more data set folders and pools their entries; they must share the system,
-the grid, the actions and the patch spec. A row is one cell of one level of one entry's safe table: its centre
+the grid, the actions and the patch spec. Each is read and validated by the map farm's reader
+(:func:`precompute.map_dataset.read_map_dataset`). A row is one cell of one level of one entry's safe table: its centre
 (the state), its level t, its entry (the map) and its target ``p(u | cell, t)`` (float16 in the file,
 renormalised here).
 """
@@ -12,7 +13,6 @@ renormalised here).
 from __future__ import annotations
 
 import hashlib
-import json
 import os
 from dataclasses import dataclass
 from pathlib import Path
@@ -25,10 +25,9 @@ from torch import Tensor
 from cuniform_torch.grid import Grid
 from cuniform_torch.map_encoder import PatchSpec
 from cuniform_torch.systems import System, system_from_json
+from precompute.map_dataset import DATASET_FORMAT, read_map_dataset
 
 __all__ = ["MapData", "MapDataError", "load_map_data", "dataset_digest", "DATASET_FORMAT"]
-
-DATASET_FORMAT = "cuniform-map-dataset/1"
 
 
 class MapDataError(ValueError):
@@ -119,82 +118,11 @@ def load_map_data(folders: Sequence[str | os.PathLike]) -> MapData:
 
 
 def _read_folder(folder: Path) -> dict:
-    """One data set: its metadata and its shards' arrays, every field checked against the format."""
+    """One data set, read and validated (every shard, sha256 first) by :func:`precompute.map_dataset.read_map_dataset`."""
+    ds = read_map_dataset(folder, load=True)
     index = folder / "dataset.json"
-    if not index.is_file():
-        raise MapDataError(f"{folder}: no dataset.json there (not a map-table data set)")
     raw = index.read_bytes()
-    try:
-        meta = json.loads(raw)
-    except json.JSONDecodeError as exc:
-        raise MapDataError(f"{index}: not JSON ({exc})") from None
-
-    def fail(msg: str, where: Path = index) -> None:
-        raise MapDataError(f"{where}: {msg}")
-
-    if not isinstance(meta, dict) or meta.get("format") != DATASET_FORMAT:
-        fail(f"format is {meta.get('format') if isinstance(meta, dict) else None!r}, expected {DATASET_FORMAT!r}")
-    for key in ("system", "horizon", "method", "grid", "actions", "radius", "patch", "split", "seed", "entries",
-                "shards"):
-        if key not in meta:
-            fail(f"missing key {key!r}")
-    try:
-        system, horizon = system_from_json(meta["system"])
-        spec = PatchSpec.from_dict(meta["patch"])
-    except ValueError as exc:
-        fail(str(exc))
-    if meta["horizon"] != horizon:
-        fail(f"horizon {meta['horizon']} differs from the system JSON's {horizon}")
-    T, d, A, (H, W) = horizon, len(system.periodic), len(meta["actions"]), spec.shape
-    shards, total, nbytes = [], 0, len(raw)
-    for k, info in enumerate(meta["shards"]):
-        path = folder / str(info.get("file", ""))
-        if not path.is_file() or path.parent != folder:
-            fail(f"shard {k}: no file {info.get('file')!r} in the folder")
-        data = path.read_bytes()
-        nbytes += len(data)
-        if hashlib.sha256(data).hexdigest() != info.get("sha256"):
-            fail("sha256 differs from dataset.json's (a changed or truncated shard)", path)
-        with np.load(path, allow_pickle=False) as npz:
-            arrays = {key: npz[key] for key in npz.files}
-        shards.append(_check_shard(arrays, path, info.get("entries"), T, d, A, H, W, fail))
-        total += arrays["patches"].shape[0]
-    if total != len(meta["entries"]):
-        fail(f"the shards hold {total} entries but 'entries' lists {len(meta['entries'])}")
-    return {"path": folder, "meta": meta, "shards": shards, "sha256": hashlib.sha256(raw).hexdigest(),
-            "entries": total, "nbytes": nbytes}
-
-
-_DTYPES = {"patches": np.uint8, "poses": np.float64, "entry_offsets": np.int64, "level_offsets": np.int64,
-           "cells": np.int32, "action_probs": np.float16, "cell_probs": np.float32}
-
-
-def _check_shard(a: dict, path: Path, entries: object, T: int, d: int, A: int, H: int, W: int, fail) -> dict:
-    missing = sorted(set(_DTYPES) - set(a))
-    if missing:
-        fail(f"missing array(s) {', '.join(missing)}", path)
-    for key, dtype in _DTYPES.items():
-        if a[key].dtype != dtype:
-            fail(f"{key} is {a[key].dtype}, expected {np.dtype(dtype)}", path)
-    M = a["patches"].shape[0]
-    R = a["cells"].shape[0]
-    shapes = {"patches": (M, H, W), "poses": (M, 3), "entry_offsets": (M + 1,), "level_offsets": (M, T + 2),
-              "cells": (R, d), "action_probs": (R, A), "cell_probs": (R,)}
-    for key, shape in shapes.items():
-        if a[key].shape != shape:
-            fail(f"{key} has shape {list(a[key].shape)}, expected {list(shape)}", path)
-    if entries != M:
-        fail(f"holds {M} entries, dataset.json says {entries}", path)
-    eo, lo = a["entry_offsets"], a["level_offsets"]
-    if eo[0] != 0 or eo[-1] != R or (np.diff(eo) < 0).any():
-        fail("entry_offsets must rise from 0 to the number of rows", path)
-    if M and ((lo[:, 0] != 0).any() or (np.diff(lo, axis=1) < 0).any() or (lo[:, -1] != np.diff(eo)).any()):
-        fail("level_offsets must rise from 0 to each entry's row count", path)
-    if a["patches"].max(initial=0) > 1:
-        fail("patches must hold 0 / 1", path)
-    p = a["action_probs"].astype(np.float32)
-    if not np.isfinite(p).all() or (p < 0).any() or (R and (p.sum(axis=1) <= 0).any()):
-        fail("action_probs must be finite, non-negative, with a positive sum per row", path)
-    if not np.isfinite(a["cell_probs"]).all() or (a["cell_probs"] < 0).any():
-        fail("cell_probs must be finite and non-negative", path)
-    return a
+    shards = [ds.shard(k).arrays for k in range(len(ds.shards))]
+    nbytes = len(raw) + sum((folder / sh["file"]).stat().st_size for sh in ds.shards)
+    return {"path": folder, "meta": ds.meta, "shards": shards, "sha256": hashlib.sha256(raw).hexdigest(),
+            "entries": len(ds), "nbytes": nbytes}
