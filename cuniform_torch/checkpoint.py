@@ -124,6 +124,7 @@ def load_policy(source: str | os.PathLike | dict, device: torch.device | str = "
         fail(f"config.horizon is {config.horizon} but the system JSON says {horizon}")
     if list(config.periodic) != list(system.periodic):
         fail(f"config.periodic {list(config.periodic)} does not match the system's {list(system.periodic)}")
+    region = _read_region(ckpt.get("start_region"), config, system, fail)  # before the sizes: it explains them
     held = sum(v.numel() for k, v in state.items() if k.startswith("net."))
     if config.num_weights != held:
         fail(f"state_dict does not match the network of its config ({config.num_weights} weights described, "
@@ -138,7 +139,6 @@ def load_policy(source: str | os.PathLike | dict, device: torch.device | str = "
     if not isinstance(inv_scale, Tensor) or inv_scale.shape != expect_inv.shape or not torch.equal(inv_scale.float(), expect_inv):
         fail("state_dict['inv_scale'] does not match config.feature_scale")
     support = _read_support(ckpt.get("support"), Grid.of(system), config.horizon, fail)
-    region = _read_region(ckpt.get("start_region"), config, system, fail)
     try:
         if region is None:
             policy = MLPPolicy(config, system, actions, support=support, fallback=fallback)
