@@ -105,6 +105,8 @@ class StartMLPPolicy(MLPPolicy):
         self._start_linear = [i for i in dims if not config.periodic[i]]
         self._start_angle = [i for i in dims if config.periodic[i]]
         self._rest = tuple(self.net)[1:]  # a tuple, not a Module: no second copy in the state_dict
+        a = self._angle  # angle dimensions one after another are read as a slice (a view, not a gather)
+        self._angle_slice = slice(a[0], a[-1] + 1) if a and a == list(range(a[0], a[-1] + 1)) else None
         lo, hi = region.bounds(self._grid)
         self._lo, self._hi = lo, hi  # [k] float64, on the host
         self._periodic = torch.tensor([config.periodic[i] for i in dims])  # [k]
@@ -137,29 +139,35 @@ class StartMLPPolicy(MLPPolicy):
         the current start (``None``; without gradients, through the folded layers of :meth:`_folded`)."""
         if start is None and torch.is_grad_enabled():  # the folded layer is detached: gradients need the plain one
             start = self._start.expand(x.shape[0], -1)
-        if start is not None:
-            h = self.net[0](torch.cat((self.features(x, t), self.start_features(start)), dim=1))
-        else:
+        if start is None:
             check_states(x, self.config.state_dim, self.device)
-            wx, wcs, bias, rest = self._folded()
-            bias_t = bias[t] if isinstance(t, int) else bias.index_select(0, t.long())  # [H] or [N, H]
-            h = torch.addmm(bias_t, x.to(self.dtype), wx)
-            if self._angle:
-                ang = x[:, self._angle].to(self.dtype)
-                h.addmm_(torch.cat((torch.cos(ang), torch.sin(ang)), dim=1), wcs)
-            for w_t, b in rest:  # SiLU in place, then the next linear layer (no module calls: a query is short)
-                h = torch.addmm(b, torch.nn.functional.silu(h, inplace=True), w_t)
-            return h
+            return self._logits(x.to(self.dtype), t)
+        h = self.net[0](torch.cat((self.features(x, t), self.start_features(start)), dim=1))
         for layer in self._rest:
             h = layer(h)
         return h
 
-    def _folded(self) -> tuple[Tensor, Tensor, Tensor, list[tuple[Tensor, Tensor]]]:
+    def _logits(self, x: Tensor, t: int | Tensor) -> Tensor:
+        """:meth:`forward` from the current start through the folded layers, for checked states of the policy's
+        dtype (no gradient)."""
+        wx, offset, wcs, bias, rows, rest = self._folded()
+        bias_t = rows[t] if isinstance(t, int) else bias.index_select(0, t.long())  # [H] or [N, H]
+        h = torch.addmm(bias_t, x, wx)
+        if offset is not None:  # [cos, sin] of the angles as one sin: sin(a + pi/2) = cos(a)
+            ang = x[:, self._angle_slice] if self._angle_slice is not None else x[:, self._angle]
+            ang = ang.repeat(1, 2) if ang.shape[1] > 1 else ang  # [N, 2a], or [N, 1] broadcast against [2]
+            h.addmm_(torch.sin(ang + offset), wcs)
+        for w_t, b in rest:  # SiLU in place, then the next linear layer (no module calls: a query is short)
+            h = torch.addmm(b, torch.nn.functional.silu(h, inplace=True), w_t)
+        return h
+
+    def _folded(self) -> tuple:
         """The first layer for the current start with the feature scales, the time and the start folded in:
-        ``wx [d, H]`` (scaled rows for the non-periodic dimensions, zero rows for the angles), ``wcs [2a, H]``
-        (cos, sin of the angles) and ``bias [T+1, H]``, so that ``x @ wx + [cos, sin] @ wcs + bias[t]`` is the
-        first layer's output; and the later linear layers as ``(weight.T, bias)``. Rebuilt when the weights or
-        the start change (their version counters)."""
+        ``wx [d, H]`` (scaled rows for the non-periodic dimensions, zero rows for the angles), ``offset [2a]``
+        (pi/2 then 0: ``sin(angles + offset)`` is ``[cos, sin]``; None without angles), ``wcs [2a, H]``,
+        ``bias [T+1, H]`` and its rows, so that ``x @ wx + sin(angles + offset) @ wcs + bias[t]`` is the first
+        layer's output; and the later linear layers as ``(weight.T, bias)``. Rebuilt when the weights or the
+        start change (their version counters)."""
         first = self.net[0]
         key = (tuple((p._version, p.data_ptr()) for p in self.net.parameters()), self._start._version,
                self._start.data_ptr())
@@ -176,7 +184,8 @@ class StartMLPPolicy(MLPPolicy):
                 bias = base + steps.unsqueeze(1) * w[:, f0 - 1]  # [T+1, H]: the time feature t / T
                 rest = [(m.weight.detach().T.contiguous(), m.bias.detach()) for m in self._rest
                         if isinstance(m, torch.nn.Linear)]  # [in, out], [out] of the layers after the first
-            self._folded_layer, self._fold_key = (wx, wcs, bias, rest), key
+                offset = torch.tensor([math.pi / 2] * na + [0.0] * na, dtype=w.dtype, device=w.device) if na else None
+            self._folded_layer, self._fold_key = (wx, offset, wcs, bias, bias.unbind(0), rest), key
         return self._folded_layer
 
     def _weights(self, x: Tensor, t: int) -> Tensor:
@@ -188,11 +197,11 @@ class StartMLPPolicy(MLPPolicy):
         if x.dtype != self.dtype:
             raise ValueError(f"states are {x.dtype} but the policy is {self.dtype}")
         with torch.no_grad():
-            logits = self(x, t)  # [N, A]
-            e = (logits - logits.amax(dim=1, keepdim=True)).exp_()  # torch.softmax is slow on few actions
+            logits = self._logits(x, t)  # [N, A]
+            e = logits.sub_(logits.amax(dim=1, keepdim=True)).exp_()  # torch.softmax is slow on few actions
             code = self.support_codes(x, t)  # [N]
             self._count(x.shape[0], code)
-            return torch.where((code >= MISS).unsqueeze(1), torch.ones_like(e[:1]), e)
+            return e.masked_fill_((code >= MISS).unsqueeze(1), 1.0)
 
     def action_probs(self, x: Tensor, t: int) -> Tensor:
         """``x [N, d]`` at level ``t`` from the current start -> ``[N, A]``, checked and counted, with the
@@ -203,10 +212,11 @@ class StartMLPPolicy(MLPPolicy):
     def sample(self, x: Tensor, t: int, generator: torch.Generator | None = None) -> Tensor:
         """Actions ``[N, q]`` drawn from :meth:`action_probs` (inverse CDF, one uniform per state: cheaper than
         ``torch.multinomial``); what a rollout draws through."""
-        cdf = self._weights(x, t).cumsum(dim=1)  # [N, A]
-        u = torch.rand((x.shape[0], 1), generator=generator, dtype=cdf.dtype, device=cdf.device) * cdf[:, -1:]
-        pick = (cdf <= u).sum(dim=1).clamp_max_(cdf.shape[1] - 1)  # the first action whose cdf exceeds u
-        return self.actions.to(x.dtype).index_select(0, pick)
+        cdf = self._weights(x, t).cumsum_(dim=1)  # [N, A]
+        u = torch.rand((x.shape[0], 1), generator=generator, dtype=cdf.dtype, device=cdf.device).mul_(cdf[:, -1:])
+        pick = torch.searchsorted(cdf, u, right=True).squeeze(1).clamp_max_(cdf.shape[1] - 1)  # first cdf above u
+        actions = self.actions if self.actions.dtype == x.dtype else self.actions.to(x.dtype)
+        return actions.index_select(0, pick)
 
     def for_start(self, x0: Tensor) -> StartMLPPolicy:
         """Serve rollouts from ``x0 [d]`` (or the first row of ``[N, d]``) from now on; returns ``self``."""

@@ -168,6 +168,9 @@ def test_the_folded_query_is_the_network(trained):
         policy.for_start(s)
         with torch.no_grad():
             torch.testing.assert_close(policy(x, 3), policy(x, 3, s.expand(40, 1)))
+        t = torch.arange(40) % 5  # a level per state
+        with torch.no_grad():
+            torch.testing.assert_close(policy(x, t), policy(x, t, s.expand(40, 1)))
     with torch.no_grad():
         policy.net[-1].bias.add_(1.0)  # new weights: the folded layers are rebuilt
         policy.net[0].weight.mul_(0.5)
@@ -234,6 +237,9 @@ def test_a_speed_set_policy_drives_the_controllers_from_any_pose(tmp_path, start
     pose = [1.0, -2.0, 2.5, 0.75]  # any pose: the frame change moves (x, y, theta); 0.75 m/s lies between 0.5 and 1
     assert start_warnings(policy, pose) == [] and policy.outside_starts == 0
     assert policy.build_start.tolist() == [0.0, 0.0, 0.0, 0.75]
+    x = torch.rand(50, 4) * torch.tensor([2.0, 2.0, 6.0, 1.0]) - torch.tensor([1.0, 1.0, 3.0, 0.0])
+    with torch.no_grad():  # the folded query (angles as one sin) is the network's
+        torch.testing.assert_close(policy(x, 2), policy(x, 2, torch.tensor(pose).expand(50, 4)))
     cost = lambda s, a: ((s[:, :, 0] - 2.0) ** 2 + s[:, :, 1] ** 2).sum(dim=1)  # noqa: E731
     for ctrl in (CUniformMPPI(ckpt, cost, num_samples=64, seed=0), CUMPPI(policy, cost, num_samples=64, seed=0)):
         u = ctrl.command(torch.tensor(pose))
