@@ -8,6 +8,7 @@ from .frames import se2_to_local, se2_to_world
 from .grid import CellKeys, CellSet, Grid
 from .checkpoint import POLICY_FORMAT, PolicyCheckpointError, load_policy, save_policy
 from .mlp import MLPConfig, MLPPolicy, MLPSupport
+from .mlp_start import StartMLPPolicy, StartRegion
 from .mppi import COST_CAP, CUMPPI, MPPI, CostFn, CUniformMPPI, LogMPPI, MPPICore, MPPIResult, mppi_weights
 from .map_checkpoint import MAP_POLICY_FORMAT, MapCheckpointError, load_map_policy, map_policy_checkpoint, save_map_policy
 from .map_encoder import MapEncoder, PatchSpec
@@ -50,5 +51,6 @@ __all__ = [
     "system_from_json", "system_to_json", "TABLE_FORMAT", "Table", "TableError", "read_table", "write_table", "TableSetPolicy", "load_table_set",
     "MAP_POLICY_FORMAT", "MapCheckpointError", "load_map_policy", "map_policy_checkpoint", "save_map_policy",
     "MapEncoder", "PatchSpec", "MapPolicy", "MapPolicyConfig", "CFUMPPI", "SensedMapPolicy", "local_map", "sense_patch",
+    "StartMLPPolicy", "StartRegion",
 ]
 __version__ = "0.1.0"
