@@ -120,7 +120,10 @@ class MapPolicy(nn.Module):
         self.register_buffer("_box_half", half[self._linear], persistent=False)  # [d_lin]
         self.register_buffer("_box_cell", torch.tensor(grid.cell_size)[self._linear], persistent=False)
         self._start_watch = StartWatch(f"map policy ({system.name})", system)
-        self._map_bias: Tensor | None = None  # [Hd]: W_e e + b of the map last set
+        self.register_buffer("_uniform", torch.full((1, config.num_actions), 1.0 / config.num_actions), persistent=False)
+        self._map_bias: Tensor | None = None  # [T+1, Hd] per level, for the map last set (set_map)
+        self._w_state: Tensor | None = None  # [F-1, Hd]
+        self._layers: list[tuple[Tensor, Tensor]] = []  # the body's (weight^T, bias)
         self.encodes = 0
         self.reset_counters()
 
@@ -175,13 +178,22 @@ class MapPolicy(nn.Module):
     # -------------------------------------------------------------------------------- one map, many lookups
     def set_map(self, patch: object) -> None:
         """Encode ``patch`` (a robot-frame OccupancyGrid of this policy's :class:`PatchSpec`, on its device) once;
-        every lookup until the next call is for that map. ValueError naming a wrong shape, resolution or origin."""
+        every lookup until the next call is for that map (and these weights: call it again after training).
+        ValueError naming a wrong shape, resolution or origin."""
         occupied = self.patch_spec.check(patch)
         if occupied.device != self.device:
             raise ValueError(f"the patch is on {occupied.device} but the policy is on {self.device}")
         with torch.no_grad():
             embedding = self.encode(occupied.unsqueeze(0))  # [1, E]
-            self._map_bias = (self.inp_x.bias + self.inp_e(embedding)[0]).detach()  # [Hd]
+            w = self.inp_x.weight  # [Hd, F]: columns x_lin, cos, sin, t
+            n_lin = len(self._linear)
+            levels = torch.arange(self.horizon + 1, dtype=w.dtype, device=w.device) / self.horizon  # [T+1]
+            # W_e e + b + w_t t / T per level, and W_x with the feature scales folded in: a lookup is one addmm
+            self._map_bias = (self.inp_x.bias + self.inp_e(embedding)[0] + levels[:, None] * w[:, -1]).detach()
+            w_state = torch.cat((w[:, :n_lin] * self.inv_scale[self._linear], w[:, n_lin:-1]), dim=1)
+            self._w_state = w_state.T.contiguous().detach()  # [F-1, Hd]
+            self._layers = [(m.weight.detach().T.contiguous(), m.bias.detach()) for m in self.body
+                            if isinstance(m, nn.Linear)]
         self.encodes += 1
 
     def clear_map(self) -> None:
@@ -199,27 +211,37 @@ class MapPolicy(nn.Module):
         if x.dtype != self.dtype:
             raise ValueError(f"states are {x.dtype} but the policy is {self.dtype}")
         with torch.no_grad():
-            h = torch.nn.functional.linear(self.features(x, t), self.inp_x.weight, self._map_bias)  # [N, Hd]
-            probs = torch.softmax(self.body(h), dim=1)  # [N, A]
-            code = self._support_codes(x)  # [N]: 0 in, 1 near, 2 miss
-            self._queries += x.shape[0]
-            self._near = self._near + (code == 1).sum()
-            self._miss = self._miss + (code == 2).sum()
-            return torch.where((code == 2).unsqueeze(1), torch.full_like(probs[:1], 1.0 / probs.shape[1]), probs)
+            parts = [x[:, self._linear]]
+            if self._angle:
+                ang = x[:, self._angle]
+                parts += [torch.cos(ang), torch.sin(ang)]
+            h = torch.addmm(self._map_bias[t], torch.cat(parts, dim=1), self._w_state)  # [N, Hd]
+            for weight, bias in self._layers:
+                h = torch.addmm(bias, torch.nn.functional.silu(h), weight)
+            probs = torch.softmax(h, dim=1)  # [N, A]
+            miss = self._count(x)  # [N]
+            return torch.where(miss.unsqueeze(1), self._uniform, probs)
 
     def sample(self, x: Tensor, t: int, generator: torch.Generator | None) -> Tensor:
-        """``x [N, d]`` at level ``t`` -> actions ``[N, q]`` drawn from :meth:`action_probs`."""
-        idx = torch.multinomial(self.action_probs(x, t), 1, generator=generator).squeeze(1)  # [N]
+        """``x [N, d]`` at level ``t`` -> actions ``[N, q]`` drawn from :meth:`action_probs` (inverse CDF)."""
+        cdf = self.action_probs(x, t).cumsum(dim=1)  # [N, A]
+        u = torch.rand((x.shape[0], 1), generator=generator, dtype=cdf.dtype, device=cdf.device) * cdf[:, -1:]
+        idx = (cdf <= u).sum(dim=1).clamp_(max=cdf.shape[1] - 1)  # [N]: first action whose cdf exceeds u
         return self.actions.index_select(0, idx)
 
-    def _support_codes(self, x: Tensor) -> Tensor:
-        half, size = self._box_half.to(x.dtype), self._box_cell.to(x.dtype)
+    def _count(self, x: Tensor) -> Tensor:
+        """Count the lookups of ``x [N, d]`` (near the box: nearest hits; beyond it or not finite: misses);
+        the misses ``bool [N]``."""
         if self._linear:
-            excess = ((x[:, self._linear].abs() - half) / size).amax(dim=1)  # [N] cells beyond the box
+            excess = ((x[:, self._linear].abs() - self._box_half) / self._box_cell).amax(dim=1)  # [N] cells out
+            near, miss = excess > 0, excess > 1
         else:
-            excess = x.new_full((x.shape[0],), -1.0)
-        code = torch.where(excess <= 0, 0, torch.where(excess <= 1, 1, 2))
-        return torch.where(torch.isfinite(x).all(dim=1) & ~torch.isnan(excess), code, 2)
+            near = miss = torch.zeros(x.shape[0], dtype=torch.bool, device=x.device)
+        miss = miss | ~torch.isfinite(x).all(dim=1)  # NaN compares False above: caught here
+        self._queries += x.shape[0]
+        self._near += (near & ~miss).sum()
+        self._miss += miss.sum()
+        return miss
 
     # -------------------------------------------------------------------------------- honest-support counters
     def reset_counters(self) -> None:
@@ -248,9 +270,8 @@ class MapPolicy(nn.Module):
     def nearest_rate(self) -> float:
         return int(self._near) / self._queries if self._queries else 0.0
 
-    def _apply(self, fn, recurse: bool = True):  # .to(device) moves the map and the counters with the module
-        super()._apply(fn, recurse)
-        if self._map_bias is not None:
-            self._map_bias = fn(self._map_bias)
+    def _apply(self, fn, recurse: bool = True):  # .to(device) moves the counters; the folded map is derived from
+        super()._apply(fn, recurse)             # the weights, so it is dropped (set_map again)
+        self._map_bias, self._w_state, self._layers = None, None, []
         self._near, self._miss = self._near.to(self.device), self._miss.to(self.device)
         return self

@@ -139,6 +139,16 @@ def test_lookups_need_a_map_and_match_the_training_path():
     assert float((other.action_probs(x, 3) - ref).abs().max()) > 1e-5  # an empty map answers otherwise
 
 
+def test_draws_follow_the_probabilities():
+    policy = _policy(seed=3)
+    policy.set_map(_patch(_wall()))
+    x = torch.tensor([[0.2, -0.1, 0.4]]).expand(40000, 3)
+    probs = policy.action_probs(x[:1], 2)[0]  # [A]
+    drawn = policy.sample(x, 2, torch.Generator().manual_seed(0))  # [N, 1]
+    freq = (drawn == policy.actions.T).float().mean(dim=0)  # [A]
+    assert float((freq - probs).abs().max()) < 0.01, (freq, probs)  # about 4 standard errors
+
+
 def test_states_outside_the_box_are_counted_misses():
     policy = _policy()
     policy.set_map(_patch())
