@@ -22,7 +22,8 @@ The *start region* (:class:`StartRegion`, stored in the checkpoint) is the set's
 dimensions. A start is *inside* it when every start dimension lies in the starts' bounding box grown by half a
 spacing (the range over the distinct values less one, i.e. a grid's step; at least one cell, the tolerance of
 a single table's start). A rollout from a start outside it warns once per policy (``StartMismatchWarning``)
-and is counted (:attr:`StartMLPPolicy.outside_starts`). The support (honest-support counters, fallback) is the
+and is counted (:attr:`StartMLPPolicy.outside_starts`; the check reads the start on the host, one small copy per
+rollout, a sync on a GPU). The support (honest-support counters, fallback) is the
 pooled cells of the set's tables per level, as for an MLP of several tables.
 """
 
