@@ -33,7 +33,7 @@ from cuniform_torch.cli import (OUT, ArgumentParser, CLIError, add_dataclass_arg
                                 dataclass_from_args, field_docs, flag_name, import_system_modules,
                                 out_of_memory_message)
 from cuniform_torch.fileio import exclusive_lock, write_json
-from cuniform_torch.systems import (_BUILTIN_MODULE, _REGISTRY, DEFAULT_HORIZON, check_system, known_systems,
+from cuniform_torch.systems import (_REGISTRY, DEFAULT_HORIZON, check_system, is_builtin, known_systems,
                                     load_factory, make_system, resolve_system, system_horizon)
 from cuniform_torch.table import write_table
 
@@ -248,7 +248,7 @@ def _make_system(spec: str, name: str, params: dict[str, Any]):
         if oom is not None:
             raise CLIError(f"--system {name}" + (f" ({given})" if given else "") + f": {oom}; make --num-actions "
                            "(or the grid) smaller") from None
-        if getattr(_REGISTRY[name], "__module__", _BUILTIN_MODULE) != _BUILTIN_MODULE:
+        if not is_builtin(_REGISTRY[name]):
             raise CLIError(f"--system {spec}: building or checking it failed ({type(exc).__name__}: {exc})") from None
         raise  # a built-in system that fails is a bug
 

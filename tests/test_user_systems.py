@@ -491,3 +491,18 @@ def test_readme_your_own_robot_example(tmp_path, monkeypatch):
     assert namespace["states"].shape == (200, 11, 3)
     assert namespace["policy"].system.speed == 0.5
     assert namespace["result"].outcome == "goal"
+
+
+def test_built_in_systems_name_no_factory_and_user_systems_do():
+    """A table of a built-in system is rebuilt from the registry by name; only a user system's JSON names its
+    factory (so a built-in module that moves does not break its tables)."""
+    import json
+
+    from cuniform_torch.systems import is_builtin, known_systems, make_system, system_to_json
+    from cuniform_torch.systems.registry import _REGISTRY
+
+    for name in known_systems():
+        if is_builtin(_REGISTRY[name]):
+            assert "factory" not in json.loads(system_to_json(make_system(name), 3)), name
+    assert {"double_integrator", "mountain_car", "dubins", "ks_speed"} <= {n for n in known_systems()
+                                                                          if is_builtin(_REGISTRY[n])}

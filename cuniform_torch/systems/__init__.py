@@ -31,7 +31,7 @@ from .classic import DoubleIntegrator, MountainCar
 from .models import Dubins, KinematicSingleTrack, KinematicSingleTrackSpeed, RandomWalk1D
 from .protocol import (DEFAULT_HORIZON, MAX_ACTIONS, MAX_HORIZON, System, check_system, se2_invariance_gap,
                        system_horizon)
-from .registry import (_BUILTIN_MODULE, _REGISTRY, UnknownSystemError, factory_path, import_system_modules,
+from .registry import (_REGISTRY, UnknownSystemError, factory_path, import_system_modules, is_builtin,
                        known_systems, load_factory, make_system, register_system, resolve_system, system_from_json,
                        system_to_json)
 
@@ -47,6 +47,7 @@ __all__ = [
     "register_system",
     "make_system",
     "known_systems",
+    "is_builtin",
     "system_to_json",
     "system_from_json",
     "wrap_angle",

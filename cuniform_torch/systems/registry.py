@@ -15,12 +15,12 @@ import json
 from typing import Any, Callable
 
 from ..checks import positive_int
-from . import models
+from . import classic, models
 from .classic import DoubleIntegrator, MountainCar
 from .models import Dubins, KinematicSingleTrack, KinematicSingleTrackSpeed, RandomWalk1D
 from .protocol import MAX_HORIZON, System, check_system
 
-__all__ = ["UnknownSystemError", "register_system", "make_system", "known_systems", "resolve_system",
+__all__ = ["UnknownSystemError", "register_system", "make_system", "known_systems", "is_builtin", "resolve_system",
            "import_system_modules", "factory_path", "load_factory", "system_to_json", "system_from_json"]
 
 
@@ -29,8 +29,8 @@ class UnknownSystemError(ValueError):
 
 
 _REGISTRY: dict[str, Callable[..., System]] = {}
-_BUILTIN_MODULE = models.__name__
-"""the module of the built-in systems: a system from elsewhere is a user system (its JSON names its factory)"""
+_BUILTIN_MODULES = frozenset({models.__name__, classic.__name__})
+"""the modules of the built-in systems: a system from elsewhere is a user system (its JSON names its factory)"""
 
 
 def register_system(name: str, factory: Callable[..., System], *, overwrite: bool = False) -> None:
@@ -58,6 +58,11 @@ def _same_definition(a: Any, b: Any) -> bool:
     """Two objects from the same definition (a re-run notebook cell or script, a reloaded module)."""
     path = _definition_path(a)
     return path is not None and path == _definition_path(b)
+
+
+def is_builtin(factory: Any) -> bool:
+    """Whether ``factory`` is one of the library's own systems (their JSON names no factory)."""
+    return getattr(factory, "__module__", None) in _BUILTIN_MODULES
 
 
 def known_systems() -> list[str]:
@@ -196,7 +201,7 @@ def system_to_json(system: System, horizon: int) -> str:
     spec: dict[str, Any] = {"name": system.name, "params": system.params(), "dt": float(system.dt),
                             "horizon": int(horizon)}
     factory = _REGISTRY.get(system.name, type(system))
-    if getattr(factory, "__module__", _BUILTIN_MODULE) != _BUILTIN_MODULE:
+    if not is_builtin(factory):
         path = factory_path(factory)
         if path is not None:
             spec["factory"] = path
