@@ -11,7 +11,6 @@ the policy's parameter count; torch's thread count and the load average.
 
 from __future__ import annotations
 
-import json
 import math
 import os
 import statistics
