@@ -173,6 +173,20 @@ def test_a_trained_policy_avoids_the_wall_the_blind_table_hits(trained, table):
     assert policy.miss_rate == 0.0
 
 
+def test_map_eval_measures_the_same_on_the_data_set(trained, dataset, table, tmp_path, capsys):
+    """python -m training.map_eval: per entry, the map policy against the blind table and the safe table."""
+    import training.map_eval as map_eval
+    from cuniform_torch.table import write_table
+    write_table(tmp_path / "blind.npz", table)
+    out = tmp_path / "rates.json"
+    assert map_eval.main(["--checkpoint", str(trained), "--maps", str(dataset), "--table", str(tmp_path / "blind.npz"),
+                          "--samples", "500", "--json", str(out)]) == 0
+    rates = json.loads(out.read_text())["rates"]
+    assert rates["blind_table"][0] > 0.3 and rates["map_policy"][0] < 0.5 * rates["blind_table"][0]
+    assert rates["safe_table"][0] < 0.1  # the pruned table itself (dead ends removed)
+    assert "mean over 4 entries" in capsys.readouterr().out
+
+
 def test_two_maps_give_different_probabilities(trained, dataset):
     """At the start, a wall ahead (turn hard) and a corridor (mostly straight): each map gets its own row."""
     policy, data = load_map_policy(trained), load_map_data([dataset])
