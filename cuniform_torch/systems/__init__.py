@@ -7,8 +7,9 @@ the dtype and device of its inputs. Where each thing lives:
 * :mod:`.protocol`: :class:`System`, :func:`check_system` (says what a user system lacks),
   :func:`se2_invariance_gap` (checks a claimed SE(2) invariance numerically), the limits ``MAX_ACTIONS``,
   ``MAX_HORIZON`` and ``DEFAULT_HORIZON``.
-* :mod:`.models`: the built-in ``random_walk_1d`` (:class:`RandomWalk1D`), ``dubins`` (:class:`Dubins`), ``ks``
-  (:class:`KinematicSingleTrack`) and ``ks_speed`` (:class:`KinematicSingleTrackSpeed`).
+* :mod:`.models`: the built-in ``random_walk_1d`` (:class:`RandomWalk1D`) and ``dubins`` (:class:`Dubins`), and the
+  helpers the built-ins share; :mod:`.single_track`: ``ks`` (:class:`KinematicSingleTrack`) and ``ks_speed``
+  (:class:`KinematicSingleTrackSpeed`).
 * :mod:`.classic`: the built-in ``double_integrator`` (:class:`DoubleIntegrator`) and ``mountain_car``
   (:class:`MountainCar`, gymnasium's MountainCarContinuous-v0), which are not SE(2)-invariant.
 * :mod:`.registry`: :func:`register_system`, :func:`make_system`, :func:`resolve_system`, factories by
@@ -28,12 +29,13 @@ registers the system first, or pass ``trust_factory="my_robots:MyRobot"``.
 
 from ..checks import wrap_angle
 from .classic import DoubleIntegrator, MountainCar
-from .models import Dubins, KinematicSingleTrack, KinematicSingleTrackSpeed, RandomWalk1D
+from .models import Dubins, RandomWalk1D
 from .protocol import (DEFAULT_HORIZON, MAX_ACTIONS, MAX_HORIZON, System, check_system, se2_invariance_gap,
                        system_horizon)
 from .registry import (_REGISTRY, UnknownSystemError, factory_path, import_system_modules, is_builtin,
                        known_systems, load_factory, make_system, register_system, resolve_system, system_from_json,
                        system_to_json)
+from .single_track import KinematicSingleTrack, KinematicSingleTrackSpeed
 
 __all__ = [
     "System",

@@ -15,9 +15,10 @@ import json
 from typing import Any, Callable
 
 from ..checks import positive_int
-from . import classic, models
+from . import classic, models, single_track
 from .classic import DoubleIntegrator, MountainCar
-from .models import Dubins, KinematicSingleTrack, KinematicSingleTrackSpeed, RandomWalk1D
+from .models import Dubins, RandomWalk1D
+from .single_track import KinematicSingleTrack, KinematicSingleTrackSpeed
 from .protocol import MAX_HORIZON, System, check_system
 
 __all__ = ["UnknownSystemError", "register_system", "make_system", "known_systems", "is_builtin", "resolve_system",
@@ -29,7 +30,7 @@ class UnknownSystemError(ValueError):
 
 
 _REGISTRY: dict[str, Callable[..., System]] = {}
-_BUILTIN_MODULES = frozenset({models.__name__, classic.__name__})
+_BUILTIN_MODULES = frozenset({models.__name__, single_track.__name__, classic.__name__})
 """the modules of the built-in systems: a system from elsewhere is a user system (its JSON names its factory)"""
 
 
