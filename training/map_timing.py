@@ -5,7 +5,8 @@ rad/s, horizon 15) drives through a seeded random forest (a 20 m x 20 m Occupanc
 a goal; each command senses the 72 x 72 patch of 0.05 m (the map farm's default) around the pose, encodes it
 once, rolls out the map policy for half of K and runs the local Gaussian pass with the other half. Without
 ``--checkpoint`` the policy is untrained (the same arithmetic: a timing, not a plan). Printed per K: the median
-and 90th percentile of the command time (map encoding included) and, separately, of sensing + encoding alone;
+and 90th percentile of the command time (map encoding included) and, separately, of sensing + encoding alone
+and of one ``action_probs`` call on the first stage's batch (K / 2 states);
 the policy's parameter count; torch's thread count and the load average.
 """
 
@@ -121,7 +122,19 @@ def main(argv: Sequence[str] | None = None) -> int:
         if k >= args.warmup:
             encode.append((time.perf_counter() - start) * 1e3)
     print(f"sensing + encoding the patch: {_stats(encode)}")
-    results = {"parameters": policy.num_parameters, "encode_ms": statistics.median(encode), "commands": {}}
+    lookup = []
+    for n in (128, 512):  # the map-policy stage's batch at K = 256 and 1024
+        x = torch.zeros(n, 3)
+        per = []
+        for k in range(args.warmup + args.commands):
+            start = time.perf_counter()
+            policy.action_probs(x, 3)
+            if k >= args.warmup:
+                per.append((time.perf_counter() - start) * 1e3)
+        lookup.append(statistics.median(per))
+        print(f"action_probs on {n} states: {_stats(per)}")
+    results = {"parameters": policy.num_parameters, "encode_ms": statistics.median(encode),
+               "action_probs_ms": dict(zip((128, 512), lookup)), "commands": {}}
     for k in args.samples:
         controller = CFUMPPI(policy, world, cost, num_samples=k, seed=0)
         ms = time_commands(controller, system, args.commands, args.warmup)
