@@ -134,11 +134,11 @@ def evaluate_start(mlp: StartMLPPolicy, tset: TableSetPolicy, table: Table, samp
 def time_commands(mlp: StartMLPPolicy, tset: TableSetPolicy, start: torch.Tensor, num_samples: Sequence[int],
                   repeats: int, warmup: int) -> list[dict[str, Any]]:
     """Median seconds of ``CUniformMPPI.command`` with the MLP and with the set, called in turn (one thread)."""
-    k = min(2, mlp.config.state_dim)  # a goal in (x, y), or x for a 1-D system
-    goal = torch.tensor([2.0, 1.0][:k], dtype=mlp.dtype)
+    q = min(2, mlp.config.state_dim)  # a goal in (x, y), or x for a 1-D system
+    goal = torch.tensor([2.0, 1.0][:q], dtype=mlp.dtype)
 
     def cost(states: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:  # [K, T+1, d] -> [K]
-        return ((states[:, :, :k] - goal) ** 2).sum(dim=(1, 2))
+        return ((states[:, :, :q] - goal) ** 2).sum(dim=(1, 2))
 
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
