@@ -1,7 +1,9 @@
 """The proposal bank of C-Uniform MPPI (:class:`BankProposal`) and its background worker.
 
 M rollouts pre-sampled at the origin; each command takes a random subset of K of them and moves it to the pose by
-a rigid transform. Refreshed every ``refresh`` commands, in the control loop or in a background worker thread
+a rigid transform. With a table set (a policy with ``members`` and ``starts``, e.g. a ``ks_speed`` set over the
+speed) the bank holds M rollouts per member, from its start at the origin pose; a command takes a subset of the
+actions of the member nearest to the state and rolls them out from the state (the exact states for its speed). Refreshed every ``refresh`` commands, in the control loop or in a background worker thread
 (which lives here). Re-exported by :mod:`cuniform_torch.proposals`, where it used to live.
 """
 
@@ -17,7 +19,7 @@ from torch import Tensor
 from . import rollout_kernels
 from .controller_checks import check_positive_int, seeded_generator
 from .frames import se2_to_world
-from .rollout import check_generator
+from .rollout import check_generator, rollout_actions
 
 if TYPE_CHECKING:  # types only annotate; proposals and mppi import this module
     from .mppi import MPPIResult
@@ -64,9 +66,12 @@ class BankProposal:
         self.state_dim = len(self.system.periodic)
         if not self.system.se2_invariant:
             raise ValueError(f"a proposal bank needs an SE(2)-invariant system; {self.system.name} is not")
-        if self.state_dim > 3:  # the bank starts at rest; a state's speed etc. is not a change of frame
+        self.member_starts = _member_starts(source.policy)
+        """``[S, d]`` the starts of a table set's members (one bank each), None for one table or MLP"""
+        if self.state_dim > 3 and self.member_starts is None:  # a state's speed etc. is not a change of frame
             raise ValueError(f"a proposal bank needs the state (x, y, theta) only; {self.system.name} has "
-                             f"{self.state_dim} dimensions, whose rollouts depend on the start's other dimensions")
+                             f"{self.state_dim} dimensions, whose rollouts depend on the start's other dimensions "
+                             "(a table set over them, load_table(DIR), gets a bank per start)")
         if bank_size < self.num_samples:
             raise ValueError(f"bank_size ({bank_size}) must be at least num_samples ({self.num_samples})")
         self.refresh = refresh
@@ -93,11 +98,17 @@ class BankProposal:
         return self._executor is not None
 
     def draw_bank(self, generator: torch.Generator) -> tuple[Tensor, Tensor]:
-        """``bank_size`` fresh rollouts at the origin: ``[M, T+1, d]``, ``[M, T, q]`` (not put in use)."""
+        """``bank_size`` fresh rollouts at the origin: ``[M, T+1, d]``, ``[M, T, q]`` (not put in use); with a
+        table set, per member from its start at the origin pose: ``[S, M, T+1, d]``, ``[S, M, T, q]``."""
         check_generator(generator, self.device)
-        origin = torch.zeros(self.state_dim, dtype=self.dtype, device=self.device)
-        states, actions = self.source.rollout(origin, self.bank_size, generator)
-        return states.contiguous(), actions  # a subset is gathered by rows (a rollout may give a time-major view)
+        if self.member_starts is None:
+            origin = torch.zeros(self.state_dim, dtype=self.dtype, device=self.device)
+            states, actions = self.source.rollout(origin, self.bank_size, generator)
+            return states.contiguous(), actions  # a subset is gathered by rows (a rollout may give a time-major view)
+        origins = self.member_starts.to(self.dtype).to(self.device).clone()
+        origins[:, :3] = 0.0  # the frame change moves the pose; the other dimensions pick the member
+        drawn = [self.source.rollout(o, self.bank_size, generator) for o in origins]  # S draws, at refresh time only
+        return torch.stack([s.contiguous() for s, _ in drawn]), torch.stack([a for _, a in drawn])
 
     def resample(self, generator: torch.Generator | None = None) -> None:
         """Draw a new bank now and use it (from ``generator``, default the refresh stream)."""
@@ -105,6 +116,10 @@ class BankProposal:
 
     def propose(self, state: Tensor, generator: torch.Generator) -> tuple[Tensor, Tensor]:
         idx = torch.randperm(self.bank_size, generator=generator, device=self.device)[: self.num_samples]  # [K]
+        if self.member_starts is not None:  # the nearest member's actions, rolled out from the state itself
+            self.source.policy.for_start(state)
+            actions = self.bank_actions[self.source.policy.last_index][idx]  # [K, T, q]
+            return rollout_actions(self.system, state, actions), actions
         local = self.bank_states[idx]  # [K, T+1, d]
         if rollout_kernels.usable(local):  # the compiled frame change, reading the subset in its own order
             return rollout_kernels.to_world(local.permute(1, 2, 0), state), self.bank_actions[idx]
@@ -165,3 +180,11 @@ class BankProposal:
             self._swap_if_ready(wait=True)
         finally:
             executor.shutdown(wait=True)
+
+
+def _member_starts(policy: object) -> Tensor | None:
+    """The members' starts ``[S, d]`` of a table set policy (``members``, ``starts``, ``for_start``), else None."""
+    starts = getattr(policy, "starts", None)
+    if isinstance(starts, Tensor) and getattr(policy, "members", None) is not None and hasattr(policy, "for_start"):
+        return starts
+    return None

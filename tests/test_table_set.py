@@ -134,3 +134,30 @@ def test_a_broken_set_is_refused_naming_the_file(tmp_path):
                  "--out", str(tmp_path / "start_0004.npz")]) == 0  # another horizon: another system JSON
     with pytest.raises(TableError, match="start_0004.npz: its system, actions or grid differ"):
         load_table(tmp_path)
+
+
+def test_a_speed_set_gets_a_bank_per_start_and_proposes_exact_states(tmp_path):
+    """CUniformMPPI(set, bank_size=M) on ks_speed: M rollouts per member at the origin pose; a command takes the
+    nearest member's actions and rolls them out from the state itself (so its speed, not the member's)."""
+    import torch
+
+    from cuniform_torch import CUniformMPPI, load_table, rollout_actions
+
+    ks = ["--system", "ks_speed", "--horizon", "3", "--quiet"]
+    assert main([*ks, "--starts", "3=0:1:3", "--out", str(tmp_path / "set")]) == 0
+    assert main([*ks, "--out", str(tmp_path / "zero.npz"), "--no-report"]) == 0
+    many = load_table(tmp_path / "set")
+    ctrl = CUniformMPPI(many, lambda s, a: s[:, -1, 0] ** 2, num_samples=32, bank_size=64, seed=0)
+    assert ctrl.bank_states.shape == (3, 64, 4, 4) and ctrl.bank_actions.shape == (3, 64, 3, 2)
+    assert ctrl.bank_states[:, :, 0, 3].tolist() == [[0.0] * 64, [0.5] * 64, [1.0] * 64]  # each member's speed
+    state = torch.tensor([1.0, -2.0, 2.5, 0.9])
+    states, actions = ctrl.proposal.propose(state, torch.Generator().manual_seed(1))
+    assert many.last_index == 2  # 0.9 m/s: the 1 m/s member
+    member = ctrl.bank_actions[2]
+    assert bool((actions[:, None] == member[None]).flatten(2).all(2).any(1).all())  # rows of that member's bank
+    torch.testing.assert_close(states, rollout_actions(many.system, state, actions))
+    assert states[:, 0].eq(state).all()
+    u = ctrl.command(state)
+    assert bool(torch.isfinite(u).all())
+    with pytest.raises(ValueError, match="a table set over them"):
+        CUniformMPPI(load_table(tmp_path / "zero.npz"), lambda s, a: s[:, -1, 0], num_samples=32, bank_size=64)
