@@ -10,6 +10,9 @@ the settings changed). ``<out>.lock`` keeps a second build to the same ``--out``
 Errors (bad or conflicting flags, an unusable ``--out``, a full disk, ...) are one line ``error: ...`` and exit
 code 2; Ctrl-C is one line and exit code 130 (see :mod:`cuniform_torch.cli`).
 
+Safe level sets (C-Free-Uniform): ``--map FILE --radius R`` removes from every level the cells within R of the
+local map's obstacles before the flow / coverage step (:mod:`precompute.safe_map`: the map file and the rule).
+
 User systems: ``--system-module my_robots`` imports a module that calls ``register_system`` (its dataclass
 fields then become flags too), and ``--system my_robots:Unicycle`` imports and registers a factory directly.
 

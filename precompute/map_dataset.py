@@ -29,7 +29,7 @@ import torch
 
 from cuniform_torch.fileio import write_npz
 from cuniform_torch.grid import Grid
-from cuniform_torch.systems import System, system_from_json
+from cuniform_torch.systems import System, system_from_json, system_to_json
 from cuniform_torch.table import Table
 
 __all__ = ["DATASET_FORMAT", "SHARD_KEYS", "MapDatasetError", "MapEntry", "MapShard", "MapDataset", "read_map_dataset",
@@ -132,7 +132,7 @@ def dataset_header(system: System, horizon: int, method: str, radius: float, pat
                    resolution: float, origin: Sequence[float], split: str, seed: int) -> dict[str, Any]:
     """The ``dataset.json`` keys other than ``entries`` and ``shards``."""
     grid = Grid.of(system)
-    return {"format": DATASET_FORMAT, "system": _system_json(system, horizon), "horizon": int(horizon),
+    return {"format": DATASET_FORMAT, "system": system_to_json(system, horizon), "horizon": int(horizon),
             "method": method, "grid": {"cell_size": [float(v) for v in grid.cell_size],
                                        "cell_offset": [float(v) for v in grid.offset],
                                        "periodic": [bool(v) for v in grid.periodic]},
@@ -140,12 +140,6 @@ def dataset_header(system: System, horizon: int, method: str, radius: float, pat
             "patch": {"shape": [int(v) for v in patch_shape], "resolution": float(resolution),
                       "origin": [float(v) for v in origin]},
             "split": split, "seed": int(seed)}
-
-
-def _system_json(system: System, horizon: int) -> str:
-    from cuniform_torch.systems import system_to_json
-
-    return system_to_json(system, horizon)
 
 
 def entry_arrays(table: Table) -> dict[str, np.ndarray]:
