@@ -33,6 +33,7 @@ from .maxflow import action_probs_from_flow, solve_maxflow, unique_arcs
 from .safe_map import LocalMap, MapError, SafeCells
 from .size_guide import SizeGuide, available_memory_bytes, estimate_build_bytes, project_level_sizes
 from .start import check_start, start_array, start_state
+from .viability import SAFE_RULE, step_generator, viable_keep, viable_levels
 
 __all__ = ["BuildConfig", "MapError", "BuildStats", "ResumeError", "build_settings", "check_resume", "build_table", "propagate_cell_probs", "SizeGuide", "project_level_sizes",
            "estimate_build_bytes", "available_memory_bytes"]
@@ -153,7 +154,7 @@ def _map_settings(config: BuildConfig) -> dict:
     if m is None:
         return {}
     return {"map_sha256": m.sha256(), "map_origin": list(m.origin), "map_resolution": m.resolution,
-            "map_shape": list(m.shape), "map_radius": float(config.radius)}
+            "map_shape": list(m.shape), "map_radius": float(config.radius), "map_rule": SAFE_RULE}
 
 
 def check_resume(checkpoint_dir: str | Path, system: System, config: BuildConfig) -> None:
@@ -175,15 +176,13 @@ def check_resume(checkpoint_dir: str | Path, system: System, config: BuildConfig
 
 
 def _solve_step(system: System, cells: np.ndarray, config: BuildConfig, t: int, stats: BuildStats,
-                safe: SafeCells | None = None) -> StepResult:
+                safe: SafeCells | None = None, keep: Callable | None = None) -> StepResult:
     A = system.action_set().shape[0]
     t0 = time.perf_counter()
-    gen = None
-    if config.points is PointMode.RANDOM:
-        gen = torch.Generator().manual_seed(config.seed * 1_000_003 + t)  # per-step stream: resumable
+    gen = step_generator(config.points, config.seed, t)  # per-step stream: resumable
     try:
         lvl: LevelStep = next_level(system, cells, config.points, config.points_per_cell, gen, config.ties,
-                                    keep=None if safe is None else safe.keep)
+                                    keep=keep)
     except EmptyLevelError:
         raise MapError(f"the map leaves no free cell at level {t + 1}: every cell reachable in {t + 1} step(s) lies "
                        f"within --radius {safe.radius:g} m of an obstacle (the start is boxed in)") from None
@@ -230,8 +229,11 @@ def build_table(
     grid = Grid.of(system)
     x0 = start_state(system, config.start)  # [1, d]
     safe = None if config.local_map is None else SafeCells(system, config.local_map, config.radius)
+    viable = None
     if safe is not None:
         safe.check_start(grid.cells(x0), x0)
+        viable = viable_levels(system, grid.cells(x0).numpy(), config.horizon, safe, config.points,
+                               config.points_per_cell, config.seed, config.ties)  # no dead ends (viability.py)
     level_cells = [grid.cells(x0).numpy()]  # L_0: the start cell
     steps: list[StepResult] = []
     for t in range(config.horizon):
@@ -240,7 +242,8 @@ def build_table(
         if step is not None and len(step.probs) == len(level_cells[-1]):
             stats.resumed_steps += 1
         else:
-            step = _solve_step(system, level_cells[-1], config, t, stats, safe)
+            keep = None if viable is None else viable_keep(safe, viable[t + 1])
+            step = _solve_step(system, level_cells[-1], config, t, stats, safe, keep)
             if path is not None:
                 step.save(path, fingerprint)
         steps.append(step)
@@ -288,6 +291,8 @@ def _assemble(system: System, config: BuildConfig, level_cells: list[np.ndarray]
         "versions": {"python": platform.python_version(), "numpy": np.__version__, "scipy": scipy.__version__,
                      "torch": torch.__version__.split("+")[0]},
     }
+    if safe is not None:  # blind tables keep their bytes
+        build_info["map_rule"] = SAFE_RULE
     return Table(
         **system_fields(system, config.horizon),
         level_offsets=offsets,

@@ -33,6 +33,7 @@ from cuniform_torch.systems import make_system, resolve_system, system_from_json
 from .map_dataset import dataset_header, entry_arrays, file_sha256, write_shard
 from .map_worlds import SPLITS, candidate_poses, crop_patch, suite_worlds, world_of
 from .safe_map import LocalMap, MapError, check_map_system
+from .viability import SAFE_RULE
 
 __all__ = ["main", "build_shard", "MAX_TRIES"]
 
@@ -174,7 +175,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     worlds = suite_worlds(args.suite, args.count, args.split, args.seed, args.radius)
     header = dataset_header(system, args.horizon, args.method, args.radius, (H, W), args.resolution, origin,
                             args.split, args.seed)
-    spec = {"header": header, "maps": [[w.suite, w.key] for w in worlds], "poses_per_map": args.poses_per_map}
+    spec = {"header": header, "maps": [[w.suite, w.key] for w in worlds], "poses_per_map": args.poses_per_map,
+            "rule": SAFE_RULE}  # shards of another pruning rule are not resumed into this data set
     args.out.mkdir(parents=True, exist_ok=True)
     with exclusive_lock(args.out / ".lock", what=f"the data set {args.out}"):
         done = _load_progress(args.out, spec)
