@@ -29,7 +29,8 @@ import torch
 from torch import Tensor
 
 from cuniform_torch import (CUMPPI, MPPI, CUniformMPPI, GaussianSampler, LogMPPI, NormalLogNormalSampler,
-                            TablePolicy, UniformPolicy, load_policy, load_table, read_table, rollout)
+                            TablePolicy, UniformPolicy, load_map_policy, load_policy, load_table, read_table,
+                            rollout)
 
 from . import config
 from .graph_sampling import GraphSampler
@@ -37,7 +38,7 @@ from .paths import DEFAULT
 
 __all__ = ["Method", "METHODS", "SOURCES", "parse_methods", "Sources", "sample_states", "make_controller"]
 
-SOURCES = ("table", "coverage_table", "policy", "uniform", "graph")
+SOURCES = ("table", "coverage_table", "policy", "uniform", "graph", "map_policy")
 """what a method's proposals can be drawn from (:meth:`Sources.load`)"""
 
 
@@ -117,12 +118,15 @@ class Sources:
     """the max-flow table: also the system, grid and horizon of an experiment"""
     coverage_table: Path = DEFAULT.coverage_table
     policy: Path = DEFAULT.policy
+    map_policy: Path | None = None
+    """a map-conditioned policy (``python -m training.distill_maps``), for CFU-MPPI"""
     device: str = "cpu"
     _cache: dict = field(default_factory=dict, repr=False)
 
     def file_of(self, source: str) -> Path:
         """The file ``source`` is read from."""
-        return {"coverage_table": self.coverage_table, "policy": self.policy}.get(source, self.table)
+        return {"coverage_table": self.coverage_table, "policy": self.policy,
+                "map_policy": self.map_policy}.get(source, self.table)
 
     def load(self, source: str) -> Any:
         """The object a source names: a TablePolicy (``table``, ``coverage_table``), an MLPPolicy (``policy``), a
@@ -134,8 +138,12 @@ class Sources:
                 "policy": lambda p: load_policy(p, device=self.device),
                 "uniform": lambda p: UniformPolicy(self.system, horizon=None, device=self.device),
                 "graph": lambda p: GraphSampler(read_table(p), device=self.device),  # with the flow graph
+                "map_policy": lambda p: load_map_policy(p, device=self.device),
             }
             path = self.file_of(source)
+            if path is None:
+                raise FileNotFoundError(f"{source}: no file given (--map-policy FILE; python -m training.distill_maps "
+                                        "trains one)")
             if not Path(path).exists():
                 raise FileNotFoundError(f"{source} file {path} not found (python -m eval.report builds it)")
             self._cache[source] = loaders[source](path)

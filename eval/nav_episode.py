@@ -80,6 +80,7 @@ class NavContext:
     """the robot's max-flow table (also the system of every method)"""
     coverage_table: str | None = None
     policy: str | None = None
+    map_policy: str | None = None
     horizon: int = 15
     lambda_: float = 0.567
     collision_penalty: float = 1e6
@@ -93,10 +94,11 @@ _CACHE: dict[Any, Any] = {}
 
 
 def _sources(ctx: NavContext) -> Sources:
-    key = ("sources", ctx.table, ctx.coverage_table, ctx.policy)
+    key = ("sources", ctx.table, ctx.coverage_table, ctx.policy, ctx.map_policy)
     if key not in _CACHE:
         _CACHE[key] = Sources(table=Path(ctx.table), coverage_table=Path(ctx.coverage_table or ctx.table),
-                              policy=Path(ctx.policy or ctx.table), device="cpu")
+                              policy=Path(ctx.policy or ctx.table),
+                              map_policy=Path(ctx.map_policy) if ctx.map_policy else None, device="cpu")
     return _CACHE[key]
 
 
@@ -162,8 +164,13 @@ def run_nav_episode(job: NavJob, ctx: NavContext) -> dict:
     cost = NavigationCost(_cost_environment(task, ctx), task.goal, goal_tolerance=task.goal_tolerance,
                           collision_penalty=ctx.collision_penalty, per_state=True, stop_at_goal=True)
     t0 = time.perf_counter()
-    ctrl = _TimedSensingController(make_controller(method, sources, cost, job.budget, ctx.horizon, job.seed,
-                                                   lambda_=ctx.lambda_), cost, task)
+    if method.source == "map_policy":  # the policy senses the world itself, within the task's sensing range
+        inner = method.controller(sources.load("map_policy"), task.environment, cost, num_samples=job.budget,
+                                  horizon=ctx.horizon, lambda_=ctx.lambda_, max_range=task.sensing_range,
+                                  seed=job.seed)
+    else:
+        inner = make_controller(method, sources, cost, job.budget, ctx.horizon, job.seed, lambda_=ctx.lambda_)
+    ctrl = _TimedSensingController(inner, cost, task)
     system = sources.system
     x0 = torch.zeros(len(system.periodic), dtype=torch.float32)
     x0[:3] = torch.tensor(task.start, dtype=torch.float32)

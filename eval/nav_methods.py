@@ -11,14 +11,17 @@ matters for it: std 0.1, 0.3 and 1.0 rad/s (clipped to the action bounds). Metho
 * ``cu_coverage``: C-Uniform, the coverage-method table (built on first use: about 80 s for this robot);
 * ``cu_mlp``: C-Uniform, the MLP distilled from the max-flow table (opt-in: about 10x the table's cost per cycle
   on a CPU, and trained on first use);
-* ``cumppi``: CU-MPPI: the best C-Uniform rollout seeds a local MPPI pass (half of the budget each).
+* ``cumppi``: CU-MPPI: the best C-Uniform rollout seeds a local MPPI pass (half of the budget each);
+* ``cfu_mppi``: CFU-MPPI: the same with a map-conditioned policy (``--map-policy FILE``, from
+  ``python -m training.distill_maps``), which senses the local map at each command within the task's sensing range
+  (opt-in: it needs that file).
 
 ``GAUSSIAN_BASELINES`` are what every other method is compared with (the best of them per suite and budget).
 """
 
 from __future__ import annotations
 
-from cuniform_torch import CUMPPI, MPPI, CUniformMPPI, GaussianSampler, LogMPPI, NormalLogNormalSampler
+from cuniform_torch import CFUMPPI, CUMPPI, MPPI, CUniformMPPI, GaussianSampler, LogMPPI, NormalLogNormalSampler
 
 from .methods import Method
 
@@ -39,10 +42,12 @@ NAV_METHODS: dict[str, Method] = {m.key: m for m in [
            color="#9467bd"),
     Method("cumppi", "CU-MPPI (max-flow table)", "cuniform", CUMPPI, source="table", open_loop=False,
            color="#e377c2"),
+    Method("cfu_mppi", "CFU-MPPI (map-conditioned policy)", "cuniform", CFUMPPI, source="map_policy",
+           open_loop=False, color="#17becf"),
 ]}
 """every method of the benchmark, by key"""
 
-OPT_IN = ("cu_mlp",)
+OPT_IN = ("cu_mlp", "cfu_mppi")
 """left out of a default run (module docstring); name them with ``--methods``"""
 DEFAULT_METHODS = tuple(k for k in NAV_METHODS if k not in OPT_IN)
 GAUSSIAN_BASELINES = ("mppi_0.1", "mppi_0.3", "mppi_1.0")

@@ -153,12 +153,18 @@ def _sources(cfg: NavConfig, robot: RobotPreset, cache: Path, given: dict[str, P
     policy = given.get("policy")
     if "policy" in methods and policy is None:
         policy = ensure_policy(robot, cache, quiet=quiet)
-    for name, p in (("table", table), ("coverage_table", coverage), ("policy", policy)):
+    map_policy = given.get("map_policy")
+    if "map_policy" in methods and map_policy is None:
+        raise ValueError("cfu_mppi needs --map-policy FILE (a map-conditioned policy: python -m training.distill_maps)")
+    for name, p in (("table", table), ("coverage_table", coverage), ("policy", policy), ("map_policy", map_policy)):
         if p is not None and not (Path(p).is_file() or (Path(p) / "tables.json").is_file()):
             raise FileNotFoundError(f"--{name.replace('_', '-')} {p} does not exist (a table file or a table set's "
                                     "folder)")
-    return {"table": str(table), "coverage_table": str(coverage) if coverage else None,
-            "policy": str(policy) if policy else None}
+    out = {"table": str(table), "coverage_table": str(coverage) if coverage else None,
+           "policy": str(policy) if policy else None}
+    if map_policy is not None:  # absent otherwise: the records of runs without it stay as they were
+        out["map_policy"] = str(map_policy)
+    return out
 
 
 def run(cfg: NavConfig, out: Path, robot: RobotPreset = NAV_ROBOT, cache: Path = Path("out/navigate/cache"),
@@ -179,6 +185,7 @@ def run(cfg: NavConfig, out: Path, robot: RobotPreset = NAV_ROBOT, cache: Path =
         print(f"{cfg.suite}: {len(tasks)} tasks x {repeats} repeats x {len(cfg.budgets)} budgets x {len(methods)} "
               f"methods = {len(jobs)} episodes; {len(jobs) - len(todo)} already in {store.records_file}")
         ctx = NavContext(table=sources["table"], coverage_table=sources["coverage_table"], policy=sources["policy"],
+                         map_policy=sources.get("map_policy"),
                          horizon=cfg.horizon, lambda_=cfg.lambda_, collision_penalty=cfg.collision_penalty,
                          cost_resolution=cfg.cost_resolution, record_path=cfg.paths)
         load0, t0 = os.getloadavg()[0], time.perf_counter()
@@ -296,6 +303,8 @@ def make_parser() -> ArgumentParser:
     p.add_argument("--table", type=Path, default=None, help="use this max-flow table (default: the robot's, cached)")
     p.add_argument("--coverage-table", type=Path, default=None, help="use this coverage table (cu_coverage)")
     p.add_argument("--policy", type=Path, default=None, help="use this distilled MLP (cu_mlp)")
+    p.add_argument("--map-policy", type=Path, default=None,
+                   help="a map-conditioned policy (cfu_mppi; python -m training.distill_maps)")
     p.add_argument("--system", default=None, help="drive a registered system instead of the built-in robot")
     p.add_argument("--param", action="append", default=[], metavar="KEY=VALUE",
                    help="a parameter of --system as JSON (repeatable)")
@@ -346,7 +355,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         barn_file = out / "barn.npz"
         write_barn(barn_file, convert_worlds(args.barn_worlds))
         print(f"converted {args.barn_worlds} into {barn_file}")
-    given = {"table": args.table, "coverage_table": args.coverage_table, "policy": args.policy}
+    given = {"table": args.table, "coverage_table": args.coverage_table, "policy": args.policy,
+             "map_policy": args.map_policy}
     res = run(cfg, out, robot, args.cache, barn_file, given, args.ray, progress=not args.quiet)
     print(render(res))
     for path in write_outputs(res, out):

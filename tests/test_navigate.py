@@ -274,3 +274,31 @@ def test_store_merges_new_source_files_and_refuses_changed_ones(tmp_path):
         EpisodeStore(tmp_path).open({**base, "sources": dict(table="aa", policy="other")})
     with pytest.raises(StoreError, match="sources.table"):
         EpisodeStore(tmp_path).open({**base, "sources": dict(table="bb", policy=None)})
+
+
+def _map_policy_file(path, system, horizon):
+    """An untrained map policy of the robot's system (the plumbing, not the quality, is under test)."""
+    from cuniform_torch import MapPolicy, MapPolicyConfig, map_policy_checkpoint, save_map_policy
+    from cuniform_torch.systems import system_to_json
+
+    config = MapPolicyConfig(state_dim=3, num_actions=7, horizon=horizon, periodic=[False, False, True],
+                             feature_scale=[1.0, 1.0, 1.0],
+                             patch={"shape": [24, 24], "resolution": 0.1, "origin": [-1.2, -1.2]},
+                             hidden=16, layers=1, embed=8, channels=4)
+    policy = MapPolicy(config, system, system.action_set(dtype=torch.float32))
+    save_map_policy(path, map_policy_checkpoint(policy, system_to_json(system, horizon)))
+    return path
+
+
+def test_cfu_mppi_runs_from_a_given_map_policy_and_needs_one(tmp_path, cache):
+    table = ensure_table(ROBOT, cache, quiet=True)
+    policy = _map_policy_file(tmp_path / "m.pt", ROBOT.make_system(), ROBOT.horizon)
+    res = run(_cfg(tasks=1, methods=("cfu_mppi",)), tmp_path / "o", ROBOT, cache,
+              given={"table": table, "map_policy": policy}, progress=False)
+    [row] = res["summary"]
+    assert row["method"] == "cfu_mppi" and row["n"] == 1
+    settings = json.loads((tmp_path / "o" / "settings.json").read_text())
+    assert settings["sources"]["map_policy"]
+    with pytest.raises(ValueError, match="--map-policy"):
+        run(_cfg(tasks=1, methods=("cfu_mppi",)), tmp_path / "o2", ROBOT, cache, given={"table": table},
+            progress=False)
