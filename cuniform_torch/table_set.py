@@ -51,6 +51,7 @@ class TableSetPolicy:
         self._dims = list(range(lo, self.grid.dim))  # the dimensions that choose the table
         self._scale = torch.tensor(self.grid.cell_size, dtype=torch.float64)[self._dims]  # [k]
         self._angle = torch.tensor(self.grid.periodic, dtype=torch.bool)[self._dims]  # [k]
+        self._start_cells = self.grid.cells(self.starts)[:, self._dims]  # [S, k]
         self.current = first
         self.last_index, self.last_start_distance = 0, 0.0
 
@@ -59,11 +60,16 @@ class TableSetPolicy:
         :attr:`last_index` and :attr:`last_start_distance` (cells)."""
         if not self._dims:  # nothing beyond the pose: every table serves every start
             return self.current
-        x = (x0 if x0.ndim == 1 else x0[0]).detach().double().cpu()[self._dims]  # [k]
+        full = (x0 if x0.ndim == 1 else x0[0]).detach().double().cpu()  # [d]
+        x = full[self._dims]  # [k]
         diff = (x[None] - self.starts[:, self._dims]).abs()  # [S, k]
         wrapped = torch.remainder(diff, 2 * math.pi)
         diff = torch.where(self._angle, torch.minimum(wrapped, 2 * math.pi - wrapped), diff)  # angles: the shorter way
         dist = torch.linalg.vector_norm(diff / self._scale, dim=1)  # [S] cells
+        own = self.grid.cells(full[None])[0, self._dims]  # [k] x0's cell
+        same = (self._start_cells == own).all(dim=1)  # [S]
+        if bool(same.any()):  # a table built from x0's own cell describes x0's rollouts: it wins ties with neighbours
+            dist = torch.where(same, dist, torch.full_like(dist, math.inf))
         i = int(torch.argmin(dist))
         self.current, self.last_index, self.last_start_distance = self.members[i], i, float(dist[i])
         return self.current

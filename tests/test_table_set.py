@@ -161,3 +161,21 @@ def test_a_speed_set_gets_a_bank_per_start_and_proposes_exact_states(tmp_path):
     assert bool(torch.isfinite(u).all())
     with pytest.raises(ValueError, match="a table set over them"):
         CUniformMPPI(load_table(tmp_path / "zero.npz"), lambda s, a: s[:, -1, 0], num_samples=32, bank_size=64)
+
+
+def test_the_start_in_the_rollouts_own_cell_wins_over_an_equally_near_one(tmp_path):
+    """ks_speed's speed cells are 0.2 m/s wide: 0.125 m/s is as near to the 0 and the 0.25 m/s starts, but only the
+    0.25 one is in its cell (1), and only that table describes rollouts from it."""
+    import torch
+
+    from cuniform_torch import load_table
+
+    ks = ["--system", "ks_speed", "--horizon", "2", "--quiet"]
+    assert main([*ks, "--starts", "3=0:0.5:3", "--out", str(tmp_path / "set")]) == 0
+    many = load_table(tmp_path / "set")
+    many.for_start(torch.tensor([0.0, 0.0, 0.0, 0.125]))
+    assert many.last_index == 1 and many.last_start_distance == pytest.approx(0.625)
+    many.for_start(torch.tensor([0.0, 0.0, 0.0, 0.45]))  # cell 2: the 0.5 start's, though 0.25 is not much farther
+    assert many.last_index == 2
+    many.for_start(torch.tensor([0.0, 0.0, 0.0, 1.0]))  # no start in its cell (5): the nearest, 0.5
+    assert many.last_index == 2
