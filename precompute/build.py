@@ -25,7 +25,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
 import shutil
 import sys
 import time
@@ -33,17 +32,16 @@ from pathlib import Path
 from typing import Any, Sequence
 
 from cuniform_torch.cli import (OUT, ArgumentParser, CLIError, add_dataclass_args, check_output_file, cli_main,
-                                dataclass_from_args, field_docs, flag_name, import_system_modules,
-                                out_of_memory_message)
+                                dataclass_from_args, field_docs, flag_name)
 from cuniform_torch.fileio import exclusive_lock, write_json
-from cuniform_torch.systems import (_REGISTRY, DEFAULT_HORIZON, check_system, is_builtin, known_systems,
-                                    load_factory, make_system, resolve_system, system_horizon)
+from cuniform_torch.systems import _REGISTRY, DEFAULT_HORIZON, known_systems, resolve_system, system_horizon
 from cuniform_torch.table import write_table
 
 from .builder import BuildConfig, SizeGuide, available_memory_bytes, build_table, check_resume
 from .levels import PointMode
 from .report import format_report, uniformity_report
 from .safe_map import map_overrides
+from .system_args import load_user_systems, make_cli_system, parse_params
 
 
 def _system_fields() -> dict[str, dataclasses.Field]:
@@ -206,70 +204,6 @@ def _build_coverage(system, config, bar):
     return table, stats, {"coverage_method": {k: v for k, v in facts.items() if k != "seconds"}}
 
 
-def load_user_systems(argv: Sequence[str] | None) -> None:
-    """Import every ``--system-module`` and resolve a ``--system module:factory`` (registering it), so that the
-    full parser lists the user systems' flags. ValueError when a module or factory cannot be loaded."""
-    pre = argparse.ArgumentParser(add_help=False)
-    pre.add_argument("--system", default="dubins")
-    pre.add_argument("--system-module", action="append", default=[])
-    known, _ = pre.parse_known_args(argv)
-    import_system_modules(known.system_module)
-    if ":" in known.system:
-        _register_factory(known.system)
-
-
-def _register_factory(spec: str) -> None:
-    """``resolve_system`` of a ``--system module:factory`` the user typed, after checking that the factory builds
-    a System: what goes wrong (a missing module, ``os:getpid``, a factory that raises) is a CLIError."""
-    try:
-        factory = load_factory(spec)
-    except ValueError as exc:
-        raise CLIError(f"--system {spec}: {exc}") from None
-    if not isinstance(getattr(factory, "name", None), str):  # resolve_system calls it to learn the name
-        try:
-            built = factory()
-        except Exception as exc:  # the user's callable: any failure is theirs to see, in one line
-            raise CLIError(f"--system {spec}: calling it with no arguments failed ({type(exc).__name__}: {exc}); "
-                           "give a factory of a System (see cuniform_torch.systems.System)") from None
-        try:
-            check_system(built)
-        except Exception as exc:
-            raise CLIError(f"--system {spec} is not a System factory: it built {type(built).__name__} ({exc})") from None
-    resolve_system(spec)
-
-
-def _make_system(spec: str, name: str, params: dict[str, Any]):
-    """``make_system``, with an allocation failure (``--num-actions 10**12``) or a user system's own exception
-    as a CLIError naming the system and its parameters."""
-    try:
-        return make_system(name, **params)
-    except ValueError:
-        raise
-    except Exception as exc:
-        given = ", ".join(f"{k}={v!r}" for k, v in params.items())
-        oom = out_of_memory_message(exc)
-        if oom is not None:
-            raise CLIError(f"--system {name}" + (f" ({given})" if given else "") + f": {oom}; make --num-actions "
-                           "(or the grid) smaller") from None
-        if not is_builtin(_REGISTRY[name]):
-            raise CLIError(f"--system {spec}: building or checking it failed ({type(exc).__name__}: {exc})") from None
-        raise  # a built-in system that fails is a bug
-
-
-def parse_params(items: list[str]) -> dict[str, Any]:
-    """``--param KEY=VALUE`` items -> ``{key: value}`` (JSON values; anything else a plain string)."""
-    out: dict[str, Any] = {}
-    for item in items:
-        key, sep, value = item.partition("=")
-        if not sep or not key:
-            raise ValueError(f"--param needs KEY=VALUE, got {item!r}")
-        try:
-            out[key.replace("-", "_")] = json.loads(value)
-        except json.JSONDecodeError:
-            out[key.replace("-", "_")] = value  # a plain string
-    return out
-
-
 @cli_main(interrupted="interrupted: no table written")
 def main(argv: Sequence[str] | None = None) -> int:
     """Build a table from the flags ``argv``: 0, or 2 after one ``error: ...`` line, or 130 on Ctrl-C."""
@@ -341,7 +275,7 @@ def _system_of(args: argparse.Namespace):
         raise ValueError(f"parameter(s) {', '.join(both)} given both as a flag and as --param")
     params.update({k: tuple(v) if isinstance(v, list) else v for k, v in extra_params.items()})
     name = resolve_system(args.system)
-    return name, _make_system(args.system, name, params)
+    return name, make_cli_system(args.system, name, params)
 
 
 def _build(args: argparse.Namespace, system, horizon: int, config: BuildConfig, out: Path) -> int:

@@ -24,6 +24,7 @@ import eval.coverage_experiment as eval_coverage
 import eval.report as eval_report
 import eval.uniformity as eval_uniformity
 import precompute.build as build
+import precompute.system_args as system_args
 import precompute.builder as builder
 import training.distill as distill
 from cuniform_torch import fileio
@@ -105,7 +106,7 @@ def test_build_allocation_failure_is_one_line(tmp_path, capsys, monkeypatch):
         raise RuntimeError("[enforce fail at alloc_cpu.cpp:127] err == 0. DefaultCPUAllocator: can't allocate "
                            "memory: you tried to allocate 8000000000000 bytes. Error code 12 (Cannot allocate memory)")
 
-    monkeypatch.setattr(build, "make_system", alloc_fails)
+    monkeypatch.setattr(system_args, "make_system", alloc_fails)
     assert build.main(_build(tmp_path / "t.npz")) == 2
     _one_error(capsys, "out of memory", "8e+03 GB", "--num-actions")
 
