@@ -29,7 +29,8 @@ from torch import Tensor, nn
 
 from .grid import Grid
 from .map_encoder import MapEncoder, PatchSpec
-from .rollout import StartWatch, check_states
+from .mlp_ops import check_query, inverse_cdf_draw, state_features
+from .rollout import StartWatch
 from .systems import System
 
 __all__ = ["MapPolicyConfig", "MapPolicy", "MAX_MAP_HIDDEN", "MAX_MAP_LAYERS"]
@@ -155,14 +156,7 @@ class MapPolicy(nn.Module):
     # -------------------------------------------------------------------------------- the network
     def features(self, x: Tensor, t: int | Tensor) -> Tensor:
         """``x [N, d]``, ``t`` (int or ``[N]``) -> ``[N, F]`` (MLPPolicy's features)."""
-        x = x.to(self.dtype)
-        parts = [x[:, self._linear] * self.inv_scale[self._linear]]
-        if self._angle:
-            ang = x[:, self._angle]
-            parts += [torch.cos(ang), torch.sin(ang)]
-        tt = torch.as_tensor(t, dtype=x.dtype, device=x.device) / self.config.horizon
-        parts.append(tt.expand(x.shape[0]).unsqueeze(1) if tt.ndim == 0 else tt.unsqueeze(1))
-        return torch.cat(parts, dim=1)
+        return state_features(x.to(self.dtype), t, self._linear, self._angle, self.inv_scale, self.config.horizon)
 
     def encode(self, occupancy: Tensor) -> Tensor:
         """``[B, H, W]`` (bool or 0 / 1) -> ``[B, E]`` map embeddings."""
@@ -205,11 +199,7 @@ class MapPolicy(nn.Module):
         ``[N, A]``; states outside the box get the uniform row (module docstring)."""
         if self._map_bias is None:
             raise ValueError("no map set: call set_map(patch) before looking up actions")
-        if isinstance(t, bool) or not isinstance(t, int) or not 0 <= t <= self.horizon:
-            raise ValueError(f"level t={t!r} is outside the policy's levels 0..{self.horizon} (an integer)")
-        check_states(x, self.config.state_dim, self.device)
-        if x.dtype != self.dtype:
-            raise ValueError(f"states are {x.dtype} but the policy is {self.dtype}")
+        check_query(x, t, self.horizon, self.config.state_dim, self.dtype, self.device)
         with torch.no_grad():
             parts = [x[:, self._linear]]
             if self._angle:
@@ -224,10 +214,7 @@ class MapPolicy(nn.Module):
 
     def sample(self, x: Tensor, t: int, generator: torch.Generator | None) -> Tensor:
         """``x [N, d]`` at level ``t`` -> actions ``[N, q]`` drawn from :meth:`action_probs` (inverse CDF)."""
-        cdf = self.action_probs(x, t).cumsum(dim=1)  # [N, A]
-        u = torch.rand((x.shape[0], 1), generator=generator, dtype=cdf.dtype, device=cdf.device) * cdf[:, -1:]
-        idx = (cdf <= u).sum(dim=1).clamp_(max=cdf.shape[1] - 1)  # [N]: first action whose cdf exceeds u
-        return self.actions.index_select(0, idx)
+        return inverse_cdf_draw(self.action_probs(x, t).cumsum(dim=1), self.actions, generator)
 
     def _count(self, x: Tensor) -> Tensor:
         """Count the lookups of ``x [N, d]`` (near the box: nearest hits; beyond it or not finite: misses);

@@ -36,6 +36,7 @@ import torch
 from torch import Tensor, nn
 
 from .grid import Grid
+from .mlp_ops import check_query, state_features
 from .lookup import MISS, NEAREST, Lookup, TableIndex, build_index
 from .policy import Fallback
 from .rollout import StartWatch, check_states
@@ -229,14 +230,7 @@ class MLPPolicy(nn.Module):
     def features(self, x: Tensor, t: int | Tensor) -> Tensor:
         """``x [N, d]``, ``t`` (int or ``[N]``) -> ``[N, F]`` network inputs (see the module docstring)."""
         check_states(x, self.config.state_dim, self.device)
-        x = x.to(self.dtype)
-        parts = [x[:, self._linear] * self.inv_scale[self._linear]]
-        if self._angle:
-            ang = x[:, self._angle]
-            parts += [torch.cos(ang), torch.sin(ang)]
-        tt = torch.as_tensor(t, dtype=x.dtype, device=x.device)
-        parts.append((tt / self.config.horizon).expand(x.shape[0]).unsqueeze(1) if tt.ndim == 0 else (tt / self.config.horizon).unsqueeze(1))
-        return torch.cat(parts, dim=1)
+        return state_features(x.to(self.dtype), t, self._linear, self._angle, self.inv_scale, self.config.horizon)
 
     def forward(self, x: Tensor, t: int | Tensor) -> Tensor:
         """Logits ``[N, A]``."""
@@ -251,11 +245,7 @@ class MLPPolicy(nn.Module):
         ``fallback="nearest"``, the network's answer (counted in :attr:`nearest_hits`); ``queries`` counts every
         state looked up.
         """
-        if isinstance(t, bool) or not isinstance(t, int) or not 0 <= t <= self.horizon:
-            raise ValueError(f"level t={t!r} is outside the policy's levels 0..{self.horizon} (an integer)")
-        check_states(x, self.config.state_dim, self.device)
-        if x.dtype != self.dtype:
-            raise ValueError(f"states are {x.dtype} but the policy is {self.dtype}")
+        check_query(x, t, self.horizon, self.config.state_dim, self.dtype, self.device)
         with torch.no_grad():
             probs = torch.softmax(self(x, t), dim=1)  # [N, A]
             code = self.support_codes(x, t)  # [N]

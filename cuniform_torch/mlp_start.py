@@ -39,6 +39,7 @@ from torch import Tensor
 
 from .grid import Grid
 from .mlp import MLPConfig, MLPPolicy, MLPSupport
+from .mlp_ops import check_query, inverse_cdf_draw
 from .policy import Fallback
 from .lookup import MISS
 from .rollout import OWN_ROBOT, StartMismatchWarning, check_states
@@ -192,11 +193,7 @@ class StartMLPPolicy(MLPPolicy):
     def _weights(self, x: Tensor, t: int) -> Tensor:
         """Unnormalised probabilities ``[N, A]`` of checked states (ones on the rows the fallback answers
         uniformly), the lookups counted as :meth:`MLPPolicy.action_probs` counts them."""
-        if isinstance(t, bool) or not isinstance(t, int) or not 0 <= t <= self.horizon:
-            raise ValueError(f"level t={t!r} is outside the policy's levels 0..{self.horizon} (an integer)")
-        check_states(x, self.config.state_dim, self.device)
-        if x.dtype != self.dtype:
-            raise ValueError(f"states are {x.dtype} but the policy is {self.dtype}")
+        check_query(x, t, self.horizon, self.config.state_dim, self.dtype, self.device)
         with torch.no_grad():
             logits = self._logits(x, t)  # [N, A]
             e = logits.sub_(logits.amax(dim=1, keepdim=True)).exp_()  # torch.softmax is slow on few actions
@@ -213,11 +210,7 @@ class StartMLPPolicy(MLPPolicy):
     def sample(self, x: Tensor, t: int, generator: torch.Generator | None = None) -> Tensor:
         """Actions ``[N, q]`` drawn from :meth:`action_probs` (inverse CDF, one uniform per state: cheaper than
         ``torch.multinomial``); what a rollout draws through."""
-        cdf = self._weights(x, t).cumsum_(dim=1)  # [N, A]
-        u = torch.rand((x.shape[0], 1), generator=generator, dtype=cdf.dtype, device=cdf.device).mul_(cdf[:, -1:])
-        pick = torch.searchsorted(cdf, u, right=True).squeeze(1).clamp_max_(cdf.shape[1] - 1)  # first cdf above u
-        actions = self.actions if self.actions.dtype == x.dtype else self.actions.to(x.dtype)
-        return actions.index_select(0, pick)
+        return inverse_cdf_draw(self._weights(x, t).cumsum_(dim=1), self.actions, generator)
 
     def for_start(self, x0: Tensor) -> StartMLPPolicy:
         """Serve rollouts from ``x0 [d]`` (or the first row of ``[N, d]``) from now on; returns ``self``."""
