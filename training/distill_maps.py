@@ -17,15 +17,13 @@ resume, an output that cannot be written), or 130 on Ctrl-C.
 
 from __future__ import annotations
 
-import dataclasses
-import io
 import math
 import sys
 import time
 import typing
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Optional, Sequence
+from typing import Optional, Sequence
 
 import torch
 from torch.utils.tensorboard import SummaryWriter
@@ -33,11 +31,13 @@ from tqdm import tqdm
 
 from cuniform_torch.cli import (OUT, RUNS, ArgumentParser, CLIError, add_dataclass_args, check_output_file,
                                 check_output_folder, cli_main, dataclass_from_args)
-from cuniform_torch.fileio import exclusive_lock, write_bytes
+from cuniform_torch.fileio import exclusive_lock
 from cuniform_torch.map_checkpoint import map_policy_checkpoint, save_map_policy
 
+from .loop import log_hyperparameters
 from .map_data import load_map_data
 from .map_train import Trainer, make_policy, split_entries
+from .train_state import load_train_state, save_train_state
 
 TRAIN_STATE_FORMAT = "cuniform-distill-maps-state/1"
 
@@ -120,29 +120,6 @@ def parse_args(argv: Sequence[str] | None = None) -> MapDistillConfig:
     return cfg
 
 
-def _save_state(path: Path, state: dict[str, Any]) -> None:
-    buf = io.BytesIO()
-    torch.save(state, buf)
-    write_bytes(path, buf.getvalue())
-
-
-def _load_state(path: Path, fingerprint: dict[str, Any]) -> dict[str, Any]:
-    if not path.is_file():
-        raise CLIError(f"--resume: no training state at {path} (run without --resume first)")
-    try:
-        state = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as exc:  # truncated or foreign file
-        raise CLIError(f"--resume: {path} is not a readable training state ({type(exc).__name__})") from None
-    if not isinstance(state, dict) or state.get("format") != TRAIN_STATE_FORMAT:
-        raise CLIError(f"--resume: {path} is not a training state of format {TRAIN_STATE_FORMAT!r}")
-    saved = state.get("fingerprint", {})
-    differ = [k for k in fingerprint if saved.get(k) != fingerprint[k]]
-    if differ:
-        raise CLIError(f"--resume: {path} was written by a different run (" + "; ".join(
-            f"{k}: saved {saved.get(k)!r}, now {fingerprint[k]!r}" for k in differ) + ")")
-    return state
-
-
 def distill_maps(cfg: MapDistillConfig) -> int:
     """Train and checkpoint (module docstring), holding ``<out>.lock``."""
     out = Path(cfg.out)
@@ -165,7 +142,7 @@ def _run(cfg: MapDistillConfig, out: Path, state_path: Path) -> int:
     best = {k: v.detach().clone() for k, v in trainer.policy.state_dict().items()}
     run_name = f"{Path(cfg.maps[0]).name}__distill_maps__{cfg.seed}__{int(time.time())}"
     if cfg.resume:
-        state = _load_state(state_path, fingerprint)
+        state = load_train_state(state_path, fingerprint, TRAIN_STATE_FORMAT)
         trainer.load_state(state["trainer"])
         gen.set_state(state["rng_data"])
         torch.set_rng_state(state["rng_torch"])
@@ -178,8 +155,7 @@ def _run(cfg: MapDistillConfig, out: Path, state_path: Path) -> int:
     writer = SummaryWriter(str(Path(cfg.logdir) / run_name), purge_step=epoch + 1 if cfg.resume else None)
     try:
         if not cfg.resume:
-            writer.add_text("hyperparameters", "|param|value|\n|-|-|\n" + "\n".join(
-                f"|{k}|{v}|" for k, v in dataclasses.asdict(cfg).items()))
+            log_hyperparameters(writer, cfg)
         bar = tqdm(range(epoch, cfg.epochs), initial=epoch, total=cfg.epochs, disable=cfg.quiet, desc="distill_maps",
                    unit="epoch")
         for epoch_index in bar:
@@ -197,7 +173,7 @@ def _run(cfg: MapDistillConfig, out: Path, state_path: Path) -> int:
             writer.add_scalar("charts/learning_rate", scalars["learning_rate"], epoch)
             writer.add_scalar("charts/epoch_seconds", time.perf_counter() - start, epoch)
             bar.set_postfix(train_kl=f"{scalars['train_kl']:.4f}", val_kl=f"{scalars['val_kl']:.4f}")
-            _save_state(state_path, {
+            save_train_state(state_path, {
                 "format": TRAIN_STATE_FORMAT, "fingerprint": fingerprint, "run_name": run_name, "epoch": epoch,
                 "trainer": trainer.state(), "best_model": best, "best_val": best_val, "best_epoch": best_epoch,
                 "seconds": seconds, "rng_data": gen.get_state(), "rng_torch": torch.get_rng_state()})

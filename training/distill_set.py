@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import math
 import time
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -41,11 +40,12 @@ from cuniform_torch.mlp_start import StartMLPPolicy, StartRegion, start_dims_of
 from cuniform_torch.rollout import rollout
 from cuniform_torch.table_set import SET_INDEX, load_table_set
 
-from .evaluate import cell_centres, cell_levels, compare, kl_per_level, kl_rows
+from .evaluate import cell_centres, cell_levels, compare, kl_per_level
 from .figures import coverage_figure, trajectory_figure
 from .samples import level_weights, make_samples
 from .support import pooled_support
-from .train_state import RESUME_KEYS, TRAIN_STATE_FORMAT, UsageError, load_train_state, save_train_state
+from .loop import Progress, kl_epoch, log_epoch_scalars, log_hyperparameters, validate
+from .train_state import RESUME_KEYS, UsageError, load_train_state, save_train_state
 
 if TYPE_CHECKING:
     from .distill import DistillConfig
@@ -107,26 +107,15 @@ def distill_set(cfg: DistillConfig, out: Path, state_path: Path, comparison_path
     scheduler = torch.optim.lr_scheduler.CosineAnnealingLR(optimizer, T_max=cfg.epochs, eta_min=cfg.lr / 100)
 
     # ---- resume
-    epochs_run, best_val, best_epoch, bad_epochs, train_seconds, finished = 0, math.inf, 0, 0, 0.0, False
-    best_state = {k: v.detach().clone() for k, v in model.state_dict().items()}
-    run_name = f"{folder.name}__distill_set__{cfg.seed}__{int(time.time())}"
+    progress = Progress.start(model, f"{folder.name}__distill_set__{cfg.seed}__{int(time.time())}")
     if cfg.resume:
-        state = load_train_state(state_path, fingerprint)
-        model.load_state_dict(state["model"])
-        optimizer.load_state_dict(state["optimizer"])
-        scheduler.load_state_dict(state["scheduler"])
-        torch.set_rng_state(state["rng_torch"])
-        data_gen.set_state(state["rng_data"])
-        best_state = {k: v.to(device) for k, v in state["best_model"].items()}
-        epochs_run, best_val, best_epoch = state["epoch"], state["best_val"], state["best_epoch"]
-        bad_epochs, train_seconds, finished = state["bad_epochs"], state["train_seconds"], state["finished"]
-        run_name = state["run_name"]
+        progress.restore(load_train_state(state_path, fingerprint), model, optimizer, scheduler, data_gen, device)
 
-    writer = SummaryWriter(str(Path(cfg.logdir) / run_name), purge_step=epochs_run + 1 if cfg.resume else None)
+    writer = SummaryWriter(str(Path(cfg.logdir) / progress.run_name),
+                           purge_step=progress.epochs_run + 1 if cfg.resume else None)
     try:
         if not cfg.resume:
-            writer.add_text("hyperparameters", "|param|value|\n|-|-|\n" + "\n".join(
-                f"|{k}|{v}|" for k, v in dataclasses.asdict(cfg).items()))
+            log_hyperparameters(writer, cfg)
         mid = len(members) // 2  # the figures' start
         x_mid = starts[mid].to(device=device, dtype=torch.float32)  # [d]
         figure_n = cfg.eval_samples[0]
@@ -134,53 +123,27 @@ def distill_set(cfg: DistillConfig, out: Path, state_path: Path, comparison_path
         table_states, _ = rollout(system, members[mid], x_mid, figure_n, T, torch.Generator(device).manual_seed(cfg.seed))
         table_cov = coverage(table_states, grid, members[mid]).in_level_set
 
-        bar = tqdm(range(epochs_run, cfg.epochs), initial=epochs_run, total=cfg.epochs, disable=cfg.quiet or finished,
-                   desc="distill set", unit="epoch")
+        bar = tqdm(range(progress.epochs_run, cfg.epochs), initial=progress.epochs_run, total=cfg.epochs,
+                   disable=cfg.quiet or progress.finished,                    desc="distill set", unit="epoch")
         for epoch in bar:
-            if finished:
+            if progress.finished:
                 break
             epoch_start = time.perf_counter()
             model.train()
-            rows, x = make_samples(centres, grid, cfg.jitter, True, data_gen)
-            w = level_weights(group[rows], G).to(device)  # [N], sums to 1
-            N = rows.shape[0]
-            perm = torch.randperm(N, generator=data_gen).to(device)
-            x, t, rows = x.to(device=device, dtype=torch.float32), levels[rows].to(device), rows.to(device)
-            train_kl = 0.0
-            for lo in range(0, N, cfg.batch_size):
-                idx = perm[lo:lo + cfg.batch_size]
-                r = rows[idx]
-                log_q = torch.log_softmax(model(x[idx], t[idx], cell_start[r]), dim=1)  # [B, A]
-                weighted = (w[idx] * kl_rows(probs[r], log_q)).sum()
-                loss = weighted * (N / idx.shape[0])  # unbiased estimate of the epoch's level-weighted KL
-                optimizer.zero_grad(set_to_none=True)
-                loss.backward()
-                optimizer.step()
-                train_kl += float(weighted.detach())
+            train_kl = kl_epoch(lambda x, t, r: model(x, t, cell_start[r]), optimizer, centres, grid, levels, group, G, probs,
+                                cfg.jitter, cfg.batch_size, data_gen, device)
             lr = optimizer.param_groups[0]["lr"]
             scheduler.step()
 
             model.eval()
             with torch.no_grad():
-                logits = model(val_x, val_t, cell_start[val_rows])  # [V, A]
-                val_kl = float((val_w * kl_rows(probs[val_rows], torch.log_softmax(logits, dim=1))).sum())
-                hit = best_rows[val_rows].gather(1, logits.argmax(dim=1, keepdim=True)).squeeze(1)  # [V]
-                val_acc = float((val_w * hit).sum())
-            if val_kl < best_val:
-                best_val, best_epoch, bad_epochs = val_kl, epoch + 1, 0
-                best_state = {k: v.detach().clone() for k, v in model.state_dict().items()}
-            else:
-                bad_epochs += 1
-            finished = bad_epochs >= cfg.patience or epoch + 1 == cfg.epochs
-            train_seconds += time.perf_counter() - epoch_start
+                val_kl, val_acc = validate(model(val_x, val_t, cell_start[val_rows]), probs, best_rows, val_rows, val_w)  # [V, A] logits
+            progress.update(val_kl, epoch, model, cfg.patience, cfg.epochs)
+            progress.train_seconds += time.perf_counter() - epoch_start
 
-            step = epochs_run = epoch + 1
-            writer.add_scalar("losses/train_kl", train_kl, step)
-            writer.add_scalar("losses/val_kl", val_kl, step)
-            writer.add_scalar("charts/val_argmax_accuracy", val_acc, step)
-            writer.add_scalar("charts/learning_rate", lr, step)
-            writer.add_scalar("charts/epoch_seconds", time.perf_counter() - epoch_start, step)
-            if step % cfg.eval_every == 0 or finished:
+            step = progress.epochs_run = epoch + 1
+            log_epoch_scalars(writer, step, train_kl, val_kl, val_acc, lr, epoch_start)
+            if step % cfg.eval_every == 0 or progress.finished:
                 for i, tb in enumerate(tables):
                     model.for_start(starts[i].to(device=device, dtype=torch.float32))
                     per_level = kl_per_level(model, tb, device=device)
@@ -192,19 +155,13 @@ def distill_set(cfg: DistillConfig, out: Path, state_path: Path, comparison_path
                 mlp_cov = coverage(mlp_states, grid, members[mid]).in_level_set
                 writer.add_figure("coverage", coverage_figure(table_cov, mlp_cov, tables[mid].level_sizes, figure_n,
                                                               f"epoch {step}"), step)
-            bar.set_postfix(train_kl=f"{train_kl:.4f}", val_kl=f"{val_kl:.4f}", best=best_epoch)
+            bar.set_postfix(train_kl=f"{train_kl:.4f}", val_kl=f"{val_kl:.4f}", best=progress.best_epoch)
 
-            save_train_state(state_path, {
-                "format": TRAIN_STATE_FORMAT, "fingerprint": fingerprint, "run_name": run_name, "epoch": step,
-                "model": model.state_dict(), "optimizer": optimizer.state_dict(), "scheduler": scheduler.state_dict(),
-                "best_model": best_state, "best_val": best_val, "best_epoch": best_epoch, "bad_epochs": bad_epochs,
-                "train_seconds": train_seconds, "finished": finished,
-                "rng_torch": torch.get_rng_state(), "rng_data": data_gen.get_state(),
-            })
+            save_train_state(state_path, progress.state(fingerprint, model, optimizer, scheduler, data_gen))
         bar.close()
 
         # ---- checkpoint: the best validation state; per start, the comparison with that start's table
-        model.load_state_dict(best_state)
+        model.load_state_dict(progress.best_state)
         model.eval()
         per_start = []
         for i, tb in enumerate(tables):
@@ -213,7 +170,7 @@ def distill_set(cfg: DistillConfig, out: Path, state_path: Path, comparison_path
                               **compare(model, tb, cfg.eval_samples, seed=cfg.seed, jitter_per_cell=cfg.jitter or 4,
                                         device=device)})
         metrics: dict[str, Any] = {
-            "best_epoch": best_epoch, "best_val_kl": best_val, "train_seconds": train_seconds,
+            "best_epoch": progress.best_epoch, "best_val_kl": progress.best_val, "train_seconds": progress.train_seconds,
             "kl_centres_mean_per_start": [r["kl_centres"]["mean"] for r in per_start],
             "kl_jitter_mean_per_start": [r["kl_jitter"]["mean"] for r in per_start],
         }
@@ -228,15 +185,15 @@ def distill_set(cfg: DistillConfig, out: Path, state_path: Path, comparison_path
         ckpt_bytes = out.stat().st_size
         comparison = {
             "set": str(folder), "tables": [{"path": str(p), "sha256": s} for p, s in zip(files, shas)],
-            "checkpoint": str(out), "run": str(Path(cfg.logdir) / run_name), "config": dataclasses.asdict(cfg),
-            "epochs_run": epochs_run, "best_epoch": best_epoch, "best_val_kl": best_val,
-            "wall_seconds": {"train": train_seconds, "total_this_call": time.perf_counter() - wall_start},
+            "checkpoint": str(out), "run": str(Path(cfg.logdir) / progress.run_name), "config": dataclasses.asdict(cfg),
+            "epochs_run": progress.epochs_run, "best_epoch": progress.best_epoch, "best_val_kl": progress.best_val,
+            "wall_seconds": {"train": progress.train_seconds, "total_this_call": time.perf_counter() - wall_start},
             "sizes": {"table_arrays_bytes": arrays, "checkpoint_bytes": ckpt_bytes, "compression_ratio": arrays / ckpt_bytes},
             "per_start": per_start,
         }
         write_json(comparison_path, comparison)
         summary = format_set_comparison(comparison)
-        writer.add_text("comparison", "```\n" + summary + "\n```", epochs_run)
+        writer.add_text("comparison", "```\n" + summary + "\n```", progress.epochs_run)
     finally:
         writer.close()
     print(summary)

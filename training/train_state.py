@@ -28,16 +28,17 @@ def save_train_state(path: Path, state: dict[str, Any]) -> None:
     write_bytes(path, buf.getvalue())
 
 
-def load_train_state(path: Path, fingerprint: dict[str, Any]) -> dict[str, Any]:
-    """The saved training state, after checking it belongs to this config and these tables (:class:`UsageError`)."""
+def load_train_state(path: Path, fingerprint: dict[str, Any], fmt: str = TRAIN_STATE_FORMAT) -> dict[str, Any]:
+    """The saved training state of format ``fmt``, after checking it belongs to this config and these inputs
+    (:class:`UsageError`)."""
     if not path.is_file():
         raise UsageError(f"--resume: no training state at {path} (run without --resume first)")
     try:
         state = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as exc:  # truncated or foreign file
         raise UsageError(f"--resume: {path} is not a readable training state ({type(exc).__name__}: {exc})") from None
-    if not isinstance(state, dict) or state.get("format") != TRAIN_STATE_FORMAT:
-        raise UsageError(f"--resume: {path} is not a training state of format {TRAIN_STATE_FORMAT!r}")
+    if not isinstance(state, dict) or state.get("format") != fmt:
+        raise UsageError(f"--resume: {path} is not a training state of format {fmt!r}")
     saved = state.get("fingerprint", {})
     differ = [k for k in fingerprint if saved.get(k) != fingerprint[k]]
     if differ:
