@@ -9,7 +9,6 @@ digests); ``metrics`` (str -> number or string: the training's).
 
 from __future__ import annotations
 
-import io
 import math
 import os
 from pathlib import Path
@@ -18,7 +17,7 @@ from typing import Any, Callable
 import torch
 from torch import Tensor
 
-from .fileio import write_bytes
+from .checkpoint import save_policy
 from .map_policy import MapPolicy, MapPolicyConfig
 from .systems import system_from_json
 
@@ -47,10 +46,8 @@ def map_policy_checkpoint(policy: MapPolicy, system_json: str, source: dict[str,
 
 
 def save_map_policy(path: str | os.PathLike, checkpoint: dict[str, Any]) -> None:
-    """Write a checkpoint dict atomically."""
-    buf = io.BytesIO()
-    torch.save(checkpoint, buf)
-    write_bytes(path, buf.getvalue())
+    """Write a checkpoint dict atomically (as :func:`~cuniform_torch.checkpoint.save_policy` does)."""
+    save_policy(path, checkpoint)
 
 
 def load_map_policy(source: str | os.PathLike | dict, device: torch.device | str = "cpu", *,
