@@ -40,3 +40,35 @@ def start_warnings():
         return [w for w in caught if issubclass(w.category, StartMismatchWarning)]
 
     return run
+
+
+@pytest.fixture(scope="module")
+def restore_threads():
+    """A module that calls a training ``main`` (which sets torch's thread count, ``--threads``) gives the other
+    test modules theirs back."""
+    import torch
+
+    threads = torch.get_num_threads()
+    yield
+    torch.set_num_threads(threads)
+
+
+@pytest.fixture(scope="session")
+def train_capturing():
+    """``train_capturing(module, main, argv)``: run ``main(argv)`` (asserting it returns 0) with
+    ``module.policy_checkpoint`` wrapped; the trained policy module it checkpointed."""
+
+    def run(module, main, argv):
+        captured = {}
+        original = module.policy_checkpoint
+
+        def capture(policy, *args, **kwargs):
+            captured["module"] = policy
+            return original(policy, *args, **kwargs)
+
+        with pytest.MonkeyPatch.context() as mp:
+            mp.setattr(module, "policy_checkpoint", capture)
+            assert main(argv) == 0
+        return captured["module"]
+
+    return run

@@ -26,12 +26,7 @@ TOLERANCE = 0.06
 TINY = ["--hidden", "16", "--layers", "2", "--jitter", "2", "--batch-size", "32", "--lr", "1e-2"]
 
 
-@pytest.fixture(scope="module", autouse=True)
-def restore_threads():
-    """``main`` sets torch's thread count (``--threads``, default 1); give the other test modules theirs back."""
-    threads = torch.get_num_threads()
-    yield
-    torch.set_num_threads(threads)
+pytestmark = pytest.mark.usefixtures("restore_threads")  # conftest: main sets torch's thread count
 
 
 @pytest.fixture(scope="module")
@@ -60,20 +55,11 @@ def _max_centre_error(policy, table) -> float:
 
 
 @pytest.fixture(scope="module")
-def trained(walk_path, tmp_path_factory):
+def trained(walk_path, tmp_path_factory, train_capturing):
     """One quality distillation of the walk table; the trained module is captured where it is checkpointed."""
     folder = tmp_path_factory.mktemp("distill")
-    captured = {}
-    original = distill.policy_checkpoint
-
-    def capture(policy, *args, **kwargs):
-        captured["module"] = policy
-        return original(policy, *args, **kwargs)
-
-    with pytest.MonkeyPatch.context() as mp:
-        mp.setattr(distill, "policy_checkpoint", capture)
-        assert distill.main(_argv(walk_path, folder, *QUALITY)) == 0
-    return {"folder": folder, "out": folder / "walk.policy.pt", "module": captured["module"]}
+    module = train_capturing(distill, distill.main, _argv(walk_path, folder, *QUALITY))
+    return {"folder": folder, "out": folder / "walk.policy.pt", "module": module}
 
 
 class TestQuality:

@@ -120,11 +120,7 @@ def write_dataset(folder: Path, table, patches: list[np.ndarray]) -> Path:
     return folder
 
 
-@pytest.fixture(scope="module", autouse=True)
-def restore_threads():
-    threads = torch.get_num_threads()
-    yield
-    torch.set_num_threads(threads)
+pytestmark = pytest.mark.usefixtures("restore_threads")  # conftest: main sets torch's thread count
 
 
 @pytest.fixture(scope="module")

@@ -29,11 +29,7 @@ the set's own starts is 0.022-0.027): the MLP shifts its rows with x0. A policy 
 both held-out starts alike, and the nearest start's table is a cell off (KL 2.3, uniform actions 0.54)."""
 
 
-@pytest.fixture(scope="module", autouse=True)
-def restore_threads():
-    threads = torch.get_num_threads()
-    yield
-    torch.set_num_threads(threads)
+pytestmark = pytest.mark.usefixtures("restore_threads")  # conftest: main sets torch's thread count
 
 
 @pytest.fixture(scope="module")
@@ -50,20 +46,10 @@ def _argv(folder: Path, out: Path, *extra: str) -> list[str]:
 
 
 @pytest.fixture(scope="module")
-def trained(walk_set, tmp_path_factory) -> dict:
+def trained(walk_set, tmp_path_factory, train_capturing) -> dict:
     """One distillation of the walk set; the trained module is captured where it is checkpointed."""
     out = tmp_path_factory.mktemp("distill") / "walk_set.policy.pt"
-    captured = {}
-    original = distill_set.policy_checkpoint
-
-    def capture(policy, *args, **kwargs):
-        captured["module"] = policy
-        return original(policy, *args, **kwargs)
-
-    with pytest.MonkeyPatch.context() as mp:
-        mp.setattr(distill_set, "policy_checkpoint", capture)
-        assert distill.main(_argv(walk_set, out, *TRAIN)) == 0
-    return {"out": out, "module": captured["module"]}
+    return {"out": out, "module": train_capturing(distill_set, distill.main, _argv(walk_set, out, *TRAIN))}
 
 
 def test_the_set_distils_and_its_checkpoint_round_trips(trained, walk_set):
