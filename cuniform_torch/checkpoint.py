@@ -29,7 +29,8 @@ from .mlp_start import StartMLPPolicy, StartRegion
 from .policy import Fallback
 from .systems import system_from_json
 
-__all__ = ["POLICY_FORMAT", "PolicyCheckpointError", "policy_checkpoint", "save_policy", "load_policy", "file_sha256"]
+__all__ = ["POLICY_FORMAT", "PolicyCheckpointError", "policy_checkpoint", "save_policy", "load_policy", "file_sha256",
+           "read_network_keys"]
 
 POLICY_FORMAT = "cuniform-policy/1"
 
@@ -69,6 +70,35 @@ def save_policy(path: str | os.PathLike, checkpoint: dict[str, Any]) -> None:
     write_bytes(path, buf.getvalue())
 
 
+def read_network_keys(ckpt: dict, config_class: type, what: str, trust_factory: Any,
+                      fail: Callable[[str], None]) -> tuple[dict[str, Tensor], Any, Any]:
+    """The checks every policy checkpoint shares: ``state_dict`` (names -> finite float tensors), ``config`` (a dict
+    that builds ``config_class``, else "config does not describe {what}"), ``system`` (rebuilt from the registry or
+    ``trust_factory``; its horizon and periodic dimensions agree with the config). Returns (state, config, system);
+    each problem is one ``fail(message)``."""
+    state = ckpt["state_dict"]
+    if not isinstance(state, dict) or not all(isinstance(k, str) and isinstance(v, Tensor) for k, v in state.items()):
+        fail("state_dict must map names to tensors")
+    for key, value in state.items():
+        if not value.is_floating_point() or not bool(torch.isfinite(value).all()):
+            fail(f"state_dict[{key!r}] holds non-finite or non-float values")
+    if not isinstance(ckpt["config"], dict):
+        fail(f"config must be a dict, got {type(ckpt['config']).__name__}")
+    try:
+        config = config_class(**ckpt["config"])
+    except (TypeError, ValueError) as exc:
+        fail(f"config does not describe {what} ({exc})")
+    try:
+        system, horizon = system_from_json(ckpt["system"], trust_factory=trust_factory)
+    except ValueError as exc:  # includes UnknownSystemError
+        fail(f"the system cannot be rebuilt: {exc}")
+    if config.horizon != horizon:
+        fail(f"config.horizon is {config.horizon} but the system JSON says {horizon}")
+    if list(config.periodic) != list(system.periodic):
+        fail(f"config.periodic {list(config.periodic)} does not match the system's {list(system.periodic)}")
+    return state, config, system
+
+
 def load_policy(source: str | os.PathLike | dict, device: torch.device | str = "cpu", *,
                 trust_factory: str | Callable[..., Any] | None = None,
                 fallback: str | Fallback = Fallback.NEAREST) -> MLPPolicy:
@@ -104,26 +134,7 @@ def load_policy(source: str | os.PathLike | dict, device: torch.device | str = "
     missing = [k for k in ("state_dict", "config", "system", "actions") if k not in ckpt]
     if missing:
         fail(f"missing key(s) {', '.join(missing)}")
-    state = ckpt["state_dict"]
-    if not isinstance(state, dict) or not all(isinstance(k, str) and isinstance(v, Tensor) for k, v in state.items()):
-        fail("state_dict must map names to tensors")
-    for key, value in state.items():
-        if not value.is_floating_point() or not bool(torch.isfinite(value).all()):
-            fail(f"state_dict[{key!r}] holds non-finite or non-float values")
-    if not isinstance(ckpt["config"], dict):
-        fail(f"config must be a dict, got {type(ckpt['config']).__name__}")
-    try:
-        config = MLPConfig(**ckpt["config"])
-    except (TypeError, ValueError) as exc:
-        fail(f"config does not describe a policy ({exc})")
-    try:
-        system, horizon = system_from_json(ckpt["system"], trust_factory=trust_factory)
-    except ValueError as exc:  # includes UnknownSystemError
-        fail(f"the system cannot be rebuilt: {exc}")
-    if config.horizon != horizon:
-        fail(f"config.horizon is {config.horizon} but the system JSON says {horizon}")
-    if list(config.periodic) != list(system.periodic):
-        fail(f"config.periodic {list(config.periodic)} does not match the system's {list(system.periodic)}")
+    state, config, system = read_network_keys(ckpt, MLPConfig, "a policy", trust_factory, fail)
     region = _read_region(ckpt.get("start_region"), config, system, fail)  # before the sizes: it explains them
     held = sum(v.numel() for k, v in state.items() if k.startswith("net."))
     if config.num_weights != held:

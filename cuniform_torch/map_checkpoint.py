@@ -17,9 +17,8 @@ from typing import Any, Callable
 import torch
 from torch import Tensor
 
-from .checkpoint import save_policy
+from .checkpoint import read_network_keys, save_policy
 from .map_policy import MapPolicy, MapPolicyConfig
-from .systems import system_from_json
 
 __all__ = ["MAP_POLICY_FORMAT", "MapCheckpointError", "map_policy_checkpoint", "save_map_policy", "load_map_policy"]
 
@@ -78,26 +77,7 @@ def load_map_policy(source: str | os.PathLike | dict, device: torch.device | str
         missing, extra = sorted(_KEYS - set(ckpt)), sorted(set(ckpt) - _KEYS)
         fail("; ".join(([f"missing key(s) {', '.join(missing)}"] if missing else [])
                        + ([f"unknown key(s) {', '.join(map(str, extra))}"] if extra else [])))
-    state = ckpt["state_dict"]
-    if not isinstance(state, dict) or not all(isinstance(k, str) and isinstance(v, Tensor) for k, v in state.items()):
-        fail("state_dict must map names to tensors")
-    for key, value in state.items():
-        if not value.is_floating_point() or not bool(torch.isfinite(value).all()):
-            fail(f"state_dict[{key!r}] holds non-finite or non-float values")
-    if not isinstance(ckpt["config"], dict):
-        fail(f"config must be a dict, got {type(ckpt['config']).__name__}")
-    try:
-        config = MapPolicyConfig(**ckpt["config"])
-    except (TypeError, ValueError) as exc:
-        fail(f"config does not describe a map policy ({exc})")
-    try:
-        system, horizon = system_from_json(ckpt["system"], trust_factory=trust_factory)
-    except ValueError as exc:  # includes UnknownSystemError
-        fail(f"the system cannot be rebuilt: {exc}")
-    if config.horizon != horizon:
-        fail(f"config.horizon is {config.horizon} but the system JSON says {horizon}")
-    if list(config.periodic) != list(system.periodic):
-        fail(f"config.periodic {list(config.periodic)} does not match the system's {list(system.periodic)}")
+    state, config, system = read_network_keys(ckpt, MapPolicyConfig, "a map policy", trust_factory, fail)
     expect = system.action_set(dtype=torch.float32)
     for name, value in (("actions", ckpt["actions"]), ("state_dict['actions']", state.get("actions"))):
         if not isinstance(value, Tensor) or value.shape != expect.shape or not torch.allclose(expect, value.float(),
