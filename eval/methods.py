@@ -183,11 +183,16 @@ def sample_states(method: Method, sources: Sources, num_samples: int, horizon: i
 
 
 def make_controller(method: Method, sources: Sources, cost_fn, num_samples: int, horizon: int,
-                    seed: int, lambda_: float = config.LAMBDA):
-    """The MPPI-family controller that proposes with ``method`` (``command(state) -> [q]``)."""
+                    seed: int, lambda_: float = config.LAMBDA, world: Any = None, max_range: float | None = None):
+    """The MPPI-family controller that proposes with ``method`` (``command(state) -> [q]``); a map-conditioned
+    method (source ``map_policy``) senses ``world`` within ``max_range`` (m) at each command."""
     if not method.closed_loop:
         raise ValueError(f"{method.key} samples cells, not executable actions: it has no controller")
     kw = dict(num_samples=num_samples, horizon=horizon, lambda_=lambda_, device=sources.device, seed=seed)
     if method.source is None:  # a noise baseline: the system and the noise level
         return method.controller(sources.system, cost_fn, noise_std=method.noise_std, **kw)
+    if method.source == "map_policy":
+        if world is None:
+            raise ValueError(f"{method.key} senses a world map: give world=")
+        return method.controller(sources.load(method.source), world, cost_fn, max_range=max_range, **kw)
     return method.controller(sources.load(method.source), cost_fn, **kw)

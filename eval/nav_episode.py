@@ -164,12 +164,8 @@ def run_nav_episode(job: NavJob, ctx: NavContext) -> dict:
     cost = NavigationCost(_cost_environment(task, ctx), task.goal, goal_tolerance=task.goal_tolerance,
                           collision_penalty=ctx.collision_penalty, per_state=True, stop_at_goal=True)
     t0 = time.perf_counter()
-    if method.source == "map_policy":  # the policy senses the world itself, within the task's sensing range
-        inner = method.controller(sources.load("map_policy"), task.environment, cost, num_samples=job.budget,
-                                  horizon=ctx.horizon, lambda_=ctx.lambda_, max_range=task.sensing_range,
-                                  seed=job.seed)
-    else:
-        inner = make_controller(method, sources, cost, job.budget, ctx.horizon, job.seed, lambda_=ctx.lambda_)
+    inner = make_controller(method, sources, cost, job.budget, ctx.horizon, job.seed, lambda_=ctx.lambda_,
+                            world=task.environment, max_range=task.sensing_range)  # a map policy senses the world
     ctrl = _TimedSensingController(inner, cost, task)
     system = sources.system
     x0 = torch.zeros(len(system.periodic), dtype=torch.float32)
