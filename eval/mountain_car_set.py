@@ -41,30 +41,21 @@ def set_folder(cache: Path, spec: dict[str, Any]) -> Path:
     return Path(cache) / f"mountain_car_{digest}"
 
 
-def _complete(folder: Path, count: int) -> bool:
-    try:
-        index = json.loads((folder / "tables.json").read_text())
-    except (OSError, ValueError):
-        return False
-    tables = index.get("tables") if isinstance(index, dict) else None
-    return isinstance(tables, list) and len(tables) == count and all(
-        isinstance(t, dict) and (folder / str(t.get("file"))).is_file() for t in tables)
-
-
 def ensure_set(cache: Path, repeat: int, horizon: int, grid: tuple[int, int], workers: int = 1,
                quiet: bool = False) -> Path:
     """The set's folder, built first when it is not complete (``precompute.build --starts ... --workers``)."""
-    from precompute.build import main as build
+    from precompute.table_set import ensure_set as build_set_once, set_complete
 
     spec = set_spec(repeat, horizon, grid)
     folder = set_folder(cache, spec)
-    if _complete(folder, grid[0] * grid[1]):
-        return folder
-    if not quiet:
+    count = grid[0] * grid[1]
+    if not set_complete(folder, count) and not quiet:
         print(f"building the table set ({grid[0]} x {grid[1]} starts, horizon {horizon}) into {folder}", flush=True)
     argv = ["--system", MountainCar.name, "--param", f"repeat={repeat}", "--horizon", str(horizon),
-            "--starts", spec["starts"], "--out", str(folder), "--workers", str(workers), "--no-report"]
-    if build(argv + (["--quiet"] if quiet else [])) != 0:
-        raise CLIError(f"building the table set in {folder} failed (see the error above)")
+            "--starts", spec["starts"], "--workers", str(workers), "--no-report"]
+    try:
+        build_set_once(folder, argv, count, quiet)
+    except RuntimeError as exc:
+        raise CLIError(str(exc)) from None
     write_json(folder / "spec.json", spec)
     return folder

@@ -30,10 +30,9 @@ from cuniform_torch.fileio import write_json
 from cuniform_torch.metrics import coverage
 from cuniform_torch.systems import System, make_system, resolve_system
 from cuniform_torch.table_set import TableSetPolicy
-from precompute.build import main as build_main
 from precompute.build import parse_params
 from precompute.builder import BuildConfig, build_table
-from precompute.table_set import parse_starts
+from precompute.table_set import ensure_set, parse_starts
 
 __all__ = ["StartRow", "random_starts", "measure_start", "main"]
 
@@ -180,14 +179,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     if folder is None:
         folder = set_folder(args.cache, name, params, args.horizon, args.starts)
         build_argv = ["--system", args.system, "--horizon", str(args.horizon), "--starts", args.starts,
-                      "--out", str(folder), "--workers", str(args.workers), "--no-report"]
+                      "--workers", str(args.workers), "--no-report"]
         build_argv += [w for item in args.param for w in ("--param", item)]
         build_argv += [w for m in args.system_module for w in ("--system-module", m)]
-        if args.quiet:
-            build_argv.append("--quiet")
-        code = build_main(build_argv)
-        if code:
-            return code
+        ensure_set(folder, build_argv, quiet=args.quiet)
     policy = load_table(folder)
     if not isinstance(policy, TableSetPolicy):
         raise ValueError(f"--set {folder} is one table, not a table set (a folder with tables.json)")

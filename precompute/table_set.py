@@ -29,7 +29,7 @@ from cuniform_torch.parallel import run_jobs
 from cuniform_torch.systems import System
 from cuniform_torch.table import TableError, read_table
 
-__all__ = ["SET_FORMAT", "parse_starts", "build_set", "INDEX"]
+__all__ = ["SET_FORMAT", "parse_starts", "build_set", "set_complete", "ensure_set", "INDEX"]
 
 SET_FORMAT = "cuniform-table-set/1"
 INDEX = "tables.json"
@@ -142,4 +142,28 @@ def build_set(argv: Sequence[str], system: System, starts: np.ndarray, out: Path
     })
     say(f"wrote {len(starts)} tables and {out / INDEX}")
     return 0
+
+
+def set_complete(folder: Path, count: int | None = None) -> bool:
+    """Whether ``folder`` holds a finished set (its index lists ``count`` tables, when given, and every file)."""
+    try:
+        index = json.loads((Path(folder) / INDEX).read_text())
+    except (OSError, ValueError):
+        return False
+    tables = index.get("tables") if isinstance(index, dict) else None
+    return isinstance(tables, list) and (count is None or len(tables) == count) and all(
+        isinstance(t, dict) and (Path(folder) / str(t.get("file"))).is_file() for t in tables)
+
+
+def ensure_set(folder: Path, build_argv: Sequence[str], count: int | None = None, quiet: bool = False) -> Path:
+    """``folder``, built first by ``python -m precompute.build *build_argv --out folder`` (``build_argv`` names
+    the system and ``--starts``) when it is not a complete set; a failed build is a RuntimeError naming it."""
+    if set_complete(folder, count):
+        return Path(folder)
+    from .build import main
+
+    argv = [*build_argv, "--out", str(folder), *(["--quiet"] if quiet else [])]
+    if main(argv) != 0 or not set_complete(folder, count):
+        raise RuntimeError(f"building the table set {folder} failed (python -m precompute.build {' '.join(argv)})")
+    return Path(folder)
 
