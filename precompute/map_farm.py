@@ -58,6 +58,15 @@ def make_parser() -> argparse.ArgumentParser:
     parser.add_argument("--ray", nargs="?", const="local", default=None, metavar="ADDRESS",
                         help="shards as Ray tasks (a local runtime, or the cluster at ADDRESS)")
     parser.add_argument("--method", default="maxflow", choices=["maxflow", "coverage"])
+    parser.add_argument("--steps", type=int, default=None,
+                        help="coverage method: gradient-ascent iterations (default: the builder's, 300)")
+    parser.add_argument("--tol", type=float, default=None,
+                        help="coverage method: stop the ascent when it gains less than this fraction over 10 steps "
+                             "(default: the builder's, 0: run every step)")
+    parser.add_argument("--state-budget", type=int, default=None,
+                        help="coverage method: merged states per level (default: the builder's, 2000000)")
+    parser.add_argument("--merge-resolution", type=int, default=None,
+                        help="coverage method: sub-cell bins per cell and dimension (default: the builder's, 32)")
     parser.add_argument("--system", default=NAV_ROBOT.system, help="default: the benchmark robot's")
     parser.add_argument("--param", action="append", default=[], metavar="KEY=VALUE",
                         help="a system parameter as JSON over the benchmark robot's (repeatable)")
@@ -96,6 +105,25 @@ def _check(args: argparse.Namespace) -> None:
         raise CLIError(f"--radius must be >= 0 (m), got {args.radius}")
     if args.out.exists() and not args.out.is_dir():
         raise CLIError(f"--out {args.out}: not a folder")
+    given = [f"--{k.replace('_', '-')}" for k in COVERAGE_FLAGS if getattr(args, k) is not None]
+    if given and args.method != "coverage":
+        raise CLIError(f"{', '.join(given)}: only for --method coverage")
+
+
+COVERAGE_FLAGS = ("steps", "tol", "state_budget", "merge_resolution")
+"""map_farm flags passed to :class:`precompute.coverage_method.CoverageConfig` (None: its default)"""
+
+
+def coverage_settings(args: argparse.Namespace) -> dict[str, Any]:
+    """The coverage builder's settings the flags give (checked by CoverageConfig: one clear error)."""
+    from .coverage_method import CoverageConfig
+
+    settings = {k: getattr(args, k) for k in COVERAGE_FLAGS if getattr(args, k) is not None}
+    try:
+        CoverageConfig(**settings)
+    except ValueError as e:
+        raise CLIError(f"coverage settings: {e}") from None
+    return settings
 
 
 def build_shard(spec_json: str, k: int, out: str) -> dict[str, Any]:
@@ -121,7 +149,7 @@ def build_shard(spec_json: str, k: int, out: str) -> dict[str, Any]:
             try:
                 if head["method"] == "coverage":
                     table = build_coverage_table(system, CoverageConfig(horizon=horizon, local_map=local,
-                                                                        radius=radius))[0]
+                                                                        radius=radius, **head.get("coverage", {})))[0]
                 else:
                     table = build_table(system, BuildConfig(horizon=horizon, local_map=local, radius=radius))[0]
             except MapError:  # the rasterized start is blocked, or the pose is boxed in: the next candidate
@@ -175,6 +203,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     worlds = suite_worlds(args.suite, args.count, args.split, args.seed, args.radius)
     header = dataset_header(system, args.horizon, args.method, args.radius, (H, W), args.resolution, origin,
                             args.split, args.seed)
+    if args.method == "coverage" and coverage_settings(args):  # absent with the defaults: older farms still resume
+        header["coverage"] = coverage_settings(args)
     spec = {"header": header, "maps": [[w.suite, w.key] for w in worlds], "poses_per_map": args.poses_per_map,
             "rule": SAFE_RULE}  # shards of another pruning rule are not resumed into this data set
     args.out.mkdir(parents=True, exist_ok=True)
