@@ -34,7 +34,6 @@ path that cannot be written, checked before training starts, a full disk, a refu
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import math
 import sys
@@ -45,29 +44,24 @@ from pathlib import Path
 from typing import Any, Optional, Sequence
 
 import torch
-from torch.utils.tensorboard import SummaryWriter
-from tqdm import tqdm
 
 from cuniform_torch.cli import (OUT, RUNS, ArgumentParser, add_dataclass_args, add_system_module_arg,
                                 check_output_file, check_output_folder, cli_main, dataclass_from_args,
                                 import_system_modules)
-from cuniform_torch.metrics import coverage
-from cuniform_torch.fileio import exclusive_lock, write_json
+from cuniform_torch.fileio import exclusive_lock
 from cuniform_torch.grid import Grid
 from cuniform_torch.checkpoint import file_sha256, policy_checkpoint, save_policy
 from cuniform_torch.mlp import MLPConfig, MLPPolicy, default_feature_scale
 from cuniform_torch.policy import TablePolicy
-from cuniform_torch.rollout import rollout
 from cuniform_torch.table import Table, read_table
 
-from .evaluate import cell_centres, cell_levels, compare, kl_per_level, sizes
+from .evaluate import compare, kl_per_level, sizes
 from .distill_set import distill_set
-from .figures import coverage_figure, trajectory_figure
+from .distill_setup import (TableFigures, adam_cosine, best_metrics, open_run, pool_cells, run_facts,
+                            say_written, seed_run, write_comparison)
 from .support import pooled_support
-from .samples import level_weights, make_samples
-from .loop import Progress, kl_epoch, log_epoch_scalars, log_hyperparameters, validate
-from .train_state import RESUME_KEYS, UsageError, load_train_state, save_train_state
-
+from .loop import run_epochs
+from .train_state import RESUME_KEYS, UsageError, save_train_state
 
 
 @dataclass
@@ -217,97 +211,44 @@ def _distill(cfg: DistillConfig) -> int:
     table_shas = [file_sha256(p) for p in cfg.tables]
     fingerprint = {**{k: getattr(cfg, k) for k in RESUME_KEYS}, "tables_sha256": table_shas}
 
-    # ---- seeding
-    if cfg.threads:
-        torch.set_num_threads(cfg.threads)
-    torch.manual_seed(cfg.seed)
-    data_gen = torch.Generator().manual_seed(cfg.seed)  # jitter and shuffling, saved with the training state
-    val_gen = torch.Generator().manual_seed(cfg.seed + 1)  # the fixed validation points
+    data_gen, val_gen = seed_run(cfg)
 
     # ---- data: every cell of every (table, level) group; the group of a cell sets its weight
-    centres = torch.cat([cell_centres(tb) for tb in tables])  # [C, d] float64
-    probs = torch.cat([torch.from_numpy(tb.action_probs) for tb in tables]).to(device)  # [C, A]
-    levels = torch.cat([cell_levels(tb) for tb in tables])  # [C]
-    group = torch.cat([cell_levels(tb) + i * (T + 1) for i, tb in enumerate(tables)])  # [C]
-    G = len(tables) * (T + 1)
-    best_rows = probs >= probs.max(dim=1, keepdim=True).values - 1e-6  # [C, A] the table's most likely actions
-    val_rows, val_x = make_samples(centres, grid, cfg.val_points, False, val_gen)
-    val_x = val_x.to(device=device, dtype=torch.float32)  # [V, d]
-    val_t, val_w = levels[val_rows].to(device), level_weights(group[val_rows], G).to(device)
-    val_rows = val_rows.to(device)
+    cells = pool_cells(tables, T, grid, cfg.val_points, val_gen, device)
 
     # ---- model and optimiser
     mlp_config = MLPConfig(state_dim=grid.dim, num_actions=table.actions.shape[0], horizon=T,
-                           periodic=list(grid.periodic), feature_scale=default_feature_scale(centres, grid),
+                           periodic=list(grid.periodic), feature_scale=default_feature_scale(cells.centres, grid),
                            hidden=cfg.hidden, layers=cfg.layers)
     model = MLPPolicy(mlp_config, system, torch.from_numpy(table.actions),
                       support=pooled_support(tables, T)).to(device)  # the cells it may answer confidently
-    optimizer = torch.optim.Adam(model.parameters(), lr=cfg.lr)
-    scheduler = torch.optim.lr_scheduler.CosineAnnealingLR(optimizer, T_max=cfg.epochs, eta_min=cfg.lr / 100)
+    optimizer, scheduler = adam_cosine(model, cfg)
 
-    # ---- resume
-    progress = Progress.start(model, f"{Path(cfg.tables[0]).stem}__distill__{cfg.seed}__{int(time.time())}")
-    if cfg.resume:
-        progress.restore(load_train_state(state_path, fingerprint), model, optimizer, scheduler, data_gen, device)
-
-    # ---- TensorBoard
-    writer = SummaryWriter(str(Path(cfg.logdir) / progress.run_name),
-                           purge_step=progress.epochs_run + 1 if cfg.resume else None)
+    # ---- resume, TensorBoard
+    progress, writer = open_run(cfg, f"{Path(cfg.tables[0]).stem}__distill__{cfg.seed}__{int(time.time())}",
+                                state_path, fingerprint, model, optimizer, scheduler, data_gen, device)
     try:
-        if not cfg.resume:
-            log_hyperparameters(writer, cfg)
         table_policy = TablePolicy(table, device=device)
         x0 = table_policy.build_start.to(device=device, dtype=torch.float32)  # [d] the table's start
-        figure_n = cfg.eval_samples[0]
-        table_paths, _ = rollout(system, table_policy, x0, 200, T, torch.Generator(device).manual_seed(cfg.seed))
-        table_states, _ = rollout(system, table_policy, x0, figure_n, T, torch.Generator(device).manual_seed(cfg.seed))
-        table_cov = coverage(table_states, grid, table_policy).in_level_set
+        figures = TableFigures(system, grid, table_policy, x0, T, cfg.eval_samples[0], cfg.seed, table.level_sizes)
 
-        # ---- training loop
-        bar = tqdm(range(progress.epochs_run, cfg.epochs), initial=progress.epochs_run, total=cfg.epochs,
-                   disable=cfg.quiet or progress.finished,                    desc="distill", unit="epoch")
-        for epoch in bar:
-            if progress.finished:
-                break
-            epoch_start = time.perf_counter()
-            model.train()
-            train_kl = kl_epoch(lambda x, t, r: model(x, t), optimizer, centres, grid, levels, group, G, probs,
-                                cfg.jitter, cfg.batch_size, data_gen, device)
-            lr = optimizer.param_groups[0]["lr"]
-            scheduler.step()
+        def evaluate(step: int) -> None:
+            for level, kl in enumerate(kl_per_level(model, table, device=device)):
+                writer.add_scalar(f"eval/kl_level_{level}", kl, step)
+            figures.log(writer, model, step, f"epoch {step}")
 
-            # validation: level-weighted KL and argmax agreement on the fixed jittered points
-            model.eval()
-            with torch.no_grad():
-                val_kl, val_acc = validate(model(val_x, val_t), probs, best_rows, val_rows, val_w)  # [V, A] logits
-            progress.update(val_kl, epoch, model, cfg.patience, cfg.epochs)
-            progress.train_seconds += time.perf_counter() - epoch_start
-
-            step = progress.epochs_run = epoch + 1
-            log_epoch_scalars(writer, step, train_kl, val_kl, val_acc, lr, epoch_start)
-            if step % cfg.eval_every == 0 or progress.finished:
-                for level, kl in enumerate(kl_per_level(model, table, device=device)):
-                    writer.add_scalar(f"eval/kl_level_{level}", kl, step)
-                gen = torch.Generator(device).manual_seed(cfg.seed)
-                mlp_paths, _ = rollout(system, model, x0, 200, T, gen)
-                writer.add_figure("rollouts", trajectory_figure(table_paths, mlp_paths, f"epoch {step}"), step)
-                mlp_states, _ = rollout(system, model, x0, figure_n, T, torch.Generator(device).manual_seed(cfg.seed))
-                mlp_cov = coverage(mlp_states, grid, table_policy).in_level_set
-                writer.add_figure("coverage", coverage_figure(table_cov, mlp_cov, table.level_sizes, figure_n,
-                                                              f"epoch {step}"), step)
-            bar.set_postfix(train_kl=f"{train_kl:.4f}", val_kl=f"{val_kl:.4f}", best=progress.best_epoch)
-
-            save_train_state(state_path, progress.state(fingerprint, model, optimizer, scheduler, data_gen))
-        bar.close()
+        # ---- training loop; save looks save_train_state up here at each call (a test wraps it)
+        run_epochs(cfg, progress, model, lambda x, t, r: model(x, t), optimizer, scheduler, cells, grid, data_gen,
+                   device, writer, evaluate, lambda state: save_train_state(state_path, state), fingerprint,
+                   "distill")
 
         # ---- checkpoint: the best validation state, with the final comparison as its metrics
         model.load_state_dict(progress.best_state)
         model.eval()
         report = compare(model, table, cfg.eval_samples, seed=cfg.seed, jitter_per_cell=cfg.jitter or 4, device=device)
         metrics: dict[str, Any] = {
-            "best_epoch": progress.best_epoch, "best_val_kl": progress.best_val, "train_seconds": progress.train_seconds,
-            "kl_centres_mean": report["kl_centres"]["mean"], "kl_jitter_mean": report["kl_jitter"]["mean"],
-            "kl_centres_per_level": report["kl_centres"]["per_level"],
+            **best_metrics(progress), "kl_centres_mean": report["kl_centres"]["mean"],
+            "kl_jitter_mean": report["kl_jitter"]["mean"], "kl_centres_per_level": report["kl_centres"]["per_level"],
         }
         for n, cov in report["coverage"].items():
             metrics[f"coverage_ratio_total_{n}"] = cov["ratio"]["total"]
@@ -321,18 +262,12 @@ def _distill(cfg: DistillConfig) -> int:
         # ---- final comparison: sizes, KL, coverage, fallbacks, wall time
         comparison = {
             "tables": [{"path": str(p), "sha256": s} for p, s in zip(cfg.tables, table_shas)],
-            "checkpoint": str(out), "run": str(Path(cfg.logdir) / progress.run_name), "config": dataclasses.asdict(cfg),
-            "epochs_run": progress.epochs_run, "best_epoch": progress.best_epoch, "best_val_kl": progress.best_val,
-            "wall_seconds": {"train": progress.train_seconds, "total_this_call": time.perf_counter() - wall_start},
-            "sizes": sizes(table, cfg.tables[0], out), **report,
+            **run_facts(cfg, progress, out, wall_start), "sizes": sizes(table, cfg.tables[0], out), **report,
         }
-        write_json(comparison_path, comparison)
-        summary = format_comparison(comparison)
-        writer.add_text("comparison", "```\n" + summary + "\n```", progress.epochs_run)
+        summary = write_comparison(writer, comparison_path, comparison, format_comparison, progress.epochs_run)
     finally:
         writer.close()
-    print(summary)
-    print(f"wrote {out}, {comparison_path} and {state_path}; TensorBoard: {comparison['run']}")
+    say_written(summary, out, comparison_path, state_path, comparison["run"])
     return 0
 
 

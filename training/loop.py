@@ -1,6 +1,6 @@
 """The epoch loop shared by :mod:`training.distill` and :mod:`training.distill_set`: one KL training pass over
 jittered cells, the validation KL / argmax accuracy, early stopping with the best state, the TensorBoard scalars
-and the training state written after every epoch (read back by ``--resume``).
+and the training state written after every epoch (read back by ``--resume``); :func:`run_epochs` is the loop.
 
 Shapes: C cells, N samples of an epoch, B of a batch, V validation points, d state dimensions, A actions,
 G (table, level) groups.
@@ -16,6 +16,7 @@ from typing import Any, Callable
 
 import torch
 from torch import Tensor
+from tqdm import tqdm
 
 from cuniform_torch.grid import Grid
 
@@ -23,7 +24,7 @@ from .evaluate import kl_rows
 from .samples import level_weights, make_samples
 from .train_state import TRAIN_STATE_FORMAT
 
-__all__ = ["Progress", "kl_epoch", "validate", "log_hyperparameters", "log_epoch_scalars"]
+__all__ = ["Progress", "kl_epoch", "validate", "log_hyperparameters", "log_epoch_scalars", "run_epochs"]
 
 Forward = Callable[[Tensor, Tensor, Tensor], Tensor]
 """``forward(x [B, d], t [B], rows [B])`` -> logits ``[B, A]`` (rows: the samples' cells, for per-cell inputs)."""
@@ -132,3 +133,40 @@ def log_epoch_scalars(writer: Any, step: int, train_kl: float, val_kl: float, va
     writer.add_scalar("charts/val_argmax_accuracy", val_acc, step)
     writer.add_scalar("charts/learning_rate", lr, step)
     writer.add_scalar("charts/epoch_seconds", time.perf_counter() - epoch_start, step)
+
+
+def run_epochs(cfg: Any, progress: Progress, model: torch.nn.Module, forward: Forward,
+               optimizer: torch.optim.Optimizer, scheduler: Any, cells: Any, grid: Grid, data_gen: torch.Generator,
+               device: torch.device, writer: Any, evaluate: Callable[[int], None],
+               save: Callable[[dict[str, Any]], None], fingerprint: dict[str, Any], desc: str) -> None:
+    """The epochs from ``progress.epochs_run`` to ``cfg.epochs`` (or early stopping): a KL pass over ``cells``
+    (a :class:`training.distill_setup.PooledCells`), the validation KL and accuracy of ``forward`` at its
+    validation points, the scalars, ``evaluate(step)`` every ``cfg.eval_every`` epochs and at the end, and
+    ``save(state)`` of the training state after every epoch; a progress bar named ``desc``."""
+    bar = tqdm(range(progress.epochs_run, cfg.epochs), initial=progress.epochs_run, total=cfg.epochs,
+               disable=cfg.quiet or progress.finished, desc=desc, unit="epoch")
+    for epoch in bar:
+        if progress.finished:
+            break
+        epoch_start = time.perf_counter()
+        model.train()
+        train_kl = kl_epoch(forward, optimizer, cells.centres, grid, cells.levels, cells.group, cells.G, cells.probs,
+                            cfg.jitter, cfg.batch_size, data_gen, device)
+        lr = optimizer.param_groups[0]["lr"]
+        scheduler.step()
+
+        # validation: level-weighted KL and argmax agreement on the fixed jittered points
+        model.eval()
+        with torch.no_grad():
+            logits = forward(cells.val_x, cells.val_t, cells.val_rows)  # [V, A]
+            val_kl, val_acc = validate(logits, cells.probs, cells.best_rows, cells.val_rows, cells.val_w)
+        progress.update(val_kl, epoch, model, cfg.patience, cfg.epochs)
+        progress.train_seconds += time.perf_counter() - epoch_start
+
+        step = progress.epochs_run = epoch + 1
+        log_epoch_scalars(writer, step, train_kl, val_kl, val_acc, lr, epoch_start)
+        if step % cfg.eval_every == 0 or progress.finished:
+            evaluate(step)
+        bar.set_postfix(train_kl=f"{train_kl:.4f}", val_kl=f"{val_kl:.4f}", best=progress.best_epoch)
+        save(progress.state(fingerprint, model, optimizer, scheduler, data_gen))
+    bar.close()
