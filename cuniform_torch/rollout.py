@@ -20,7 +20,6 @@ rigid transform) and ``watch_start`` (a table or MLP valid from one start: :clas
 
 from __future__ import annotations
 
-import warnings
 from dataclasses import dataclass
 from typing import Callable, Protocol, runtime_checkable
 
@@ -29,18 +28,12 @@ from torch import Tensor
 
 from . import rollout_kernels
 from .frames import se2_to_world
-from .grid import Grid
+from .start_watch import OWN_ROBOT, StartMismatchWarning, StartWatch
 from .systems import System
+from .tensor_checks import check_generator, check_states, same_device
 
 __all__ = ["Policy", "ActionSampler", "PolicyTraits", "RolloutPlan", "StartMismatchWarning", "StartWatch", "rollout",
-           "rollout_actions", "check_states", "check_generator", "same_device"]
-
-OWN_ROBOT = 'README, "Your own robot"'
-
-
-class StartMismatchWarning(UserWarning):
-    """A table (or an MLP distilled from one) rolled out from a start it was not built for: its probabilities
-    there are mostly the fallback's (uniform actions), not C-Uniform ones."""
+           "rollout_actions", "check_states", "check_generator", "same_device", "OWN_ROBOT"]
 
 
 @runtime_checkable
@@ -91,40 +84,6 @@ class PolicyTraits:
                    device=None if device is None else torch.device(device),
                    dtype=dtype if isinstance(dtype, torch.dtype) else None,
                    start_relative=bool(getattr(policy, "start_relative", False)))
-
-
-def _device_index(device: torch.device) -> int:
-    if device.index is not None:
-        return device.index
-    return torch.cuda.current_device() if device.type == "cuda" else 0
-
-
-def same_device(a: torch.device | str, b: torch.device | str) -> bool:
-    """Whether two devices are one: ``"cuda"`` (no index: the current device) is ``cuda:0`` when that is current,
-    which ``torch.device`` equality says it is not (a tensor's device always has its index)."""
-    a, b = torch.device(a), torch.device(b)
-    return a.type == b.type and (a.index == b.index or _device_index(a) == _device_index(b))
-
-
-def check_states(x: Tensor, dim: int, device: torch.device, who: str = "the policy") -> None:
-    """Raise ValueError unless ``x`` is a floating-point ``[N, dim]`` tensor on ``device``."""
-    if not isinstance(x, Tensor) or x.ndim != 2 or x.shape[1] != dim:
-        raise ValueError(f"states must have shape [N, {dim}], got {list(getattr(x, 'shape', []))}")
-    if not same_device(x.device, device):
-        raise ValueError(f"states are on {x.device} but {who} is on {device}")
-    if not x.is_floating_point():
-        raise ValueError(f"states must be a floating-point tensor, got {x.dtype}")
-
-
-def check_generator(generator: object, device: torch.device, name: str = "generator") -> None:
-    """Raise TypeError unless ``generator`` is None or a ``torch.Generator``, ValueError if it is not on ``device``."""
-    if generator is None:
-        return
-    if not isinstance(generator, torch.Generator):
-        raise TypeError(f"{name} must be a torch.Generator or None, got {type(generator).__name__} ({generator!r:.40}); "
-                        f"make one with torch.Generator(device).manual_seed(seed)")
-    if not same_device(generator.device, device):
-        raise ValueError(f"{name} is on {generator.device} but the samples are drawn on {device}")
 
 
 def _check_args(system: System, x0: Tensor, num_samples: int, horizon: int) -> int:
@@ -321,58 +280,6 @@ class RolloutPlan:
         if report is not None:
             report()
         return states_t, actions_t
-
-
-class StartWatch:
-    """Warns once per policy (:class:`StartMismatchWarning`) when a policy valid from one start is rolled out
-    from another.
-
-    ``build_start [d]`` is the start the table was built from (the zero state: tables record no other). A start
-    *differs* when its cell (:class:`~cuniform_torch.grid.Grid`) differs from the build start's in a dimension
-    the rollout does not move into the start's frame: every dimension, or for an SE(2)-relative rollout the
-    dimensions after ``(x, y, theta)`` (speeds, steering angles: a frame change does not move them). A pose-only
-    SE(2) rollout is never watched; any other costs one host read of the start per rollout until it warns.
-    """
-
-    def __init__(self, who: str, system: System, build_start: Tensor | None = None):
-        self.who = who
-        self.system = system
-        self.grid = Grid.of(system)
-        d = self.grid.dim
-        start = torch.zeros(d, dtype=torch.float64) if build_start is None else build_start.detach().double().cpu()
-        if start.shape != (d,):
-            raise ValueError(f"{who}: build_start must have shape [{d}], got {list(start.shape)}")
-        self.build_start = start  # [d] float64
-        self._build_cell = self.grid.cells(start)  # [d] int64
-        self.warned = False
-
-    def begin(self, policy: object, x0: Tensor, relative: bool) -> Callable[[], None] | None:
-        """Before a rollout from ``x0 [d]`` (or ``[N, d]``): None when there is nothing to say, else the call that
-        warns after the rollout, with the miss rate of that rollout (``policy.queries`` and ``policy.misses``)."""
-        first = 3 if relative else 0
-        if self.warned or first >= self.grid.dim:
-            return None
-        cells = self.grid.cells(x0.detach().double().cpu())[..., first:]  # [d - first] or [N, d - first]
-        if bool((cells == self._build_cell[first:]).all()):
-            return None
-        queries, misses = int(getattr(policy, "queries", 0)), getattr(policy, "misses", None)
-        misses = misses.clone() if isinstance(misses, Tensor) else None  # 0-d device tensor: no sync yet
-        return lambda: self._warn(policy, x0, relative, queries, misses)
-
-    def _warn(self, policy: object, x0: Tensor, relative: bool, queries: int, misses: Tensor | None) -> None:
-        self.warned = True
-        asked = int(getattr(policy, "queries", 0)) - queries
-        missed = int(getattr(policy, "misses")) - int(misses) if misses is not None else 0
-        rate = f"{missed / asked:.3f} ({missed} of {asked} lookups)" if asked else "not counted"
-        name = getattr(self.system, "name", type(self.system).__name__)
-        why = (f"{name}'s dimensions after (x, y, theta) are not moved by the frame change" if relative
-               else f"{name} is not SE(2)-invariant, so no frame change moves the table to another start")
-        start = [round(v, 4) for v in (x0 if x0.ndim == 1 else x0[0]).tolist()]
-        warnings.warn(
-            f"{self.who} is valid from its build start {self.build_start.tolist()} only and is rolled out from {start}; "
-            f"{why}. Miss rate on this rollout: {rate}; a miss gets the fallback's uniform actions, not C-Uniform "
-            f"ones. Build a table at that start, or a table set over the starts you need (see {OWN_ROBOT}). "
-            f"Warned once per policy.", StartMismatchWarning, stacklevel=5)
 
 
 def rollout(
