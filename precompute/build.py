@@ -16,6 +16,8 @@ local map's obstacles before the flow / coverage step (:mod:`precompute.safe_map
 User systems: ``--system-module my_robots`` imports a module that calls ``register_system`` (its dataclass
 fields then become flags too), and ``--system my_robots:Unicycle`` imports and registers a factory directly.
 
+The flags and the checks of their combination are :mod:`precompute.build_args`.
+
 Size guidance (maxflow): from level 5 on, the build prints the projected size of the remaining levels and its
 projected peak memory, and warns (naming ``--horizon`` and ``--cell-size``) when that exceeds the available
 memory (``--max-memory GB`` sets the budget).
@@ -24,151 +26,24 @@ memory (``--max-memory GB`` sets the budget).
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import shutil
 import sys
 import time
 from pathlib import Path
 from typing import Any, Sequence
 
-from cuniform_torch.cli import (OUT, ArgumentParser, CLIError, add_dataclass_args, check_output_file, cli_main,
-                                dataclass_from_args, field_docs, flag_name)
+from cuniform_torch.cli import OUT, CLIError, check_output_file, cli_main, dataclass_from_args
 from cuniform_torch.fileio import exclusive_lock, write_json
-from cuniform_torch.systems import _REGISTRY, DEFAULT_HORIZON, known_systems, resolve_system, system_horizon
+from cuniform_torch.systems import resolve_system, system_horizon
 from cuniform_torch.table import write_table
 
+from .build_args import COVERAGE_ONLY, MAXFLOW_ONLY, check_flags, make_parser
 from .builder import BuildConfig, SizeGuide, available_memory_bytes, build_table, check_resume
-from .levels import PointMode
 from .report import format_report, uniformity_report
 from .safe_map import map_overrides
 from .system_args import load_user_systems, make_cli_system, parse_params
 
-
-def _system_fields() -> dict[str, dataclasses.Field]:
-    """Constructor fields of every registered dataclass system (the union becomes CLI flags)."""
-    out: dict[str, dataclasses.Field] = {}
-    for factory in _REGISTRY.values():
-        if dataclasses.is_dataclass(factory):
-            for f in dataclasses.fields(factory):
-                if f.init:
-                    out.setdefault(f.name, f)
-    return out
-
-
-def _defaults_of(field: str) -> str:
-    """``"dubins: 0.2; random_walk_1d: 1.0"``: the field's default in each system that has it."""
-    parts = []
-    for name, factory in sorted(_REGISTRY.items()):
-        if dataclasses.is_dataclass(factory):
-            for f in dataclasses.fields(factory):
-                if f.name == field:
-                    default = f.default if f.default is not dataclasses.MISSING else "required"
-                    if isinstance(default, tuple):
-                        default = " ".join(f"{v:.6g}" for v in default)
-                    elif isinstance(default, float):
-                        default = f"{default:.6g}"
-                    parts.append(f"{name}: {default}")
-    return "; ".join(parts)
-
-
-MAXFLOW_ONLY = ("points", "points_per_cell", "resume", "max_memory", "ties")
-"""flags of --method maxflow only (given with --method coverage they are refused)"""
-COVERAGE_ONLY = ("target_samples", "merge_resolution", "steps", "lr", "state_budget", "tol")
-"""flags of --method coverage only: fields of :class:`~precompute.coverage_method.CoverageConfig`"""
-
-
-def make_parser() -> argparse.ArgumentParser:
-    """The build's flags; the settings of the table (``--points``, ``--steps``, ...) are fields of
-    :class:`BuildConfig` and :class:`CoverageConfig`, whose defaults they show (the only copy of each)."""
-    from .coverage_method import CoverageConfig
-
-    parser = ArgumentParser(
-        prog="python -m precompute.build",
-        description="Build a C-Uniform action-probability table (level sets + exact max-flow) and report its uniformity.",
-    )
-    parser.add_argument("--system", default="dubins",
-                        help=f"system name (known: {', '.join(known_systems())}) or module:factory of a user system")
-    parser.add_argument("--system-module", action="append", default=[], metavar="MODULE",
-                        help="import MODULE first (repeatable); it registers user systems with register_system")
-    parser.add_argument("--param", action="append", default=[], metavar="KEY=VALUE",
-                        help="a system parameter as JSON (repeatable), e.g. --param speed=0.5 --param 'cell_size=[0.1, 0.1, 0.2]'")
-    parser.add_argument("--max-memory", type=float, default=None, metavar="GB",
-                        help="memory budget of the size guidance (default: the available memory)")
-    parser.add_argument("--out", type=Path, default=None, help=f"table file to write (default: {OUT}/<system>.npz)")
-    parser.add_argument("--horizon", type=int, default=None,
-                        help=f"number of steps T (default: the system's default_horizon, else {DEFAULT_HORIZON})")
-    add_dataclass_args(parser, BuildConfig, only=("points", "points_per_cell", "seed", "ties", "start"), help={
-        "start": "the state to build from, one number per state dimension (default: the zero state); an "
-                 "SE(2)-invariant system's x, y, theta must be 0 (its table serves every pose), e.g. --system ks_speed "
-                 "--start 0 0 0 0.5",
-        "points": "sample points per cell: centers (level sets from cell centres, transitions from the 3^d "
-                  "lattice), lattice (level sets from all lattice points), random (centre + K random points)",
-        "points_per_cell": "K random points per cell for --points random",
-        "seed": "seed of --points random and of the report's rollouts",
-        "ties": "symmetric: a step onto a cell boundary rounds away from its source cell (mirror-symmetric level "
-                "sets, the authors' sizes); grid: the state's own cell (the grid offset decides)",
-    })
-    parser.add_argument("--map", dest="map_file", type=Path, default=None, metavar="FILE",
-                        help="a local map in the start frame (precompute/safe_map.py): safe level sets, without the "
-                             "cells within --radius of its obstacles (SE(2)-invariant systems)")
-    parser.add_argument("--radius", dest="map_radius", type=float, default=None, metavar="R",
-                        help="with --map: the robot's radius (m) its obstacles are inflated by (default 0)")
-    parser.add_argument("--threads", type=int, default=1,
-                        help="torch CPU threads (0: torch's choice, one per core). 1 by default: the build's tensors "
-                             "are small, and on a busy machine extra threads only wait for each other")
-    parser.add_argument("--method", default="maxflow", choices=["maxflow", "coverage"],
-                        help="maxflow: the paper's flow network (default); coverage: maximize the expected coverage "
-                             "of real rollouts over the reachable states (see precompute/coverage_method.py)")
-    docs = field_docs(CoverageConfig)
-    add_dataclass_args(parser, CoverageConfig, only=COVERAGE_ONLY,
-                       help={name: f"coverage method: {docs[name]}" for name in COVERAGE_ONLY})
-    parser.add_argument("--starts", default=None, metavar="SPEC",
-                        help="build a table set, one table per start, into the folder --out: a grid 'DIM=LO:HI:N ...' "
-                             "or a seeded sample 'random:N DIM=LO:HI ...' over the non-pose dimensions "
-                             "(precompute/table_set.py)")
-    parser.add_argument("--workers", type=int, default=1, help="with --starts: tables built in parallel processes")
-    parser.add_argument("--ray", nargs="?", const="local", default=None, metavar="ADDRESS",
-                        help="with --starts: tables as Ray tasks (a local runtime, or the cluster at ADDRESS)")
-    parser.add_argument("--resume", action="store_true", help="continue an interrupted build from its checkpoints (maxflow)")
-    parser.add_argument("--rollouts", type=int, default=None, help="rollouts for the report (default: 10 x largest level)")
-    parser.add_argument("--no-report", action="store_true", help="skip the uniformity report")
-    parser.add_argument("--device", default="cpu", help="device for the report's rollouts (cpu, cuda)")
-    parser.add_argument("--quiet", action="store_true", help="no progress bar")
-    group = parser.add_argument_group("system parameters (each applies to the systems that have it)")
-    for name, f in _system_fields().items():
-        flag = "--" + name.replace("_", "-")
-        default = f.default if f.default is not dataclasses.MISSING else None
-        kwargs: dict[str, Any] = {"default": None, "dest": f"sys_{name}", "metavar": name.upper()}
-        if isinstance(default, tuple):
-            kwargs.update(nargs="+", type=float, metavar="X")
-        elif isinstance(default, bool):
-            kwargs.update(type=lambda s: s.lower() in ("1", "true", "yes"))
-        elif isinstance(default, int):
-            kwargs.update(type=int)
-        elif isinstance(default, str):
-            kwargs.update(type=str)
-        else:
-            kwargs.update(type=float)
-        group.add_argument(flag, help=f"default {_defaults_of(name)}".replace("%", "%%"), **kwargs)
-    return parser
-
-
-def _given(args: argparse.Namespace, name: str) -> bool:
-    """Whether the flag of ``name`` was given (a config flag leaves no attribute when it was not)."""
-    return getattr(args, name, None) not in (None, False)
-
-
-def _check_flags(args: argparse.Namespace) -> None:
-    """Refuse flags that the chosen method or points mode would ignore (naming both)."""
-    other, foreign = ("coverage", COVERAGE_ONLY) if args.method == "maxflow" else ("maxflow", MAXFLOW_ONLY)
-    for name in foreign:
-        if _given(args, name):
-            raise CLIError(f"{flag_name(name)} applies to --method {other} only, not to --method {args.method}")
-    points = getattr(args, "points", BuildConfig().points.value)
-    if _given(args, "points_per_cell") and points != PointMode.RANDOM.value:
-        raise CLIError(f"--points-per-cell applies to --points random only, not to --points {points}")
-    if _given(args, "rollouts") and args.no_report:
-        raise CLIError("--rollouts sets the report's rollouts, but --no-report skips the report")
+__all__ = ["main", "make_parser", "MAXFLOW_ONLY", "COVERAGE_ONLY", "parse_params"]
 
 
 def _check_device(device: str) -> None:
@@ -210,7 +85,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
     load_user_systems(argv)
     args = make_parser().parse_args(argv)
-    _check_flags(args)
+    check_flags(args)
     if args.threads < 0:
         raise CLIError(f"--threads must be >= 0 (0: torch's choice), got {args.threads}")
     import torch
