@@ -23,6 +23,9 @@ cylinder once. :func:`convert_worlds` reads the model definitions only.
 The shipped ``start`` / ``goal`` are (-2, 3, 1.57) / (-2, 13); the BARN Challenge's ``run.py`` uses
 ``INIT_POSITION = [-2.25, 3, 1.57]`` and the goal 10 m ahead, (-2.25, 13) (:data:`CHALLENGE_START`,
 :data:`CHALLENGE_GOAL`).
+
+The format's checks are :mod:`eval.barn_format`, the Gazebo converter :mod:`eval.barn_worlds`; their names are
+importable from here too.
 """
 
 from __future__ import annotations
@@ -30,40 +33,29 @@ from __future__ import annotations
 import importlib.resources
 import math
 import os
-import re
 import zipfile
 import zlib
-import xml.etree.ElementTree as ET
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Iterable, Mapping, Sequence
+from typing import Mapping, Sequence
 
 import numpy as np
 
 from cuniform_torch.envs import Circle, Environment
 from cuniform_torch.fileio import write_npz
 
+from .barn_format import KEYS, BarnFormatError, format_error, validate_barn
+from .barn_worlds import FILE_GOAL, FILE_START, convert_worlds
+
 __all__ = [
     "BarnMap", "BarnFormatError", "load_barn", "convert_worlds", "write_barn", "validate_barn",
     "default_path", "FILE_START", "FILE_GOAL", "CHALLENGE_START", "CHALLENGE_GOAL",
 ]
 
-FILE_START = (-2.0, 3.0, 1.57)
-"""the shipped file's start (x, y, heading), and what :func:`convert_worlds` writes by default"""
-FILE_GOAL = (-2.0, 13.0)
-"""the shipped file's goal (x, y)"""
 CHALLENGE_START = (-2.25, 3.0, 1.57)
 """the BARN Challenge's ``INIT_POSITION`` (its ``run.py``)"""
 CHALLENGE_GOAL = (-2.25, 13.0)
 """the BARN Challenge's goal: 10 m ahead of its start"""
-
-_INT_KEYS = ("map_ids", "offsets", "path_offsets")
-_FLOAT_KEYS = ("centers", "radius", "paths", "start", "goal")
-KEYS = _INT_KEYS + _FLOAT_KEYS
-
-
-class BarnFormatError(ValueError):
-    """A BARN map file (``.npz``) or Gazebo world (``.world``) that is not in the expected format."""
 
 
 def default_path() -> Path:
@@ -99,61 +91,6 @@ class BarnMap:
         return Environment([Circle((float(x), float(y)), r) for x, y in self.centers.tolist()])
 
 
-# ------------------------------------------------------------------------------------------------ validation
-
-def _fail(source: str, key: str | None, message: str) -> BarnFormatError:
-    where = f"{source}: key {key!r}" if key is not None else source
-    return BarnFormatError(f"{where}: {message}")
-
-
-def _check_offsets(off: np.ndarray, n_rows: int, key: str, rows_key: str, K: int, source: str) -> None:
-    if off.shape != (K + 1,):
-        raise _fail(source, key, f"must have shape [{K + 1}] (len(map_ids) + 1), got {list(off.shape)}")
-    if off[0] != 0:
-        raise _fail(source, key, f"must start at 0, got {int(off[0])}")
-    if np.any(np.diff(off) < 0):
-        k = int(np.nonzero(np.diff(off) < 0)[0][0])
-        raise _fail(source, key, f"must be non-decreasing; entry {k + 1} ({int(off[k + 1])}) < entry {k} ({int(off[k])})")
-    if off[-1] != n_rows:
-        raise _fail(source, key, f"must end at len({rows_key}) = {n_rows}, got {int(off[-1])}")
-
-
-def validate_barn(arrays: Mapping[str, np.ndarray], source: str = "<arrays>") -> None:
-    """Check arrays in the format of the module docstring; raise :class:`BarnFormatError` naming ``source``
-    and the key for the first problem."""
-    for key in KEYS:
-        if key not in arrays:
-            raise _fail(source, key, f"missing (a BARN map file needs {', '.join(KEYS)})")
-    a = {key: np.asarray(arrays[key]) for key in KEYS}
-    for key in _INT_KEYS:
-        if a[key].dtype.kind not in "iu":
-            raise _fail(source, key, f"must be an integer array, got dtype {a[key].dtype}")
-    for key in _FLOAT_KEYS:
-        if a[key].dtype.kind != "f":
-            raise _fail(source, key, f"must be a floating-point array, got dtype {a[key].dtype}")
-        if not np.all(np.isfinite(a[key])):
-            raise _fail(source, key, "must be finite (found NaN or inf)")
-    expected = {"centers": "[M, 2]", "paths": "[P, 2]"}
-    for key, shape in expected.items():
-        if a[key].ndim != 2 or a[key].shape[1] != 2:
-            raise _fail(source, key, f"must have shape {shape}, got {list(a[key].shape)}")
-    fixed = {"radius": (), "start": (3,), "goal": (2,)}
-    for key, shape in fixed.items():
-        if a[key].shape != shape:
-            raise _fail(source, key, f"must have shape {list(shape)}, got {list(a[key].shape)}")
-    ids = a["map_ids"]
-    if ids.ndim != 1:
-        raise _fail(source, "map_ids", f"must have shape [K], got {list(ids.shape)}")
-    unique, counts = np.unique(ids, return_counts=True)
-    if np.any(counts > 1):
-        raise _fail(source, "map_ids", f"must be unique; repeated: {unique[counts > 1][:5].tolist()}")
-    if float(a["radius"]) <= 0:
-        raise _fail(source, "radius", f"must be > 0, got {float(a['radius'])}")
-    K = ids.shape[0]
-    _check_offsets(a["offsets"], a["centers"].shape[0], "offsets", "centers", K, source)
-    _check_offsets(a["path_offsets"], a["paths"].shape[0], "path_offsets", "paths", K, source)
-
-
 # ------------------------------------------------------------------------------------------------ loading
 
 def _read_npz(path: Path) -> dict[str, np.ndarray]:
@@ -161,21 +98,21 @@ def _read_npz(path: Path) -> dict[str, np.ndarray]:
     try:
         data = np.load(path, allow_pickle=False)
         if not isinstance(data, np.lib.npyio.NpzFile):
-            raise _fail(source, None, "not an .npz archive (a single .npy array)")
+            raise format_error(source, None, "not an .npz archive (a single .npy array)")
         with data:
             out = {}
             for key in data.files:
                 try:
                     out[key] = data[key]
                 except (ValueError, OSError, EOFError, zipfile.BadZipFile, zlib.error) as exc:
-                    raise _fail(source, key, f"cannot be read ({type(exc).__name__}: {exc})") from None
+                    raise format_error(source, key, f"cannot be read ({type(exc).__name__}: {exc})") from None
             return out
     except FileNotFoundError:
         raise
     except BarnFormatError:
         raise
     except (ValueError, OSError, EOFError, zipfile.BadZipFile, zlib.error) as exc:
-        raise _fail(source, None, f"not a readable .npz archive ({type(exc).__name__}: {exc})") from None
+        raise format_error(source, None, f"not a readable .npz archive ({type(exc).__name__}: {exc})") from None
 
 
 def _unique_rows(rows: np.ndarray) -> np.ndarray:
@@ -243,113 +180,3 @@ def write_barn(path: str | os.PathLike, maps: Mapping[str, np.ndarray] | Sequenc
     arrays = dict(maps) if isinstance(maps, Mapping) else pack_maps(list(maps))
     validate_barn(arrays, str(path))
     write_npz(path, {key: np.asarray(arrays[key]) for key in KEYS})
-
-
-# ------------------------------------------------------------------------------------------------ Gazebo worlds
-
-_WORLD_NAME = re.compile(r"world_(\d+)\.world")
-_FORBIDDEN = re.compile(rb"<!\s*(DOCTYPE|ENTITY)", re.IGNORECASE)
-
-
-def _parse_world(path: Path) -> tuple[np.ndarray, float]:
-    """``world_<id>.world`` -> (centers float32 [M, 2], cylinder radius)."""
-    source = str(path)
-    data = path.read_bytes()
-    if _FORBIDDEN.search(data):
-        raise _fail(source, None, "contains a DOCTYPE or ENTITY declaration; refusing to parse it")
-    try:
-        root = ET.fromstring(data)
-    except ET.ParseError as exc:
-        raise _fail(source, None, f"not well-formed XML ({exc})") from None
-    world = root.find("world") if root.tag == "sdf" else None
-    if world is None:
-        raise _fail(source, None, f"not a BARN world: expected <sdf><world>, got <{root.tag}>")
-    centers, radii = [], set()
-    for model in world.findall("model"):  # the definitions; world/state repeats them
-        name = model.get("name", "")
-        if not name.startswith("unit_cylinder_"):
-            continue
-        pose = model.find("pose")
-        try:
-            values = [float(v) for v in (pose.text or "").split()] if pose is not None else []
-        except ValueError:
-            values = []
-        if len(values) != 6 or not all(math.isfinite(v) for v in values):
-            raise _fail(source, None, f"model {name!r}: needs a <pose> of 6 finite numbers (x y z roll pitch yaw)")
-        r = model.find("link/collision/geometry/cylinder/radius")
-        try:
-            radii.add(float(r.text) if r is not None and r.text else math.nan)
-        except ValueError:
-            radii.add(math.nan)
-        centers.append(values[:2])
-    if not centers:
-        raise _fail(source, None, "not a BARN world: no <model name='unit_cylinder_N'> under <world>")
-    if len(radii) != 1 or not all(math.isfinite(r) and r > 0 for r in radii):
-        raise _fail(source, None, f"not a BARN world: the cylinders need one collision radius > 0, got {sorted(radii)}")
-    return np.asarray(centers, dtype=np.float32), radii.pop()
-
-
-def _world_files(folder_or_files: str | os.PathLike | Iterable[str | os.PathLike]) -> list[tuple[int, Path]]:
-    if isinstance(folder_or_files, (str, os.PathLike)):
-        p = Path(folder_or_files)
-        files = sorted(p.glob("world_*.world")) if p.is_dir() else [p]
-    else:
-        files = [Path(f) for f in folder_or_files]
-    out = []
-    for f in files:
-        m = _WORLD_NAME.fullmatch(f.name)
-        if m is None:
-            raise BarnFormatError(f"{f}: a BARN world file is named world_<id>.world")
-        if not f.is_file():
-            raise FileNotFoundError(f"{f}: no such file")
-        out.append((int(m.group(1)), f))
-    if not out:
-        raise BarnFormatError(f"{folder_or_files}: no world_<id>.world files")
-    return sorted(out)
-
-
-def _read_path(path: Path) -> np.ndarray:
-    try:
-        arr = np.load(path, allow_pickle=False)
-    except (ValueError, OSError, EOFError) as exc:
-        raise _fail(str(path), None, f"not a readable .npy path ({type(exc).__name__}: {exc})") from None
-    if not isinstance(arr, np.ndarray) or arr.ndim != 2 or arr.shape[1] != 2 or arr.dtype.kind not in "iuf":
-        raise _fail(str(path), None, f"a path must be a numeric [P, 2] array, got {getattr(arr, 'shape', arr)!r}")
-    return arr.astype(np.float32)
-
-
-def convert_worlds(
-    folder_or_files: str | os.PathLike | Iterable[str | os.PathLike],
-    start: Sequence[float] = FILE_START,
-    goal: Sequence[float] = FILE_GOAL,
-) -> dict[str, np.ndarray]:
-    """BARN Gazebo worlds -> arrays in the file format (see the module docstring), maps sorted by id.
-
-    ``folder_or_files``: a folder (every ``world_<id>.world`` in it), one file, or a list of files. The
-    reference path of world ``<id>`` is ``path_<id>.npy`` next to it when present (the dataset's layout),
-    else empty. Cylinders are the ``<model name='unit_cylinder_N'>`` definitions under ``<world>`` (x, y of
-    their ``<pose>``); the ``<state>`` section, which repeats them, is not read. Files with a DOCTYPE or ENTITY
-    declaration are refused unparsed.
-    """
-    ids, centers, paths, radii = [], [], [], set()
-    for map_id, f in _world_files(folder_or_files):
-        c, r = _parse_world(f)
-        path_file = f.with_name(f"path_{map_id}.npy")
-        ids.append(map_id)
-        centers.append(c)
-        radii.add(r)
-        paths.append(_read_path(path_file) if path_file.is_file() else np.zeros((0, 2), np.float32))
-    if len(radii) != 1:
-        raise BarnFormatError(f"{folder_or_files}: the worlds use different cylinder radii {sorted(radii)}")
-    arrays = {
-        "map_ids": np.asarray(ids, dtype=np.int64),
-        "centers": np.concatenate(centers).astype(np.float32),
-        "offsets": np.concatenate([[0], np.cumsum([len(c) for c in centers])]).astype(np.int64),
-        "radius": np.float32(radii.pop()),
-        "paths": np.concatenate(paths).astype(np.float32),
-        "path_offsets": np.concatenate([[0], np.cumsum([len(p) for p in paths])]).astype(np.int64),
-        "start": np.asarray(start, dtype=np.float32),
-        "goal": np.asarray(goal, dtype=np.float32),
-    }
-    validate_barn(arrays, str(folder_or_files))
-    return arrays
