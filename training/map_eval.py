@@ -22,11 +22,12 @@ import torch
 from cuniform_torch.cli import ArgumentParser, cli_main
 from cuniform_torch.envs import OccupancyGrid
 from cuniform_torch.map_checkpoint import load_map_policy
+from cuniform_torch.map_policy import MapPolicy
 from cuniform_torch.policy import TablePolicy
 from cuniform_torch.rollout import rollout
 from cuniform_torch.sensing import patch_centres
-from cuniform_torch.table import read_table
-from precompute.map_dataset import read_map_dataset
+from cuniform_torch.table import Table, read_table
+from precompute.map_dataset import MapDataset, read_map_dataset
 
 
 def inflated(patch: np.ndarray, spec, radius: float) -> OccupancyGrid:
@@ -55,12 +56,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--json", default=None, help="also write the rates here")
     args = parser.parse_args(argv)
-    policy = load_map_policy(args.checkpoint)
-    ds = read_map_dataset(args.maps)
-    blind = read_table(args.table, graph=False)
-    if json.loads(blind.system) != json.loads(ds.meta["system"]) or json.loads(ds.meta["system"]) != \
-            json.loads(_checkpoint_system(args.checkpoint)):
-        raise ValueError(f"{args.table}, {args.maps} and {args.checkpoint} must share the system JSON")
+    policy, ds, blind = load_inputs(args.checkpoint, args.maps, args.table)
     spec, system, T = policy.patch_spec, policy.system, policy.horizon
     blind_policy, x0 = TablePolicy(blind), torch.zeros(len(system.periodic))
     rates = {"map_policy": [], "blind_table": [], "safe_table": []}
@@ -86,6 +82,20 @@ def main(argv: Sequence[str] | None = None) -> int:
         from cuniform_torch.fileio import write_json
         write_json(args.json, {"rates": rates, "means": means, "samples": args.samples})
     return 0
+
+
+def load_inputs(checkpoint: str, maps: str, table: str) -> tuple[MapPolicy, MapDataset, Table]:
+    """The map policy, the data set and the blind table, read and checked to share one system JSON (horizon
+    included); ValueError naming the files otherwise. Shared with :mod:`training.map_coverage`."""
+    policy = load_map_policy(checkpoint)
+    ds = read_map_dataset(maps)
+    blind = read_table(table, graph=False)
+    want = json.loads(ds.meta["system"])
+    for path, kind, system in ((checkpoint, "map policy", _checkpoint_system(checkpoint)), (table, "table", blind.system)):
+        if json.loads(system) != want:  # name the file that differs: the three must share the system JSON
+            raise ValueError(f"{path} is a {kind} of another system than the data set {maps} ({system} against "
+                             f"{ds.meta['system']}): {table}, {maps} and {checkpoint} must share the system JSON")
+    return policy, ds, blind
 
 
 def _checkpoint_system(path: str) -> str:
