@@ -20,12 +20,21 @@ import numpy as np
 
 from .barn import CHALLENGE_GOAL, CHALLENGE_START, BarnMap, load_barn
 from .nav_geometry import inflate
-from .suites import NavTask, SuiteError, make_suite, validate_task
+from .suites import NavTask, SuiteError, forest, make_suite, validate_task
 
-__all__ = ["SUITES", "BARN_BOUNDS", "GAP_OFFSETS", "RESOLUTIONS", "TIME_LIMITS", "barn_task", "barn_tasks", "make_tasks", "DEFAULT_COUNTS"]
+__all__ = ["SUITES", "SPLITS", "split_of", "BARN_BOUNDS", "GAP_OFFSETS", "RESOLUTIONS", "TIME_LIMITS", "barn_task", "barn_tasks", "make_tasks", "DEFAULT_COUNTS"]
 
 SUITES = ("barn", "forest", "gaps")
 """the suites of ``python -m eval.navigate``"""
+SPLITS = ("all", "train", "test")
+"""task splits (:func:`split_of`): ``all`` keeps every task"""
+
+
+def split_of(key: int) -> str:
+    """The split of the map with ``key`` (a BARN map id, a forest seed): test when ``key % 5 == 0``, else train.
+    The map-table farm (:mod:`precompute.map_worlds`) trains on the train split only, so a benchmark run on
+    ``--split test`` drives on maps no map-conditioned policy has seen."""
+    return "test" if key % 5 == 0 else "train"
 BARN_BOUNDS = (-6.0, -1.5, 1.5, 15.0)
 """raw workspace bounds of every BARN task (m): the map (x in [-4.5, 0], y in [0, 9.6]) and its goal, with room"""
 DEFAULT_COUNTS = {"barn": None, "forest": 50, "gaps": 9}
@@ -63,10 +72,13 @@ def barn_tasks(robot_radius: float, path: str | os.PathLike | None = None, count
 
 def make_tasks(suite: str, robot_radius: float, count: int | None = None, seed: int = 0,
                barn_file: str | os.PathLike | None = None, sensing_range: float | None = 3.0,
-               resolution: float | None = None, time_limits: dict[str, float] | None = TIME_LIMITS) -> list[NavTask]:
+               resolution: float | None = None, time_limits: dict[str, float] | None = TIME_LIMITS,
+               split: str = "all") -> list[NavTask]:
     """The tasks of ``suite`` for a robot of ``robot_radius``, each validated (module docstring).
 
-    ``count``: tasks (None: :data:`DEFAULT_COUNTS`); ``seed``: the first forest seed; ``barn_file``: another
+    ``count``: tasks (None: :data:`DEFAULT_COUNTS`); ``seed``: the first forest seed; ``split``: keep only the
+    maps of that split (:func:`split_of` of the BARN map id or forest seed: the first ``count`` of them from
+    ``seed`` on; the gap sweep is no farm map, so all of it is ``test`` and none ``train``); ``barn_file``: another
     BARN file in the shipped format; ``sensing_range``: the forest's (None: all obstacles known);
     ``resolution``: of the reachability flood fill (m; None: :data:`RESOLUTIONS`); ``time_limits``: per suite, overriding the suites'
     own (s; default :data:`TIME_LIMITS`, the benchmark's).
@@ -77,13 +89,23 @@ def make_tasks(suite: str, robot_radius: float, count: int | None = None, seed: 
         count = DEFAULT_COUNTS[suite]
     if count is not None and (isinstance(count, bool) or not isinstance(count, int) or count < 1):
         raise SuiteError(f"the number of tasks must be an integer >= 1, got {count!r}")
+    if split not in SPLITS:
+        raise SuiteError(f"unknown split {split!r}; choose from {', '.join(SPLITS)}")
     limit = {} if not time_limits or suite not in time_limits else {"time_limit": float(time_limits[suite])}
     if suite == "barn":
-        tasks = barn_tasks(robot_radius, barn_file, count, **limit)
+        tasks = barn_tasks(robot_radius, barn_file, None if split != "all" else count, **limit)
+        if split != "all":
+            tasks = [t for t in tasks if split_of(t.task_id) == split][:count]
+    elif suite == "forest" and split != "all":
+        seeds = [s for s in range(seed, seed + 5 * count + 5) if split_of(s) == split][:count]
+        tasks = [forest(s, robot_radius=robot_radius, sensing_range=sensing_range, **limit) for s in seeds]
     elif suite == "forest":
         tasks = make_suite("forest", count, seed=seed, robot_radius=robot_radius, sensing_range=sensing_range, **limit)
     else:
-        tasks = make_suite("gaps", count, offsets=GAP_OFFSETS, robot_radius=robot_radius, **limit)
+        tasks = [] if split == "train" else make_suite("gaps", count, offsets=GAP_OFFSETS, robot_radius=robot_radius,
+                                                       **limit)
+    if not tasks:
+        raise SuiteError(f"the {split} split of {suite} holds no task")
     for task in tasks:
         validate_task(task, resolution=resolution or RESOLUTIONS[suite])
     return tasks

@@ -39,7 +39,7 @@ from .nav_methods import GAUSSIAN_BASELINES, NAV_METHODS, parse_nav_methods
 from .nav_robot import NAV_ROBOT, RobotPreset, ensure_policy, ensure_table, preset_dict
 from .nav_stats import markdown, paired_comparisons, summarize
 from .nav_store import EpisodeStore
-from .nav_tasks import SUITES, TIME_LIMITS, make_tasks, task_summary
+from .nav_tasks import SPLITS, SUITES, TIME_LIMITS, make_tasks, task_summary
 from .suites import NavTask
 
 __all__ = ["NavConfig", "REPEATS", "SHORT", "QUICK", "make_jobs", "run", "short_run", "render",
@@ -66,6 +66,9 @@ class NavConfig:
     """controller seeds per task (default: 1, the gap suite 5)"""
     seed: int = 0
     """the first forest seed; controller seeds derive from it, the suite and the task"""
+    split: str = "all"
+    """all, or only the train / test maps (BARN map id or forest seed divisible by 5: test; the gap sweep is test):
+    the map-table farm trains on train maps only, so judge map-conditioned methods on test"""
     sensing_range: float = 3.0
     """forest: obstacles are sensed within this distance of the robot (m)"""
     horizon: int = 15
@@ -98,6 +101,8 @@ def make_jobs(tasks: Sequence[NavTask], methods: Sequence[str], budgets: Sequenc
 def _check(cfg: NavConfig) -> None:
     if cfg.suite not in SUITES:
         raise ValueError(f"unknown suite {cfg.suite!r}; choose from {', '.join(SUITES)}")
+    if cfg.split not in SPLITS:
+        raise ValueError(f"unknown split {cfg.split!r}; choose from {', '.join(SPLITS)}")
     parse_nav_methods(cfg.methods)
     if not cfg.budgets:
         raise ValueError("give at least one budget (--budgets)")
@@ -174,7 +179,7 @@ def run(cfg: NavConfig, out: Path, robot: RobotPreset = NAV_ROBOT, cache: Path =
     _check(cfg)
     methods = [m.key for m in parse_nav_methods(cfg.methods)]
     tasks = make_tasks(cfg.suite, robot.radius, cfg.tasks, seed=cfg.seed, barn_file=barn_file,
-                       sensing_range=cfg.sensing_range, time_limits=TIME_LIMITS)
+                       sensing_range=cfg.sensing_range, time_limits=TIME_LIMITS, split=cfg.split)
     repeats = cfg.repeats or REPEATS[cfg.suite]
     jobs = make_jobs(tasks, methods, cfg.budgets, repeats, cfg.seed)
     with exclusive_lock(Path(out) / ".lock", what=f"the benchmark folder {out}"):
@@ -289,7 +294,7 @@ def short_run(root: Path, quick: bool = False, progress: bool = True) -> dict:
 
 def make_parser() -> ArgumentParser:
     p = ArgumentParser(prog="python -m eval.navigate", description=(__doc__ or "").split("\n\n")[0])
-    add_dataclass_args(p, NavConfig, flags={"lambda_": "--lambda"}, choices={"suite": SUITES},
+    add_dataclass_args(p, NavConfig, flags={"lambda_": "--lambda"}, choices={"suite": SUITES, "split": SPLITS},
                        help={"methods": f"method keys, of {', '.join(NAV_METHODS)} (default: all but cu_mlp)"})
     p.add_argument("--ray", nargs="?", const="local", default=None, metavar="ADDRESS",
                    help="run episodes as Ray tasks: a local Ray runtime, or the cluster at ADDRESS ('auto', "

@@ -24,6 +24,7 @@ import numpy as np
 
 from eval.barn import load_barn
 from eval.nav_geometry import clearance, inflate
+from eval.nav_tasks import split_of
 from eval.suites import forest, gaps
 
 __all__ = ["SPLITS", "World", "split_of", "suite_worlds", "world_of", "crop_patch", "candidate_poses"]
@@ -32,11 +33,6 @@ SPLITS = ("train", "test")
 _KEY_RANGE = 1 << 31
 _GAP_WIDTHS = (0.6, 1.2)
 _GAP_OFFSET = 1.5
-
-
-def split_of(key: int) -> str:
-    """The split of the map with ``key``: test when ``key % 5 == 0``, else train."""
-    return "test" if key % 5 == 0 else "train"
 
 
 @dataclass(frozen=True, eq=False)

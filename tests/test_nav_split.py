@@ -1,0 +1,35 @@
+"""The benchmark's test split holds no map the map-table farm trains on."""
+
+import pytest
+
+from eval.nav_tasks import make_tasks, split_of
+from eval.navigate import NavConfig, _check
+from eval.suites import SuiteError
+from precompute.map_worlds import suite_worlds
+
+
+def test_forest_test_split_is_every_fifth_seed_from_seed():
+    tasks = make_tasks("forest", 0.2, 4, seed=3, split="test")
+    assert [t.task_id for t in tasks] == [5, 10, 15, 20]
+    train = make_tasks("forest", 0.2, 3, seed=4, split="train")
+    assert [t.task_id for t in train] == [4, 6, 7]
+
+
+def test_barn_test_split_keeps_ids_divisible_by_five():
+    ids = [t.task_id for t in make_tasks("barn", 0.2, 5, split="test")]
+    assert len(ids) == 5 and all(i % 5 == 0 for i in ids)
+    assert [t.task_id for t in make_tasks("barn", 0.2, 3, split="all")] == [0, 2, 4]  # the shipped half
+
+
+def test_farm_train_maps_never_in_the_benchmark_test_split():
+    keys = {w.key for w in suite_worlds("barn", 20, "train", seed=0, radius=0.2)}
+    test_ids = {t.task_id for t in make_tasks("barn", 0.2, None, split="test")}
+    assert keys and not keys & test_ids
+    assert all(split_of(k) == "train" for k in keys)
+
+
+def test_bad_split_and_empty_split_are_clear_errors():
+    with pytest.raises(SuiteError, match="train split of gaps holds no task"):
+        make_tasks("gaps", 0.2, None, split="train")
+    with pytest.raises(ValueError, match="unknown split 'heldout'"):
+        _check(NavConfig(suite="forest", split="heldout"))
