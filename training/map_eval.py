@@ -91,7 +91,8 @@ def load_inputs(checkpoint: str, maps: str, table: str) -> tuple[MapPolicy, MapD
     ds = read_map_dataset(maps)
     blind = read_table(table, graph=False)
     want = json.loads(ds.meta["system"])
-    for path, kind, system in ((checkpoint, "map policy", _checkpoint_system(checkpoint)), (table, "table", blind.system)):
+    for path, kind, system in ((checkpoint, "map policy", _checkpoint_system(checkpoint)),
+                               (table, "table", blind.system)):
         if json.loads(system) != want:  # name the file that differs: the three must share the system JSON
             raise ValueError(f"{path} is a {kind} of another system than the data set {maps} ({system} against "
                              f"{ds.meta['system']}): {table}, {maps} and {checkpoint} must share the system JSON")
