@@ -226,3 +226,15 @@ def test_bad_input_raises_clear_errors():
         summarize([dict(records[0], success=False)])
     with pytest.raises(ValueError, match="appears twice"):
         paired_comparisons(records + [records[0]], ["mppi"])
+
+
+def test_wilson_interval_always_holds_the_observed_rate():
+    """At 0 / n and n / n the bound equals the rate exactly; rounding once put 6/6 above its own upper bound
+    (a negative error bar, which matplotlib refuses)."""
+    from eval.stats import wilson_interval
+
+    for n in range(1, 200):
+        for s in range(n + 1):
+            low, high = wilson_interval(s, n)
+            assert 0.0 <= low <= s / n <= high <= 1.0, (s, n, low, high)
+    assert wilson_interval(6, 6)[1] == 1.0 and wilson_interval(0, 11)[0] == 0.0
