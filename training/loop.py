@@ -12,7 +12,7 @@ import dataclasses
 import math
 import time
 from dataclasses import dataclass
-from typing import Any, Callable
+from typing import TYPE_CHECKING, Any, Callable
 
 import torch
 from torch import Tensor
@@ -23,6 +23,9 @@ from cuniform_torch.grid import Grid
 from .evaluate import kl_rows
 from .samples import level_weights, make_samples
 from .train_state import TRAIN_STATE_FORMAT
+
+if TYPE_CHECKING:
+    from .distill_setup import PooledCells
 
 __all__ = ["Progress", "kl_epoch", "validate", "log_hyperparameters", "log_epoch_scalars", "run_epochs"]
 
@@ -136,13 +139,13 @@ def log_epoch_scalars(writer: Any, step: int, train_kl: float, val_kl: float, va
 
 
 def run_epochs(cfg: Any, progress: Progress, model: torch.nn.Module, forward: Forward,
-               optimizer: torch.optim.Optimizer, scheduler: Any, cells: Any, grid: Grid, data_gen: torch.Generator,
-               device: torch.device, writer: Any, evaluate: Callable[[int], None],
+               optimizer: torch.optim.Optimizer, scheduler: Any, cells: PooledCells, grid: Grid,
+               data_gen: torch.Generator, device: torch.device, writer: Any, evaluate: Callable[[int], None],
                save: Callable[[dict[str, Any]], None], fingerprint: dict[str, Any], desc: str) -> None:
-    """The epochs from ``progress.epochs_run`` to ``cfg.epochs`` (or early stopping): a KL pass over ``cells``
-    (a :class:`training.distill_setup.PooledCells`), the validation KL and accuracy of ``forward`` at its
-    validation points, the scalars, ``evaluate(step)`` every ``cfg.eval_every`` epochs and at the end, and
-    ``save(state)`` of the training state after every epoch; a progress bar named ``desc``."""
+    """The epochs from ``progress.epochs_run`` to ``cfg.epochs`` (or early stopping): a KL pass over ``cells``,
+    the validation KL and accuracy of ``forward`` at their validation points, the scalars, ``evaluate(step)``
+    every ``cfg.eval_every`` epochs and at the last, and ``save(state)`` of the training state after every
+    epoch; a progress bar named ``desc``."""
     bar = tqdm(range(progress.epochs_run, cfg.epochs), initial=progress.epochs_run, total=cfg.epochs,
                disable=cfg.quiet or progress.finished, desc=desc, unit="epoch")
     for epoch in bar:
