@@ -39,7 +39,7 @@ from cuniform_torch.envs import Environment, NavigationCost, OccupancyGrid, simu
 from .methods import Sources, make_controller
 from .nav_methods import NAV_METHODS
 from .nav_stats import cycle_histogram
-from .nav_geometry import clearance
+from .nav_geometry import clearance, inflate
 from .suites import NavTask
 
 __all__ = ["NavJob", "NavContext", "run_nav_episode", "rasterize", "episode_key", "RASTER_MIN_OBSTACLES"]
@@ -122,6 +122,12 @@ def rasterize(environment: Environment, resolution: float) -> Environment:
     return Environment([grid], bounds=environment.bounds)
 
 
+def sensed_world(task: NavTask) -> Environment:
+    """What a map-conditioned policy senses: the task's raw obstacles and bounds, not inflated by the robot's
+    radius (the map-table farm's patches are raw; its tables inflate by the radius themselves)."""
+    return inflate(task.discs, task.walls, task.bounds, 0.0)
+
+
 def _cost_environment(task: NavTask, ctx: NavContext) -> Environment:
     if task.sensing_range is not None or len(task.environment.obstacles) <= RASTER_MIN_OBSTACLES:
         return task.environment
@@ -164,8 +170,9 @@ def run_nav_episode(job: NavJob, ctx: NavContext) -> dict:
     cost = NavigationCost(_cost_environment(task, ctx), task.goal, goal_tolerance=task.goal_tolerance,
                           collision_penalty=ctx.collision_penalty, per_state=True, stop_at_goal=True)
     t0 = time.perf_counter()
+    world = sensed_world(task) if method.source == "map_policy" else None
     inner = make_controller(method, sources, cost, job.budget, ctx.horizon, job.seed, lambda_=ctx.lambda_,
-                            world=task.environment, max_range=task.sensing_range)  # a map policy senses the world
+                            world=world, max_range=task.sensing_range)
     ctrl = _TimedSensingController(inner, cost, task)
     system = sources.system
     x0 = torch.zeros(len(system.periodic), dtype=torch.float32)

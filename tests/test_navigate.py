@@ -302,3 +302,31 @@ def test_cfu_mppi_runs_from_a_given_map_policy_and_needs_one(tmp_path, cache):
     with pytest.raises(ValueError, match="--map-policy"):
         run(_cfg(tasks=1, methods=("cfu_mppi",)), tmp_path / "o2", ROBOT, cache, given={"table": table},
             progress=False)
+
+
+def test_cfu_mppi_senses_the_raw_obstacles_not_the_inflated_ones(monkeypatch, tmp_path, cache):
+    """The farm's patches are raw occupancy (its tables inflate by the radius): a policy fed the inflated world
+    would see every obstacle 0.2 m too large, a map unlike any it was trained on."""
+    from eval import nav_episode
+    from eval.nav_tasks import make_tasks
+
+    task = make_tasks("forest", ROBOT.radius, 1)[0]
+    seen = {}
+
+    class Stop(Exception):
+        pass
+
+    def capture(method, sources, cost, *args, world=None, max_range=None, **kw):
+        seen.update(world=world, max_range=max_range)
+        raise Stop
+
+    monkeypatch.setattr(nav_episode, "make_controller", capture)
+    table = ensure_table(ROBOT, cache, quiet=True)
+    ctx = nav_episode.NavContext(table=str(table), map_policy=str(_map_policy_file(tmp_path / "m.pt", ROBOT.make_system(),
+                                                                                    ROBOT.horizon)))
+    with pytest.raises(Stop):
+        nav_episode.run_nav_episode(nav_episode.NavJob(task, "cfu_mppi", 16, 0), ctx)
+    raw = [float(r) for r in task.discs[:, 2]]
+    assert [o.radius for o in seen["world"].obstacles[:len(raw)]] == pytest.approx(raw)
+    assert [o.radius for o in task.environment.obstacles[:len(raw)]] == pytest.approx([r + ROBOT.radius for r in raw])
+    assert seen["world"].bounds == pytest.approx(task.bounds) and seen["max_range"] == task.sensing_range
