@@ -45,7 +45,7 @@ from .suites import NavTask
 __all__ = ["NavConfig", "REPEATS", "SHORT", "QUICK", "make_jobs", "run", "short_run", "render", "result",
            "success_pivot", "write_outputs", "main", "controller_seed"]
 
-REPEATS = {"barn": 1, "forest": 1, "gaps": 5}
+REPEATS = {"barn": 1, "forest": 1, "gaps": 5, "clutter": 1}
 """controller seeds per task by default: the gap suite has few tasks (9 widths), so each runs 5 times"""
 
 
@@ -54,7 +54,7 @@ class NavConfig:
     """One benchmark run (every field is a flag)."""
 
     suite: str = "barn"
-    """barn, forest or gaps"""
+    """barn, forest, gaps or clutter"""
     tasks: int | None = None
     """how many tasks (BARN: the first maps of the file; forest: seeds from --seed; gaps: widths 0.6..1.2 m);
     default: every BARN map, 50 forests, 9 gaps"""

@@ -47,7 +47,7 @@ def make_parser() -> argparse.ArgumentParser:
 
     parser = ArgumentParser(prog="python -m precompute.map_farm",
                             description="Build a data set of safe C-Uniform tables over local map patches.")
-    parser.add_argument("--suite", required=True, choices=["barn", "forest", "gaps"])
+    parser.add_argument("--suite", required=True, choices=["barn", "forest", "gaps", "clutter"])
     parser.add_argument("--count", type=int, required=True, help="maps (one shard each)")
     parser.add_argument("--poses-per-map", type=int, default=1, help="start poses (entries) per map")
     parser.add_argument("--split", required=True, choices=list(SPLITS),

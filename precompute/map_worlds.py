@@ -6,12 +6,14 @@ Maps by suite (each has an integer key; the source string names it):
 
 * ``barn``: the shipped BARN maps (``eval/data/barn_train.npz``), key = the BARN world id, ``barn:<id>``.
 * ``forest``: :func:`eval.suites.forest` of seed = key, every obstacle known, ``forest:seed=<key>``.
+* ``clutter``: the same with the benchmark's clutter density (:data:`eval.nav_tasks.CLUTTER`), ``clutter:seed=<key>``.
 * ``gaps``: :func:`eval.suites.gaps` with width uniform in [0.6, 1.2] m and offset uniform in [-1.5, 1.5] m drawn
   from ``numpy.random.default_rng(key)``, ``gaps:seed=<key>``.
 
-Split rule: a map is in the test split when its key is divisible by 5 (:func:`split_of`), else in train, for
+Split rule: a map is in the test split when its key is divisible by 5 (:func:`eval.nav_tasks.split_of`, the
+benchmark's ``--split``), else in train, for
 every suite and every ``--seed``, so the two splits never share a map. ``--seed`` picks which maps of the split
-(BARN: a seeded permutation of the split's maps; forest, gaps: keys drawn from ``default_rng(seed)``) and the
+(BARN: a seeded permutation of the split's maps; forest, clutter, gaps: keys drawn from ``default_rng(seed)``) and the
 start poses (``default_rng([seed, key])``).
 """
 
@@ -24,7 +26,7 @@ import numpy as np
 
 from eval.barn import load_barn
 from eval.nav_geometry import clearance, inflate
-from eval.nav_tasks import split_of
+from eval.nav_tasks import CLUTTER, split_of
 from eval.suites import forest, gaps
 
 __all__ = ["SPLITS", "World", "split_of", "suite_worlds", "world_of", "crop_patch", "candidate_poses"]
@@ -56,8 +58,8 @@ def _barn_world(m, radius: float) -> World:
 
 
 def _task_world(suite: str, key: int, radius: float) -> World:
-    if suite == "forest":
-        task = forest(key, robot_radius=radius, sensing_range=None)
+    if suite in ("forest", "clutter"):
+        task = forest(key, robot_radius=radius, sensing_range=None, **(CLUTTER if suite == "clutter" else {}))
     else:
         rng = np.random.default_rng(key)
         width, offset = rng.uniform(*_GAP_WIDTHS), rng.uniform(-_GAP_OFFSET, _GAP_OFFSET)
@@ -75,8 +77,8 @@ def suite_worlds(suite: str, count: int, split: str, seed: int, radius: float) -
             raise ValueError(f"--count {count}: the BARN {split} split has only {len(maps)} maps")
         order = np.random.default_rng(seed).permutation(len(maps))[:count]
         return [_barn_world(maps[i], radius) for i in order.tolist()]
-    if suite not in ("forest", "gaps"):
-        raise ValueError(f"--suite must be barn, forest or gaps, got {suite!r}")
+    if suite not in ("forest", "gaps", "clutter"):
+        raise ValueError(f"--suite must be barn, forest, gaps or clutter, got {suite!r}")
     rng, keys = np.random.default_rng(seed), []
     while len(keys) < count:
         for key in rng.integers(0, _KEY_RANGE, size=4 * count).tolist():

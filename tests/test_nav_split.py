@@ -33,3 +33,28 @@ def test_bad_split_and_empty_split_are_clear_errors():
         make_tasks("gaps", 0.2, None, split="train")
     with pytest.raises(ValueError, match="unknown split 'heldout'"):
         _check(NavConfig(suite="forest", split="heldout"))
+
+
+def test_clutter_suite_is_the_forest_corridor_denser():
+    from eval.nav_tasks import CLUTTER
+    from eval.suites import make_suite
+
+    tasks = make_tasks("clutter", 0.2, 3, split="test")
+    assert [t.task_id for t in tasks] == [0, 5, 10] and {t.suite for t in tasks} == {"clutter"}
+    lo, hi = CLUTTER["num_discs"]
+    assert all(lo <= len(t.discs) <= hi and (t.discs[:, 2] == CLUTTER["disc_radius"]).all() for t in tasks)
+    forest = make_tasks("forest", 0.2, 3, split="test")
+    assert all(len(f.discs) < len(c.discs) for f, c in zip(forest, tasks))
+    # split "all" keeps the forest's tasks of before the split existed: seeds seed..seed+count-1
+    old = make_suite("forest", 4, seed=7, robot_radius=0.2)
+    new = make_tasks("forest", 0.2, 4, seed=7)
+    assert [t.task_id for t in new] == [7, 8, 9, 10]
+    assert all((a.discs == b.discs).all() for a, b in zip(old, new))
+
+
+def test_farm_builds_clutter_worlds_of_the_benchmark_density():
+    from eval.nav_tasks import CLUTTER
+    from precompute.map_worlds import world_of
+
+    w = world_of("clutter", 3, 0.2)
+    assert w.source == "clutter:seed=3" and CLUTTER["num_discs"][0] <= len(w.discs) <= CLUTTER["num_discs"][1]
