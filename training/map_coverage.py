@@ -30,7 +30,7 @@ from cuniform_torch.envs import OccupancyGrid
 from cuniform_torch.grid import CellSet, Grid
 from cuniform_torch.policy import TablePolicy
 from cuniform_torch.rollout import rollout
-from training.map_eval import load_inputs
+from training.map_eval import add_input_args, load_inputs
 
 __all__ = ["free_coverage", "mean_interval", "main"]
 
@@ -87,9 +87,7 @@ def _pm(mean: float, half: float) -> str:
 @cli_main()
 def main(argv: Sequence[str] | None = None) -> int:
     parser = ArgumentParser(prog="python -m training.map_coverage", description=__doc__.splitlines()[0])
-    parser.add_argument("--checkpoint", required=True, help="the map policy (cuniform-map-policy/1)")
-    parser.add_argument("--maps", required=True, help="a data set folder (cuniform-map-dataset/1)")
-    parser.add_argument("--table", required=True, help="the blind table of the same system and horizon")
+    add_input_args(parser)
     parser.add_argument("--samples", type=int, nargs="+", default=[256, 1024], metavar="N",
                         help="rollouts per entry and method, one run per N")
     parser.add_argument("--entries", type=int, default=0, help="first entries only (0: all)")

@@ -45,12 +45,18 @@ def collision_rate(states: torch.Tensor, grid: OccupancyGrid) -> float:
     return float(grid.contains(states[:, 1:, :2].float()).any(dim=1).float().mean())
 
 
-@cli_main()
-def main(argv: Sequence[str] | None = None) -> int:
-    parser = ArgumentParser(prog="python -m training.map_eval", description=__doc__.splitlines()[0])
+def add_input_args(parser: ArgumentParser) -> None:
+    """The three inputs of map_eval and map_coverage: ``--checkpoint``, ``--maps``, ``--table``
+    (read by :func:`load_inputs`)."""
     parser.add_argument("--checkpoint", required=True, help="the map policy (cuniform-map-policy/1)")
     parser.add_argument("--maps", required=True, help="a data set folder (cuniform-map-dataset/1)")
     parser.add_argument("--table", required=True, help="the blind table of the same system and horizon")
+
+
+@cli_main()
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = ArgumentParser(prog="python -m training.map_eval", description=__doc__.splitlines()[0])
+    add_input_args(parser)
     parser.add_argument("--samples", type=int, default=1000, help="rollouts per entry and method")
     parser.add_argument("--entries", type=int, default=0, help="first entries only (0: all)")
     parser.add_argument("--seed", type=int, default=0)
