@@ -127,3 +127,24 @@ def test_a_crop_is_the_world_in_the_robot_frame():
     i, j = np.argwhere(patch == 1).mean(axis=0)
     assert abs((-1.5 + (j + 0.5) * 0.05) - 0.4) < 0.03 and abs((-1.5 + (i + 0.5) * 0.05) + 0.8) < 0.03
     assert 15 <= patch.sum() <= 25  # about pi 0.12^2 / 0.05^2 = 18 cells
+
+
+def test_coverage_settings_reach_the_builder_and_the_header(tmp_path, capsys):
+    """--steps / --tol / --state-budget / --merge-resolution are the coverage builder's (a farm run with them must
+    differ from the defaults, and say so in its header); with --method maxflow they are refused."""
+    cov = TINY + ["--method", "coverage"]
+    cov[cov.index("--count") + 1] = "1"
+    cov[cov.index("--poses-per-map") + 1] = "1"
+    assert farm_main(cov + ["--out", str(tmp_path / "d")]) == 0
+    assert farm_main(cov + ["--steps", "1", "--out", str(tmp_path / "s")]) == 0
+    head_d = json.loads((tmp_path / "d" / "dataset.json").read_text())
+    head_s = json.loads((tmp_path / "s" / "dataset.json").read_text())
+    assert "coverage" not in head_d and head_s["coverage"] == {"steps": 1}
+    a = read_map_dataset(tmp_path / "d").shard(0).arrays["action_probs"]
+    b = read_map_dataset(tmp_path / "s").shard(0).arrays["action_probs"]
+    assert a.shape == b.shape and not np.array_equal(a, b)  # one ascent step is not three hundred
+    capsys.readouterr()
+    assert farm_main(TINY + ["--steps", "5", "--out", str(tmp_path / "m")]) == 2
+    assert "--steps: only for --method coverage" in capsys.readouterr().err
+    assert farm_main(cov + ["--tol", "-1", "--out", str(tmp_path / "t")]) == 2
+    assert "coverage settings: tol must be non-negative" in capsys.readouterr().err
