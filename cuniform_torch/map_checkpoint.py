@@ -2,9 +2,10 @@
 ``torch.load(weights_only=True)``, every key checked.
 
 Keys (nothing else is accepted): ``format``; ``state_dict`` (name -> finite float tensor, exactly the network's);
-``config`` (:class:`~cuniform_torch.map_policy.MapPolicyConfig` as a dict, patch spec included); ``system`` (the
-data set's system JSON); ``actions`` ``[A, q]`` (the system's); ``source`` (str -> str: the data sets and their
-digests); ``metrics`` (str -> number or string: the training's).
+``config`` (:class:`~cuniform_torch.map_policy.MapPolicyConfig` as a dict, patch spec included; ``local_features``
+only when > 0, so files written before it read as 0); ``system`` (the data set's system JSON); ``actions``
+``[A, q]`` (the system's); ``source`` (str -> str: the data sets and their digests); ``metrics`` (str -> number
+or string: the training's).
 """
 
 from __future__ import annotations

@@ -10,6 +10,11 @@ computed with the embedding and a lookup costs what an MLPPolicy's does. It answ
 and ``sample(x, t, generator)`` for the map last set, so it drops into :func:`~cuniform_torch.rollout.rollout`
 and every controller (:class:`~cuniform_torch.map_policy_mppi.CFUMPPI` sets the map each command).
 
+With ``local_features = C > 0`` (:mod:`~cuniform_torch.map_local`) the first layer also reads ``P * C`` features
+sampled bilinearly from a stride-1 feature map of the patch at the state and at probe points ahead of it:
+``W_x f + W_e e + W_l l(x) + b``. The feature map is computed once per map too (``set_map``); ``C = 0`` (the
+default, and what a checkpoint without the key means) is the map-embedding-only network, unchanged.
+
 States are in the start pose's frame (``start_relative`` on an SE(2)-invariant system), like the patch.
 Support: the box of the training cells, as an MLPPolicy without ``support``: each non-periodic dimension
 within ``feature_scale_i + cell_size_i / 2`` of 0 is answered by the network; within one more cell too, counted
@@ -29,6 +34,7 @@ from torch import Tensor, nn
 
 from .grid import Grid
 from .map_encoder import MapEncoder, PatchSpec
+from .map_local import LocalFeatures
 from .mlp_ops import check_query, inverse_cdf_draw, state_features
 from .rollout import StartWatch
 from .systems import System
@@ -57,6 +63,8 @@ class MapPolicyConfig:
     """map embedding size E"""
     channels: int = 8
     """the encoder's base channel count c"""
+    local_features: int = 0
+    """channels C of the local feature map sampled at each state's probes (0: none, the original network)"""
 
     def __post_init__(self) -> None:
         for name in ("state_dim", "num_actions", "horizon", "hidden", "layers", "embed", "channels"):
@@ -75,6 +83,12 @@ class MapPolicyConfig:
         if any(isinstance(s, bool) or not isinstance(s, (int, float)) or not (0 < s < math.inf)
                for s in self.feature_scale):
             raise ValueError(f"MapPolicyConfig: feature_scale must be positive finite numbers, got {self.feature_scale}")
+        lf = self.local_features
+        if isinstance(lf, bool) or not isinstance(lf, int) or not 0 <= lf <= MAX_MAP_HIDDEN:
+            raise ValueError(f"MapPolicyConfig.local_features must be an integer in 0..{MAX_MAP_HIDDEN}, got {lf!r}")
+        if lf and list(self.periodic[:3]) != [False, False, True]:
+            raise ValueError(f"MapPolicyConfig: local_features need states (x, y, heading, ...), but periodic is "
+                             f"{self.periodic}")
         self.patch = PatchSpec.from_dict(self.patch).to_dict()  # checked, normalised
 
     @property
@@ -86,14 +100,19 @@ class MapPolicyConfig:
         return sum(2 if p else 1 for p in self.periodic) + 1
 
     def to_dict(self) -> dict[str, Any]:
-        return dataclasses.asdict(self)
+        """The checkpoint's ``config``; ``local_features`` only when > 0, so a C = 0 checkpoint is the old one."""
+        out = dataclasses.asdict(self)
+        if not out["local_features"]:
+            del out["local_features"]
+        return out
 
 
 class MapPolicy(nn.Module):
     """pi(u | x, t, map): ``set_map(patch)`` once, then ``action_probs(x [N, d], t) -> [N, A]`` for that map.
 
-    ``encode(occupancy [B, H, W]) -> [B, E]`` and ``logits(x, t, embedding)`` are the training path (one embedding
-    per state, ``[N, E]``); ``encodes`` counts the embeddings computed by :meth:`set_map`.
+    ``encode(occupancy [B, H, W]) -> [B, E]``, ``encode_local(occupancy) -> [B, C, H, W]`` (local features only)
+    and ``logits(x, t, embedding, local_map, which)`` are the training path (one embedding per state, ``[N, E]``;
+    row n reads ``local_map[which[n]]``); ``encodes`` counts the maps encoded by :meth:`set_map`.
     """
 
     def __init__(self, config: MapPolicyConfig, system: System, actions: Tensor):
@@ -116,6 +135,10 @@ class MapPolicy(nn.Module):
             body += [nn.SiLU(), nn.Linear(config.hidden, config.hidden)]
         body += [nn.SiLU(), nn.Linear(config.hidden, config.num_actions)]
         self.body = nn.Sequential(*body)
+        # built after the rest, so C = 0 draws the same initial weights as before the option existed
+        self.local = LocalFeatures(self.patch_spec, config.local_features) if config.local_features else None
+        self.inp_l = (nn.Linear(self.local.num_outputs, config.hidden, bias=False) if self.local is not None
+                      else None)
         grid = Grid.of(system)
         half = torch.tensor([s + c / 2 for s, c in zip(config.feature_scale, grid.cell_size)])
         self.register_buffer("_box_half", half[self._linear], persistent=False)  # [d_lin]
@@ -123,7 +146,8 @@ class MapPolicy(nn.Module):
         self._start_watch = StartWatch(f"map policy ({system.name})", system)
         self.register_buffer("_uniform", torch.full((1, config.num_actions), 1.0 / config.num_actions), persistent=False)
         self._map_bias: Tensor | None = None  # [T+1, Hd] per level, for the map last set (set_map)
-        self._w_state: Tensor | None = None  # [F-1, Hd]
+        self._w_state: Tensor | None = None  # [F-1 (+ P * C), Hd]
+        self._local_map: Tensor | None = None  # [1, C, H, W] for the map last set (local features only)
         self._layers: list[tuple[Tensor, Tensor]] = []  # the body's (weight^T, bias)
         self.encodes = 0
         self.reset_counters()
@@ -162,12 +186,27 @@ class MapPolicy(nn.Module):
         """``[B, H, W]`` (bool or 0 / 1) -> ``[B, E]`` map embeddings."""
         return self.encoder(occupancy.to(self.dtype))
 
-    def logits(self, x: Tensor, t: int | Tensor, embedding: Tensor) -> Tensor:
-        """``x [N, d]``, ``t``, ``embedding [N, E]`` (or ``[1, E]``) -> logits ``[N, A]`` (differentiable)."""
-        return self.body(self.inp_x(self.features(x, t)) + self.inp_e(embedding))
+    def encode_local(self, occupancy: Tensor) -> Tensor:
+        """``[B, H, W]`` (bool or 0 / 1) -> ``[B, C, H, W]`` local feature maps (``local_features > 0`` only)."""
+        if self.local is None:
+            raise ValueError("this policy has no local features (local_features = 0)")
+        return self.local(occupancy.to(self.dtype))
 
-    def forward(self, x: Tensor, t: int | Tensor, embedding: Tensor) -> Tensor:
-        return self.logits(x, t, embedding)
+    def logits(self, x: Tensor, t: int | Tensor, embedding: Tensor, local_map: Tensor | None = None,
+               which: Tensor | None = None) -> Tensor:
+        """``x [N, d]``, ``t``, ``embedding [N, E]`` (or ``[1, E]``) -> logits ``[N, A]`` (differentiable). With
+        local features, ``local_map [U, C, H, W]`` (:meth:`encode_local`) and ``which [N]`` (the map of each row;
+        None when U = 1) are required."""
+        h = self.inp_x(self.features(x, t)) + self.inp_e(embedding)
+        if self.local is not None:
+            if local_map is None:
+                raise ValueError("a policy with local features needs local_map (encode_local of the patches)")
+            h = h + self.inp_l(self.local.sample(local_map, x.to(self.dtype), which))
+        return self.body(h)
+
+    def forward(self, x: Tensor, t: int | Tensor, embedding: Tensor, local_map: Tensor | None = None,
+                which: Tensor | None = None) -> Tensor:
+        return self.logits(x, t, embedding, local_map, which)
 
     # -------------------------------------------------------------------------------- one map, many lookups
     def set_map(self, patch: object) -> None:
@@ -185,6 +224,9 @@ class MapPolicy(nn.Module):
             # W_e e + b + w_t t / T per level, and W_x with the feature scales folded in: a lookup is one addmm
             self._map_bias = (self.inp_x.bias + self.inp_e(embedding)[0] + levels[:, None] * w[:, -1]).detach()
             w_state = torch.cat((w[:, :n_lin] * self.inv_scale[self._linear], w[:, n_lin:-1]), dim=1)
+            if self.local is not None:  # the sampled features are more columns of the same addmm
+                self._local_map = self.encode_local(occupied.unsqueeze(0)).detach()  # [1, C, H, W]
+                w_state = torch.cat((w_state, self.inp_l.weight), dim=1)
             self._w_state = w_state.T.contiguous().detach()  # [F-1, Hd]
             self._layers = [(m.weight.detach().T.contiguous(), m.bias.detach()) for m in self.body
                             if isinstance(m, nn.Linear)]
@@ -205,6 +247,9 @@ class MapPolicy(nn.Module):
             if self._angle:
                 ang = x[:, self._angle]
                 parts += [torch.cos(ang), torch.sin(ang)]
+            if self.local is not None:  # dims 0, 1, 2 are x, y, heading (config check): cos / sin just made
+                g = self.local.grid(x[:, :2], parts[-2][:, 0], parts[-1][:, 0])  # [N, P, 2]
+                parts.append(self.local.read(self._local_map, g))  # [N, P * C]
             h = torch.addmm(self._map_bias[t], torch.cat(parts, dim=1), self._w_state)  # [N, Hd]
             for weight, bias in self._layers:
                 h = torch.addmm(bias, torch.nn.functional.silu(h), weight)
@@ -259,6 +304,6 @@ class MapPolicy(nn.Module):
 
     def _apply(self, fn, recurse: bool = True):  # .to(device) moves the counters; the folded map is derived from
         super()._apply(fn, recurse)             # the weights, so it is dropped (set_map again)
-        self._map_bias, self._w_state, self._layers = None, None, []
+        self._map_bias, self._w_state, self._layers, self._local_map = None, None, [], None
         self._near, self._miss = self._near.to(self.device), self._miss.to(self.device)
         return self

@@ -37,7 +37,7 @@ from cuniform_torch.map_checkpoint import map_policy_checkpoint, save_map_policy
 from .loop import log_hyperparameters
 from .map_data import load_map_data
 from .map_train import Trainer, make_policy, split_entries
-from .train_state import load_train_state, save_train_state
+from .train_state import UsageError, load_train_state, save_train_state
 
 TRAIN_STATE_FORMAT = "cuniform-distill-maps-state/1"
 
@@ -58,6 +58,8 @@ class MapDistillConfig:
     """map embedding size"""
     channels: int = 8
     """base channel count of the map encoder (c, 2c, 2c)"""
+    local_features: int = 0
+    """channels of the local feature map sampled at each state and ahead of it (0: none, the embedding only)"""
     epochs: int = 200
     """passes over the training rows"""
     lr: float = 3e-3
@@ -98,8 +100,9 @@ def parse_args(argv: Sequence[str] | None = None) -> MapDistillConfig:
     for name in ("hidden", "layers", "embed", "channels", "epochs", "batch_size"):
         if getattr(cfg, name) < 1:
             raise CLIError(f"--{name.replace('_', '-')} must be a positive integer, got {getattr(cfg, name)}")
-    if cfg.jitter < 0 or cfg.threads < 0:
-        raise CLIError(f"--jitter and --threads must be >= 0, got {cfg.jitter} and {cfg.threads}")
+    if cfg.jitter < 0 or cfg.threads < 0 or cfg.local_features < 0:
+        raise CLIError(f"--jitter, --threads and --local-features must be >= 0, got {cfg.jitter}, {cfg.threads} "
+                       f"and {cfg.local_features}")
     if not (math.isfinite(cfg.lr) and cfg.lr > 0):
         raise CLIError(f"--lr must be a positive number, got {cfg.lr}")
     if not 0 <= cfg.val_fraction < 1:
@@ -133,9 +136,11 @@ def _run(cfg: MapDistillConfig, out: Path, state_path: Path) -> int:
         torch.set_num_threads(cfg.threads)
     data = load_map_data(cfg.maps)
     fingerprint = {**{k: getattr(cfg, k) for k in RESUME_KEYS}, "maps_sha256": [s["sha256"] for s in data.sources]}
+    if cfg.local_features:  # only when used, so a training state written before the option still resumes
+        fingerprint["local_features"] = cfg.local_features
     torch.manual_seed(cfg.seed)
     split = split_entries(data, cfg.val_fraction, cfg.seed)
-    policy = make_policy(data, cfg.hidden, cfg.layers, cfg.embed, cfg.channels)
+    policy = make_policy(data, cfg.hidden, cfg.layers, cfg.embed, cfg.channels, cfg.local_features)
     trainer = Trainer(data, split, policy, cfg.epochs, cfg.lr, cfg.batch_size, cfg.jitter, device)
     gen = torch.Generator().manual_seed(cfg.seed)
     epoch, best_val, best_epoch, seconds = 0, math.inf, 0, 0.0
@@ -143,6 +148,10 @@ def _run(cfg: MapDistillConfig, out: Path, state_path: Path) -> int:
     run_name = f"{Path(cfg.maps[0]).name}__distill_maps__{cfg.seed}__{int(time.time())}"
     if cfg.resume:
         state = load_train_state(state_path, fingerprint, TRAIN_STATE_FORMAT)
+        saved_local = state["fingerprint"].get("local_features", 0)
+        if saved_local != cfg.local_features:  # the check above only sees the keys this run's fingerprint has
+            raise UsageError(f"--resume: {state_path} was written by a different run (local_features: saved "
+                             f"{saved_local!r}, now {cfg.local_features!r})")
         trainer.load_state(state["trainer"])
         gen.set_state(state["rng_data"])
         torch.set_rng_state(state["rng_torch"])

@@ -6,7 +6,8 @@ E map embedding, H x W patch cells.
 * **Split.** ``val_fraction`` of the entries (maps), drawn with the seed, are held out of the training data;
   the validation KL is measured on their cells' centres. The best validation epoch's weights are kept.
 * **Samples.** Every epoch: each training row's cell centre plus ``jitter`` points uniform in its cell (angles
-  wrapped), shuffled over all entries, so a batch mixes maps; each distinct map of a batch is encoded once.
+  wrapped), shuffled over all entries, so a batch mixes maps; each distinct map of a batch is encoded once
+  (its embedding and, with ``local_features``, its local feature map, which each row then samples at its state).
 * **Loss.** KL(table row || policy), level-weighted as in ``training.distill``: a sample's weight is 1 / (samples
   of its (entry, level) group) / (groups), so every level of every map counts the same; a batch's loss is its
   weighted sum scaled by (epoch samples / batch samples).
@@ -53,14 +54,16 @@ def split_entries(data: MapData, val_fraction: float, seed: int) -> Split:
     return Split(torch.nonzero(~rows_val).squeeze(1), torch.nonzero(rows_val).squeeze(1), sorted(held.tolist()))
 
 
-def make_policy(data: MapData, hidden: int, layers: int, embed: int, channels: int) -> MapPolicy:
+def make_policy(data: MapData, hidden: int, layers: int, embed: int, channels: int,
+                local_features: int = 0) -> MapPolicy:
     """A fresh policy for ``data``: feature scales from the largest |cell centre| per non-periodic dimension."""
     grid = Grid.of(data.system)
     scale = data.centres.abs().amax(dim=0).tolist() if data.centres.shape[0] else [1.0] * grid.dim
     scale = [1.0 if (p or s == 0) else float(s) for s, p in zip(scale, grid.periodic)]
     config = MapPolicyConfig(state_dim=grid.dim, num_actions=data.actions.shape[0], horizon=data.horizon,
                              periodic=list(grid.periodic), feature_scale=scale, patch=data.spec.to_dict(),
-                             hidden=hidden, layers=layers, embed=embed, channels=channels)
+                             hidden=hidden, layers=layers, embed=embed, channels=channels,
+                             local_features=local_features)
     return MapPolicy(config, data.system, data.actions)
 
 
@@ -95,10 +98,12 @@ class Trainer:
         self.probs = data.probs.to(device)  # [R, A]
 
     def _logits(self, x: Tensor, t: Tensor, entry: Tensor) -> Tensor:
-        """Logits ``[B, A]``; each distinct map of the batch encoded once."""
+        """Logits ``[B, A]``; each distinct map of the batch encoded once (embedding, local feature map)."""
         maps, inverse = torch.unique(entry, return_inverse=True)  # [U], [B]
-        embedding = self.policy.encode(self.patches.index_select(0, maps))  # [U, E]
-        return self.policy.logits(x, t, embedding.index_select(0, inverse))
+        patches = self.patches.index_select(0, maps)  # [U, H, W]
+        embedding = self.policy.encode(patches)  # [U, E]
+        local = self.policy.encode_local(patches) if self.policy.local is not None else None  # [U, C, H, W]
+        return self.policy.logits(x, t, embedding.index_select(0, inverse), local, inverse)
 
     def epoch(self, generator: torch.Generator) -> dict[str, float]:
         """One pass over the training rows (centres + jitter), then the validation KL; the epoch's scalars."""
