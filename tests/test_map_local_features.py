@@ -16,12 +16,9 @@ from cuniform_torch.envs import OccupancyGrid
 from cuniform_torch.map_checkpoint import load_map_policy, map_policy_checkpoint
 from cuniform_torch.map_local import PROBES, LocalFeatures
 from cuniform_torch.map_policy import MapPolicy, MapPolicyConfig
-from cuniform_torch.policy import TablePolicy
-from cuniform_torch.rollout import rollout
-from cuniform_torch.sensing import local_map
 from cuniform_torch.systems import system_to_json
 from precompute.builder import BuildConfig, build_table
-from test_distill_maps import MAPS, SPEC, SYSTEM, T, TRAIN, WALL, collision_rate, write_dataset
+from test_distill_maps import MAPS, SPEC, SYSTEM, T, TRAIN, wall_collision_rates, write_dataset
 
 pytestmark = pytest.mark.usefixtures("restore_threads")  # conftest: main sets torch's thread count
 
@@ -150,12 +147,7 @@ def test_a_policy_with_local_features_avoids_the_wall(trained_local):
     path, table, _ = trained_local
     policy = load_map_policy(path)
     assert policy.config.local_features == 4 and torch.load(path, weights_only=True)["config"]["local_features"] == 4
-    world = OccupancyGrid(torch.from_numpy(WALL.astype(bool)), SPEC.origin, SPEC.resolution)
-    policy.set_map(local_map(world, torch.zeros(3), SPEC))
-    x0 = torch.zeros(3)
-    mine, _ = rollout(SYSTEM, policy, x0, 2000, T, torch.Generator().manual_seed(0))
-    blind, _ = rollout(SYSTEM, TablePolicy(table), x0, 2000, T, torch.Generator().manual_seed(0))
-    rate_map, rate_blind = collision_rate(mine, WALL), collision_rate(blind, WALL)
+    rate_map, rate_blind = wall_collision_rates(policy, table)
     print(f"collision rate: map policy with local features {rate_map:.3f}, blind table {rate_blind:.3f}")
     assert rate_blind > 0.3
     assert rate_map < 0.5 * rate_blind
