@@ -30,18 +30,11 @@ SUITES = ("barn", "forest", "gaps", "clutter")
 CLUTTER = {"num_discs": (90, 120), "disc_radius": 0.5}
 """the ``clutter`` suite: the forest's corridor and rules with 90-120 discs of radius 0.5 m, 24% of the corridor
 on average (the forest's 10-30 discs of 1 m: 18%), 46% once inflated by the robot's 0.2 m (overlaps counted
-twice; the forest's: 26%); chosen, before any
-map-conditioned run, as dense enough that the best Gaussian baseline fails often (a probe with 110-150 discs:
-MPPI std 1.0 succeeded 1 and 2 times in 8 at K = 64 and 256) but every map stays reachable"""
+twice; the forest's: 26%); chosen, before any map-conditioned run, as dense enough that the best Gaussian baseline
+fails often (a probe with 110-150 discs: MPPI std 1.0 succeeded 1 and 2 times in 8 at K = 64 and 256) but every
+map stays reachable"""
 SPLITS = ("all", "train", "test")
 """task splits (:func:`split_of`): ``all`` keeps every task"""
-
-
-def split_of(key: int) -> str:
-    """The split of the map with ``key`` (a BARN map id, a forest seed): test when ``key % 5 == 0``, else train.
-    The map-table farm (:mod:`precompute.map_worlds`) trains on the train split only, so a benchmark run on
-    ``--split test`` drives on maps no map-conditioned policy has seen."""
-    return "test" if key % 5 == 0 else "train"
 BARN_BOUNDS = (-6.0, -1.5, 1.5, 15.0)
 """raw workspace bounds of every BARN task (m): the map (x in [-4.5, 0], y in [0, 9.6]) and its goal, with room"""
 DEFAULT_COUNTS = {"barn": None, "forest": 50, "gaps": 9, "clutter": 50}
@@ -53,6 +46,13 @@ GAP_OFFSETS = (0.0, 0.75, 1.5)
 """m: where the gap sits off the start-goal line (an offset gap puts a wall between the robot and its goal)"""
 RESOLUTIONS = {"barn": 0.05, "forest": 0.1, "gaps": 0.02, "clutter": 0.05}
 """m: flood-fill cell per suite (the gap suite's narrowest free band is 0.2 m wide for a 0.2 m robot)"""
+
+
+def split_of(key: int) -> str:
+    """The split of the map with ``key`` (a BARN map id, a forest seed): test when ``key % 5 == 0``, else train.
+    The map-table farm (:mod:`precompute.map_worlds`) trains on the train split only, so a benchmark run on
+    ``--split test`` drives on maps no map-conditioned policy has seen."""
+    return "test" if key % 5 == 0 else "train"
 
 
 def barn_task(m: BarnMap, robot_radius: float, goal_tolerance: float = 1.0, time_limit: float = 100.0,

@@ -25,13 +25,15 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from cuniform_torch.cli import ArgumentParser, CLIError, cli_main
+from cuniform_torch.cli import (ArgumentParser, CLIError, add_dataclass_args, cli_main, field_docs, flag_name,
+                                given_fields)
 from cuniform_torch.fileio import exclusive_lock, write_json
 from cuniform_torch.parallel import run_jobs
 from cuniform_torch.systems import make_system, resolve_system, system_from_json
 
+from .coverage_method import CoverageConfig
 from .map_dataset import dataset_header, entry_arrays, file_sha256, write_shard
-from .map_worlds import SPLITS, candidate_poses, crop_patch, suite_worlds, world_of
+from .map_worlds import FARM_SUITES, SPLITS, candidate_poses, crop_patch, suite_worlds, world_of
 from .safe_map import LocalMap, MapError, check_map_system
 from .viability import SAFE_RULE
 
@@ -47,7 +49,7 @@ def make_parser() -> argparse.ArgumentParser:
 
     parser = ArgumentParser(prog="python -m precompute.map_farm",
                             description="Build a data set of safe C-Uniform tables over local map patches.")
-    parser.add_argument("--suite", required=True, choices=["barn", "forest", "gaps", "clutter"])
+    parser.add_argument("--suite", required=True, choices=list(FARM_SUITES))
     parser.add_argument("--count", type=int, required=True, help="maps (one shard each)")
     parser.add_argument("--poses-per-map", type=int, default=1, help="start poses (entries) per map")
     parser.add_argument("--split", required=True, choices=list(SPLITS),
@@ -58,15 +60,9 @@ def make_parser() -> argparse.ArgumentParser:
     parser.add_argument("--ray", nargs="?", const="local", default=None, metavar="ADDRESS",
                         help="shards as Ray tasks (a local runtime, or the cluster at ADDRESS)")
     parser.add_argument("--method", default="maxflow", choices=["maxflow", "coverage"])
-    parser.add_argument("--steps", type=int, default=None,
-                        help="coverage method: gradient-ascent iterations (default: the builder's, 300)")
-    parser.add_argument("--tol", type=float, default=None,
-                        help="coverage method: stop the ascent when it gains less than this fraction over 10 steps "
-                             "(default: the builder's, 0: run every step)")
-    parser.add_argument("--state-budget", type=int, default=None,
-                        help="coverage method: merged states per level (default: the builder's, 2000000)")
-    parser.add_argument("--merge-resolution", type=int, default=None,
-                        help="coverage method: sub-cell bins per cell and dimension (default: the builder's, 32)")
+    docs = field_docs(CoverageConfig)
+    add_dataclass_args(parser, CoverageConfig, only=FARM_COVERAGE,
+                       help={name: f"coverage method: {docs[name]}" for name in FARM_COVERAGE})
     parser.add_argument("--system", default=NAV_ROBOT.system, help="default: the benchmark robot's")
     parser.add_argument("--param", action="append", default=[], metavar="KEY=VALUE",
                         help="a system parameter as JSON over the benchmark robot's (repeatable)")
@@ -105,20 +101,23 @@ def _check(args: argparse.Namespace) -> None:
         raise CLIError(f"--radius must be >= 0 (m), got {args.radius}")
     if args.out.exists() and not args.out.is_dir():
         raise CLIError(f"--out {args.out}: not a folder")
-    given = [f"--{k.replace('_', '-')}" for k in COVERAGE_FLAGS if getattr(args, k) is not None]
+    given = [flag_name(k) for k in _coverage_given(args)]
     if given and args.method != "coverage":
         raise CLIError(f"{', '.join(given)}: only for --method coverage")
 
 
-COVERAGE_FLAGS = ("steps", "tol", "state_budget", "merge_resolution")
-"""map_farm flags passed to :class:`precompute.coverage_method.CoverageConfig` (None: its default)"""
+FARM_COVERAGE = ("steps", "tol", "state_budget", "merge_resolution")
+"""the coverage builder's settings a farm takes as flags (:class:`precompute.coverage_method.CoverageConfig`)"""
+
+
+def _coverage_given(args: argparse.Namespace) -> dict[str, Any]:
+    """The :data:`FARM_COVERAGE` flags given (``--horizon`` and ``--radius`` are fields too, but the farm's own)."""
+    return {k: v for k, v in given_fields(CoverageConfig, args).items() if k in FARM_COVERAGE}
 
 
 def coverage_settings(args: argparse.Namespace) -> dict[str, Any]:
     """The coverage builder's settings the flags give (checked by CoverageConfig: one clear error)."""
-    from .coverage_method import CoverageConfig
-
-    settings = {k: getattr(args, k) for k in COVERAGE_FLAGS if getattr(args, k) is not None}
+    settings = _coverage_given(args)
     try:
         CoverageConfig(**settings)
     except ValueError as e:
@@ -131,7 +130,7 @@ def build_shard(spec_json: str, k: int, out: str) -> dict[str, Any]:
     import torch
 
     from .builder import BuildConfig, build_table
-    from .coverage_method import CoverageConfig, build_coverage_table
+    from .coverage_method import build_coverage_table
 
     torch.set_num_threads(1)
     spec = json.loads(spec_json)
@@ -203,8 +202,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     worlds = suite_worlds(args.suite, args.count, args.split, args.seed, args.radius)
     header = dataset_header(system, args.horizon, args.method, args.radius, (H, W), args.resolution, origin,
                             args.split, args.seed)
-    if args.method == "coverage" and coverage_settings(args):  # absent with the defaults: older farms still resume
-        header["coverage"] = coverage_settings(args)
+    settings = coverage_settings(args) if args.method == "coverage" else {}
+    if settings:  # absent with the defaults: older farms still resume
+        header["coverage"] = settings
     spec = {"header": header, "maps": [[w.suite, w.key] for w in worlds], "poses_per_map": args.poses_per_map,
             "rule": SAFE_RULE}  # shards of another pruning rule are not resumed into this data set
     args.out.mkdir(parents=True, exist_ok=True)

@@ -29,9 +29,11 @@ from eval.nav_geometry import clearance, inflate
 from eval.nav_tasks import CLUTTER, split_of
 from eval.suites import forest, gaps
 
-__all__ = ["SPLITS", "World", "split_of", "suite_worlds", "world_of", "crop_patch", "candidate_poses"]
+__all__ = ["FARM_SUITES", "SPLITS", "World", "split_of", "suite_worlds", "world_of", "crop_patch", "candidate_poses"]
 
 SPLITS = ("train", "test")
+FARM_SUITES = ("barn", "forest", "gaps", "clutter")
+"""the suites whose maps the farm crops (module docstring)"""
 _KEY_RANGE = 1 << 31
 _GAP_WIDTHS = (0.6, 1.2)
 _GAP_OFFSET = 1.5
@@ -77,8 +79,8 @@ def suite_worlds(suite: str, count: int, split: str, seed: int, radius: float) -
             raise ValueError(f"--count {count}: the BARN {split} split has only {len(maps)} maps")
         order = np.random.default_rng(seed).permutation(len(maps))[:count]
         return [_barn_world(maps[i], radius) for i in order.tolist()]
-    if suite not in ("forest", "gaps", "clutter"):
-        raise ValueError(f"--suite must be barn, forest, gaps or clutter, got {suite!r}")
+    if suite not in FARM_SUITES:
+        raise ValueError(f"--suite must be one of {', '.join(FARM_SUITES)}, got {suite!r}")
     rng, keys = np.random.default_rng(seed), []
     while len(keys) < count:
         for key in rng.integers(0, _KEY_RANGE, size=4 * count).tolist():
