@@ -141,11 +141,20 @@ def _cost_environment(task: NavTask, ctx: NavContext) -> Environment:
 
 class _TimedSensingController:
     """Wraps a controller: updates the cost's obstacles to what the robot senses (tasks with a sensing range)
-    before each command, and times each command (the control cycle; sensing is the world's, not timed)."""
+    before each command, and times each command (the control cycle; sensing is the world's, not timed).
 
-    def __init__(self, inner: Any, cost: NavigationCost, task: NavTask):
+    With a ``trace`` list and an MPPI-family inner controller (``plan`` and ``proposal``), each command is the
+    inner ``command`` spelled out (``plan``, ``proposal.update``, the result's command: the same arithmetic), and
+    appends ``dict(t, free_share, min_cost)``: the command's time (s), the share of its proposals that are
+    collision-free (cost < ``collision_penalty``) and the lowest proposal cost."""
+
+    def __init__(self, inner: Any, cost: NavigationCost, task: NavTask, trace: list | None = None,
+                 dt: float = 0.0, collision_penalty: float = 1e6):
         self.inner, self.cost, self.task = inner, cost, task
         self.cycle_s: list[float] = []
+        traceable = callable(getattr(inner, "plan", None)) and hasattr(inner, "proposal")
+        self.trace = trace if traceable else None
+        self.dt, self.collision_penalty = dt, collision_penalty
 
     def reset(self) -> None:
         if callable(getattr(self.inner, "reset", None)):
@@ -155,15 +164,27 @@ class _TimedSensingController:
         if self.task.sensing_range is not None:
             self.cost.env = self.task.sensed_environment(state[:2])
         t0 = time.perf_counter()
-        u = self.inner.command(state)
+        if self.trace is None:
+            u = self.inner.command(state)
+            self.cycle_s.append(time.perf_counter() - t0)
+            return u
+        result = self.inner.plan(state)  # MPPICore.command, spelled out to see the proposals' costs
+        self.inner.proposal.update(result)
         self.cycle_s.append(time.perf_counter() - t0)
-        return u
+        costs = result.costs  # [K]
+        self.trace.append(dict(t=round(len(self.trace) * self.dt, 6),
+                               free_share=float((costs < self.collision_penalty).float().mean()),
+                               min_cost=float(costs.min())))
+        return result.command
 
 
-def run_nav_episode(job: NavJob, ctx: NavContext) -> dict:
+def run_nav_episode(job: NavJob, ctx: NavContext, trace: list | None = None) -> dict:
     """Run one episode; its record (plain JSON types, :mod:`eval.nav_stats`' format) with the job's ``key``,
     ``repeat``, ``outcome``, ``success``, ``time`` (s), ``path_length`` (m), ``steps``, ``cycles``,
-    ``cycle_hist``, ``wall_s`` (and ``path`` with ``ctx.record_path``)."""
+    ``cycle_hist``, ``wall_s`` (and ``path`` with ``ctx.record_path``).
+
+    ``trace``: a list to append one ``dict(t, free_share, min_cost)`` per command to (:mod:`eval.nav_replay`;
+    MPPI-family controllers only, others append nothing); the record is the same with or without it."""
     torch.set_num_threads(1)
     task, method = job.task, NAV_METHODS[job.method]
     sources = _sources(ctx)
@@ -173,8 +194,9 @@ def run_nav_episode(job: NavJob, ctx: NavContext) -> dict:
     world = sensed_world(task) if method.source == "map_policy" else None
     inner = make_controller(method, sources, cost, job.budget, ctx.horizon, job.seed, lambda_=ctx.lambda_,
                             world=world, max_range=task.sensing_range)
-    ctrl = _TimedSensingController(inner, cost, task)
     system = sources.system
+    ctrl = _TimedSensingController(inner, cost, task, trace, dt=float(system.dt),
+                                   collision_penalty=ctx.collision_penalty)
     x0 = torch.zeros(len(system.periodic), dtype=torch.float32)
     x0[:3] = torch.tensor(task.start, dtype=torch.float32)
     res = simulate(system, ctrl, x0, task.environment, task.goal, task.goal_tolerance, task.time_limit,

@@ -23,7 +23,8 @@ from .barn import CHALLENGE_GOAL, CHALLENGE_START, BarnMap, load_barn
 from .nav_geometry import inflate
 from .suites import NavTask, SuiteError, forest, make_suite, validate_task
 
-__all__ = ["SUITES", "CLUTTER", "SPLITS", "split_of", "BARN_BOUNDS", "GAP_OFFSETS", "RESOLUTIONS", "TIME_LIMITS", "barn_task", "barn_tasks", "make_tasks", "DEFAULT_COUNTS"]
+__all__ = ["SUITES", "CLUTTER", "SPLITS", "split_of", "BARN_BOUNDS", "GAP_OFFSETS", "RESOLUTIONS", "TIME_LIMITS",
+           "barn_task", "barn_tasks", "make_tasks", "make_task", "DEFAULT_COUNTS"]
 
 SUITES = ("barn", "forest", "gaps", "clutter")
 """the suites of ``python -m eval.navigate``"""
@@ -105,9 +106,7 @@ def make_tasks(suite: str, robot_radius: float, count: int | None = None, seed: 
             tasks = [t for t in tasks if split_of(t.task_id) == split][:count]
     elif suite in ("forest", "clutter"):
         seeds = [s for s in range(seed, seed + 5 * count + 5) if split in ("all", split_of(s))][:count]
-        shape = CLUTTER if suite == "clutter" else {}
-        tasks = [dataclasses.replace(forest(s, robot_radius=robot_radius, sensing_range=sensing_range, **shape,
-                                            **limit), suite=suite) for s in seeds]
+        tasks = [_forest_task(suite, s, robot_radius, sensing_range, limit) for s in seeds]
     else:
         tasks = [] if split == "train" else make_suite("gaps", count, offsets=GAP_OFFSETS, robot_radius=robot_radius,
                                                        **limit)
@@ -116,6 +115,49 @@ def make_tasks(suite: str, robot_radius: float, count: int | None = None, seed: 
     for task in tasks:
         validate_task(task, resolution=resolution or RESOLUTIONS[suite])
     return tasks
+
+
+def _forest_task(suite: str, seed: int, robot_radius: float, sensing_range: float | None,
+                 limit: dict[str, float]) -> NavTask:
+    """The forest or clutter task of ``seed`` (not validated)."""
+    shape = CLUTTER if suite == "clutter" else {}
+    return dataclasses.replace(forest(seed, robot_radius=robot_radius, sensing_range=sensing_range, **shape, **limit),
+                               suite=suite)
+
+
+def make_task(suite: str, task_id: int, robot_radius: float, seed: int = 0,
+              barn_file: str | os.PathLike | None = None, sensing_range: float | None = 3.0,
+              time_limits: dict[str, float] | None = TIME_LIMITS, count: int | None = None,
+              resolution: float | None = None) -> NavTask:
+    """The one task ``task_id`` of ``suite``, the same as :func:`make_tasks` makes, validated the same way.
+
+    ``task_id``: forest / clutter: the seed (one of a run from ``seed`` on, so >= ``seed``); BARN: the map id in
+    ``barn_file``; gaps: the index in the sweep of ``count`` tasks (None: :data:`DEFAULT_COUNTS`; the sweep's
+    widths depend on it, so give the run's). The other arguments are :func:`make_tasks`' (only this task is
+    validated; a BARN file is read whole, the gap sweep's few walls are all made)."""
+    if suite not in SUITES:
+        raise SuiteError(f"unknown suite {suite!r}; choose from {', '.join(SUITES)}")
+    if isinstance(task_id, bool) or not isinstance(task_id, (int, np.integer)):
+        raise SuiteError(f"a task id must be an integer, got {task_id!r}")
+    task_id = int(task_id)
+    limit = {} if not time_limits or suite not in time_limits else {"time_limit": float(time_limits[suite])}
+    if suite == "barn":
+        maps = {m.map_id: m for m in load_barn(barn_file)}
+        if task_id not in maps:
+            raise SuiteError(f"barn: no map {task_id} in {barn_file or 'the shipped BARN file'} (it holds "
+                             f"{len(maps)} maps, ids {min(maps)}..{max(maps)})")
+        task = barn_task(maps[task_id], robot_radius, **limit)
+    elif suite in ("forest", "clutter"):
+        if task_id < seed:
+            raise SuiteError(f"{suite}: task {task_id} is a seed below the run's first seed {seed}")
+        task = _forest_task(suite, task_id, robot_radius, sensing_range, limit)
+    else:
+        count = DEFAULT_COUNTS["gaps"] if count is None else count
+        if not 0 <= task_id < count:
+            raise SuiteError(f"gaps: task {task_id} is not in a sweep of {count} tasks (0..{count - 1})")
+        task = make_suite("gaps", count, offsets=GAP_OFFSETS, robot_radius=robot_radius, **limit)[task_id]
+    validate_task(task, resolution=resolution or RESOLUTIONS[suite])
+    return task
 
 
 def task_summary(tasks: Sequence[NavTask]) -> dict[str, Any]:
