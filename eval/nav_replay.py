@@ -180,14 +180,15 @@ def plot_replay(task: NavTask, replayed: dict, trace: list[dict], path: Path, ti
     import matplotlib.pyplot as plt
     from matplotlib import patches
     from matplotlib.collections import LineCollection
+    from mpl_toolkits.axes_grid1 import make_axes_locatable
 
     from .figures import draw_obstacle, save_figure
     from .nav_episode import sensed_world
 
     xmin, ymin, xmax, ymax = task.bounds
-    wide = (xmax - xmin) >= (ymax - ymin)
-    fig, (ax, ax_t) = plt.subplots(2, 1, figsize=(11, 7.5) if wide else (7, 11),
-                                   gridspec_kw=dict(height_ratios=(3, 1) if wide else (4, 1)))
+    width = 11.0 if (xmax - xmin) >= (ymax - ymin) else 7.0
+    map_h = min(9.0, max(2.5, 0.92 * width * (ymax - ymin + 0.6) / (xmax - xmin + 0.6)))  # the map's aspect
+    fig, (ax, ax_t) = plt.subplots(2, 1, figsize=(width, map_h + 2.6), gridspec_kw=dict(height_ratios=(map_h, 1.8)))
     for obs in sensed_world(task).obstacles:  # raw obstacles, not inflated by the robot's radius
         draw_obstacle(ax, obs, facecolor="0.6", edgecolor="0.3", lw=0.5)
     ax.add_patch(patches.Rectangle((xmin, ymin), xmax - xmin, ymax - ymin, fill=False, edgecolor="k", lw=1))
@@ -202,7 +203,8 @@ def plot_replay(task: NavTask, replayed: dict, trace: list[dict], path: Path, ti
         lc = LineCollection(segments, cmap=cmap, norm=plt.Normalize(0, 1), lw=2.2, zorder=4)
         lc.set_array([e["free_share"] for e in trace])
         ax.add_collection(lc)
-        fig.colorbar(lc, ax=ax, fraction=0.03, pad=0.01, label="share of proposals collision-free")
+        cax = make_axes_locatable(ax).append_axes("right", size="1.5%", pad=0.08)  # as tall as the map
+        fig.colorbar(lc, cax=cax, label="share of proposals\ncollision-free")
     else:
         ax.add_collection(LineCollection(segments, colors="k", lw=1.5, zorder=4))
     if replayed["outcome"] == "collision":
