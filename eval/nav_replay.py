@@ -79,8 +79,9 @@ def _barn_file(out: Path, settings: dict, given: Path | None) -> Path | None:
     if settings["suite"] != "barn":
         return given
     want = settings.get("barn_file")  # None: the shipped file (settings_record digests only a given file)
-    if given is None and want is not None and _file_digest(Path(out) / "barn.npz") == want:
-        given = Path(out) / "barn.npz"  # the run converted --barn-worlds into the folder
+    converted = Path(out) / "barn.npz"  # where a run with --barn-worlds converted them
+    if given is None and want is not None and converted.is_file() and _file_digest(converted) == want:
+        given = converted
     have = _file_digest(given) if given is not None else None
     if have != want:
         there = "the shipped BARN file" if want is None else f"another BARN file (digest {want})"

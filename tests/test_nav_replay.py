@@ -138,3 +138,24 @@ def test_make_task_is_the_task_make_tasks_makes():
         make_task("barn", 12345, 0.2)
     with pytest.raises(SuiteError, match="not in a sweep of 9"):
         make_task("gaps", 9, 0.2)
+
+
+def test_a_map_policy_or_barn_file_other_than_the_runs_is_one_clear_error(bench, tmp_path):
+    _, cache, records = bench
+    from eval.nav_replay import _barn_file, _checked_sources
+
+    policy = tmp_path / "other.map_policy.pt"
+    policy.write_bytes(b"not the run's policy")
+    table = str(ensure_table(ROBOT, cache, quiet=True))
+    settings = dict(suite="clutter", horizon=6, sources=dict(table=None, map_policy="0123456789abcdef"))
+    record = dict(records[next(iter(records))], method="cfu_mppi")
+    with pytest.raises(ValueError, match=f"--map-policy {policy} is not the file the run used"):
+        _checked_sources(settings, record, ROBOT, cache, {"table": table, "map_policy": policy})
+    with pytest.raises(ValueError, match="cfu_mppi needs --map-policy"):
+        _checked_sources(settings, record, ROBOT, cache, {"table": table})
+    barn = dict(suite="barn", barn_file=None)  # the shipped file
+    assert _barn_file(tmp_path, barn, None) is None
+    with pytest.raises(ValueError, match="the run used the shipped BARN file, not --barn-file"):
+        _barn_file(tmp_path, barn, policy)
+    with pytest.raises(ValueError, match="another BARN file .* not the shipped BARN file"):
+        _barn_file(tmp_path, dict(barn, barn_file="0123456789abcdef"), None)
