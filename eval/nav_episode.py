@@ -145,8 +145,8 @@ class _TimedSensingController:
 
     With a ``trace`` list and an MPPI-family inner controller (``plan`` and ``proposal``), each command is the
     inner ``command`` spelled out (``plan``, ``proposal.update``, the result's command: the same arithmetic), and
-    appends ``dict(t, free_share, min_cost)``: the command's time (s), the share of its proposals that are
-    collision-free (cost < ``collision_penalty``) and the lowest proposal cost."""
+    appends ``dict(t, free_share, min_cost, state)``: the command's time (s), the share of its proposals that are
+    collision-free (cost < ``collision_penalty``), the lowest proposal cost and the state ``[d]`` it planned from."""
 
     def __init__(self, inner: Any, cost: NavigationCost, task: NavTask, trace: list | None = None,
                  dt: float = 0.0, collision_penalty: float = 1e6):
@@ -174,7 +174,7 @@ class _TimedSensingController:
         costs = result.costs  # [K]
         self.trace.append(dict(t=round(len(self.trace) * self.dt, 6),
                                free_share=float((costs < self.collision_penalty).float().mean()),
-                               min_cost=float(costs.min())))
+                               min_cost=float(costs.min()), state=[round(float(v), 6) for v in state.tolist()]))
         return result.command
 
 
@@ -183,7 +183,7 @@ def run_nav_episode(job: NavJob, ctx: NavContext, trace: list | None = None) -> 
     ``repeat``, ``outcome``, ``success``, ``time`` (s), ``path_length`` (m), ``steps``, ``cycles``,
     ``cycle_hist``, ``wall_s`` (and ``path`` with ``ctx.record_path``).
 
-    ``trace``: a list to append one ``dict(t, free_share, min_cost)`` per command to (:mod:`eval.nav_replay`;
+    ``trace``: a list to append one ``dict(t, free_share, min_cost, state)`` per command to (:mod:`eval.nav_replay`;
     MPPI-family controllers only, others append nothing); the record is the same with or without it."""
     torch.set_num_threads(1)
     task, method = job.task, NAV_METHODS[job.method]

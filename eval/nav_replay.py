@@ -32,7 +32,7 @@ from .nav_tasks import make_task
 from .navigate import NavConfig, _file_digest, _sources
 from .suites import NavTask
 
-__all__ = ["load_episode", "replay_episode", "compare_records", "summarize", "plot_replay", "main"]
+__all__ = ["load_folder", "load_episode", "replay_episode", "compare_records", "summarize", "plot_replay", "main"]
 
 PATH_TOLERANCE = 1e-4
 """m: a replayed path length within this of the stored one reproduces it"""
@@ -55,9 +55,8 @@ def _read_records(store: EpisodeStore) -> dict[str, dict]:
     return records
 
 
-def load_episode(out: Path, key: str) -> tuple[dict, dict, dict[str, dict]]:
-    """``(settings, record, every record by key)`` of the benchmark folder ``out``; a ValueError naming a few keys
-    present when ``key`` is not there."""
+def load_folder(out: Path) -> tuple[dict, dict[str, dict]]:
+    """``(settings, every record by key)`` of the benchmark folder ``out`` (read only)."""
     store = EpisodeStore(out)
     if not store.settings_file.is_file():
         raise ValueError(f"{out} is not a benchmark folder: it has no settings.json (python -m eval.navigate --out)")
@@ -65,12 +64,18 @@ def load_episode(out: Path, key: str) -> tuple[dict, dict, dict[str, dict]]:
         settings = json.loads(store.settings_file.read_text())
     except (OSError, ValueError) as err:
         raise ValueError(f"{store.settings_file}: unreadable ({err})") from None
-    records = _read_records(store)
+    return settings, _read_records(store)
+
+
+def load_episode(out: Path, key: str) -> tuple[dict, dict, dict[str, dict]]:
+    """``(settings, record, every record by key)`` of the benchmark folder ``out``; a ValueError naming a few keys
+    present when ``key`` is not there."""
+    settings, records = load_folder(out)
     if key not in records:
         keys = sorted(records)
         near = difflib.get_close_matches(key, keys, n=3, cutoff=0.5) or keys[:3]
         held = f"it holds {len(keys)} episodes, e.g. {', '.join(near)}" if keys else "it holds no episode"
-        raise ValueError(f"no episode {key!r} in {store.records_file} ({held})")
+        raise ValueError(f"no episode {key!r} in {EpisodeStore(out).records_file} ({held})")
     return settings, records[key], records
 
 
@@ -111,7 +116,8 @@ def _checked_sources(settings: dict, record: dict, robot: RobotPreset, cache: Pa
 def replay_episode(out: Path, key: str, given: dict[str, Path | None] | None = None,
                    cache: Path = Path("out/navigate/cache"), barn_file: Path | None = None) -> dict:
     """Re-run the stored episode ``key`` of the folder ``out`` with a trace: ``dict(settings, stored, replayed,
-    task, trace)`` (``replayed`` holds the driven ``path [[x, y], ...]``; ``trace`` one entry per command)."""
+    task, trace, ctx)`` (``replayed`` holds the driven ``path [[x, y], ...]``; ``trace`` one entry per command;
+    ``ctx`` the :class:`~eval.nav_episode.NavContext` it ran with)."""
     settings, stored, records = load_episode(out, key)
     robot = RobotPreset(**settings["robot"])
     barn_file = _barn_file(out, settings, barn_file)
@@ -129,7 +135,7 @@ def replay_episode(out: Path, key: str, given: dict[str, Path | None] | None = N
     job = NavJob(task, stored["method"], stored["budget"], seed=stored["seed"], repeat=stored["repeat"])
     trace: list[dict] = []
     replayed = run_nav_episode(job, ctx, trace=trace)
-    return dict(settings=settings, stored=stored, replayed=replayed, task=task, trace=trace)
+    return dict(settings=settings, stored=stored, replayed=replayed, task=task, trace=trace, ctx=ctx)
 
 
 def compare_records(stored: dict, replayed: dict, tol: float = PATH_TOLERANCE) -> list[str]:
