@@ -122,8 +122,9 @@ def replay_episode(out: Path, key: str, given: dict[str, Path | None] | None = N
     robot = RobotPreset(**settings["robot"])
     barn_file = _barn_file(out, settings, barn_file)
     suite = settings["suite"]
-    # the gap sweep's widths depend on its length, which settings do not hold: the run's largest task id
-    count = 1 + max(r["task_id"] for r in records.values()) if suite == "gaps" else None
+    # the gap sweep's widths depend on its length: the run's (folders older than settings["gap_tasks"]: its
+    # largest task id + 1)
+    count = settings.get("gap_tasks") or 1 + max(r["task_id"] for r in records.values()) if suite == "gaps" else None
     task = make_task(suite, stored["task_id"], robot.radius, seed=settings["seed"], barn_file=barn_file,
                      sensing_range=settings["sensing_range"], time_limits={suite: settings["time_limit"]},
                      count=count)
