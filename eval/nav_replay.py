@@ -95,6 +95,16 @@ def _barn_file(out: Path, settings: dict, given: Path | None) -> Path | None:
     return given
 
 
+def _gap_count(settings: dict, records: dict[str, dict]) -> int:
+    """A sweep length that gives the run's gaps: ``len(offsets) x`` its number of widths, else its largest id + 1."""
+    widths = settings.get("gap_widths")
+    if not widths:
+        return 1 + max(r["task_id"] for r in records.values())
+    from .nav_tasks import GAP_OFFSETS
+
+    return max(len(widths) * len(GAP_OFFSETS) - len(GAP_OFFSETS) + 1, 1 + max(r["task_id"] for r in records.values()))
+
+
 def _checked_sources(settings: dict, record: dict, robot: RobotPreset, cache: Path,
                      given: dict[str, Path | None]) -> dict[str, str | None]:
     """eval.navigate's source files for the record's method, each checked against the run's digest."""
@@ -122,9 +132,9 @@ def replay_episode(out: Path, key: str, given: dict[str, Path | None] | None = N
     robot = RobotPreset(**settings["robot"])
     barn_file = _barn_file(out, settings, barn_file)
     suite = settings["suite"]
-    # the gap sweep's widths depend on its length: the run's (folders older than settings["gap_tasks"]: its
-    # largest task id + 1)
-    count = settings.get("gap_tasks") or 1 + max(r["task_id"] for r in records.values()) if suite == "gaps" else None
+    # the gap sweep's widths depend on its length: the shortest sweep with the run's widths (settings
+    # "gap_widths"; older folders: the run's largest task id + 1)
+    count = _gap_count(settings, records) if suite == "gaps" else None
     task = make_task(suite, stored["task_id"], robot.radius, seed=settings["seed"], barn_file=barn_file,
                      sensing_range=settings["sensing_range"], time_limits={suite: settings["time_limit"]},
                      count=count)

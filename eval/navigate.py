@@ -39,7 +39,7 @@ from .nav_methods import NAV_METHODS, parse_nav_methods
 from .nav_robot import NAV_ROBOT, RobotPreset, ensure_policy, ensure_table, preset_dict
 from .nav_results import render, result, success_pivot, write_outputs
 from .nav_store import EpisodeStore
-from .nav_tasks import DEFAULT_COUNTS, SPLITS, SUITES, TIME_LIMITS, make_tasks
+from .nav_tasks import SPLITS, SUITES, TIME_LIMITS, make_tasks
 from .suites import NavTask
 
 __all__ = ["NavConfig", "REPEATS", "SHORT", "QUICK", "make_jobs", "run", "short_run", "render", "result",
@@ -137,16 +137,17 @@ def _file_digest(path: Path | None) -> str | None:
     return h.hexdigest()[:16]
 
 
-def settings_record(cfg: NavConfig, robot: RobotPreset, barn_file: Path | None, sources: dict[str, str | None]) -> dict:
-    """What changes an episode's outcome (:mod:`eval.nav_store`): not the counts (but the gap sweep's length, which
-    sets its widths), methods, budgets or workers."""
+def settings_record(cfg: NavConfig, robot: RobotPreset, barn_file: Path | None, sources: dict[str, str | None],
+                    tasks: Sequence[NavTask] = ()) -> dict:
+    """What changes an episode's outcome (:mod:`eval.nav_store`): not the counts, methods, budgets or workers; for
+    the gap sweep, the widths of ``tasks`` (its length sets them, so a longer sweep may be other gaps)."""
     keep = ("suite", "seed", "sensing_range", "horizon", "lambda_", "collision_penalty", "cost_resolution")
     out: dict[str, Any] = {k: getattr(cfg, k) for k in keep}
     out.update(robot=preset_dict(robot), time_limit=TIME_LIMITS[cfg.suite],
                barn_file=_file_digest(barn_file) if cfg.suite == "barn" else None,
                sources={k: _file_digest(Path(v)) if v else None for k, v in sources.items()})
-    if cfg.suite == "gaps":  # the sweep's widths depend on its length: task k of 4 gaps is not task k of 7
-        out["gap_tasks"] = cfg.tasks or DEFAULT_COUNTS["gaps"]
+    if cfg.suite == "gaps":  # the sweep's widths depend on its length: task 3 of 4 gaps is not task 3 of 7
+        out["gap_widths"] = sorted({t.params["width"] for t in tasks})
     return out
 
 
@@ -188,7 +189,7 @@ def run(cfg: NavConfig, out: Path, robot: RobotPreset = NAV_ROBOT, cache: Path =
     with exclusive_lock(Path(out) / ".lock", what=f"the benchmark folder {out}"):
         sources = _sources(cfg, robot, cache, given or {}, quiet=not progress)
         store = EpisodeStore(out)
-        done = store.open(settings_record(cfg, robot, barn_file, sources))
+        done = store.open(settings_record(cfg, robot, barn_file, sources, tasks))
         todo = [j for j in jobs if j.key not in done]
         print(f"{cfg.suite}: {len(tasks)} tasks x {repeats} repeats x {len(cfg.budgets)} budgets x {len(methods)} "
               f"methods = {len(jobs)} episodes; {len(jobs) - len(todo)} already in {store.records_file}")

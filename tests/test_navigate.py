@@ -332,19 +332,26 @@ def test_cfu_mppi_senses_the_raw_obstacles_not_the_inflated_ones(monkeypatch, tm
     assert seen["world"].bounds == pytest.approx(task.bounds) and seen["max_range"] == task.sensing_range
 
 
-def test_a_gap_sweep_of_another_length_is_refused_since_its_task_ids_mean_other_widths(tmp_path):
+def test_a_gap_sweep_of_other_widths_is_refused_since_its_task_ids_mean_other_gaps(tmp_path):
     from eval.nav_store import EpisodeStore, StoreError
     from eval.nav_tasks import make_tasks
     from eval.navigate import settings_record
 
-    four, seven = make_tasks("gaps", 0.2, count=4), make_tasks("gaps", 0.2, count=7)
-    assert four[3].params["width"] != seven[3].params["width"]  # why: the same key, another gap
+    sweep = {n: make_tasks("gaps", 0.2, count=n) for n in (2, 3, 4, 7)}
+    assert sweep[4][3].params["width"] != sweep[7][3].params["width"]  # why: the same key, another gap
     (tmp_path / "t.npz").write_bytes(b"a table")
     sources = dict(table=str(tmp_path / "t.npz"), coverage_table=None, policy=None)
-    record = settings_record(_cfg(tasks=4), ROBOT, None, sources)
-    assert record["gap_tasks"] == 4 and "gap_tasks" not in settings_record(_cfg(suite="forest"), ROBOT, None, sources)
+
+    def record(n: int, **kw) -> dict:
+        return settings_record(_cfg(tasks=n, **kw), ROBOT, None, sources, sweep[n])
+
+    assert record(4)["gap_widths"] == [0.6, 1.2] and "gap_widths" not in settings_record(
+        _cfg(suite="forest"), ROBOT, None, sources)
     store = EpisodeStore(tmp_path / "run")
-    store.open(record)
-    store.open(settings_record(_cfg(tasks=4, methods=("uniform",)), ROBOT, None, sources))  # another method fits
-    with pytest.raises(StoreError, match="gap_tasks: 4 there, 7 now"):
-        store.open(settings_record(_cfg(tasks=7), ROBOT, None, sources))
+    store.open(record(4))
+    store.open(record(4, methods=("uniform",)))  # another method fits
+    with pytest.raises(StoreError, match=r"gap_widths: \[0.6, 1.2\] there, \[0.6, 0.9, 1.2\] now"):
+        store.open(record(7))
+    other = EpisodeStore(tmp_path / "short")
+    other.open(record(2))
+    other.open(record(3))  # one width either way: the same gaps, one more task
