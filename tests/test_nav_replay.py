@@ -8,7 +8,6 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
-import torch
 
 from cuniform_torch import GaussianSampler
 from eval import nav_methods
@@ -19,6 +18,7 @@ from eval.nav_robot import NAV_ROBOT, ensure_table
 from eval.nav_tasks import make_task, make_tasks
 from eval.navigate import NavConfig, run
 from eval.suites import SuiteError
+from test_navigate import Straight  # a controller without plan(): it always drives straight
 
 ROBOT = replace(NAV_ROBOT, horizon=6)  # a 6-step table builds in about a second
 SAME = ("key", "outcome", "success", "time", "path_length", "steps", "cycles", "seed")  # not the wall times
@@ -101,16 +101,6 @@ def test_an_unknown_key_or_a_wrong_source_file_is_one_clear_error(bench, tmp_pat
     _one_error(capsys, "no settings.json")
     assert main(["--out", str(out), "--key", key, "--cache", str(cache), "--barn-file", str(other)]) == 0  # not barn
     capsys.readouterr()
-
-
-class Straight:
-    """A controller without plan(): it always drives straight."""
-
-    def __init__(self, system, cost_fn, noise_std=None, **kwargs):
-        self.zero = torch.zeros(1)
-
-    def command(self, state):
-        return self.zero.to(state.dtype)
 
 
 def test_the_trace_leaves_every_record_unchanged(bench, monkeypatch):
