@@ -1,6 +1,7 @@
 """Paired comparison of any two (method, budget) cells of a benchmark folder, across budgets too.
 
-    python -m eval.nav_compare --out out/navigate/clutter-test-100 --method cfu_mppi@256 --against cumppi@256 mppi_1.0@1024 --margin 0.1
+    python -m eval.nav_compare --out out/navigate/clutter-test-100 --method cfu_mppi@256 \
+        --against cumppi@256 mppi_1.0@1024 --margin 0.1
 
 The benchmark's own table compares each method with the best Gaussian baseline *at the same budget*. A question
 like "is CFU-MPPI at K = 256 at least MPPI at K = 1024?" pairs cells of different budgets; every method and

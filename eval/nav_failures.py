@@ -90,7 +90,8 @@ def classify(record: dict, trace: list[dict], task, ctx: NavContext, samples: in
 
 def failure_table(kinds: Sequence[FailureKind], totals: dict[tuple[str, int], int]) -> str:
     """A markdown table: per (method, budget) the episodes, failures and their kinds, median trapped time."""
-    rows = ["| method | K | episodes | failed | trapped | missed | lost | median trapped s |", "|---|---|---|---|---|---|---|---|"]
+    rows = ["| method | K | episodes | failed | trapped | missed | lost | median trapped s |",
+            "|---|---|---|---|---|---|---|---|"]
     for (method, budget), n in sorted(totals.items()):
         mine = [k for k in kinds if k.key.split("/")[2] == method and int(k.key.split("/")[3]) == budget]
         count = {c: sum(1 for k in mine if k.kind == c) for c in ("trapped", "missed", "lost")}
