@@ -36,6 +36,7 @@ import torch
 
 from cuniform_torch.envs import Environment, NavigationCost, OccupancyGrid, simulate
 
+from .cost_to_go import CostToGo
 from .methods import Sources, make_controller
 from .nav_methods import NAV_METHODS
 from .nav_stats import cycle_histogram
@@ -88,6 +89,9 @@ class NavContext:
     """m: cell side of the rasterized cost map of large static maps"""
     record_path: bool = False
     """keep the driven path ``[[x, y], ...]`` in the record"""
+    cost_to_go: float | None = None
+    """m: the goal term's geodesic cost-to-go on cells of this side (:mod:`eval.cost_to_go`); None: the straight
+    line"""
 
 
 _CACHE: dict[Any, Any] = {}
@@ -149,8 +153,8 @@ class _TimedSensingController:
     collision-free (cost < ``collision_penalty``), the lowest proposal cost and the state ``[d]`` it planned from."""
 
     def __init__(self, inner: Any, cost: NavigationCost, task: NavTask, trace: list | None = None,
-                 dt: float = 0.0, collision_penalty: float = 1e6):
-        self.inner, self.cost, self.task = inner, cost, task
+                 dt: float = 0.0, collision_penalty: float = 1e6, to_go: CostToGo | None = None):
+        self.inner, self.cost, self.task, self.to_go = inner, cost, task, to_go
         self.cycle_s: list[float] = []
         traceable = callable(getattr(inner, "plan", None)) and hasattr(inner, "proposal")
         self.trace = trace if traceable else None
@@ -163,6 +167,8 @@ class _TimedSensingController:
     def command(self, state: torch.Tensor) -> torch.Tensor:
         if self.task.sensing_range is not None:
             self.cost.env = self.task.sensed_environment(state[:2])
+        if self.to_go is not None:  # a global planner's work (untimed): recomputed when the sensed obstacles change
+            self.to_go.update(self.cost.env)
         t0 = time.perf_counter()
         if self.trace is None:
             u = self.inner.command(state)
@@ -188,15 +194,17 @@ def run_nav_episode(job: NavJob, ctx: NavContext, trace: list | None = None) -> 
     torch.set_num_threads(1)
     task, method = job.task, NAV_METHODS[job.method]
     sources = _sources(ctx)
+    to_go = CostToGo(task.bounds, task.goal, ctx.cost_to_go) if ctx.cost_to_go is not None else None
     cost = NavigationCost(_cost_environment(task, ctx), task.goal, goal_tolerance=task.goal_tolerance,
-                          collision_penalty=ctx.collision_penalty, per_state=True, stop_at_goal=True)
+                          collision_penalty=ctx.collision_penalty, per_state=True, stop_at_goal=True,
+                          goal_distance=to_go)
     t0 = time.perf_counter()
     world = sensed_world(task) if method.source == "map_policy" else None
     inner = make_controller(method, sources, cost, job.budget, ctx.horizon, job.seed, lambda_=ctx.lambda_,
                             world=world, max_range=task.sensing_range)
     system = sources.system
     ctrl = _TimedSensingController(inner, cost, task, trace, dt=float(system.dt),
-                                   collision_penalty=ctx.collision_penalty)
+                                   collision_penalty=ctx.collision_penalty, to_go=to_go)
     x0 = torch.zeros(len(system.periodic), dtype=torch.float32)
     x0[:3] = torch.tensor(task.start, dtype=torch.float32)
     res = simulate(system, ctrl, x0, task.environment, task.goal, task.goal_tolerance, task.time_limit,

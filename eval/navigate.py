@@ -33,6 +33,7 @@ from cuniform_torch.cli import (ArgumentParser, add_dataclass_args, add_system_m
 from cuniform_torch.fileio import exclusive_lock
 
 from . import config
+from .cost_to_go import RESOLUTION as COST_TO_GO_RESOLUTION
 from .nav_episode import NavContext, NavJob
 from .nav_exec import execute
 from .nav_methods import NAV_METHODS, parse_nav_methods
@@ -79,6 +80,9 @@ class NavConfig:
     """cost of each colliding rollout state"""
     cost_resolution: float = 0.01
     """m: cell side of the rasterized cost map of BARN maps (eval.nav_episode)"""
+    cost_to_go: bool = False
+    """the goal term uses the geodesic distance to the goal around the sensed obstacles (eval.cost_to_go) instead
+    of the straight line: a cost without the straight line's minima behind obstacles"""
     workers: int = 1
     """local processes running episodes"""
     paths: bool = False
@@ -146,6 +150,8 @@ def settings_record(cfg: NavConfig, robot: RobotPreset, barn_file: Path | None, 
     out.update(robot=preset_dict(robot), time_limit=TIME_LIMITS[cfg.suite],
                barn_file=_file_digest(barn_file) if cfg.suite == "barn" else None,
                sources={k: _file_digest(Path(v)) if v else None for k, v in sources.items()})
+    if cfg.cost_to_go:  # absent otherwise: the folders of runs without it stay as they were
+        out["cost_to_go"] = COST_TO_GO_RESOLUTION
     if cfg.suite == "gaps":  # the sweep's widths depend on its length: task 3 of 4 gaps is not task 3 of 7
         out["gap_widths"] = sorted({t.params["width"] for t in tasks})
     return out
@@ -196,7 +202,8 @@ def run(cfg: NavConfig, out: Path, robot: RobotPreset = NAV_ROBOT, cache: Path =
         ctx = NavContext(table=sources["table"], coverage_table=sources["coverage_table"], policy=sources["policy"],
                          map_policy=sources.get("map_policy"),
                          horizon=cfg.horizon, lambda_=cfg.lambda_, collision_penalty=cfg.collision_penalty,
-                         cost_resolution=cfg.cost_resolution, record_path=cfg.paths)
+                         cost_resolution=cfg.cost_resolution, record_path=cfg.paths,
+                         cost_to_go=COST_TO_GO_RESOLUTION if cfg.cost_to_go else None)
         load0, t0 = os.getloadavg()[0], time.perf_counter()
 
         def keep(rec: dict) -> None:

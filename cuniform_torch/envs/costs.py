@@ -17,13 +17,16 @@ obstacle. Here, per rollout:
   term, at the rollout's first arrival at the goal (that state still counts): what the authors' controllers
   do, and right for a closed loop that ends at the goal, where a rollout's states after its arrival are never
   driven (charging them makes a rollout that reaches a goal near a wall look like a crash).
+
+``goal_distance`` (a cost-to-go, e.g. a planner's geodesic distance) replaces the straight-line distance in the
+goal term.
 """
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Any, Protocol, Sequence
+from typing import Any, Callable, Protocol, Sequence
 
 import torch
 from torch import Tensor
@@ -132,6 +135,10 @@ class NavigationCost:
     stop_at_goal: bool = False
     """end the collision term, like the goal term, at the rollout's first arrival at the goal (that state still
     counts); False charges collisions over the whole horizon"""
+    goal_distance: Callable[[Tensor], Tensor] | None = None
+    """a cost-to-go ``xy [N, T, 2] -> [N, T]`` (m) whose square replaces the squared straight-line distance in the
+    goal term (e.g. a planner's geodesic distance around the obstacles); arrival is still judged on the straight
+    line; None: the straight line"""
 
     def __post_init__(self) -> None:
         if not isinstance(self.env, Environment):
@@ -161,10 +168,18 @@ class NavigationCost:
         if not isinstance(actions, torch.Tensor) or actions.ndim != 3 or actions.shape[:2] != (N, T1 - 1):
             raise ValueError(f"NavigationCost: actions must have shape [{N}, {T1 - 1}, q] to match states "
                              f"{list(states.shape)}, got {list(getattr(actions, 'shape', []))}")
-        cost = goal_cost(states, self.goal, self.goal_tolerance)  # [N]
+        reached = _goal_dist2(states, self.goal) <= self.goal_tolerance * self.goal_tolerance  # [N, T]
+        if self.goal_distance is None:
+            cost = goal_cost(states, self.goal, self.goal_tolerance)  # [N]
+        else:
+            to_go = self.goal_distance(states[:, 1:, :2])  # [N, T]
+            if not isinstance(to_go, Tensor) or to_go.shape != reached.shape:
+                raise ValueError(f"NavigationCost: goal_distance must map xy {list(states[:, 1:, :2].shape)} to "
+                                 f"{list(reached.shape)}, got {list(getattr(to_go, 'shape', []))}")
+            to_go = to_go.to(states.dtype)
+            cost = torch.where(_before_arrival(reached), to_go * to_go, torch.zeros_like(to_go)).sum(dim=1)
         hit = self.env.in_collision(states[:, 1:, :2], self.time)  # [N, T]
         if self.stop_at_goal:
-            reached = _goal_dist2(states, self.goal) <= self.goal_tolerance * self.goal_tolerance  # [N, T]
             hit = hit & _before_arrival(reached, inclusive=True)
         hit = hit.sum(dim=1) if self.per_state else hit.any(dim=1)  # [N]
         return cost + hit.to(cost.dtype) * self.collision_penalty
