@@ -57,8 +57,9 @@ def compare_cells(records: Sequence[dict], method: tuple[str, int], against: tup
 
 
 def _line(row: dict, margin: float | None) -> str:
-    rate = lambda side: (f"{row[f'{side}_rate']:.2f} [{row[f'{side}_rate_low']:.2f}, "  # noqa: E731
-                         f"{row[f'{side}_rate_high']:.2f}]")
+    def rate(side: str) -> str:
+        return f"{row[f'{side}_rate']:.2f} [{row[f'{side}_rate_low']:.2f}, {row[f'{side}_rate_high']:.2f}]"
+
     out = (f"| {row['method']} | {rate('method')} | {row['baseline']} | {rate('baseline')} | {row['n']} | "
            f"{row['wins']} | {row['losses']} | {row['diff']:+.2f} [{row['diff_low']:+.2f}, {row['diff_high']:+.2f}] | "
            f"{row['p_value']:.3g} |")

@@ -92,8 +92,12 @@ def failure_table(kinds: Sequence[FailureKind], totals: dict[tuple[str, int], in
     """A markdown table: per (method, budget) the episodes, failures and their kinds, median trapped time."""
     rows = ["| method | K | episodes | failed | trapped | missed | lost | median trapped s |",
             "|---|---|---|---|---|---|---|---|"]
+    by_cell: dict[tuple[str, int], list[FailureKind]] = {}
+    for k in kinds:  # key: suite/task_id/method/budget/repeat
+        _, _, method, budget, _ = k.key.split("/")
+        by_cell.setdefault((method, int(budget)), []).append(k)
     for (method, budget), n in sorted(totals.items()):
-        mine = [k for k in kinds if k.key.split("/")[2] == method and int(k.key.split("/")[3]) == budget]
+        mine = by_cell.get((method, budget), [])
         count = {c: sum(1 for k in mine if k.kind == c) for c in ("trapped", "missed", "lost")}
         ts = sorted(k.trapped_s for k in mine if k.kind == "trapped")
         med = f"{ts[len(ts) // 2]:.1f}" if ts else "-"

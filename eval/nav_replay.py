@@ -38,23 +38,6 @@ PATH_TOLERANCE = 1e-4
 """m: a replayed path length within this of the stored one reproduces it"""
 
 
-def _read_records(store: EpisodeStore) -> dict[str, dict]:
-    """The records of ``store`` by key, read only: a line that does not parse is skipped (a benchmark may be
-    writing the last one now; :meth:`EpisodeStore.open` would truncate it)."""
-    records: dict[str, dict] = {}
-    if not store.records_file.is_file():
-        return records
-    for line in store.records_file.read_bytes().split(b"\n"):
-        if not line.strip():
-            continue
-        try:
-            rec = json.loads(line)
-            records[rec["key"]] = rec
-        except (ValueError, KeyError, TypeError):
-            continue
-    return records
-
-
 def load_folder(out: Path) -> tuple[dict, dict[str, dict]]:
     """``(settings, every record by key)`` of the benchmark folder ``out`` (read only)."""
     store = EpisodeStore(out)
@@ -64,7 +47,7 @@ def load_folder(out: Path) -> tuple[dict, dict[str, dict]]:
         settings = json.loads(store.settings_file.read_text())
     except (OSError, ValueError) as err:
         raise ValueError(f"{store.settings_file}: unreadable ({err})") from None
-    return settings, _read_records(store)
+    return settings, store.read()
 
 
 def load_episode(out: Path, key: str) -> tuple[dict, dict, dict[str, dict]]:

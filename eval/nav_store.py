@@ -73,11 +73,24 @@ class EpisodeStore:
             write_json(self.settings_file, settings)
         return self._read()
 
+    def read(self) -> dict[str, dict]:
+        """The records by key, read only: a last line cut short (a run may be writing it now) is left out and left
+        alone; a bad line elsewhere is a :class:`StoreError`."""
+        return self._parse()[0]
+
     def _read(self) -> dict[str, dict]:
+        records, good, cut = self._parse()
+        if cut:  # the last write, cut short: dropped so that appends start on a fresh line
+            warnings.warn(f"{self.records_file}: dropping an incomplete last line ({cut} bytes)", stacklevel=2)
+            with open(self.records_file, "r+b") as f:
+                f.truncate(good)
+        return records
+
+    def _parse(self) -> tuple[dict[str, dict], int, int]:
+        """``(records by key, bytes of the complete lines, bytes of a cut-short last line or 0)``."""
         if not self.records_file.exists():
-            return {}
-        data = self.records_file.read_bytes()
-        lines = data.split(b"\n")
+            return {}, 0, 0
+        lines = self.records_file.read_bytes().split(b"\n")
         records: dict[str, dict] = {}
         good = 0  # bytes of complete, parsed lines
         for i, line in enumerate(lines):
@@ -88,16 +101,12 @@ class EpisodeStore:
                 rec = json.loads(line)
                 key = rec["key"]
             except (ValueError, KeyError, TypeError):
-                if i == len(lines) - 1:  # the last write, cut short
-                    warnings.warn(f"{self.records_file}: dropping an incomplete last line ({len(line)} bytes)",
-                                  stacklevel=2)
-                    with open(self.records_file, "r+b") as f:
-                        f.truncate(good)
-                    break
+                if i == len(lines) - 1:
+                    return records, good, len(line)
                 raise StoreError(f"{self.records_file}: line {i + 1} is not a record; fix or delete the file") from None
             records[key] = rec
             good += len(line) + 1
-        return records
+        return records, good, 0
 
     def append(self, record: dict) -> None:
         """Append one record and flush it to disk."""

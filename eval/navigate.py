@@ -153,6 +153,8 @@ def settings_record(cfg: NavConfig, robot: RobotPreset, barn_file: Path | None, 
     if cfg.cost_to_go:  # absent otherwise: the folders of runs without it stay as they were
         out["cost_to_go"] = COST_TO_GO_RESOLUTION
     if cfg.suite == "gaps":  # the sweep's widths depend on its length: task 3 of 4 gaps is not task 3 of 7
+        if not tasks:
+            raise ValueError("settings_record: a gaps run's record needs its tasks (their widths)")
         out["gap_widths"] = sorted({t.params["width"] for t in tasks})
     return out
 

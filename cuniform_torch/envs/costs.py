@@ -168,16 +168,16 @@ class NavigationCost:
         if not isinstance(actions, torch.Tensor) or actions.ndim != 3 or actions.shape[:2] != (N, T1 - 1):
             raise ValueError(f"NavigationCost: actions must have shape [{N}, {T1 - 1}, q] to match states "
                              f"{list(states.shape)}, got {list(getattr(actions, 'shape', []))}")
-        reached = _goal_dist2(states, self.goal) <= self.goal_tolerance * self.goal_tolerance  # [N, T]
-        if self.goal_distance is None:
-            cost = goal_cost(states, self.goal, self.goal_tolerance)  # [N]
-        else:
+        dist2 = _goal_dist2(states, self.goal)  # [N, T] straight line, squared: arrival is judged on it
+        reached = dist2 <= self.goal_tolerance * self.goal_tolerance  # [N, T]
+        if self.goal_distance is not None:
             to_go = self.goal_distance(states[:, 1:, :2])  # [N, T]
             if not isinstance(to_go, Tensor) or to_go.shape != reached.shape:
                 raise ValueError(f"NavigationCost: goal_distance must map xy {list(states[:, 1:, :2].shape)} to "
                                  f"{list(reached.shape)}, got {list(getattr(to_go, 'shape', []))}")
             to_go = to_go.to(states.dtype)
-            cost = torch.where(_before_arrival(reached), to_go * to_go, torch.zeros_like(to_go)).sum(dim=1)
+            dist2 = to_go * to_go
+        cost = torch.where(_before_arrival(reached), dist2, torch.zeros_like(dist2)).sum(dim=1)  # goal_cost's sum
         hit = self.env.in_collision(states[:, 1:, :2], self.time)  # [N, T]
         if self.stop_at_goal:
             hit = hit & _before_arrival(reached, inclusive=True)
