@@ -33,7 +33,7 @@ import typing
 from pathlib import Path
 from typing import Any, Callable, Iterable, Mapping, NoReturn, Sequence
 
-from .systems import import_system_modules
+from cuniform_torch.systems import import_system_modules
 
 __all__ = ["EXIT_ERROR", "EXIT_INTERRUPTED", "CLIError", "ArgumentParser", "cli_main", "error_message",
            "out_of_memory_message", "add_system_module_arg", "import_system_modules", "check_output_file", "check_output_folder",

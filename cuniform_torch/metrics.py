@@ -26,7 +26,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from .grid import CellKeys, Grid
+from cuniform_torch.grid.cells import CellKeys, Grid
 
 __all__ = ["Coverage", "coverage", "uniform_ceiling", "tv_from_uniform", "tv_of_distribution", "noise_floor",
            "entropy_ratio", "histogram_over", "level_uniformity"]

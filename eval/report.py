@@ -8,16 +8,16 @@ Stages (each prints its time; a finished stage is reused on the next run unless 
 1. tables: the default Dubins preset (2 s) and the 3 s preset of the closed-loop experiments, each built by
    max-flow (the paper) and by the coverage method, with ``python -m precompute.build``, unless present;
 2. the distilled MLP (``python -m training.distill`` on the 3 s max-flow table), unless present;
-3. experiments: :mod:`eval.coverage_experiment`, :mod:`eval.uniformity`, :mod:`eval.sudden_obstacle`,
-   :mod:`eval.cluttered` (results as JSON in ``<out>/eval/``), each reused when its JSON holds a result of the same
+3. experiments: :mod:`eval.paper.coverage`, :mod:`eval.paper.uniformity`, :mod:`eval.paper.sudden_obstacle`,
+   :mod:`eval.paper.cluttered` (results as JSON in ``<out>/eval/``), each reused when its JSON holds a result of the same
    config (so an interrupted report resumes), and a short run of the navigation benchmark
-   (:func:`eval.navigate.short_run`: 10 BARN maps at budgets 64 and 256; resumable, under ``<out>/navigate``);
+   (:func:`eval.navigate.run.short_run`: 10 BARN maps at budgets 64 and 256; resumable, under ``<out>/navigate``);
 4. figures (``<out>/figures/*.png``), TensorBoard runs (``<runs>/<method>``, one per method, plus ``figures``;
-   :mod:`eval.tensorboard`), and ``<out>/report.md`` with every table beside the paper's values, the machine, the
+   :mod:`eval.paper.tensorboard`), and ``<out>/report.md`` with every table beside the paper's values, the machine, the
    commands and which stages were reused.
 
 ``--quick`` writes under ``<out>/quick`` and ``<runs>/quick`` so it never mixes with a full run. File names:
-:class:`eval.paths.OutputPaths`.
+:class:`eval.common.paths.OutputPaths`.
 """
 
 from __future__ import annotations
@@ -34,14 +34,15 @@ from typing import Callable
 import torch
 
 from cuniform_torch.cli import ArgumentParser, add_system_module_arg, check_output_folder, cli_main, import_system_modules
-from cuniform_torch.fileio import write_bytes, write_json
+from cuniform_torch.common.fileio import write_bytes, write_json
 
-from . import config
-from . import coverage_experiment, uniformity
-from .figures import coverage_vs_samples, trajectory_fans, uniformity_per_level
-from .methods import Sources
-from .paths import DEFAULT, RUNS_EVAL, OutputPaths
-from .tensorboard import log_tensorboard
+from eval.common import config
+from eval.paper import coverage as coverage_experiment
+from eval.paper import uniformity
+from eval.common.figures import coverage_vs_samples, trajectory_fans, uniformity_per_level
+from eval.common.methods import Sources
+from eval.common.paths import DEFAULT, RUNS_EVAL, OutputPaths
+from eval.paper.tensorboard import log_tensorboard
 
 __all__ = ["Stages", "StepFailed", "build_inputs", "machine", "write_markdown", "main"]
 
@@ -199,7 +200,8 @@ def _report(args) -> int:
     closed_md: list[str] = []
     closed_figs: list[Path] = []
     if not args.skip_closed_loop:
-        from . import cluttered, sudden_obstacle
+        from eval.paper import cluttered
+        from eval.paper import sudden_obstacle
 
         for module in (sudden_obstacle, cluttered):
             # --quick: the 2 s tables drive the controllers (horizon 10 instead of 15)
@@ -210,7 +212,7 @@ def _report(args) -> int:
             closed_figs += module.figures(closed[name], paths.figures)
 
     if not args.skip_closed_loop:
-        from . import navigate
+        from eval.navigate import run as navigate
 
         nav = stages.stage("navigation (short)", lambda: navigate.short_run(paths.root / "navigate", args.quick,
                                                                              progress=not args.quick))

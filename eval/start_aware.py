@@ -1,14 +1,14 @@
 """How well a table set serves starts it was not built at: ``python -m eval.start_aware``.
 
 A table set (``python -m precompute.build --starts SPEC``) is read as one start-aware policy
-(:class:`~cuniform_torch.table_set.TableSetPolicy`: each rollout uses the table whose start is nearest). This
+(:class:`~cuniform_torch.policies.table_set.TableSetPolicy`: each rollout uses the table whose start is nearest). This
 command draws random starts inside the set's start box (and, for an SE(2)-invariant system, random poses), builds
 the table of each exact start, rolls both out N times from that start, and prints per start: the set's miss rate
 (lookups that fell back), whether it warned, its real-rollout coverage (distinct cells reached) and the ratio to
 the exact-start table's coverage. The targets it checks: miss rate < 5%, coverage within 10% of the exact table.
 
 The set is built on first use into ``--cache`` (one folder per settings hash, resumable) unless ``--set DIR`` names
-one; the exact tables are built in this process (``precompute.builder``).
+one; the exact tables are built in this process (``precompute.flow.builder``).
 """
 
 from __future__ import annotations
@@ -26,12 +26,12 @@ import torch
 
 from cuniform_torch import StartMismatchWarning, TablePolicy, load_table, rollout
 from cuniform_torch.cli import ArgumentParser, add_system_module_arg, check_output_file, cli_main, import_system_modules
-from cuniform_torch.fileio import write_json
+from cuniform_torch.common.fileio import write_json
 from cuniform_torch.metrics import coverage
 from cuniform_torch.systems import System, make_system, resolve_system
-from cuniform_torch.table_set import TableSetPolicy
+from cuniform_torch.policies.table_set import TableSetPolicy
 from precompute.build import parse_params
-from precompute.builder import BuildConfig, build_table
+from precompute.flow.builder import BuildConfig, build_table
 from precompute.table_set import ensure_set, parse_starts
 
 __all__ = ["StartRow", "random_starts", "measure_start", "main"]

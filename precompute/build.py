@@ -11,7 +11,7 @@ Errors (bad or conflicting flags, an unusable ``--out``, a full disk, ...) are o
 code 2; Ctrl-C is one line and exit code 130 (see :mod:`cuniform_torch.cli`).
 
 Safe level sets (C-Free-Uniform): ``--map FILE --radius R`` removes from every level the cells within R of the
-local map's obstacles before the flow / coverage step (:mod:`precompute.safe_map`: the map file and the rule).
+local map's obstacles before the flow / coverage step (:mod:`precompute.levels.safe_map`: the map file and the rule).
 
 User systems: ``--system-module my_robots`` imports a module that calls ``register_system`` (its dataclass
 fields then become flags too), and ``--system my_robots:Unicycle`` imports and registers a factory directly.
@@ -33,15 +33,15 @@ from pathlib import Path
 from typing import Any, Sequence
 
 from cuniform_torch.cli import OUT, CLIError, check_output_file, cli_main, dataclass_from_args
-from cuniform_torch.fileio import exclusive_lock, write_json
+from cuniform_torch.common.fileio import exclusive_lock, write_json
 from cuniform_torch.systems import resolve_system, system_horizon
-from cuniform_torch.table import write_table
+from cuniform_torch.tables.file import write_table
 
-from .build_args import COVERAGE_ONLY, MAXFLOW_ONLY, check_flags, make_parser
-from .builder import BuildConfig, SizeGuide, available_memory_bytes, build_table, check_resume
-from .report import format_report, uniformity_report
-from .safe_map import map_overrides
-from .system_args import load_user_systems, make_cli_system, parse_params
+from precompute.build_args import COVERAGE_ONLY, MAXFLOW_ONLY, check_flags, make_parser
+from precompute.flow.builder import BuildConfig, SizeGuide, available_memory_bytes, build_table, check_resume
+from precompute.report import format_report, uniformity_report
+from precompute.levels.safe_map import map_overrides
+from precompute.system_args import load_user_systems, make_cli_system, parse_params
 
 __all__ = ["main", "make_parser", "MAXFLOW_ONLY", "COVERAGE_ONLY", "parse_params"]
 
@@ -58,9 +58,9 @@ def _check_device(device: str) -> None:
 
 
 def _build_coverage(system, config, bar):
-    """The coverage method (precompute/coverage_method.py), with the bar counting levels, then iterations."""
-    from .builder import BuildStats
-    from .coverage_method import build_coverage_table
+    """The coverage method (precompute/coverage/method.py), with the bar counting levels, then iterations."""
+    from precompute.flow.builder import BuildStats
+    from precompute.coverage.method import build_coverage_table
 
     if bar is not None:
         bar.reset(total=config.horizon + config.steps)
@@ -121,12 +121,12 @@ def _run(args: argparse.Namespace, argv: Sequence[str] = ()) -> int:
 
 def _run_set(args: argparse.Namespace, argv: Sequence[str], name: str, system) -> int:
     """``--starts``: every start's table into the folder ``--out`` (:mod:`precompute.table_set`)."""
-    from .table_set import build_set, parse_starts
+    from precompute.table_set import build_set, parse_starts
 
     if getattr(args, "start", None) is not None:
         raise ValueError("give --start (one table) or --starts (a table set), not both")
     if args.map_file is not None:
-        raise ValueError("--map builds one safe table; a table set (--starts) takes no map (see precompute.map_farm)")
+        raise ValueError("--map builds one safe table; a table set (--starts) takes no map (see precompute.maps.farm)")
     if args.workers < 1:
         raise ValueError(f"--workers must be >= 1, got {args.workers}")
     starts = parse_starts(args.starts, system, seed=getattr(args, "seed", 0))
@@ -165,7 +165,7 @@ def _build(args: argparse.Namespace, system, horizon: int, config: BuildConfig, 
     say = (lambda *a: None) if args.quiet else (lambda *a: print(*a, flush=True))
     coverage_config = None
     if args.method == "coverage":
-        from .coverage_method import CoverageConfig
+        from precompute.coverage.method import CoverageConfig
 
         coverage_config = dataclass_from_args(CoverageConfig, args, horizon=horizon, local_map=config.local_map,
                                               radius=config.radius)

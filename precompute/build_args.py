@@ -1,6 +1,6 @@
 """The flags of ``python -m precompute.build`` (:mod:`precompute.build`) and the checks of their combination:
-the parser (the table's settings are fields of :class:`~precompute.builder.BuildConfig` and
-:class:`~precompute.coverage_method.CoverageConfig`, every parameter of a registered dataclass system a flag)
+the parser (the table's settings are fields of :class:`~precompute.flow.builder.BuildConfig` and
+:class:`~precompute.coverage.method.CoverageConfig`, every parameter of a registered dataclass system a flag)
 and :func:`check_flags`, which refuses a flag the chosen method or points mode would ignore.
 """
 
@@ -14,8 +14,8 @@ from typing import Any
 from cuniform_torch.cli import OUT, ArgumentParser, CLIError, add_dataclass_args, field_docs, flag_name
 from cuniform_torch.systems import _REGISTRY, DEFAULT_HORIZON, known_systems
 
-from .builder import BuildConfig
-from .levels import PointMode
+from precompute.flow.builder import BuildConfig
+from precompute.levels.sets import PointMode
 
 __all__ = ["make_parser", "check_flags", "MAXFLOW_ONLY", "COVERAGE_ONLY"]
 
@@ -50,13 +50,13 @@ def _defaults_of(field: str) -> str:
 MAXFLOW_ONLY = ("points", "points_per_cell", "resume", "max_memory", "ties")
 """flags of --method maxflow only (given with --method coverage they are refused)"""
 COVERAGE_ONLY = ("target_samples", "merge_resolution", "steps", "lr", "state_budget", "tol")
-"""flags of --method coverage only: fields of :class:`~precompute.coverage_method.CoverageConfig`"""
+"""flags of --method coverage only: fields of :class:`~precompute.coverage.method.CoverageConfig`"""
 
 
 def make_parser() -> argparse.ArgumentParser:
     """The build's flags; the settings of the table (``--points``, ``--steps``, ...) are fields of
     :class:`BuildConfig` and :class:`CoverageConfig`, whose defaults they show (the only copy of each)."""
-    from .coverage_method import CoverageConfig
+    from precompute.coverage.method import CoverageConfig
 
     parser = ArgumentParser(
         prog="python -m precompute.build",
@@ -85,7 +85,7 @@ def make_parser() -> argparse.ArgumentParser:
                 "sets, the authors' sizes); grid: the state's own cell (the grid offset decides)",
     })
     parser.add_argument("--map", dest="map_file", type=Path, default=None, metavar="FILE",
-                        help="a local map in the start frame (precompute/safe_map.py): safe level sets, without the "
+                        help="a local map in the start frame (precompute/levels/safe_map.py): safe level sets, without the "
                              "cells within --radius of its obstacles (SE(2)-invariant systems)")
     parser.add_argument("--radius", dest="map_radius", type=float, default=None, metavar="R",
                         help="with --map: the robot's radius (m) its obstacles are inflated by (default 0)")
@@ -94,7 +94,7 @@ def make_parser() -> argparse.ArgumentParser:
                              "are small, and on a busy machine extra threads only wait for each other")
     parser.add_argument("--method", default="maxflow", choices=["maxflow", "coverage"],
                         help="maxflow: the paper's flow network (default); coverage: maximize the expected coverage "
-                             "of real rollouts over the reachable states (see precompute/coverage_method.py)")
+                             "of real rollouts over the reachable states (see precompute/coverage/method.py)")
     docs = field_docs(CoverageConfig)
     add_dataclass_args(parser, CoverageConfig, only=COVERAGE_ONLY,
                        help={name: f"coverage method: {docs[name]}" for name in COVERAGE_ONLY})

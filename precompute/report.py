@@ -18,9 +18,9 @@ from dataclasses import asdict, dataclass
 import torch
 
 from cuniform_torch.metrics import noise_floor, tv_from_uniform, tv_of_distribution
-from cuniform_torch.policy import TablePolicy
-from cuniform_torch.rollout import rollout
-from cuniform_torch.table import Table
+from cuniform_torch.policies.table import TablePolicy
+from cuniform_torch.sampling.rollout import rollout
+from cuniform_torch.tables.file import Table
 
 __all__ = ["LevelReport", "UniformityReport", "uniformity_report", "format_report", "tv_from_uniform"]
 

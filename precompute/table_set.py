@@ -24,10 +24,10 @@ from typing import Sequence
 
 import numpy as np
 
-from cuniform_torch.fileio import write_json
-from cuniform_torch.parallel import run_jobs
+from cuniform_torch.common.fileio import write_json
+from cuniform_torch.common.parallel import run_jobs
 from cuniform_torch.systems import System
-from cuniform_torch.table import TableError, read_table
+from cuniform_torch.tables.file import TableError, read_table
 
 __all__ = ["SET_FORMAT", "parse_starts", "build_set", "set_complete", "ensure_set", "INDEX"]
 
@@ -102,7 +102,7 @@ def _table_argv(argv: Sequence[str], start: np.ndarray, out: Path) -> list[str]:
 
 
 def _build_one(argv: list[str]) -> int:
-    from .build import main
+    from precompute.build import main
 
     return main(argv)
 
@@ -160,7 +160,7 @@ def ensure_set(folder: Path, build_argv: Sequence[str], count: int | None = None
     the system and ``--starts``) when it is not a complete set; a failed build is a RuntimeError naming it."""
     if set_complete(folder, count):
         return Path(folder)
-    from .build import main
+    from precompute.build import main
 
     argv = [*build_argv, "--out", str(folder), *(["--quiet"] if quiet else [])]
     if main(argv) != 0 or not set_complete(folder, count):

@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 
 from cuniform_torch.systems import make_system
-from precompute.builder import BuildConfig, build_table
+from precompute.flow.builder import BuildConfig, build_table
 
 
 @pytest.fixture(scope="session")

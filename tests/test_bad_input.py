@@ -18,13 +18,13 @@ import numpy as np
 import pytest
 import torch
 
-from cuniform_torch.fileio import write_npz
-from cuniform_torch.policy import TablePolicy, load_table
-from cuniform_torch.rollout import rollout
+from cuniform_torch.common.fileio import write_npz
+from cuniform_torch.policies.table import TablePolicy, load_table
+from cuniform_torch.sampling.rollout import rollout
 from cuniform_torch.systems import Dubins, RandomWalk1D, UnknownSystemError, make_system
-from cuniform_torch.table import TABLE_FORMAT, Table, TableError, read_table, write_table
+from cuniform_torch.tables.file import TABLE_FORMAT, Table, TableError, read_table, write_table
 from precompute.build import main as build_main
-from precompute.builder import BuildConfig, build_table
+from precompute.flow.builder import BuildConfig, build_table
 
 HORIZON = 3
 REQUIRED_KEYS = ("system", "actions", "cell_size", "periodic", "cell_offset", "level_offsets", "cells",

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-from eval.barn import (
+from cuniform_torch.envs.worlds.barn import (
     CHALLENGE_GOAL, CHALLENGE_START, FILE_GOAL, FILE_START, KEYS, BarnFormatError, convert_worlds, default_path,
     load_barn, validate_barn, write_barn,
 )
@@ -43,7 +43,7 @@ def _write_raw(path: Path, arrays: dict) -> Path:
 
 def test_shipped_file_is_package_data():
     import importlib.resources
-    files = importlib.resources.files("eval") / "data"
+    files = importlib.resources.files("cuniform_torch.envs.worlds") / "data"
     for name in ("barn_train.npz", "README.md", "LICENSE-the-barn-challenge"):
         assert (files / name).is_file(), name
 

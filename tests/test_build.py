@@ -9,14 +9,14 @@ import numpy as np
 import pytest
 import torch
 
-from cuniform_torch.grid import Grid
-from cuniform_torch.policy import TablePolicy, load_table
-from cuniform_torch.rollout import rollout
+from cuniform_torch.grid.cells import Grid
+from cuniform_torch.policies.table import TablePolicy, load_table
+from cuniform_torch.sampling.rollout import rollout
 from cuniform_torch.systems import make_system
-from cuniform_torch.table import read_table, write_table
+from cuniform_torch.tables.file import read_table, write_table
 from precompute import build as build_cli
-from precompute.builder import BuildConfig, build_table
-from precompute.levels import PointMode, next_level
+from precompute.flow.builder import BuildConfig, build_table
+from precompute.levels.sets import PointMode, next_level
 from precompute.report import uniformity_report
 
 # The authors' released code (ogpoyrazoglu/cuniform_sampling), run unchanged on the default preset.
@@ -241,7 +241,7 @@ def test_cli_system_parameters_are_flags(tmp_path):
 def test_cli_resume_continues_from_checkpoints(tmp_path, monkeypatch, capsys):
     out = tmp_path / "d.npz"
     args = ["--system", "dubins", "--horizon", "5", "--out", str(out), "--quiet", "--no-report"]
-    import precompute.builder as builder
+    import precompute.flow.builder as builder
 
     real = builder._solve_step
     calls = {"n": 0}

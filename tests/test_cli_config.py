@@ -102,8 +102,8 @@ DERIVED = {"precompute.build": ("horizon",)}
 def _entry_points():
     """(name, parser, config classes whose fields are flags) of every entry point with a config dataclass."""
     from precompute import build
-    from precompute.builder import BuildConfig
-    from precompute.coverage_method import CoverageConfig
+    from precompute.flow.builder import BuildConfig
+    from precompute.coverage.method import CoverageConfig
     from training import distill
 
     out = [("precompute.build", build.make_parser(), (BuildConfig, CoverageConfig)),
@@ -114,7 +114,7 @@ def _entry_points():
     return out
 
 
-EVAL_EXPERIMENTS = ("eval.coverage_experiment", "eval.uniformity", "eval.sudden_obstacle", "eval.cluttered")
+EVAL_EXPERIMENTS = ("eval.paper.coverage", "eval.paper.uniformity", "eval.paper.sudden_obstacle", "eval.paper.cluttered")
 
 
 def check_no_drift(parser: argparse.ArgumentParser, configs, derived=()) -> list[str]:
@@ -149,7 +149,7 @@ def test_no_cli_default_drifts_from_its_dataclass(name, parser, configs):
 def test_a_planted_second_default_is_found():
     """The check itself: a flag added by hand with its own default (the old way) is reported."""
     from precompute import build
-    from precompute.coverage_method import CoverageConfig
+    from precompute.coverage.method import CoverageConfig
 
     parser = build.make_parser()
     for action in parser._actions:
@@ -161,7 +161,7 @@ def test_a_planted_second_default_is_found():
 
 def test_entry_points_parse_to_the_dataclass_defaults(tmp_path):
     from precompute import build
-    from precompute.builder import BuildConfig
+    from precompute.flow.builder import BuildConfig
     from training import distill
 
     table = tmp_path / "t.npz"

@@ -19,17 +19,17 @@ from pathlib import Path
 import pytest
 import torch
 
-import eval.bench_maxflow as bench_maxflow
-import eval.coverage_experiment as eval_coverage
+import eval.bench.maxflow as bench_maxflow
+import eval.paper.coverage as eval_coverage
 import eval.report as eval_report
-import eval.uniformity as eval_uniformity
+import eval.paper.uniformity as eval_uniformity
 import precompute.build as build
 import precompute.system_args as system_args
-import precompute.builder as builder
+import precompute.flow.builder as builder
 import training.distill as distill
-from cuniform_torch import fileio
+from cuniform_torch.common import fileio
 from cuniform_torch.systems import _REGISTRY
-from cuniform_torch.table import read_table
+from cuniform_torch.tables.file import read_table
 
 REPO = Path(__file__).resolve().parents[1]
 TINY_DISTILL = ["--quiet", "--epochs", "1", "--hidden", "8", "--layers", "1", "--jitter", "1", "--batch-size", "64",
@@ -212,7 +212,7 @@ def test_build_takes_over_the_lock_of_a_dead_process(tmp_path):
 
 
 def test_lock_is_exclusive_within_a_run(tmp_path):
-    from cuniform_torch.fileio import FileLockedError, exclusive_lock
+    from cuniform_torch.common.fileio import FileLockedError, exclusive_lock
 
     lock = tmp_path / "x.lock"
     with exclusive_lock(lock, what="x"):
@@ -234,7 +234,7 @@ def test_argparse_errors_are_one_line(tmp_path, capsys):
 
 def test_a_killed_writer_leaves_a_temp_file_that_the_next_write_removes(tmp_path):
     dest = tmp_path / "t.json"
-    script = ("import os, signal, sys\nfrom cuniform_torch.fileio import atomic_path\n"
+    script = ("import os, signal, sys\nfrom cuniform_torch.common.fileio import atomic_path\n"
               "with atomic_path(sys.argv[1]) as tmp:\n    tmp.write_bytes(b'half')\n"
               "    os.kill(os.getpid(), signal.SIGKILL)\n")
     proc = subprocess.run([sys.executable, "-c", script, str(dest)], cwd=REPO)

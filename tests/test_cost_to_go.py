@@ -1,4 +1,4 @@
-"""The benchmark's cost-to-go (eval.cost_to_go, navigate --cost-to-go): the geodesic distance is the straight
+"""The benchmark's cost-to-go (eval.navigate.cost_to_go, navigate --cost-to-go): the geodesic distance is the straight
 line in the open and the way round a wall, recomputed only when the sensed obstacles change; the cost uses it;
 with it MPPI gets through the offset gaps where the straight-line cost leaves it at the wall."""
 
@@ -12,9 +12,9 @@ import pytest
 import torch
 
 from cuniform_torch.envs import Environment, NavigationCost, Rect
-from eval.cost_to_go import UNREACHABLE, CostToGo, geodesic_distance
-from eval.nav_episode import NavContext, NavJob, run_nav_episode
-from eval.nav_tasks import make_tasks
+from eval.navigate.cost_to_go import UNREACHABLE, CostToGo, geodesic_distance
+from eval.navigate.episode import NavContext, NavJob, run_nav_episode
+from cuniform_torch.envs.worlds.tasks import make_tasks
 from test_nav_replay import ROBOT
 
 BOX = (0.0, 0.0, 10.0, 10.0)
@@ -78,7 +78,7 @@ def test_the_cost_squares_the_cost_to_go_before_arrival():
 
 
 def test_with_it_mppi_gets_through_the_offset_gaps(tmp_path):  # 6-step horizon, std 0.3: fails them all without
-    from eval.nav_robot import ensure_table
+    from eval.navigate.robot_files import ensure_table
 
     table = ensure_table(ROBOT, Path(tmp_path), quiet=True)
     offset = [t for t in make_tasks("gaps", ROBOT.radius, count=3) if t.params["offset"] > 0]  # wall on the line

@@ -11,8 +11,8 @@ import torch
 from cuniform_torch import TablePolicy, make_system, read_table, rollout, write_table
 from cuniform_torch.metrics import coverage, uniform_ceiling
 from precompute import build as build_cli
-from precompute.builder import BuildConfig, build_table, propagate_cell_probs
-from precompute.coverage_method import CoverageConfig, build_coverage_table, enumerate_reachable
+from precompute.flow.builder import BuildConfig, build_table, propagate_cell_probs
+from precompute.coverage.method import CoverageConfig, build_coverage_table, enumerate_reachable
 
 
 @pytest.fixture(scope="module")
@@ -164,9 +164,9 @@ def test_approximations_keep_real_coverage(small_dubins):
 
 
 def test_adjoint_gradient_is_the_autograd_gradient():
-    """The hand-written backward pass (precompute/coverage_adjoint.py) against autograd through _propagate."""
-    from precompute.coverage_adjoint import StatePropagator
-    from precompute.coverage_method import _propagate, coverage_objective
+    """The hand-written backward pass (precompute/coverage/adjoint.py) against autograd through _propagate."""
+    from precompute.coverage.adjoint import StatePropagator
+    from precompute.coverage.method import _propagate, coverage_objective
 
     system = make_system("dubins")
     levels = enumerate_reachable(system, 5)

@@ -3,7 +3,7 @@
 Shapes: N states, d state dimensions, q action dimensions.
 
 Same generator seed, same uniforms: the two kernels must give the same actions bit for bit, count the same
-nearest-cell hits and misses, and drive :func:`~cuniform_torch.rollout.rollout` to the same states, for states
+nearest-cell hits and misses, and drive :func:`~cuniform_torch.sampling.rollout.rollout` to the same states, for states
 inside, near and far outside the level sets, NaN and infinite ones, row- and column-major layouts, one and two
 action dimensions, dense and hash lookups, the uniform fallback, one and two states. ``kernel="numba"`` names what
 rules it out (float64, compile, a key box that needs float64 keys or an int64 hash); ``"auto"`` falls back to
@@ -21,10 +21,10 @@ import pytest
 import torch
 
 from cuniform_torch import TablePolicy, rollout
-from cuniform_torch.cpu_kernels import available
-from cuniform_torch.policy import Kernel
+from cuniform_torch.tables.cpu_kernels import available
+from cuniform_torch.policies.table import Kernel
 from cuniform_torch.systems import make_system
-from precompute.builder import BuildConfig, build_table
+from precompute.flow.builder import BuildConfig, build_table
 
 pytestmark = pytest.mark.skipif(not available(), reason="numba is not installed")
 
@@ -94,7 +94,7 @@ def test_the_first_control_cycle_compiles_nothing(dubins_table, monkeypatch):
     Recorded per call (numba's dispatcher is shared by every policy of the process, so its signatures are not)."""
     import numba
 
-    from cuniform_torch.cpu_kernels import NumbaKernel
+    from cuniform_torch.tables.cpu_kernels import NumbaKernel
 
     layouts = []
     call = NumbaKernel.__call__

@@ -15,9 +15,9 @@ import torch
 import training.distill as distill
 from cuniform_torch import CUniformMPPI, PolicyCheckpointError, load_policy, read_table
 from cuniform_torch.systems import make_system
-from cuniform_torch.table import write_table
-from precompute.builder import BuildConfig, build_table
-from training.evaluate import cell_centres
+from cuniform_torch.tables.file import write_table
+from precompute.flow.builder import BuildConfig, build_table
+from training.tables.evaluate import cell_centres
 
 # reaches a max abs probability error of about 0.044 at the cell centres (seed 0); one epoch gives about 0.6
 QUALITY = ["--hidden", "128", "--layers", "3", "--epochs", "300", "--jitter", "16", "--batch-size", "256",

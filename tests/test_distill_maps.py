@@ -1,4 +1,4 @@
-"""Map-conditioned policies trained on map-table data sets (python -m training.distill_maps): the map is used,
+"""Map-conditioned policies trained on map-table data sets (python -m training.maps.distill): the map is used,
 the policy's rollouts collide less than the blind table's where a wall stands ahead, resume, bad input.
 
 The data sets here are tiny and written by this file (format of /tmp/notes/dataset_format.md, i.e.
@@ -18,18 +18,18 @@ import numpy as np
 import pytest
 import torch
 
-import training.distill_maps as distill_maps
+import training.maps.distill as distill_maps
 from cuniform_torch.envs import OccupancyGrid
-from cuniform_torch.grid import Grid
-from cuniform_torch.map_checkpoint import load_map_policy
-from cuniform_torch.map_encoder import PatchSpec
-from cuniform_torch.policy import TablePolicy
-from cuniform_torch.rollout import rollout
-from cuniform_torch.sensing import local_map, patch_centres
+from cuniform_torch.grid.cells import Grid
+from cuniform_torch.maps.checkpoint import load_map_policy
+from cuniform_torch.maps.encoder import PatchSpec
+from cuniform_torch.policies.table import TablePolicy
+from cuniform_torch.sampling.rollout import rollout
+from cuniform_torch.maps.sensing import local_map, patch_centres
 from cuniform_torch.systems import make_system, system_to_json
-from precompute.builder import BuildConfig, build_table
-from precompute.map_dataset import MapDatasetError
-from training.map_data import MapDataError, load_map_data
+from precompute.flow.builder import BuildConfig, build_table
+from precompute.maps.dataset import MapDatasetError
+from training.maps.data import MapDataError, load_map_data
 
 T = 4
 SYSTEM = make_system("dubins", speed=1.0, dt=0.2, num_actions=5, max_omega=math.pi / 2,
@@ -176,9 +176,9 @@ def test_a_trained_policy_avoids_the_wall_the_blind_table_hits(trained, table):
 
 
 def test_map_eval_measures_the_same_on_the_data_set(trained, dataset, table, tmp_path, capsys):
-    """python -m training.map_eval: per entry, the map policy against the blind table and the safe table."""
-    import training.map_eval as map_eval
-    from cuniform_torch.table import write_table
+    """python -m training.maps.evaluate: per entry, the map policy against the blind table and the safe table."""
+    import training.maps.evaluate as map_eval
+    from cuniform_torch.tables.file import write_table
     write_table(tmp_path / "blind.npz", table)
     out = tmp_path / "rates.json"
     assert map_eval.main(["--checkpoint", str(trained), "--maps", str(dataset), "--table", str(tmp_path / "blind.npz"),

@@ -14,12 +14,12 @@ import pytest
 import torch
 
 import training.distill as distill
-import training.distill_set as distill_set
+import training.sets.distill as distill_set
 from cuniform_torch import PolicyCheckpointError, load_policy, read_table
-from cuniform_torch.mlp_start import StartMLPPolicy
+from cuniform_torch.policies.start_mlp import StartMLPPolicy
 from precompute.build import main as build
-from training.evaluate import cell_centres
-from training.evaluate_set import main as evaluate_set
+from training.tables.evaluate import cell_centres
+from training.sets.evaluate import main as evaluate_set
 
 TRAIN = ["--hidden", "32", "--layers", "2", "--epochs", "150", "--jitter", "4", "--batch-size", "128", "--lr", "1e-2"]
 TINY = ["--hidden", "16", "--layers", "2", "--jitter", "2", "--batch-size", "32", "--lr", "1e-2"]

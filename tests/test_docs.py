@@ -48,7 +48,7 @@ COMMANDS = readme_commands(README.read_text())
 
 def test_the_readme_shows_commands():
     modules = {shlex.split(c)[2] for c in COMMANDS}
-    assert {"precompute.build", "training.distill", "eval.report", "eval.bench"} <= modules, modules
+    assert {"precompute.build", "training.distill", "eval.report", "eval.bench.controllers"} <= modules, modules
 
 
 def _my_robots(text: str) -> str:
@@ -104,7 +104,7 @@ def test_readme_gymnasium_example_runs():
     """The README's gymnasium example, executed as shown."""
     pytest.importorskip("gymnasium")
     block = next(b for b in re.findall(r"```python\n(.*?)```", README.read_text(), flags=re.S)
-                 if "from eval.gym_env import make_env" in b)
+                 if "from eval.navigate.gym_env import make_env" in b)
     scope: dict = {}
     exec(compile(block, "README.md", "exec"), scope)
     assert scope["env"].observation_space.contains(scope["obs"])

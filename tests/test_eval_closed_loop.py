@@ -1,4 +1,4 @@
-"""The closed-loop experiments (eval.episodes, eval.stats, eval.markdown, eval.sudden_obstacle, eval.cluttered) on
+"""The closed-loop experiments (eval.paper.episodes, eval.common.stats, eval.common.markdown, eval.paper.sudden_obstacle, eval.paper.cluttered) on
 tiny sizes, and closed-loop success rates with a stated margin.
 
 Every run here uses the session's horizon-10 Dubins table written to a temporary file, N = 16 samples and
@@ -15,12 +15,13 @@ import pytest
 import torch
 
 from cuniform_torch.envs import Circle, Environment, NavigationCost
-from cuniform_torch.table import write_table
-from eval import cluttered, sudden_obstacle
-from eval.episodes import OUTCOMES, ControllerSettings, Episode, run_episodes, usable_methods
-from eval.markdown import success_markdown
-from eval.stats import aggregate, wilson_interval
-from eval.methods import Sources
+from cuniform_torch.tables.file import write_table
+from eval.paper import cluttered
+from eval.paper import sudden_obstacle
+from eval.paper.episodes import OUTCOMES, ControllerSettings, Episode, run_episodes, usable_methods
+from eval.common.markdown import success_markdown
+from eval.common.stats import aggregate, wilson_interval
+from eval.common.methods import Sources
 
 METHODS = ("mppi_high", "cu_table")
 

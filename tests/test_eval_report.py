@@ -11,10 +11,10 @@ import torch
 
 from cuniform_torch import TableError, UniformPolicy, make_system, read_table, rollout
 from cuniform_torch.metrics import coverage, level_uniformity
-from eval.graph_sampling import GraphSampler
-from eval import coverage_experiment as coverage_exp
-from eval.methods import METHODS, Sources, make_controller, parse_methods, sample_states
-from eval.reachable import reachable
+from eval.common.graph_sampling import GraphSampler
+from eval.paper import coverage as coverage_exp
+from eval.common.methods import METHODS, Sources, make_controller, parse_methods, sample_states
+from eval.paper.reachable import reachable
 
 
 @pytest.fixture(scope="module")
@@ -100,7 +100,7 @@ def test_coverage_experiment_orders_the_methods_as_the_paper_does(sources):
 def test_reachable_cells_are_what_rollouts_reach(dubins_table_path):
     system = read_table(dubins_table_path).make_system()
     reach = reachable(system, 4)
-    from cuniform_torch.grid import Grid
+    from cuniform_torch.grid.cells import Grid
 
     grid = Grid.of(system)
     states, _ = rollout(system, UniformPolicy(system), torch.zeros(3, dtype=torch.float64), 3000, 4,

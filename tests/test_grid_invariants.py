@@ -1,5 +1,5 @@
-"""One home for the grid's invariants (cuniform_torch.grid.check_grid) and the small argument checks
-(cuniform_torch.checks): the four places that check a grid agree, on the same borderline values."""
+"""One home for the grid's invariants (cuniform_torch.grid.cells.check_grid) and the small argument checks
+(cuniform_torch.common.checks): the four places that check a grid agree, on the same borderline values."""
 
 from __future__ import annotations
 
@@ -10,10 +10,10 @@ import numpy as np
 import pytest
 import torch
 
-from cuniform_torch.checks import finite, float_tuple, non_negative, positive, positive_int, wrap_angle
-from cuniform_torch.grid import ANGLE_CELL_RTOL, Grid, check_grid
+from cuniform_torch.common.checks import finite, float_tuple, non_negative, positive, positive_int, wrap_angle
+from cuniform_torch.grid.cells import ANGLE_CELL_RTOL, Grid, check_grid
 from cuniform_torch.systems import Dubins, check_system
-from cuniform_torch.table import TableError, validate_table
+from cuniform_torch.tables.file import TableError, validate_table
 
 K = 40
 EXACT = 2 * math.pi / K

@@ -7,8 +7,8 @@ import math
 import pytest
 import torch
 
-from cuniform_torch.checks import wrap_angle
-from cuniform_torch.grid import CellKeys, CellSet, Grid
+from cuniform_torch.common.checks import wrap_angle
+from cuniform_torch.grid.cells import CellKeys, CellSet, Grid
 from cuniform_torch.systems import Dubins, RandomWalk1D, make_system, system_from_json, system_to_json
 
 

@@ -1,4 +1,4 @@
-"""eval.gym_env: the gymnasium NavigationEnv follows simulate()'s closed loop exactly, and its API contracts."""
+"""eval.navigate.gym_env: the gymnasium NavigationEnv follows simulate()'s closed loop exactly, and its API contracts."""
 
 from __future__ import annotations
 
@@ -15,10 +15,10 @@ gymnasium = pytest.importorskip("gymnasium")
 from gymnasium.utils.env_checker import check_env  # noqa: E402
 
 from cuniform_torch.envs import Circle, simulate  # noqa: E402
-from eval import gym_env  # noqa: E402
-from eval.gym_env import ENV_ID, NavigationEnv, make_env, register_envs  # noqa: E402
-from eval.nav_robot import NAV_ROBOT  # noqa: E402
-from eval.suites import forest, gaps  # noqa: E402
+from eval.navigate import gym_env  # noqa: E402
+from eval.navigate.gym_env import ENV_ID, NavigationEnv, make_env, register_envs  # noqa: E402
+from cuniform_torch.envs.worlds.robot import NAV_ROBOT  # noqa: E402
+from cuniform_torch.envs.worlds.suites import forest, gaps  # noqa: E402
 
 
 class Constant:
@@ -205,6 +205,6 @@ def test_make_env_picks_the_suite_task():
 
 def test_missing_gymnasium_names_the_extra(monkeypatch):
     monkeypatch.setitem(sys.modules, "gymnasium", None)  # import gymnasium now raises ImportError
-    monkeypatch.delitem(sys.modules, "eval.gym_env")
+    monkeypatch.delitem(sys.modules, "eval.navigate.gym_env")
     with pytest.raises(ImportError, match=r"pip install -e '\.\[gym\]'"):
-        importlib.import_module("eval.gym_env")
+        importlib.import_module("eval.navigate.gym_env")

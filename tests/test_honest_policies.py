@@ -11,12 +11,12 @@ import torch
 
 from cuniform_torch import (CUniformMPPI, MLPConfig, MLPPolicy, MLPSupport, PolicyCheckpointError,
                             StartMismatchWarning, TablePolicy, load_policy, make_system, rollout, system_to_json)
-from cuniform_torch.grid import Grid
-from cuniform_torch.checkpoint import policy_checkpoint
-from cuniform_torch.mlp import default_feature_scale
-from cuniform_torch.rollout import RolloutPlan
+from cuniform_torch.grid.cells import Grid
+from cuniform_torch.policies.checkpoint import policy_checkpoint
+from cuniform_torch.policies.mlp import default_feature_scale
+from cuniform_torch.sampling.rollout import RolloutPlan
 from cuniform_torch.systems import se2_invariance_gap
-from precompute.builder import BuildConfig, build_table
+from precompute.flow.builder import BuildConfig, build_table
 
 KS_SPEED_SMALL = dict(cell_size=(0.2, 0.2, 2 * math.pi / 18, 0.2), num_steer=3)
 

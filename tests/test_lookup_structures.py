@@ -2,7 +2,7 @@
 
 Shapes: N queries, E keys, R probability rows, A actions, d state dimensions.
 
-* :class:`~cuniform_torch.grid.KeyHash` (one-probe static hash) answers exactly what a sorted-key
+* :class:`~cuniform_torch.grid.cells.KeyHash` (one-probe static hash) answers exactly what a sorted-key
   ``searchsorted`` answers, hits and misses alike, for int32 and int64 keys and tiny tables;
 * ``TablePolicy`` entries (dense index or hash of the packed (level, cell) key) give the row a dictionary over the table gives,
   the nearest level cell for halo cells, and a miss elsewhere, and count them;
@@ -17,9 +17,9 @@ import pytest
 import torch
 
 from cuniform_torch import TablePolicy, rollout
-from cuniform_torch.grid import CellKeys, CellSet, KeyHash
-from cuniform_torch.alias import alias_tables
-from cuniform_torch.halo import halo as table_halo
+from cuniform_torch.grid.cells import CellKeys, CellSet, KeyHash
+from cuniform_torch.tables.alias import alias_tables
+from cuniform_torch.tables.halo import halo as table_halo
 
 CUDA = torch.cuda.is_available()
 
@@ -161,7 +161,7 @@ class TestPolicySlots:
         assert u.shape == (x.shape[0], 1) and bool(torch.isfinite(u).all())
 
     def test_auto_lookup_is_dense_for_small_boxes_and_hash_beyond(self, dubins_table, monkeypatch):
-        import cuniform_torch.lookup as lookup_module
+        import cuniform_torch.tables.lookup as lookup_module
 
         assert TablePolicy(dubins_table).lookup.value == "dense"
         monkeypatch.setattr(lookup_module, "DENSE_MIN_CELLS", 0)

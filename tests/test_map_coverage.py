@@ -1,4 +1,4 @@
-"""python -m training.map_coverage: the free-space coverage of rollouts over an entry's safe cells (exact on a
+"""python -m training.maps.coverage: the free-space coverage of rollouts over an entry's safe cells (exact on a
 hand-made case, more for a spread table than for one action), the command on a tiny data set, bad input.
 
 The tiny data set and its system are test_distill_maps.py's (a Dubins car of 4 steps, 24 x 24 patches); the map
@@ -16,15 +16,15 @@ import numpy as np
 import pytest
 import torch
 
-import training.map_coverage as map_coverage
-from cuniform_torch.grid import Grid
-from cuniform_torch.map_checkpoint import map_policy_checkpoint, save_map_policy
-from cuniform_torch.map_policy import MapPolicy, MapPolicyConfig
-from cuniform_torch.policy import TablePolicy
-from cuniform_torch.rollout import rollout
+import training.maps.coverage as map_coverage
+from cuniform_torch.grid.cells import Grid
+from cuniform_torch.maps.checkpoint import map_policy_checkpoint, save_map_policy
+from cuniform_torch.maps.policy import MapPolicy, MapPolicyConfig
+from cuniform_torch.policies.table import TablePolicy
+from cuniform_torch.sampling.rollout import rollout
 from cuniform_torch.systems import make_system, system_to_json
-from cuniform_torch.table import write_table
-from precompute.builder import BuildConfig, build_table
+from cuniform_torch.tables.file import write_table
+from precompute.flow.builder import BuildConfig, build_table
 from test_distill_maps import MAPS, SPEC, SYSTEM, T, write_dataset
 
 GRID = Grid.of(SYSTEM)

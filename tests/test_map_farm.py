@@ -1,4 +1,4 @@
-"""The map-table farm (precompute.map_farm) and its data set reader (precompute.map_dataset): a tiny BARN data set,
+"""The map-table farm (precompute.maps.farm) and its data set reader (precompute.maps.dataset): a tiny BARN data set,
 serial = --workers 2 byte for byte, resume per shard, the reader refusing broken or foreign shards, and the
 train / test splits sharing no map."""
 
@@ -12,10 +12,10 @@ import numpy as np
 import pytest
 import torch
 
-from precompute.map_dataset import MapDatasetError, file_sha256, read_map_dataset
-from precompute.map_farm import main as farm_main
-from precompute.map_worlds import World, crop_patch, split_of, suite_worlds
-from precompute.safe_map import LocalMap, SafeCells
+from precompute.maps.dataset import MapDatasetError, file_sha256, read_map_dataset
+from precompute.maps.farm import main as farm_main
+from precompute.maps.worlds import World, crop_patch, split_of, suite_worlds
+from precompute.levels.safe_map import LocalMap, SafeCells
 
 TINY = ["--suite", "barn", "--count", "2", "--poses-per-map", "2", "--split", "train", "--seed", "0",
         "--horizon", "3", "--patch", "20", "20", "--quiet"]

@@ -1,4 +1,4 @@
-"""MapPolicy's opt-in local features (``local_features = C > 0``, :mod:`cuniform_torch.map_local`): C = 0 is the
+"""MapPolicy's opt-in local features (``local_features = C > 0``, :mod:`cuniform_torch.maps.local_features`): C = 0 is the
 old network bit for bit, the fast lookup and the training path agree, the sampling reads the patch where the
 state is (x = column, y = row, cell centres as grid_sample's align_corners=False), and a policy trained with them
 still avoids the wall the blind table hits (the data set and the wall of tests/test_distill_maps.py).
@@ -11,13 +11,13 @@ import math
 import pytest
 import torch
 
-import training.distill_maps as distill_maps
+import training.maps.distill as distill_maps
 from cuniform_torch.envs import OccupancyGrid
-from cuniform_torch.map_checkpoint import load_map_policy, map_policy_checkpoint
-from cuniform_torch.map_local import PROBES, LocalFeatures
-from cuniform_torch.map_policy import MapPolicy, MapPolicyConfig
+from cuniform_torch.maps.checkpoint import load_map_policy, map_policy_checkpoint
+from cuniform_torch.maps.local_features import PROBES, LocalFeatures
+from cuniform_torch.maps.policy import MapPolicy, MapPolicyConfig
 from cuniform_torch.systems import system_to_json
-from precompute.builder import BuildConfig, build_table
+from precompute.flow.builder import BuildConfig, build_table
 from test_distill_maps import MAPS, SPEC, SYSTEM, T, TRAIN, wall_collision_rates, write_dataset
 
 pytestmark = pytest.mark.usefixtures("restore_threads")  # conftest: main sets torch's thread count

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from precompute.closed_form import closed_form_1d, closed_form_1d_counts
-from precompute.maxflow import (
+from precompute.flow.closed_form import closed_form_1d, closed_form_1d_counts
+from precompute.flow.maxflow import (
     action_probs_from_flow,
     maxflow_value_networkx,
     solve_maxflow,

@@ -13,8 +13,8 @@ import torch
 from cuniform_torch import metrics
 from cuniform_torch.metrics import (entropy_ratio, histogram_over, level_uniformity, noise_floor, tv_from_uniform,
                                     tv_of_distribution)
-from cuniform_torch.policy import TablePolicy
-from cuniform_torch.rollout import rollout
+from cuniform_torch.policies.table import TablePolicy
+from cuniform_torch.sampling.rollout import rollout
 
 
 def _reference(cells: torch.Tensor, reference: torch.Tensor) -> tuple[list[int], int, float]:
@@ -63,7 +63,7 @@ def test_noise_floor_matches_the_multinomial_closed_form():
 
 
 def test_the_build_report_and_eval_share_one_tv():
-    from eval import uniformity
+    from eval.paper import uniformity
     from precompute import report
 
     assert report.tv_from_uniform is metrics.tv_from_uniform

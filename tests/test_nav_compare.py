@@ -1,4 +1,4 @@
-"""Paired comparison of two benchmark cells (python -m eval.nav_compare): pairs on (task, seed) across budgets,
+"""Paired comparison of two benchmark cells (python -m eval.navigate.compare): pairs on (task, seed) across budgets,
 counts wins and losses, and the margin verdicts follow the interval; bad cells are one clear error."""
 
 from __future__ import annotations
@@ -7,7 +7,7 @@ import json
 
 import pytest
 
-from eval.nav_compare import compare_cells, main, parse_cell
+from eval.navigate.compare import compare_cells, main, parse_cell
 
 
 def _folder(tmp_path, outcomes: dict[tuple[str, int], list[bool]]):

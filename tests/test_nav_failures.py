@@ -1,4 +1,4 @@
-"""Sorting the benchmark's failures (python -m eval.nav_failures): a timeout is lost, a collision whose last
+"""Sorting the benchmark's failures (python -m eval.navigate.failures): a timeout is lost, a collision whose last
 command had free proposals is missed, one preceded by commands with none is trapped only when the C-Uniform
 probe finds no free trajectory at that state either; the CLI counts every failure of the folder once."""
 
@@ -8,10 +8,10 @@ import json
 
 import pytest
 
-from eval.nav_episode import NavContext
-from eval.nav_failures import classify, main, probe_free_share
-from eval.nav_robot import ensure_table
-from eval.nav_tasks import make_task
+from eval.navigate.episode import NavContext
+from eval.navigate.failures import classify, main, probe_free_share
+from eval.navigate.robot_files import ensure_table
+from cuniform_torch.envs.worlds.tasks import make_task
 from test_nav_replay import ROBOT, bench  # noqa: F401  (the tiny benchmark folder fixture)
 
 

@@ -1,4 +1,4 @@
-"""Replaying a stored navigation episode (python -m eval.nav_replay): it reproduces the record, traces every
+"""Replaying a stored navigation episode (python -m eval.navigate.replay): it reproduces the record, traces every
 command, draws it; bad keys and files are one clear error; the trace leaves the benchmark's records unchanged."""
 
 from __future__ import annotations
@@ -10,14 +10,15 @@ import numpy as np
 import pytest
 
 from cuniform_torch import GaussianSampler
-from eval import nav_methods
-from eval.methods import Method
-from eval.nav_episode import NavContext, NavJob, run_nav_episode
-from eval.nav_replay import compare_records, main, replay_episode
-from eval.nav_robot import NAV_ROBOT, ensure_table
-from eval.nav_tasks import make_task, make_tasks
-from eval.navigate import NavConfig, run
-from eval.suites import SuiteError
+from eval.navigate import methods as nav_methods
+from eval.common.methods import Method
+from eval.navigate.episode import NavContext, NavJob, run_nav_episode
+from eval.navigate.replay import compare_records, main, replay_episode
+from cuniform_torch.envs.worlds.robot import NAV_ROBOT
+from eval.navigate.robot_files import ensure_table
+from cuniform_torch.envs.worlds.tasks import make_task, make_tasks
+from eval.navigate.run import NavConfig, run
+from cuniform_torch.envs.worlds.suites import SuiteError
 from test_navigate import Straight  # a controller without plan(): it always drives straight
 
 ROBOT = replace(NAV_ROBOT, horizon=6)  # a 6-step table builds in about a second
@@ -132,7 +133,7 @@ def test_make_task_is_the_task_make_tasks_makes():
 
 def test_a_map_policy_or_barn_file_other_than_the_runs_is_one_clear_error(bench, tmp_path):
     _, cache, records = bench
-    from eval.nav_replay import _barn_file, _checked_sources
+    from eval.navigate.replay import _barn_file, _checked_sources
 
     policy = tmp_path / "other.map_policy.pt"
     policy.write_bytes(b"not the run's policy")

@@ -1,4 +1,4 @@
-"""eval.nav_stats / eval.nav_figures: Wilson values, cycle-time histograms, summaries, paired comparisons
+"""eval.navigate.stats / eval.navigate.figures: Wilson values, cycle-time histograms, summaries, paired comparisons
 (Newcombe interval, exact McNemar), markdown, the success figure and the TensorBoard writer."""
 
 from __future__ import annotations
@@ -8,17 +8,17 @@ import random
 
 import pytest
 
-from eval.nav_stats import (BINS_PER_DECADE, NUM_BINS, cycle_histogram, histogram_quantile, markdown,
+from eval.navigate.stats import (BINS_PER_DECADE, NUM_BINS, cycle_histogram, histogram_quantile, markdown,
                             mcnemar_exact_p, merge_histograms, newcombe_paired_interval, paired_comparisons,
                             summarize)
-from eval.stats import wilson_interval
+from eval.common.stats import wilson_interval
 
 BIN = 10 ** (1 / BINS_PER_DECADE)
 
 
 def rec(method: str, task: int, outcome: str, *, suite: str = "barn", budget: int = 256, seed: int = 0,
         time: float = 10.0, path_length: float = 5.0, hist: dict | None = None, wall_s: float = 1.0) -> dict:
-    """One episode record as eval.navigate writes it."""
+    """One episode record as eval.navigate.run writes it."""
     return {"suite": suite, "task_id": task, "method": method, "budget": budget, "seed": seed,
             "outcome": outcome, "success": outcome == "goal", "time": time, "path_length": path_length,
             "steps": 100, "wall_s": wall_s, "cycle_hist": hist or {}, "cycles": 100}
@@ -183,7 +183,7 @@ def test_markdown_tables():
 # ------------------------------------------------------------------------------------------------ figures
 
 def test_success_figure_is_png(tmp_path):
-    from eval.nav_figures import success_figure
+    from eval.navigate.figures import success_figure
 
     records = (paired("cu", "ggc", budget=64) + paired("cu", "ggg", budget=256)
                + paired("mppi", "gcc", budget=64) + paired("mppi", "ggc", budget=256, suite="gap"))
@@ -194,7 +194,7 @@ def test_success_figure_is_png(tmp_path):
 
 
 def test_tensorboard_event_file(tmp_path):
-    from eval.nav_figures import write_tensorboard
+    from eval.navigate.figures import write_tensorboard
 
     write_tensorboard(summarize(paired("cu", "gc", budget=64) + paired("cu", "gg", budget=128)), tmp_path)
     events = list(tmp_path.glob("events.out.tfevents.*"))
@@ -231,7 +231,7 @@ def test_bad_input_raises_clear_errors():
 def test_wilson_interval_always_holds_the_observed_rate():
     """At 0 / n and n / n the bound equals the rate exactly; rounding once put 6/6 above its own upper bound
     (a negative error bar, which matplotlib refuses)."""
-    from eval.stats import wilson_interval
+    from eval.common.stats import wilson_interval
 
     for n in range(1, 200):
         for s in range(n + 1):

@@ -11,16 +11,17 @@ import torch
 
 from cuniform_torch import GaussianSampler
 from cuniform_torch.envs import Environment
-from eval import nav_methods
-from eval.barn import load_barn, write_barn, pack_maps
-from eval.methods import Method
-from eval.nav_episode import NavContext, NavJob, rasterize, run_nav_episode
-from cuniform_torch.parallel import ray_available
-from eval.nav_robot import NAV_ROBOT, ensure_table, preset_dict
-from eval.nav_tasks import barn_task, make_tasks
-from eval.navigate import NavConfig, controller_seed, main, make_jobs, run
-from eval.nav_geometry import clearance
-from eval.suites import SuiteError, forest, gaps
+from eval.navigate import methods as nav_methods
+from cuniform_torch.envs.worlds.barn import load_barn, write_barn, pack_maps
+from eval.common.methods import Method
+from eval.navigate.episode import NavContext, NavJob, rasterize, run_nav_episode
+from cuniform_torch.common.parallel import ray_available
+from cuniform_torch.envs.worlds.robot import NAV_ROBOT, preset_dict
+from eval.navigate.robot_files import ensure_table
+from cuniform_torch.envs.worlds.tasks import barn_task, make_tasks
+from eval.navigate.run import NavConfig, controller_seed, main, make_jobs, run
+from cuniform_torch.envs.worlds.geometry import clearance
+from cuniform_torch.envs.worlds.suites import SuiteError, forest, gaps
 
 ROBOT = replace(NAV_ROBOT, horizon=6)  # a 6-step table builds in about a second
 OUTCOME_FIELDS = ("key", "outcome", "success", "steps", "time", "path_length", "seed")
@@ -112,7 +113,7 @@ def test_resume_skips_finished_episodes(tmp_path, cache, monkeypatch):
     first = serial_records(out)
     assert len(first) == 4
     ran = []
-    import eval.nav_exec as nav_exec
+    import eval.navigate.execute as nav_exec
     real = nav_exec.run_nav_episode
     monkeypatch.setattr(nav_exec, "run_nav_episode", lambda job, c: ran.append(job.key) or real(job, c))
     again = run(cfg, out, ROBOT, cache, progress=False)
@@ -247,7 +248,7 @@ def test_a_robot_with_a_speed_drives_from_a_table_set(tmp_path):
 
 
 def test_success_pivot_marks_methods_against_the_best_baseline():
-    from eval.navigate import success_pivot
+    from eval.navigate.run import success_pivot
 
     def row(method, budget, rate):
         return dict(suite="barn", method=method, budget=budget, success_rate=rate, success_rate_low=rate - 0.1,
@@ -263,7 +264,7 @@ def test_success_pivot_marks_methods_against_the_best_baseline():
 
 
 def test_store_merges_new_source_files_and_refuses_changed_ones(tmp_path):
-    from eval.nav_store import EpisodeStore, StoreError
+    from eval.navigate.store import EpisodeStore, StoreError
 
     base = dict(suite="barn", lambda_=0.5, sources=dict(table="aa", policy=None))
     EpisodeStore(tmp_path).open(base)
@@ -307,8 +308,8 @@ def test_cfu_mppi_runs_from_a_given_map_policy_and_needs_one(tmp_path, cache):
 def test_cfu_mppi_senses_the_raw_obstacles_not_the_inflated_ones(monkeypatch, tmp_path, cache):
     """The farm's patches are raw occupancy (its tables inflate by the radius): a policy fed the inflated world
     would see every obstacle 0.2 m too large, a map unlike any it was trained on."""
-    from eval import nav_episode
-    from eval.nav_tasks import make_tasks
+    from eval.navigate import episode as nav_episode
+    from cuniform_torch.envs.worlds.tasks import make_tasks
 
     task = make_tasks("forest", ROBOT.radius, 1)[0]
     seen = {}
@@ -333,9 +334,9 @@ def test_cfu_mppi_senses_the_raw_obstacles_not_the_inflated_ones(monkeypatch, tm
 
 
 def test_a_gap_sweep_of_other_widths_is_refused_since_its_task_ids_mean_other_gaps(tmp_path):
-    from eval.nav_store import EpisodeStore, StoreError
-    from eval.nav_tasks import make_tasks
-    from eval.navigate import settings_record
+    from eval.navigate.store import EpisodeStore, StoreError
+    from cuniform_torch.envs.worlds.tasks import make_tasks
+    from eval.navigate.run import settings_record
 
     sweep = {n: make_tasks("gaps", 0.2, count=n) for n in (2, 3, 4, 7)}
     assert sweep[4][3].params["width"] != sweep[7][3].params["width"]  # why: the same key, another gap

@@ -214,7 +214,7 @@ class TestBuiltInProposals:
 
     @pytest.mark.parametrize("kernel", [True, False])
     def test_bank_proposals_are_distinct_bank_rows_moved_rigidly_to_the_pose(self, policy, kernel, monkeypatch):
-        from cuniform_torch import rollout_kernels
+        from cuniform_torch.sampling import kernels as rollout_kernels
 
         if not kernel:  # the torch frame change (a GPU, or no numba)
             monkeypatch.setattr(rollout_kernels, "usable", lambda x: False)
@@ -288,7 +288,7 @@ class TestFrameChangeKernel:
     @pytest.mark.parametrize("dtype, atol", [(torch.float32, 4e-6), (torch.float64, 1e-13)])
     @pytest.mark.parametrize("d", [3, 4])
     def test_it_matches_se2_to_world(self, dtype, atol, d):
-        from cuniform_torch import rollout_kernels
+        from cuniform_torch.sampling import kernels as rollout_kernels
 
         if not rollout_kernels.usable(torch.zeros(1, dtype=dtype)):
             pytest.skip("numba is not installed")
@@ -308,7 +308,7 @@ class TestFrameChangeKernel:
             assert torch.equal(got[..., 3:], expected[..., 3:])
 
     def test_rollouts_from_a_pose_agree_with_and_without_it(self, policy, monkeypatch):
-        from cuniform_torch import rollout_kernels
+        from cuniform_torch.sampling import kernels as rollout_kernels
 
         pose = torch.tensor([1.2, -0.4, 2.2])
         fast, fast_actions = rollout(policy.system, policy, pose, 300, 10, _gen(4))

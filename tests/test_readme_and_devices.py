@@ -8,8 +8,8 @@ from pathlib import Path
 import pytest
 import torch
 
-from cuniform_torch.policy import TablePolicy
-from cuniform_torch.table import write_table
+from cuniform_torch.policies.table import TablePolicy
+from cuniform_torch.tables.file import write_table
 
 README = Path(__file__).resolve().parents[1] / "README.md"
 

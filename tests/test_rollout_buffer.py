@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from cuniform_torch import Dubins, TablePolicy, rollout
-from cuniform_torch.rollout import RolloutPlan
+from cuniform_torch.sampling.rollout import RolloutPlan
 
 
 class PlainDubins(Dubins):

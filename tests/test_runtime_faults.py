@@ -12,12 +12,12 @@ import threading
 import pytest
 import torch
 
-from cuniform_torch.mlp import MLPConfig, MLPPolicy
-from cuniform_torch import mppi
-from cuniform_torch.mppi import CUMPPI, MPPI, CUniformMPPI, LogMPPI, mppi_weights
-from cuniform_torch.policy import TablePolicy
-from cuniform_torch.rollout import rollout
-from cuniform_torch.samplers import GaussianSampler, NormalLogNormalSampler
+from cuniform_torch.policies.mlp import MLPConfig, MLPPolicy
+from cuniform_torch.controllers import mppi
+from cuniform_torch.controllers.mppi import CUMPPI, MPPI, CUniformMPPI, LogMPPI, mppi_weights
+from cuniform_torch.policies.table import TablePolicy
+from cuniform_torch.sampling.rollout import rollout
+from cuniform_torch.sampling.noise import GaussianSampler, NormalLogNormalSampler
 
 KINDS = ["mppi", "log_mppi", "cuniform", "cuniform_bank", "cumppi"]
 
@@ -115,7 +115,7 @@ class TestBankWorker:
         assert bool(torch.isfinite(ctrl.command(torch.zeros(3))).all()), "after close() the refresh runs in the loop"
 
     def test_small_soak_with_a_failure(self, policy):
-        from eval.soak_bank import soak  # the script's own loop, at 300 commands
+        from eval.bench.soak_bank import soak  # the script's own loop, at 300 commands
 
         result = soak(policy, commands=300, num_samples=32, bank_size=256, refresh=5, fail_once=True)
         assert result.finite and result.bank_failures == 1 and result.warnings == 1
@@ -251,7 +251,7 @@ class TestMLPActionProbs:
 
 def test_an_unindexed_cuda_device_is_the_current_one(monkeypatch):
     """``TablePolicy(table, "cuda")`` keeps ``cuda`` while its tensors say ``cuda:0``: the checks must agree."""
-    from cuniform_torch.rollout import same_device
+    from cuniform_torch.sampling.rollout import same_device
 
     monkeypatch.setattr(torch.cuda, "current_device", lambda: 0)  # no GPU needed
     assert same_device("cuda", torch.device("cuda", 0)) and same_device(torch.device("cuda", 0), "cuda")

@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 
 from cuniform_torch import TablePolicy, TableError, make_system, read_table, write_table
-from cuniform_torch.fileio import write_npz
+from cuniform_torch.common.fileio import write_npz
 from precompute.build import main as build_main
-from precompute.builder import BuildConfig, build_table
-from precompute.coverage_method import CoverageConfig, build_coverage_table
+from precompute.flow.builder import BuildConfig, build_table
+from precompute.coverage.method import CoverageConfig, build_coverage_table
 
 
 @pytest.mark.parametrize("method", ["maxflow", "coverage"])

@@ -1,4 +1,4 @@
-"""eval.suites: seeded forest and gap maps as data; inflation, sensing and reachability against slow references."""
+"""cuniform_torch.envs.worlds.suites: seeded forest and gap maps as data; inflation, sensing and reachability against slow references."""
 
 from __future__ import annotations
 
@@ -11,8 +11,8 @@ import torch
 
 from cuniform_torch.envs import Circle, Rect, simulate
 from cuniform_torch.systems import Dubins
-from eval.nav_geometry import inflate, reachable, sensed
-from eval.suites import GAP_WIDTHS, SuiteError, forest, gaps, make_suite, validate_task
+from cuniform_torch.envs.worlds.geometry import inflate, reachable, sensed
+from cuniform_torch.envs.worlds.suites import GAP_WIDTHS, SuiteError, forest, gaps, make_suite, validate_task
 
 SEEDS = range(12)
 

@@ -1,14 +1,14 @@
-"""The table index (:mod:`cuniform_torch.lookup`) and the pure torch kernel over it, against slow references.
+"""The table index (:mod:`cuniform_torch.tables.lookup`) and the pure torch kernel over it, against slow references.
 
 Shapes: N states, d state dimensions, A actions, q action dimensions, E entries.
 
-* every entry of a :class:`~cuniform_torch.lookup.TableIndex` (table cells and halo cells, every level) is found
+* every entry of a :class:`~cuniform_torch.tables.lookup.TableIndex` (table cells and halo cells, every level) is found
   from its cell centre, with its row, its probabilities and its fallback code;
-* :func:`~cuniform_torch.torch_kernel.lookup_entries` answers what a dictionary over the table and a brute-force
+* :func:`~cuniform_torch.tables.torch_kernel.lookup_entries` answers what a dictionary over the table and a brute-force
   nearest cell answer, on the dubins, random walk and ks_speed tables and on tables whose key box needs float64
   keys or an int64 hash (paths the numba kernel does not take);
-* :func:`~cuniform_torch.torch_kernel.draw` picks the outcome a plain reading of the alias tables picks;
-* the index is frozen data that the numba kernel reads in place; :class:`~cuniform_torch.policy.UniformPolicy`
+* :func:`~cuniform_torch.tables.torch_kernel.draw` picks the outcome a plain reading of the alias tables picks;
+* the index is frozen data that the numba kernel reads in place; :class:`~cuniform_torch.policies.table.UniformPolicy`
   draws exactly what a table draws from its uniform row.
 """
 
@@ -22,13 +22,13 @@ import pytest
 import torch
 
 from cuniform_torch import TablePolicy, UniformPolicy, rollout
-from cuniform_torch.cpu_kernels import NumbaKernel, available
-from cuniform_torch.grid import Grid
-from cuniform_torch.halo import halo
-from cuniform_torch.lookup import MISS, NEAREST, KeyBox, Lookup, TableIndex, build_index
+from cuniform_torch.tables.cpu_kernels import NumbaKernel, available
+from cuniform_torch.grid.cells import Grid
+from cuniform_torch.tables.halo import halo
+from cuniform_torch.tables.lookup import MISS, NEAREST, KeyBox, Lookup, TableIndex, build_index
 from cuniform_torch.systems import make_system
-from cuniform_torch.torch_kernel import draw, lookup_and_draw, lookup_entries
-from precompute.builder import BuildConfig, build_table
+from cuniform_torch.tables.torch_kernel import draw, lookup_and_draw, lookup_entries
+from precompute.flow.builder import BuildConfig, build_table
 
 
 @pytest.fixture(scope="module")

@@ -19,12 +19,12 @@ import numpy as np
 import pytest
 import torch
 
-from cuniform_torch.fileio import write_npz
-from cuniform_torch.checkpoint import PolicyCheckpointError, load_policy, policy_checkpoint, save_policy
-from cuniform_torch.mlp import MLPConfig, MLPPolicy
-from cuniform_torch.policy import load_table
+from cuniform_torch.common.fileio import write_npz
+from cuniform_torch.policies.checkpoint import PolicyCheckpointError, load_policy, policy_checkpoint, save_policy
+from cuniform_torch.policies.mlp import MLPConfig, MLPPolicy
+from cuniform_torch.policies.table import load_table
 from cuniform_torch.systems import _REGISTRY, RandomWalk1D, UnknownSystemError, system_from_json, system_to_json
-from cuniform_torch.table import TableError, read_table, write_table
+from cuniform_torch.tables.file import TableError, read_table, write_table
 
 EVIL_MODULE = """
 from pathlib import Path

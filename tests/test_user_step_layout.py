@@ -10,7 +10,7 @@ import torch
 
 from cuniform_torch import MPPI, TablePolicy, rollout
 from cuniform_torch.envs import Environment, NavigationCost
-from cuniform_torch.rollout import steps_column_major
+from cuniform_torch.sampling.rollout import steps_column_major
 from cuniform_torch.systems import Dubins
 
 

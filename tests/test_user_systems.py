@@ -16,8 +16,8 @@ import torch
 
 from cuniform_torch import CUMPPI, CUniformMPPI, TablePolicy, load_policy, read_table, rollout, write_table
 from cuniform_torch.envs import Circle, Environment, NavigationCost, simulate
-from cuniform_torch.grid import Grid
-from cuniform_torch.mppi import CUniformMPPI
+from cuniform_torch.grid.cells import Grid
+from cuniform_torch.controllers.mppi import CUniformMPPI
 from cuniform_torch.systems import (
     _REGISTRY,
     Dubins,
@@ -33,9 +33,9 @@ from cuniform_torch.systems import (
     system_from_json,
     system_to_json,
 )
-from cuniform_torch.table import TableError
+from cuniform_torch.tables.file import TableError
 from precompute import build as build_cli
-from precompute.builder import BuildConfig, SizeGuide, build_table, estimate_build_bytes, project_level_sizes
+from precompute.flow.builder import BuildConfig, SizeGuide, build_table, estimate_build_bytes, project_level_sizes
 from precompute.report import uniformity_report
 from training import distill
 

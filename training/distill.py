@@ -22,10 +22,10 @@ dimensions, A actions, G (table, level) groups.
   at the cell centres of level t) and two figures: ``rollouts`` (200 rollouts from the origin, table vs MLP, fixed
   seed) and ``coverage`` (cells of L_t reached by N = first ``--eval-samples`` rollouts, MLP vs table vs |L_t|).
   The config is logged once as a markdown table (``hyperparameters``).
-* **Outputs.** The policy checkpoint ``--out`` (``cuniform-policy/1``, see :mod:`cuniform_torch.mlp`; written
+* **Outputs.** The policy checkpoint ``--out`` (``cuniform-policy/1``, see :mod:`cuniform_torch.policies.mlp`; written
   atomically); ``<out>.train.pt``, the training state after every epoch (``--resume`` continues from it and ends
   at the same weights as an uninterrupted run); ``<out stem>.comparison.json``, the final comparison of
-  :func:`training.evaluate.compare` with sizes and wall times, also printed.
+  :func:`training.tables.evaluate.compare` with sizes and wall times, also printed.
 
 ``main(argv)`` returns 0, or 2 after printing one line ``error: ...`` (bad flags, unreadable tables, an output
 path that cannot be written, checked before training starts, a full disk, a refused resume, another run holding
@@ -48,20 +48,20 @@ import torch
 from cuniform_torch.cli import (OUT, RUNS, ArgumentParser, add_dataclass_args, add_system_module_arg,
                                 check_output_file, check_output_folder, cli_main, dataclass_from_args,
                                 import_system_modules)
-from cuniform_torch.fileio import exclusive_lock
-from cuniform_torch.grid import Grid
-from cuniform_torch.checkpoint import file_sha256, policy_checkpoint, save_policy
-from cuniform_torch.mlp import MLPConfig, MLPPolicy, default_feature_scale
-from cuniform_torch.policy import TablePolicy
-from cuniform_torch.table import Table, read_table
+from cuniform_torch.common.fileio import exclusive_lock
+from cuniform_torch.grid.cells import Grid
+from cuniform_torch.policies.checkpoint import file_sha256, policy_checkpoint, save_policy
+from cuniform_torch.policies.mlp import MLPConfig, MLPPolicy, default_feature_scale
+from cuniform_torch.policies.table import TablePolicy
+from cuniform_torch.tables.file import Table, read_table
 
-from .evaluate import compare, kl_per_level, sizes
-from .distill_set import distill_set
-from .distill_setup import (TableFigures, adam_cosine, best_metrics, open_run, pool_cells, run_facts,
+from training.tables.evaluate import compare, kl_per_level, sizes
+from training.sets.distill import distill_set
+from training.tables.setup import (TableFigures, adam_cosine, best_metrics, open_run, pool_cells, run_facts,
                             say_written, seed_run, write_comparison)
-from .support import pooled_support
-from .loop import run_epochs
-from .train_state import RESUME_KEYS, UsageError, save_train_state
+from training.tables.support import pooled_support
+from training.tables.loop import run_epochs
+from training.tables.train_state import RESUME_KEYS, UsageError, save_train_state
 
 
 @dataclass
@@ -70,7 +70,7 @@ class DistillConfig:
 
     tables: list[str] = field(default_factory=list)
     """table files (.npz) to distil; several must share the system JSON and actions (their cells are pooled); or
-    one table-set folder (python -m precompute.build --starts): a start-conditioned policy (training.distill_set)"""
+    one table-set folder (python -m precompute.build --starts): a start-conditioned policy (training.sets.distill)"""
     hidden: int = 256
     """hidden units per layer"""
     layers: int = 3

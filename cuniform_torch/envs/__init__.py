@@ -1,11 +1,11 @@
 """Environments for the navigation experiments: 2-D obstacles, the paper's cost, and a closed-loop simulator."""
 
-from .costs import NavigationCost, TrajectoryCost, collision_mask, goal_cost
-from .environment import Environment
-from .occupancy import OccupancyGrid
-from .scenes import Opening, u_shape
-from .shapes import Circle, Obstacle, Polygon, Rect
-from .sim import COLLISION, GOAL, TIMEOUT, Controller, SimResult, simulate
+from cuniform_torch.envs.costs import NavigationCost, TrajectoryCost, collision_mask, goal_cost
+from cuniform_torch.envs.environment import Environment
+from cuniform_torch.envs.occupancy import OccupancyGrid
+from cuniform_torch.envs.scenes import Opening, u_shape
+from cuniform_torch.envs.shapes import Circle, Obstacle, Polygon, Rect
+from cuniform_torch.envs.sim import COLLISION, GOAL, TIMEOUT, Controller, SimResult, simulate
 
 __all__ = [
     "Obstacle", "Circle", "Rect", "Polygon", "OccupancyGrid", "Opening", "u_shape", "Environment",

@@ -31,7 +31,7 @@ from typing import Any, Callable, Protocol, Sequence
 import torch
 from torch import Tensor
 
-from .environment import Environment
+from cuniform_torch.envs.environment import Environment
 
 __all__ = ["TrajectoryCost", "NavigationCost", "goal_cost", "collision_mask"]
 

@@ -12,7 +12,7 @@ from dataclasses import dataclass, field
 import torch
 from torch import Tensor
 
-from .shapes import _appear_time, _check_xy
+from cuniform_torch.envs.shapes import _appear_time, _check_xy
 
 __all__ = ["Environment"]
 

@@ -11,7 +11,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from .shapes import _appear_time, _check_xy, _number, _point
+from cuniform_torch.envs.shapes import _appear_time, _check_xy, _number, _point
 
 __all__ = ["OccupancyGrid"]
 

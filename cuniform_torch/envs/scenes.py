@@ -4,8 +4,8 @@ from __future__ import annotations
 
 from typing import Sequence
 
-from ..options import Option, option_label
-from .shapes import Polygon, _number, _point
+from cuniform_torch.common.options import Option, option_label
+from cuniform_torch.envs.shapes import Polygon, _number, _point
 
 __all__ = ["Opening", "u_shape"]
 

@@ -19,8 +19,8 @@ from typing import Any, Protocol, Sequence
 import torch
 from torch import Tensor
 
-from ..systems import System
-from .environment import Environment
+from cuniform_torch.systems import System
+from cuniform_torch.envs.environment import Environment
 
 __all__ = ["Controller", "SimResult", "simulate", "GOAL", "COLLISION", "TIMEOUT"]
 

@@ -16,8 +16,8 @@ the dtype and device of its inputs. Where each thing lives:
   ``"module:qualname"`` path, and the system JSON of table and checkpoint files (:func:`system_to_json`,
   :func:`system_from_json`).
 
-The grid invariants are :func:`cuniform_torch.grid.check_grid`; :func:`wrap_angle` and the small argument
-checks are :mod:`cuniform_torch.checks`.
+The grid invariants are :func:`cuniform_torch.grid.cells.check_grid`; :func:`wrap_angle` and the small argument
+checks are :mod:`cuniform_torch.common.checks`.
 
 Your own robot: write a class (a frozen dataclass is simplest) with the attributes and methods of
 :class:`System`, then ``register_system("my_robot", MyRobot)``. Tables record the factory as an importable
@@ -27,15 +27,15 @@ the caller names (the file's string is only compared with it). In a fresh proces
 registers the system first, or pass ``trust_factory="my_robots:MyRobot"``.
 """
 
-from ..checks import wrap_angle
-from .classic import DoubleIntegrator, MountainCar
-from .models import Dubins, RandomWalk1D
-from .protocol import (DEFAULT_HORIZON, MAX_ACTIONS, MAX_HORIZON, System, check_system, se2_invariance_gap,
+from cuniform_torch.common.checks import wrap_angle
+from cuniform_torch.systems.classic import DoubleIntegrator, MountainCar
+from cuniform_torch.systems.models import Dubins, RandomWalk1D
+from cuniform_torch.systems.protocol import (DEFAULT_HORIZON, MAX_ACTIONS, MAX_HORIZON, System, check_system, se2_invariance_gap,
                        system_horizon)
-from .registry import (_REGISTRY, UnknownSystemError, factory_path, import_system_modules, is_builtin,
+from cuniform_torch.systems.registry import (_REGISTRY, UnknownSystemError, factory_path, import_system_modules, is_builtin,
                        known_systems, load_factory, make_system, register_system, resolve_system, system_from_json,
                        system_to_json)
-from .single_track import KinematicSingleTrack, KinematicSingleTrackSpeed
+from cuniform_torch.systems.single_track import KinematicSingleTrack, KinematicSingleTrackSpeed
 
 __all__ = [
     "System",

@@ -19,9 +19,9 @@ from typing import Any, ClassVar
 import torch
 from torch import Tensor
 
-from ..checks import positive, positive_int
-from .models import _check_grid, _check_step_inputs, _evenly, _params
-from .protocol import MAX_ACTIONS
+from cuniform_torch.common.checks import positive, positive_int
+from cuniform_torch.systems.models import _check_grid, _check_step_inputs, _evenly, _params
+from cuniform_torch.systems.protocol import MAX_ACTIONS
 
 __all__ = ["DoubleIntegrator", "MountainCar", "MOUNTAIN_CAR"]
 

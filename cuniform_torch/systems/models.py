@@ -9,8 +9,8 @@ Shapes: N samples, d state dimensions, q action dimensions, A actions.
   paper's reference release does: ``theta' = wrap(theta + omega dt)`` first, then
   ``x' = x + v cos(theta') dt``, ``y' = y + v sin(theta') dt``.
 
-Each model checks its arguments in ``__post_init__`` (:mod:`cuniform_torch.checks`) and normalizes its grid
-(:func:`~cuniform_torch.grid.check_grid`: an angle cell size typed as ``0.1571`` becomes exactly ``2 pi / 40``).
+Each model checks its arguments in ``__post_init__`` (:mod:`cuniform_torch.common.checks`) and normalizes its grid
+(:func:`~cuniform_torch.grid.cells.check_grid`: an angle cell size typed as ``0.1571`` becomes exactly ``2 pi / 40``).
 """
 
 from __future__ import annotations
@@ -24,9 +24,9 @@ from typing import Any, ClassVar
 import torch
 from torch import Tensor
 
-from ..checks import non_negative, positive, positive_int
-from ..grid import check_grid
-from .protocol import MAX_ACTIONS
+from cuniform_torch.common.checks import non_negative, positive, positive_int
+from cuniform_torch.grid.cells import check_grid
+from cuniform_torch.systems.protocol import MAX_ACTIONS
 
 __all__ = ["RandomWalk1D", "Dubins"]
 
@@ -57,7 +57,7 @@ def _advance(x: Tensor, theta: Tensor, dx: Tensor, dy: Tensor, *rest: Tensor) ->
 
     Written column by column into one new tensor: on a CPU, ``torch.stack`` of ``[N]`` columns along dim 1 costs
     about as much as the rest of a Dubins step. The values are those of ``torch.stack((x[:, 0] + dx, ...))``.
-    The new state keeps the layout of ``x``: a column-major ``x`` (what :func:`~cuniform_torch.rollout.rollout`
+    The new state keeps the layout of ``x``: a column-major ``x`` (what :func:`~cuniform_torch.sampling.rollout.rollout`
     steps, so that every column is contiguous) gives a column-major state.
     """
     d = 3 + len(rest)
@@ -111,7 +111,7 @@ def _next_state(x: Tensor, u: Tensor, d: int, out: Tensor | None) -> tuple[Tenso
 
 
 def _turn(x: Tensor, rate: Tensor, dt: float, theta: Tensor) -> Tensor:
-    """The new heading ``wrap(theta + rate dt)`` (:func:`~cuniform_torch.checks.wrap_angle`'s arithmetic, in
+    """The new heading ``wrap(theta + rate dt)`` (:func:`~cuniform_torch.common.checks.wrap_angle`'s arithmetic, in
     place): ``x [N, d]`` (heading in column 2), ``rate [N]`` -> ``theta [N]``, also returned."""
     c_dt, c_pi, c_two_pi = _scalars(theta.dtype, dt, math.pi, 2.0 * math.pi)
     torch.mul(rate, c_dt, out=theta)
@@ -247,7 +247,7 @@ class Dubins:
         """``x [N, 3]``, ``u [N, 1]`` -> ``[N, 3]``: heading first, then position with the new heading.
 
         ``out`` (optional, ``[N, 3]`` of the result's dtype and device, not overlapping ``x`` or ``u``): written and
-        returned (what :func:`~cuniform_torch.rollout.rollout` passes: a row of its preallocated states)."""
+        returned (what :func:`~cuniform_torch.sampling.rollout.rollout` passes: a row of its preallocated states)."""
         _check_step_inputs(self, x, u, 1)
         # wrap_angle(x[:, 2] + u[:, 0] * dt), then x + speed cos(theta') dt, ...: the same arithmetic in place into the
         # new state (a dozen ops, no Python float wrapped per op); the values of _advance(x, theta, ...)

@@ -12,9 +12,9 @@ from typing import Any, ClassVar, Protocol, runtime_checkable
 import torch
 from torch import Tensor
 
-from ..checks import positive, positive_int, wrap_angle
-from ..frames import se2_to_world
-from ..grid import check_grid
+from cuniform_torch.common.checks import positive, positive_int, wrap_angle
+from cuniform_torch.common.frames import se2_to_world
+from cuniform_torch.grid.cells import check_grid
 
 __all__ = ["System", "check_system", "se2_invariance_gap", "system_horizon", "DEFAULT_HORIZON", "MAX_ACTIONS",
            "MAX_HORIZON"]
@@ -38,12 +38,12 @@ class System(Protocol):
         dt: time step in seconds.
         cell_size: grid cell size per state dimension ``[d]`` (an angle dimension: ``2 pi / K`` for an integer K).
         periodic: which state dimensions are angles in ``[-pi, pi)`` (``step`` must wrap them there).
-        cell_offset: grid offset per dimension, in cells (``|offset| < 0.5``); see :mod:`cuniform_torch.grid`.
+        cell_offset: grid offset per dimension, in cells (``|offset| < 0.5``); see :mod:`cuniform_torch.grid.cells`.
             A small offset keeps states that move by exact half cells off the cell boundaries.
         se2_invariant: whether the dynamics commute with planar rigid motions, so one table built at the origin
             serves any start pose after a change of frame. The contract of ``True``: the state is
             ``(x, y, theta, *rest)`` with ``theta`` periodic, and the frame change
-            (:func:`cuniform_torch.frames.se2_to_world`) rotates and translates ``(x, y)``, adds the pose's heading
+            (:func:`cuniform_torch.common.frames.se2_to_world`) rotates and translates ``(x, y)``, adds the pose's heading
             to ``theta`` and leaves ``rest`` (speeds, steering angles, ...) unchanged; ``step`` must commute with
             it (:func:`se2_invariance_gap` measures that). ``False``: tables are used with the states as they are.
 
@@ -89,7 +89,7 @@ def system_horizon(system: Any) -> int:
 def check_system(system: Any) -> None:
     """Raise ValueError naming what a (user) system lacks or gets wrong; a no-op for a good one.
 
-    Checks the attributes of :class:`System`, the grid (:func:`~cuniform_torch.grid.check_grid`: sizes, offsets,
+    Checks the attributes of :class:`System`, the grid (:func:`~cuniform_torch.grid.cells.check_grid`: sizes, offsets,
     angle cells of ``2 pi / K``), the action set (a finite float ``[A, q]``), the SE(2) contract (``x, y, theta``
     first, ``theta`` an angle), that ``step`` maps ``[2, d]`` zeros to ``[2, d]`` in the same dtype, and that
     ``params()`` is JSON-serializable.

@@ -18,9 +18,9 @@ from typing import Any, ClassVar
 import torch
 from torch import Tensor
 
-from ..checks import finite, non_negative, positive, positive_int, wrap_angle
-from .models import _advance, _check_grid, _check_steer, _check_step_inputs, _evenly, _params
-from .protocol import MAX_ACTIONS
+from cuniform_torch.common.checks import finite, non_negative, positive, positive_int, wrap_angle
+from cuniform_torch.systems.models import _advance, _check_grid, _check_steer, _check_step_inputs, _evenly, _params
+from cuniform_torch.systems.protocol import MAX_ACTIONS
 
 __all__ = ["KinematicSingleTrack", "KinematicSingleTrackSpeed"]
 

@@ -1,0 +1,89 @@
+"""Independent jobs in this process, in spawned worker processes, or as Ray tasks: one helper for the table farm
+(``precompute.build --starts``) and the navigation benchmark (``eval.navigate.run``).
+
+Spawned, not forked, processes: a forked torch with threads started is unsafe. Ray is an optional extra
+(``pip install -e ".[ray]"``): ``ray_address="local"`` starts a local runtime for the call (``workers`` caps its
+CPUs when > 1), any other address is passed to ``ray.init(address=...)``; one CPU per job.
+"""
+
+from __future__ import annotations
+
+import multiprocessing
+from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+from typing import Any, Callable, Sequence
+
+__all__ = ["RAY_MISSING", "ray_available", "run_jobs"]
+
+RAY_MISSING = 'the --ray executor needs Ray: pip install -e ".[ray]"'
+
+
+def ray_available() -> bool:
+    """Whether ``import ray`` works."""
+    try:
+        import ray  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
+def run_jobs(fn: Callable[..., Any], jobs: Sequence[tuple], workers: int = 1, ray_address: str | None = None,
+             on_done: Callable[[int, Any], None] | None = None) -> list[Any]:
+    """``fn(*job)`` for every job (a picklable module-level ``fn``); the results in job order. ``on_done(i,
+    result)`` runs in this process as each job finishes (in completion order), so a caller can save it at once.
+    On an error or Ctrl-C the queued jobs are dropped and the exception propagates."""
+    if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
+        raise ValueError(f"workers must be an integer >= 1, got {workers!r}")
+    results: list[Any] = [None] * len(jobs)
+
+    def done(i: int, result: Any) -> None:
+        results[i] = result
+        if on_done is not None:
+            on_done(i, result)
+
+    if ray_address is not None:
+        _ray(fn, jobs, ray_address, workers, done)
+    elif workers > 1 and len(jobs) > 1:
+        _processes(fn, jobs, min(workers, len(jobs)), done)
+    else:
+        for i, job in enumerate(jobs):
+            done(i, fn(*job))
+    return results
+
+
+def _processes(fn: Callable[..., Any], jobs: Sequence[tuple], workers: int, done: Callable[[int, Any], None]) -> None:
+    pool = ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn"))
+    try:
+        pending = {pool.submit(fn, *job): i for i, job in enumerate(jobs)}
+        while pending:
+            finished, _ = wait(pending, return_when=FIRST_COMPLETED)
+            for future in finished:
+                done(pending.pop(future), future.result())
+    finally:  # on an error or Ctrl-C: drop the queued jobs, keep what was done
+        pool.shutdown(wait=True, cancel_futures=True)
+
+
+def _ray(fn: Callable[..., Any], jobs: Sequence[tuple], address: str, workers: int,
+         done: Callable[[int, Any], None]) -> None:
+    try:
+        import ray
+    except ImportError:
+        raise RuntimeError(RAY_MISSING) from None
+    started = not ray.is_initialized()
+    if started:
+        kwargs: dict[str, Any] = dict(include_dashboard=False, log_to_driver=False, configure_logging=False)
+        if address == "local":
+            kwargs["num_cpus"] = workers if workers > 1 else None
+        else:
+            kwargs["address"] = address
+        ray.init(**kwargs)
+    try:
+        remote = ray.remote(num_cpus=1)(fn)
+        refs = {remote.remote(*job): i for i, job in enumerate(jobs)}
+        pending = list(refs)
+        while pending:
+            finished, pending = ray.wait(pending, num_returns=1)
+            for ref in finished:
+                done(refs[ref], ray.get(ref))
+    finally:
+        if started:
+            ray.shutdown()

@@ -1,0 +1,110 @@
+"""CFU-MPPI (C-Free-Uniform, arXiv 2510.16905): CU-MPPI whose first stage is a map-conditioned policy.
+
+Shapes: K samples, T horizon, d state dimensions, q action dimensions, H x W patch cells.
+
+Per command: the robot-frame patch at the pose is cropped from the world grid and encoded once
+(:class:`SensedMapPolicy`, through the rollout's ``for_start`` hook), half the budget are rollouts of the
+:class:`~cuniform_torch.maps.policy.MapPolicy` for that map, the lowest-cost one becomes the nominal of one
+Gaussian (or log-normal) MPPI pass with the other half, and that pass's first control is applied. It is
+:class:`~cuniform_torch.controllers.mppi.CUMPPI` with the map policy in place of the table: the MPPI core, the composite
+proposal and the split are CUMPPI's, unchanged.
+"""
+
+from __future__ import annotations
+
+import os
+from typing import Callable
+
+import torch
+from torch import Tensor
+
+from cuniform_torch.envs.environment import Environment
+from cuniform_torch.envs.occupancy import OccupancyGrid
+from cuniform_torch.maps.checkpoint import load_map_policy
+from cuniform_torch.maps.policy import MapPolicy
+from cuniform_torch.controllers.mppi import CUMPPI, CostFn
+from cuniform_torch.sampling.rollout import same_device
+from cuniform_torch.maps.sensing import local_map
+
+__all__ = ["SensedMapPolicy", "CFUMPPI"]
+
+
+class SensedMapPolicy:
+    """A :class:`MapPolicy` bound to a world grid: :func:`~cuniform_torch.sampling.rollout.rollout` calls
+    ``for_start(x0)`` once per rollout, which senses the patch at the pose ``x0[:3]`` (range ``max_range``),
+    sets it (one encoding) and returns the policy; every lookup of that rollout is for that map."""
+
+    def __init__(self, policy: MapPolicy, world: OccupancyGrid | Environment, max_range: float | None = None):
+        if not isinstance(policy, MapPolicy):
+            raise ValueError(f"policy must be a MapPolicy, got {type(policy).__name__}")
+        if not policy.system.se2_invariant or len(policy.system.periodic) < 3:
+            raise ValueError(f"a map policy needs (x, y, heading, ...) states of an SE(2)-invariant system; "
+                             f"{policy.system.name} is not one")
+        self.policy, self.max_range = policy, max_range
+        self.actions, self.system, self.horizon = policy.actions, policy.system, policy.horizon
+        self.device, self.dtype, self.start_relative = policy.device, policy.dtype, policy.start_relative
+        self.set_world(world)
+
+        self.time: float | None = None
+        """an Environment world's obstacles sensed by this time (s) are seen (None: all); see :meth:`set_time`"""
+
+    def set_world(self, world: OccupancyGrid | Environment) -> None:
+        """Sense ``world`` from the next rollout on (a map that changed: a new obstacle)."""
+        if not isinstance(world, (OccupancyGrid, Environment)):
+            raise ValueError(f"world must be an OccupancyGrid or an Environment, got {type(world).__name__}")
+        self.world = world.to(self.device) if isinstance(world, OccupancyGrid) else world
+
+    def set_time(self, time: float | None) -> None:
+        """See an Environment's obstacles sensed by ``time`` (s) from the next rollout on (None: all)."""
+        self.time = time
+
+    def for_start(self, x0: Tensor) -> MapPolicy:
+        """Sense and set the patch at ``x0 [d]`` (world pose first); the policy to roll out."""
+        if x0.ndim != 1:
+            raise ValueError(f"a map policy rolls out from one start [d], got {list(x0.shape)}")
+        self.policy.set_map(local_map(self.world, x0[:3], self.policy.patch_spec, self.max_range, self.time))
+        return self.policy
+
+    def action_probs(self, x: Tensor, t: int) -> Tensor:
+        """The bound policy's, for the map last sensed: ``x [N, d]`` -> ``[N, A]``."""
+        return self.policy.action_probs(x, t)
+
+    def sample(self, x: Tensor, t: int, generator: torch.Generator | None) -> Tensor:
+        return self.policy.sample(x, t, generator)
+
+
+class CFUMPPI(CUMPPI):
+    """CFU-MPPI: ``policy`` (a :class:`MapPolicy`, a checkpoint path or a loaded checkpoint dict) sensing
+    ``world`` (an OccupancyGrid or an Environment, world frame, not inflated) seeds one local MPPI pass; see the
+    module docstring.
+
+    The arguments after ``world`` are :class:`~cuniform_torch.controllers.mppi.CUMPPI`'s (``cuniform_fraction`` of the
+    budget are map-policy rollouts); ``max_range`` (m) limits the sensed patch like a costmap. The device is the
+    policy's (a checkpoint is loaded onto ``device``, default the CPU). :meth:`set_world` swaps the world map.
+    """
+
+    def __init__(self, policy: MapPolicy | dict | str | os.PathLike, world: OccupancyGrid | Environment, cost_fn: CostFn,
+                 num_samples: int = 1000, cuniform_fraction: float = 0.5, lambda_: float = 0.567,
+                 noise_std: float | Tensor = 0.1, local: str = "mppi", horizon: int | None = None,
+                 max_range: float | None = None, terminal_cost: Callable[[Tensor], Tensor] | None = None,
+                 device: torch.device | str | None = None, seed: int | None = None, **local_kwargs):
+        if not isinstance(policy, MapPolicy):
+            policy = load_map_policy(policy, device=device if device is not None else "cpu")
+        elif device is not None and not same_device(policy.device, device):
+            raise ValueError(f"the map policy is on {policy.device} but device={torch.device(device)} was asked "
+                             f"for; move it with policy.to(device)")
+        self.sensed = SensedMapPolicy(policy, world, max_range)
+        super().__init__(self.sensed, cost_fn, num_samples, cuniform_fraction, lambda_, noise_std, local, horizon,
+                         terminal_cost=terminal_cost, device=policy.device, seed=seed, **local_kwargs)
+
+    @property
+    def map_policy(self) -> MapPolicy:
+        return self.sensed.policy
+
+    def set_world(self, world: OccupancyGrid | Environment) -> None:
+        """Sense ``world`` from the next command on."""
+        self.sensed.set_world(world)
+
+    def set_time(self, time: float | None) -> None:
+        """Sense an Environment world's obstacles that appeared by ``time`` (s) from the next command on."""
+        self.sensed.set_time(time)

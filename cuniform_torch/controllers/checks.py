@@ -1,0 +1,126 @@
+"""The input checks of the MPPI core and its proposals (:mod:`cuniform_torch.controllers.mppi`,
+:mod:`cuniform_torch.controllers.proposals`), and the cap on non-finite costs.
+
+Each refuses bad input with one ValueError or TypeError naming it: a ``lambda_`` that the controller's dtype
+cannot hold, a ``seed`` that is not an integer, a state of the wrong shape, dtype or device or with NaN, a
+proposal's trajectories of the wrong shape, dtype or device, a user cost that is not a ``[K]`` tensor of the
+controller's dtype and device. This module imports neither mppi nor proposals (both import it).
+"""
+
+from __future__ import annotations
+
+import math
+import numbers
+
+import torch
+from torch import Tensor
+
+from cuniform_torch.sampling.rollout import same_device
+
+COST_CAP = 1e10
+"""NaN / inf costs are replaced by this finite value before weighting"""
+
+
+def check_positive_int(name: str, value: object) -> int:
+    """``value`` as a positive int (ValueError otherwise; a bool is not an int here)."""
+    if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < 1:
+        raise ValueError(f"{name} must be a positive integer, got {value!r}")
+    return int(value)
+
+
+def seeded_generator(seed: int | None, device: torch.device) -> torch.Generator:
+    """A ``torch.Generator`` on ``device``: seeded with ``seed``, or from fresh entropy when it is None."""
+    generator = torch.Generator(device=device)
+    generator.manual_seed(seed) if seed is not None else generator.seed()
+    return generator
+
+
+def _check_dtype(dtype: object) -> torch.dtype:
+    if not (isinstance(dtype, torch.dtype) and dtype.is_floating_point):
+        raise ValueError(f"dtype must be a floating-point torch.dtype, got {dtype!r}")
+    return dtype
+
+
+def _finite_costs(costs: Tensor) -> Tensor:
+    """NaN and +inf -> COST_CAP, -inf -> -COST_CAP, everything capped at COST_CAP."""
+    return torch.nan_to_num(costs, nan=COST_CAP, posinf=COST_CAP, neginf=-COST_CAP).clamp_(max=COST_CAP)
+
+
+def _check_lambda(lambda_: float, dtype: torch.dtype) -> float:
+    """``lambda_`` as a float: 0, or a positive number that ``dtype`` holds as a normal number with a finite
+    inverse (else ``-(c - min) / lambda`` is 0 / 0 or inf - inf in that dtype, and the weights are NaN)."""
+    if isinstance(lambda_, bool) or not isinstance(lambda_, numbers.Real) or not (math.isfinite(lambda_) and lambda_ >= 0):
+        raise ValueError(f"lambda_ must be a finite number >= 0, got {lambda_!r}")
+    value = float(lambda_)
+    if value == 0:
+        return value
+    held = torch.tensor(value, dtype=dtype).item()  # lambda_ as the controller's dtype rounds it
+    inverse = torch.tensor(1.0 / held, dtype=dtype).item() if held > 0 else math.inf
+    if not (held >= torch.finfo(dtype).tiny and math.isfinite(held) and math.isfinite(inverse)):
+        info = torch.finfo(dtype)
+        raise ValueError(f"lambda_={lambda_!r} is out of range for {dtype}: it must be 0 or between {info.tiny:.3g} "
+                         f"and {info.max:.3g} with a finite 1/lambda_ (it becomes {held!r} in {dtype})")
+    return value
+
+
+def _check_seed(seed: int | None) -> int | None:
+    if seed is not None and (isinstance(seed, bool) or not isinstance(seed, numbers.Integral)):
+        raise TypeError(f"seed must be an int or None, got {type(seed).__name__} ({seed!r:.40})")
+    return None if seed is None else int(seed)
+
+
+def make_generator(seed: int | None, device: torch.device | str) -> torch.Generator:
+    """A controller's generator on ``device``, seeded by ``seed`` (TypeError unless it is an int or None)."""
+    return seeded_generator(_check_seed(seed), torch.device(device))
+
+
+def _callable_name(fn: object) -> str:
+    """A user callable's name for an error message: its ``__qualname__``, else a short repr."""
+    name = getattr(fn, "__qualname__", None)
+    if isinstance(name, str):
+        return name
+    text = repr(fn)
+    return text if len(text) <= 80 else f"{type(fn).__qualname__} object"
+
+
+def _check_costs(costs: object, who: str, fn: object, k: int, dtype: torch.dtype, device: torch.device) -> Tensor:
+    """``costs`` as returned by the user's ``fn``, checked to be a ``[k]`` tensor of ``dtype`` on ``device``."""
+    expected = f"expected a [{k}] tensor of {dtype} on {device} (one cost per proposal, the controller's dtype and device)"
+    if not isinstance(costs, Tensor):
+        raise ValueError(f"{who} {_callable_name(fn)} returned {type(costs).__name__} {costs!r:.60}; {expected}")
+    if costs.shape != (k,) or costs.dtype != dtype or not same_device(costs.device, device):
+        raise ValueError(f"{who} {_callable_name(fn)} returned a {list(costs.shape)} tensor of {costs.dtype} on "
+                         f"{costs.device}; {expected}")
+    return costs.detach()
+
+
+def _describe(x: object) -> str:
+    return f"{list(x.shape)} {x.dtype} on {x.device}" if isinstance(x, Tensor) else type(x).__name__
+
+
+def check_state(state: Tensor, state_dim: int, dtype: torch.dtype, device: torch.device) -> Tensor:
+    """``state [d]`` of the controller's dtype and device, finite; detached (a state is an observation)."""
+    if not isinstance(state, Tensor) or state.shape != (state_dim,):
+        raise ValueError(f"state must be a tensor of shape [{state_dim}], got {getattr(state, 'shape', state)!r}")
+    if not same_device(state.device, device):
+        raise ValueError(f"state is on {state.device} but the controller is on {device}")
+    if state.dtype != dtype:
+        raise ValueError(f"state is {state.dtype} but the controller is {dtype}; pass state.to({dtype})")
+    state = state.detach()
+    if not bool(torch.isfinite(state).all()):
+        raise ValueError(f"state contains NaN or infinite values: {state.tolist()}")
+    return state
+
+
+def check_proposals(who: str, states: object, actions: object, shape: tuple[int, int, int, int], dtype: torch.dtype,
+                    device: torch.device) -> None:
+    """What ``who.propose`` returned: ``[K, T+1, d]`` states and ``[K, T, q]`` actions (``shape`` is
+    ``(K, T, d, q)``) of ``dtype`` on ``device``."""
+    k, t, d, q = shape
+    ok = (isinstance(states, Tensor) and isinstance(actions, Tensor) and states.shape == (k, t + 1, d)
+          and actions.shape == (k, t, q) and states.dtype == actions.dtype == dtype
+          and same_device(states.device, device) and same_device(actions.device, device))
+    if not ok:
+        raise ValueError(f"{who}.propose returned states {_describe(states)} and actions "
+                         f"{_describe(actions)}; expected [{k}, {t + 1}, {d}] and [{k}, {t}, {q}] of {dtype} "
+                         f"on {device}")

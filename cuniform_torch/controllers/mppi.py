@@ -1,0 +1,220 @@
+"""The MPPI family: four controllers on the one core :class:`~cuniform_torch.controllers.core.MPPICore`, each with a
+:class:`~cuniform_torch.controllers.proposals.Proposal`, built by thin constructors.
+
+Shapes: K samples (proposals), T horizon, d state dimensions, q action dimensions.
+
+* :class:`MPPI`: :class:`~cuniform_torch.controllers.proposals.GaussianProposal` (noise around a nominal, shifted one step);
+* :class:`LogMPPI`: :class:`~cuniform_torch.controllers.proposals.NormalLogNormalProposal` (Mohamed et al.);
+* :class:`CUniformMPPI` (the C-Uniform paper): :class:`~cuniform_torch.controllers.proposals.PolicyProposal` (C-Uniform
+  rollouts of a table or an MLP from the pose) or, with ``bank_size``,
+  :class:`~cuniform_torch.controllers.proposals.BankProposal` (a random subset of pre-sampled rollouts + a rigid transform);
+* :class:`CUMPPI` (arXiv 2503.05819): :class:`~cuniform_torch.controllers.proposals.CompositeProposal` (the lowest-cost
+  C-Uniform rollout seeds one local MPPI or log-MPPI pass, whose first control is applied).
+
+The core (:mod:`cuniform_torch.controllers.core`: ``plan``, ``command``, the weights and every input check) and its
+names (:class:`MPPICore`, :class:`MPPIResult`, :class:`CostFn`, :func:`mppi_weights`, ``COST_CAP``) are
+importable from here too.
+"""
+
+from __future__ import annotations
+
+from typing import Callable
+
+import torch
+from torch import Tensor
+
+from cuniform_torch.controllers.bank import BankProposal, BankRefreshWarning
+from cuniform_torch.controllers.checks import _check_seed, check_positive_int, make_generator
+from cuniform_torch.controllers.core import COST_CAP, CostFn, MPPICore, MPPIResult, mppi_weights
+from cuniform_torch.controllers.proposals import CompositeProposal, GaussianProposal, NormalLogNormalProposal, PolicyProposal
+from cuniform_torch.systems import System
+
+__all__ = ["CostFn", "MPPIResult", "mppi_weights", "MPPICore", "MPPI", "LogMPPI", "CUniformMPPI", "CUMPPI",
+           "COST_CAP", "BankRefreshWarning"]
+
+
+# ------------------------------------------------------------------------------------------ the four controllers
+
+class MPPI(MPPICore):
+    """MPPI: the core with a :class:`~cuniform_torch.controllers.proposals.GaussianProposal` (std ``noise_std``, scalar or
+    ``[q]``, around a nominal sequence that the command's weighted sequence, shifted one step, warm-starts)."""
+
+    def __init__(self, system: System, cost_fn: CostFn, num_samples: int = 1000, horizon: int = 15,
+                 lambda_: float = 0.567, noise_std: float | Tensor = 0.3,
+                 terminal_cost: Callable[[Tensor], Tensor] | None = None, device: torch.device | str = "cpu",
+                 dtype: torch.dtype = torch.float32, seed: int | None = None):
+        proposal = self._proposal(system, num_samples, horizon, noise_std, device, dtype)
+        super().__init__(proposal, cost_fn, lambda_, terminal_cost, seed)
+        self.noise_std = noise_std
+
+    @staticmethod
+    def _proposal(system, num_samples, horizon, noise_std, device, dtype) -> GaussianProposal:
+        return GaussianProposal(system, num_samples, horizon, noise_std, device, dtype)
+
+    @property
+    def nominal(self) -> Tensor:
+        """``[T, q]`` the sequence the next command samples around (the proposal's)."""
+        return self.proposal.nominal
+
+    @nominal.setter
+    def nominal(self, value: Tensor) -> None:
+        self.proposal.nominal = value
+
+    @property
+    def low(self) -> Tensor:
+        """``[q]`` lower action bounds"""
+        return self.proposal.low
+
+    @property
+    def high(self) -> Tensor:
+        """``[q]`` upper action bounds"""
+        return self.proposal.high
+
+
+class LogMPPI(MPPI):
+    """log-MPPI: the core with a :class:`~cuniform_torch.controllers.proposals.NormalLogNormalProposal`; ``lognormal_mean``
+    / ``lognormal_var`` set the log-normal factor."""
+
+    def __init__(self, system: System, cost_fn: CostFn, num_samples: int = 1000, horizon: int = 15,
+                 lambda_: float = 0.567, noise_std: float | Tensor = 0.3, lognormal_mean: float = 1.0,
+                 lognormal_var: float = 1.0, **kwargs):
+        self.lognormal_mean, self.lognormal_var = lognormal_mean, lognormal_var
+        super().__init__(system, cost_fn, num_samples, horizon, lambda_, noise_std, **kwargs)
+
+    def _proposal(self, system, num_samples, horizon, noise_std, device, dtype) -> NormalLogNormalProposal:
+        return NormalLogNormalProposal(system, num_samples, horizon, noise_std, self.lognormal_mean,
+                                       self.lognormal_var, device, dtype)
+
+
+class CUniformMPPI(MPPICore):
+    """C-Uniform MPPI: C-Uniform rollouts of ``policy`` from the robot's pose, softmax-weighted (paper 1).
+
+    ``policy`` is a table, an MLP, any Policy with a ``system``, or a distilled checkpoint dict
+    (:func:`~cuniform_torch.policies.checkpoint.load_policy` loads it). ``lambda_ = 0`` commands the best proposal's first action
+    (as the reference robot code does). Without ``bank_size`` the proposal is a
+    :class:`~cuniform_torch.controllers.proposals.PolicyProposal` (fresh rollouts every command). With ``bank_size`` it is a
+    :class:`~cuniform_torch.controllers.proposals.BankProposal`: ``bank_size`` rollouts pre-sampled at the origin
+    (SE(2)-invariant systems only); each command takes a fresh random subset of ``num_samples`` of them and moves
+    it to the pose by a rigid transform; ``resample_bank()`` draws a new bank (also every ``bank_refresh`` commands
+    when set, from a stream seeded by ``seed + 1``). With ``bank_background=True`` that refresh runs in a worker
+    thread while commands go on with the current bank; see the bank's docstring for when it is swapped in and
+    what a failed refresh does. Call ``close()`` to stop the worker (or use the controller as a context manager).
+    """
+
+    def __init__(self, policy, cost_fn: CostFn, num_samples: int = 1000, lambda_: float = 0.567,
+                 horizon: int | None = None, bank_size: int | None = None, bank_refresh: int | None = None,
+                 bank_background: bool = False, terminal_cost: Callable[[Tensor], Tensor] | None = None,
+                 device: torch.device | str | None = None, seed: int | None = None):
+        seed = _check_seed(seed)
+        if bank_refresh is not None:
+            check_positive_int("bank_refresh", bank_refresh)
+            if bank_size is None:
+                raise ValueError("bank_refresh needs a proposal bank: set bank_size too")
+        if bank_background and bank_refresh is None:
+            raise ValueError("bank_background refreshes the bank every bank_refresh commands: set bank_refresh too")
+        source = PolicyProposal(policy, num_samples, horizon, device)
+        self.policy = source.policy
+        generator = make_generator(seed, source.device)
+        proposal: PolicyProposal | BankProposal = source
+        if bank_size is not None:  # the first bank comes from the controller's stream, refreshes from seed + 1
+            proposal = BankProposal(source, bank_size, generator, bank_refresh, bank_background,
+                                    seed=None if seed is None else seed + 1)
+        super().__init__(proposal, cost_fn, lambda_, terminal_cost, generator=generator)
+        self.bank_size = bank_size
+        self.bank_refresh = bank_refresh
+
+    @property
+    def bank(self) -> BankProposal | None:
+        """The proposal bank, None without one."""
+        return self.proposal if isinstance(self.proposal, BankProposal) else None
+
+    def _need_bank(self) -> BankProposal:
+        if self.bank is None:
+            raise AttributeError("this CUniformMPPI has no proposal bank (bank_size=None)")
+        return self.bank
+
+    @property
+    def bank_states(self) -> Tensor:
+        """``[M, T+1, d]`` the bank's rollouts at the origin"""
+        return self._need_bank().bank_states
+
+    @property
+    def bank_actions(self) -> Tensor:
+        """``[M, T, q]``"""
+        return self._need_bank().bank_actions
+
+    @property
+    def bank_background(self) -> bool:
+        """Whether bank refreshes run in a worker thread (False after ``close()``)"""
+        return self.bank is not None and self.bank.background
+
+    @property
+    def banks_swapped(self) -> int:
+        """background banks put in use so far"""
+        return 0 if self.bank is None else self.bank.banks_swapped
+
+    @property
+    def bank_failures(self) -> int:
+        """background refreshes that raised (each reported once by a BankRefreshWarning)"""
+        return 0 if self.bank is None else self.bank.bank_failures
+
+    @property
+    def last_bank_error(self) -> BaseException | None:
+        """the exception of the latest failed background refresh"""
+        return None if self.bank is None else self.bank.last_bank_error
+
+    @property
+    def _draw_bank(self) -> Callable[[torch.Generator], tuple[Tensor, Tensor]]:
+        """The bank's draw (``generator -> (states, actions)``); assignable, for fault injection (eval.bench.soak_bank)."""
+        return self._need_bank().draw_bank
+
+    @_draw_bank.setter
+    def _draw_bank(self, fn: Callable[[torch.Generator], tuple[Tensor, Tensor]]) -> None:
+        self._need_bank().draw_bank = fn
+
+    def resample_bank(self) -> None:
+        """Draw ``bank_size`` fresh rollouts at the origin, now, from the controller's generator."""
+        self._need_bank().resample(self.generator)
+
+    def wait_for_bank(self) -> bool:
+        """Block until a background refresh in flight is done and use its bank; False when none was pending or it
+        failed (then reported by a :class:`BankRefreshWarning`)."""
+        return self.bank is not None and self.bank.wait_for_bank()
+
+    def propose(self, state: Tensor) -> tuple[Tensor, Tensor]:
+        """``num_samples`` C-Uniform proposals from ``state [d]``: ``[K, T+1, d]``, ``[K, T, q]``."""
+        return self.proposal.propose(self._check_state(state), self.generator)
+
+
+class CUMPPI(MPPICore):
+    """CU-MPPI: the best C-Uniform rollout seeds one local MPPI (or log-MPPI) pass; its first control is applied.
+
+    ``num_samples`` is split: ``round(cuniform_fraction * num_samples)`` C-Uniform proposals (the first stage,
+    ``self.cuniform``: a :class:`CUniformMPPI` with ``lambda_ = 0`` seeded by ``seed``), the rest for the local
+    pass (``self.local``: Gaussian noise of std ``noise_std`` around the best C-Uniform action sequence, or
+    normal x log-normal with ``local="log_mppi"``; drawn from the controller's generator, seeded by ``seed + 1``).
+    The core weighs the local pass with ``lambda_``; ``plan`` returns its result. ``local_kwargs`` go to the local
+    proposal (``lognormal_mean``, ``lognormal_var``).
+    """
+
+    def __init__(self, policy, cost_fn: CostFn, num_samples: int = 1000, cuniform_fraction: float = 0.5,
+                 lambda_: float = 0.567, noise_std: float | Tensor = 0.1, local: str = "mppi",
+                 horizon: int | None = None, bank_size: int | None = None,
+                 terminal_cost: Callable[[Tensor], Tensor] | None = None, device: torch.device | str | None = None,
+                 seed: int | None = None, **local_kwargs):
+        check_positive_int("num_samples", num_samples)
+        if not 0 < cuniform_fraction < 1:
+            raise ValueError(f"cuniform_fraction must be in (0, 1), got {cuniform_fraction!r}")
+        if num_samples < 2:
+            raise ValueError("CU-MPPI needs num_samples >= 2 (C-Uniform proposals + a local pass)")
+        local_cls = {"mppi": GaussianProposal, "log_mppi": NormalLogNormalProposal}.get(local)
+        if local_cls is None:
+            raise ValueError(f"unknown local pass {local!r}; choose mppi or log_mppi")
+        seed = _check_seed(seed)
+        k_cu = max(1, min(num_samples - 1, round(cuniform_fraction * num_samples)))
+        self.cuniform = CUniformMPPI(policy, cost_fn, k_cu, lambda_=0.0, horizon=horizon, bank_size=bank_size,
+                                     terminal_cost=terminal_cost, device=device, seed=seed)
+        self.local = local_cls(self.cuniform.system, num_samples - k_cu, self.cuniform.horizon, noise_std=noise_std,
+                               device=self.cuniform.device, dtype=self.cuniform.dtype, **local_kwargs)
+        super().__init__(CompositeProposal(self.cuniform, self.local), cost_fn, lambda_, terminal_cost,
+                         seed=None if seed is None else seed + 1)

@@ -1,0 +1,1 @@
+"""Grids of a state space: integer cells, packed int64 keys, sorted-key and hashed lookups."""

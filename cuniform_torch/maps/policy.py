@@ -1,0 +1,309 @@
+"""The map-conditioned policy pi(u | x, t, local map) of C-Free-Uniform (arXiv 2510.16905).
+
+Shapes: N states, d state dimensions, F state features, E map embedding, Hd hidden units, A actions, H x W patch.
+
+:class:`MapPolicy` is a :class:`~cuniform_torch.maps.encoder.MapEncoder` over the robot-frame occupancy patch
+(computed *once* per map: :meth:`MapPolicy.set_map`) and an MLP over the state / time features of
+:class:`~cuniform_torch.policies.mlp.MLPPolicy` (``x_i / scale_i`` per non-periodic dimension, ``cos``, ``sin`` per angle,
+``t / T``) together with that embedding. The first layer is split, ``W_x f + W_e e + b``, so ``W_e e + b`` is
+computed with the embedding and a lookup costs what an MLPPolicy's does. It answers ``action_probs(x, t)``
+and ``sample(x, t, generator)`` for the map last set, so it drops into :func:`~cuniform_torch.sampling.rollout.rollout`
+and every controller (:class:`~cuniform_torch.controllers.cfu.CFUMPPI` sets the map each command).
+
+With ``local_features = C > 0`` (:mod:`~cuniform_torch.maps.local_features`) the first layer also reads ``P * C`` features
+sampled bilinearly from a stride-1 feature map of the patch at the state and at probe points ahead of it:
+``W_x f + W_e e + W_l l(x) + b``. The feature map is computed once per map too (``set_map``); ``C = 0`` (the
+default, and what a checkpoint without the key means) is the map-embedding-only network, unchanged.
+
+States are in the start pose's frame (``start_relative`` on an SE(2)-invariant system), like the patch.
+Support: the box of the training cells, as an MLPPolicy without ``support``: each non-periodic dimension
+within ``feature_scale_i + cell_size_i / 2`` of 0 is answered by the network; within one more cell too, counted
+in ``nearest_hits``; beyond, or NaN / infinite, the uniform row, counted in ``misses``. The safe cells differ
+from map to map, so no per-cell support is kept.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+from typing import Any, Callable
+
+import torch
+from torch import Tensor, nn
+
+from cuniform_torch.grid.cells import Grid
+from cuniform_torch.maps.encoder import MapEncoder, PatchSpec
+from cuniform_torch.maps.local_features import LocalFeatures
+from cuniform_torch.policies.mlp_ops import check_query, inverse_cdf_draw, state_features
+from cuniform_torch.sampling.rollout import StartWatch
+from cuniform_torch.systems import System
+
+__all__ = ["MapPolicyConfig", "MapPolicy", "MAX_MAP_HIDDEN", "MAX_MAP_LAYERS"]
+
+MAX_MAP_HIDDEN = 1 << 14
+MAX_MAP_LAYERS = 16
+
+
+@dataclass
+class MapPolicyConfig:
+    """Sizes, input features and patch spec of a :class:`MapPolicy` (stored in the checkpoint as a dict)."""
+
+    state_dim: int
+    num_actions: int
+    horizon: int
+    periodic: list[bool]
+    feature_scale: list[float]
+    """divisor of each non-periodic dimension (ignored on angle dimensions)"""
+    patch: dict[str, Any]
+    """the :class:`PatchSpec` as a dict (shape, resolution, origin)"""
+    hidden: int = 128
+    layers: int = 2
+    embed: int = 32
+    """map embedding size E"""
+    channels: int = 8
+    """the encoder's base channel count c"""
+    local_features: int = 0
+    """channels C of the local feature map sampled at each state's probes (0: none, the original network)"""
+
+    def __post_init__(self) -> None:
+        for name in ("state_dim", "num_actions", "horizon", "hidden", "layers", "embed", "channels"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+                raise ValueError(f"MapPolicyConfig.{name} must be a positive integer, got {value!r}")
+        if max(self.hidden, self.embed, self.channels) > MAX_MAP_HIDDEN or self.layers > MAX_MAP_LAYERS:
+            raise ValueError(f"MapPolicyConfig: at most {MAX_MAP_LAYERS} layers and {MAX_MAP_HIDDEN} units or "
+                             f"channels, got layers {self.layers}, hidden {self.hidden}, embed {self.embed}, "
+                             f"channels {self.channels}")
+        if not isinstance(self.periodic, (list, tuple)) or not all(isinstance(p, bool) for p in self.periodic):
+            raise ValueError(f"MapPolicyConfig: periodic must be a list of bools, got {self.periodic!r}")
+        if not isinstance(self.feature_scale, (list, tuple)) or len(self.periodic) != self.state_dim \
+                or len(self.feature_scale) != self.state_dim:
+            raise ValueError(f"MapPolicyConfig: periodic and feature_scale need {self.state_dim} entries each")
+        if any(isinstance(s, bool) or not isinstance(s, (int, float)) or not (0 < s < math.inf)
+               for s in self.feature_scale):
+            raise ValueError(f"MapPolicyConfig: feature_scale must be positive finite numbers, got {self.feature_scale}")
+        lf = self.local_features
+        if isinstance(lf, bool) or not isinstance(lf, int) or not 0 <= lf <= MAX_MAP_HIDDEN:
+            raise ValueError(f"MapPolicyConfig.local_features must be an integer in 0..{MAX_MAP_HIDDEN}, got {lf!r}")
+        if lf and list(self.periodic[:3]) != [False, False, True]:
+            raise ValueError(f"MapPolicyConfig: local_features need states (x, y, heading, ...), but periodic is "
+                             f"{self.periodic}")
+        self.patch = PatchSpec.from_dict(self.patch).to_dict()  # checked, normalised
+
+    @property
+    def patch_spec(self) -> PatchSpec:
+        return PatchSpec.from_dict(self.patch)
+
+    @property
+    def num_features(self) -> int:
+        return sum(2 if p else 1 for p in self.periodic) + 1
+
+    def to_dict(self) -> dict[str, Any]:
+        """The checkpoint's ``config``; ``local_features`` only when > 0, so a C = 0 checkpoint is the old one."""
+        out = dataclasses.asdict(self)
+        if not out["local_features"]:
+            del out["local_features"]
+        return out
+
+
+class MapPolicy(nn.Module):
+    """pi(u | x, t, map): ``set_map(patch)`` once, then ``action_probs(x [N, d], t) -> [N, A]`` for that map.
+
+    ``encode(occupancy [B, H, W]) -> [B, E]``, ``encode_local(occupancy) -> [B, C, H, W]`` (local features only)
+    and ``logits(x, t, embedding, local_map, which)`` are the training path (one embedding per state, ``[N, E]``;
+    row n reads ``local_map[which[n]]``); ``encodes`` counts the maps encoded by :meth:`set_map`.
+    """
+
+    def __init__(self, config: MapPolicyConfig, system: System, actions: Tensor):
+        super().__init__()
+        if not isinstance(actions, Tensor) or actions.ndim != 2 or actions.shape[0] != config.num_actions:
+            raise ValueError(f"actions must be [{config.num_actions}, q], got {list(getattr(actions, 'shape', []))}")
+        if list(system.periodic) != list(config.periodic):
+            raise ValueError(f"system {system.name} has periodic {list(system.periodic)}, config says {config.periodic}")
+        self.config, self.system, self.horizon = config, system, config.horizon
+        self.patch_spec = config.patch_spec
+        self.register_buffer("actions", actions.detach().clone().float())  # [A, q]
+        self.register_buffer("inv_scale", 1.0 / torch.tensor(config.feature_scale, dtype=torch.float32))  # [d]
+        self._angle = [i for i, p in enumerate(config.periodic) if p]
+        self._linear = [i for i, p in enumerate(config.periodic) if not p]
+        self.encoder = MapEncoder(self.patch_spec.shape, config.embed, config.channels)
+        self.inp_x = nn.Linear(config.num_features, config.hidden)
+        self.inp_e = nn.Linear(config.embed, config.hidden, bias=False)
+        body: list[nn.Module] = []
+        for _ in range(config.layers - 1):
+            body += [nn.SiLU(), nn.Linear(config.hidden, config.hidden)]
+        body += [nn.SiLU(), nn.Linear(config.hidden, config.num_actions)]
+        self.body = nn.Sequential(*body)
+        # built after the rest, so C = 0 draws the same initial weights as before the option existed
+        self.local = LocalFeatures(self.patch_spec, config.local_features) if config.local_features else None
+        self.inp_l = (nn.Linear(self.local.num_outputs, config.hidden, bias=False) if self.local is not None
+                      else None)
+        grid = Grid.of(system)
+        half = torch.tensor([s + c / 2 for s, c in zip(config.feature_scale, grid.cell_size)])
+        self.register_buffer("_box_half", half[self._linear], persistent=False)  # [d_lin]
+        self.register_buffer("_box_cell", torch.tensor(grid.cell_size)[self._linear], persistent=False)
+        self._start_watch = StartWatch(f"map policy ({system.name})", system)
+        self.register_buffer("_uniform", torch.full((1, config.num_actions), 1.0 / config.num_actions), persistent=False)
+        self._map_bias: Tensor | None = None  # [T+1, Hd] per level, for the map last set (set_map)
+        self._w_state: Tensor | None = None  # [F-1 (+ P * C), Hd]
+        self._local_map: Tensor | None = None  # [1, C, H, W] for the map last set (local features only)
+        self._layers: list[tuple[Tensor, Tensor]] = []  # the body's (weight^T, bias)
+        self.encodes = 0
+        self.reset_counters()
+
+    # -------------------------------------------------------------------------------- traits
+    @property
+    def device(self) -> torch.device:
+        return self.actions.device
+
+    @property
+    def dtype(self) -> torch.dtype:
+        return self.actions.dtype
+
+    @property
+    def start_relative(self) -> bool:
+        """True on an SE(2)-invariant system: states and patch are in the start pose's frame."""
+        return bool(self.system.se2_invariant)
+
+    @property
+    def build_start(self) -> Tensor:
+        return self._start_watch.build_start
+
+    def watch_start(self, x0: Tensor, relative: bool) -> Callable[[], None] | None:
+        return self._start_watch.begin(self, x0, relative)
+
+    @property
+    def num_parameters(self) -> int:
+        return sum(p.numel() for p in self.parameters())
+
+    # -------------------------------------------------------------------------------- the network
+    def features(self, x: Tensor, t: int | Tensor) -> Tensor:
+        """``x [N, d]``, ``t`` (int or ``[N]``) -> ``[N, F]`` (MLPPolicy's features)."""
+        return state_features(x.to(self.dtype), t, self._linear, self._angle, self.inv_scale, self.config.horizon)
+
+    def encode(self, occupancy: Tensor) -> Tensor:
+        """``[B, H, W]`` (bool or 0 / 1) -> ``[B, E]`` map embeddings."""
+        return self.encoder(occupancy.to(self.dtype))
+
+    def encode_local(self, occupancy: Tensor) -> Tensor:
+        """``[B, H, W]`` (bool or 0 / 1) -> ``[B, C, H, W]`` local feature maps (``local_features > 0`` only)."""
+        if self.local is None:
+            raise ValueError("this policy has no local features (local_features = 0)")
+        return self.local(occupancy.to(self.dtype))
+
+    def logits(self, x: Tensor, t: int | Tensor, embedding: Tensor, local_map: Tensor | None = None,
+               which: Tensor | None = None) -> Tensor:
+        """``x [N, d]``, ``t``, ``embedding [N, E]`` (or ``[1, E]``) -> logits ``[N, A]`` (differentiable). With
+        local features, ``local_map [U, C, H, W]`` (:meth:`encode_local`) and ``which [N]`` (the map of each row;
+        None when U = 1) are required."""
+        h = self.inp_x(self.features(x, t)) + self.inp_e(embedding)
+        if self.local is not None:
+            if local_map is None:
+                raise ValueError("a policy with local features needs local_map (encode_local of the patches)")
+            h = h + self.inp_l(self.local.sample(local_map, x.to(self.dtype), which))
+        return self.body(h)
+
+    def forward(self, x: Tensor, t: int | Tensor, embedding: Tensor, local_map: Tensor | None = None,
+                which: Tensor | None = None) -> Tensor:
+        return self.logits(x, t, embedding, local_map, which)
+
+    # -------------------------------------------------------------------------------- one map, many lookups
+    def set_map(self, patch: object) -> None:
+        """Encode ``patch`` (a robot-frame OccupancyGrid of this policy's :class:`PatchSpec`, on its device) once;
+        every lookup until the next call is for that map (and these weights: call it again after training).
+        ValueError naming a wrong shape, resolution or origin."""
+        occupied = self.patch_spec.check(patch)
+        if occupied.device != self.device:
+            raise ValueError(f"the patch is on {occupied.device} but the policy is on {self.device}")
+        with torch.no_grad():
+            embedding = self.encode(occupied.unsqueeze(0))  # [1, E]
+            w = self.inp_x.weight  # [Hd, F]: columns x_lin, cos, sin, t
+            n_lin = len(self._linear)
+            levels = torch.arange(self.horizon + 1, dtype=w.dtype, device=w.device) / self.horizon  # [T+1]
+            # W_e e + b + w_t t / T per level, and W_x with the feature scales folded in: a lookup is one addmm
+            self._map_bias = (self.inp_x.bias + self.inp_e(embedding)[0] + levels[:, None] * w[:, -1]).detach()
+            w_state = torch.cat((w[:, :n_lin] * self.inv_scale[self._linear], w[:, n_lin:-1]), dim=1)
+            if self.local is not None:  # the sampled features are more columns of the same addmm
+                self._local_map = self.encode_local(occupied.unsqueeze(0)).detach()  # [1, C, H, W]
+                w_state = torch.cat((w_state, self.inp_l.weight), dim=1)
+            self._w_state = w_state.T.contiguous().detach()  # [F-1, Hd]
+            self._layers = [(m.weight.detach().T.contiguous(), m.bias.detach()) for m in self.body
+                            if isinstance(m, nn.Linear)]
+        self.encodes += 1
+
+    def clear_map(self) -> None:
+        """Forget the map: lookups are refused until :meth:`set_map`."""
+        self._map_bias = None
+
+    def action_probs(self, x: Tensor, t: int) -> Tensor:
+        """Softmax of the logits for the map last set: ``x [N, d]`` (policy dtype and device) at level ``t`` ->
+        ``[N, A]``; states outside the box get the uniform row (module docstring)."""
+        if self._map_bias is None:
+            raise ValueError("no map set: call set_map(patch) before looking up actions")
+        check_query(x, t, self.horizon, self.config.state_dim, self.dtype, self.device)
+        with torch.no_grad():
+            parts = [x[:, self._linear]]
+            if self._angle:
+                ang = x[:, self._angle]
+                parts += [torch.cos(ang), torch.sin(ang)]
+            if self.local is not None:  # dims 0, 1, 2 are x, y, heading (config check): cos / sin just made
+                g = self.local.grid(x[:, :2], parts[-2][:, 0], parts[-1][:, 0])  # [N, P, 2]
+                parts.append(self.local.read(self._local_map, g))  # [N, P * C]
+            h = torch.addmm(self._map_bias[t], torch.cat(parts, dim=1), self._w_state)  # [N, Hd]
+            for weight, bias in self._layers:
+                h = torch.addmm(bias, torch.nn.functional.silu(h), weight)
+            probs = torch.softmax(h, dim=1)  # [N, A]
+            miss = self._count(x)  # [N]
+            return torch.where(miss.unsqueeze(1), self._uniform, probs)
+
+    def sample(self, x: Tensor, t: int, generator: torch.Generator | None) -> Tensor:
+        """``x [N, d]`` at level ``t`` -> actions ``[N, q]`` drawn from :meth:`action_probs` (inverse CDF)."""
+        return inverse_cdf_draw(self.action_probs(x, t).cumsum(dim=1), self.actions, generator)
+
+    def _count(self, x: Tensor) -> Tensor:
+        """Count the lookups of ``x [N, d]`` (near the box: nearest hits; beyond it or not finite: misses);
+        the misses ``bool [N]``."""
+        if self._linear:
+            excess = ((x[:, self._linear].abs() - self._box_half) / self._box_cell).amax(dim=1)  # [N] cells out
+            near, miss = excess > 0, excess > 1
+        else:
+            near = miss = torch.zeros(x.shape[0], dtype=torch.bool, device=x.device)
+        miss = miss | ~torch.isfinite(x).all(dim=1)  # NaN compares False above: caught here
+        self._queries += x.shape[0]
+        self._near += (near & ~miss).sum()
+        self._miss += miss.sum()
+        return miss
+
+    # -------------------------------------------------------------------------------- honest-support counters
+    def reset_counters(self) -> None:
+        """Zero ``queries`` (host int), ``nearest_hits`` and ``misses`` (device tensors: counting never syncs)."""
+        self._queries = 0
+        self._near = torch.zeros((), dtype=torch.int64, device=self.device)
+        self._miss = torch.zeros((), dtype=torch.int64, device=self.device)
+
+    @property
+    def queries(self) -> int:
+        return self._queries
+
+    @property
+    def nearest_hits(self) -> Tensor:
+        return self._near
+
+    @property
+    def misses(self) -> Tensor:
+        return self._miss
+
+    @property
+    def miss_rate(self) -> float:
+        return int(self._miss) / self._queries if self._queries else 0.0
+
+    @property
+    def nearest_rate(self) -> float:
+        return int(self._near) / self._queries if self._queries else 0.0
+
+    def _apply(self, fn, recurse: bool = True):  # .to(device) moves the counters; the folded map is derived from
+        super()._apply(fn, recurse)             # the weights, so it is dropped (set_map again)
+        self._map_bias, self._w_state, self._layers, self._local_map = None, None, [], None
+        self._near, self._miss = self._near.to(self.device), self._miss.to(self.device)
+        return self

@@ -1,0 +1,76 @@
+"""Local-map sensing: the robot-frame patch a map-conditioned policy reads, cropped from a world occupancy grid.
+
+Shapes: B poses, H x W patch cells.
+
+:func:`sense_patch` turns each patch cell's centre (robot frame, :class:`~cuniform_torch.maps.encoder.PatchSpec`)
+into world coordinates by the pose's rigid transform and reads the world grid there: one vectorised gather for
+all cells (and all poses), no loop. Like a costmap it is range-limited: a cell whose centre lies farther than
+``max_range`` from the robot reads free, and so does everything outside the world grid (the
+:class:`~cuniform_torch.envs.OccupancyGrid` convention). :func:`local_map` wraps one pose's patch as a robot-frame
+``OccupancyGrid``, the type :meth:`MapPolicy.set_map <cuniform_torch.maps.policy.MapPolicy.set_map>` takes.
+
+The world may also be an :class:`~cuniform_torch.envs.Environment` (shapes): a cell is then occupied when its
+centre is inside an obstacle sensed at ``time`` or outside the bounds (``Environment.in_collision``, the map
+farm's rule for its patches), at one ``contains`` per obstacle instead of one gather.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import Tensor
+
+from cuniform_torch.envs.environment import Environment
+from cuniform_torch.envs.occupancy import OccupancyGrid
+from cuniform_torch.maps.encoder import PatchSpec
+
+__all__ = ["patch_centres", "sense_patch", "local_map"]
+
+
+def patch_centres(spec: PatchSpec, dtype: torch.dtype = torch.float32,
+                  device: torch.device | str | None = None) -> Tensor:
+    """The robot-frame (x, y) of every patch cell's centre: ``[H, W, 2]``."""
+    H, W = spec.shape
+    r = spec.resolution
+    xs = spec.origin[0] + (torch.arange(W, dtype=torch.float64) + 0.5) * r  # [W]
+    ys = spec.origin[1] + (torch.arange(H, dtype=torch.float64) + 0.5) * r  # [H]
+    grid = torch.stack((xs.expand(H, W), ys.unsqueeze(1).expand(H, W)), dim=-1)  # [H, W, 2]
+    return grid.to(dtype=dtype, device=device)
+
+
+def sense_patch(world: OccupancyGrid | Environment, pose: Tensor, spec: PatchSpec, max_range: float | None = None,
+                time: float | None = None) -> Tensor:
+    """``pose [3]`` (or ``[B, 3]``: world x, y, heading) -> ``bool [H, W]`` (or ``[B, H, W]``) occupancy of the
+    patch in that pose's frame. A grid ``world`` must be on the pose's device; ``max_range`` (m) limits what is
+    seen; ``time`` (s) selects an Environment's obstacles sensed by then (None: all)."""
+    if not isinstance(world, (OccupancyGrid, Environment)):
+        raise ValueError(f"world must be an OccupancyGrid or an Environment, got {type(world).__name__}")
+    if not isinstance(pose, Tensor) or not pose.is_floating_point() or pose.shape[-1:] != (3,) or pose.ndim > 2:
+        raise ValueError(f"pose must be a floating-point [3] or [B, 3] tensor (x, y, heading), got "
+                         f"{list(pose.shape) if isinstance(pose, Tensor) else type(pose).__name__}")
+    if max_range is not None and (isinstance(max_range, bool) or not isinstance(max_range, (int, float))
+                                  or not max_range > 0 or math.isnan(max_range)):
+        raise ValueError(f"max_range must be a positive number (m) or None, got {max_range!r}")
+    if isinstance(world, OccupancyGrid) and world.occupied.device != pose.device:
+        raise ValueError(f"pose is on {pose.device} but the world grid is on {world.occupied.device}; "
+                         f"use world.to({str(pose.device)!r})")
+    poses = pose.reshape(-1, 3)  # [B, 3]
+    local = patch_centres(spec, pose.dtype, pose.device)  # [H, W, 2]
+    c, s = torch.cos(poses[:, 2]).view(-1, 1, 1), torch.sin(poses[:, 2]).view(-1, 1, 1)  # [B, 1, 1]
+    lx, ly = local[..., 0], local[..., 1]  # [H, W]
+    wx = poses[:, 0].view(-1, 1, 1) + c * lx - s * ly  # [B, H, W]
+    wy = poses[:, 1].view(-1, 1, 1) + s * lx + c * ly
+    xy = torch.stack((wx, wy), dim=-1)  # [B, H, W, 2]
+    seen = world.contains(xy) if isinstance(world, OccupancyGrid) else world.in_collision(xy, time)  # [B, H, W]
+    if max_range is not None:
+        seen = seen & (lx.square() + ly.square() <= max_range * max_range)
+    return seen if pose.ndim == 2 else seen[0]
+
+
+def local_map(world: OccupancyGrid | Environment, pose: Tensor, spec: PatchSpec, max_range: float | None = None,
+              time: float | None = None) -> OccupancyGrid:
+    """The patch at ``pose [3]`` as a robot-frame OccupancyGrid (its origin and resolution are ``spec``'s)."""
+    if isinstance(pose, Tensor) and pose.ndim != 1:
+        raise ValueError(f"local_map takes one pose [3], got {list(pose.shape)}; sense_patch takes a batch")
+    return OccupancyGrid(sense_patch(world, pose, spec, max_range, time), spec.origin, spec.resolution)

@@ -1,0 +1,197 @@
+"""The distilled policy's checkpoint file: writing it, and reading it back without running any code it names.
+
+Checkpoint (``.pt``, format ``cuniform-policy/1``): a dict of plain types and tensors that
+``torch.load(path, weights_only=True)`` reads: ``format``, ``state_dict``, ``config``
+(:class:`~cuniform_torch.policies.mlp.MLPConfig` as a dict), ``system`` (the table's system JSON), ``actions`` ``[A, q]``,
+``source`` (the table's path and sha256) and ``metrics`` (free-form numbers from the distillation); optionally
+``support`` (:class:`~cuniform_torch.policies.mlp.MLPSupport` as a dict: ``cells`` int64 ``[C, d]`` and
+``level_offsets`` int64 ``[T+2]``, the cells per level it was trained on, as in a table file); and, for a
+start-conditioned policy (:mod:`cuniform_torch.policies.start_mlp`, whose config has ``start_dims``), ``start_region``
+(:class:`~cuniform_torch.policies.start_mlp.StartRegion` as a dict: ``starts`` float64 ``[S, k]``, the set's starts over
+``dims [k]``). A checkpoint without ``start_region`` loads as an :class:`~cuniform_torch.policies.mlp.MLPPolicy`.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import os
+from pathlib import Path
+from typing import Any, Callable
+
+import torch
+from torch import Tensor
+
+from cuniform_torch.common.fileio import write_bytes
+from cuniform_torch.grid.cells import Grid
+from cuniform_torch.policies.mlp import MLPConfig, MLPPolicy, MLPSupport
+from cuniform_torch.policies.start_mlp import StartMLPPolicy, StartRegion
+from cuniform_torch.policies.table import Fallback
+from cuniform_torch.systems import system_from_json
+
+__all__ = ["POLICY_FORMAT", "PolicyCheckpointError", "policy_checkpoint", "save_policy", "load_policy", "file_sha256",
+           "read_network_keys"]
+
+POLICY_FORMAT = "cuniform-policy/1"
+
+
+class PolicyCheckpointError(ValueError):
+    """A policy checkpoint that is missing, corrupt, of an unknown format, or does not match its network."""
+
+
+def file_sha256(path: str | os.PathLike) -> str:
+    digest = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for chunk in iter(lambda: fh.read(1 << 20), b""):
+            digest.update(chunk)
+    return digest.hexdigest()
+
+
+def policy_checkpoint(policy: MLPPolicy, system_json: str, source: dict[str, str] | None = None,
+                      metrics: dict[str, Any] | None = None) -> dict[str, Any]:
+    """The checkpoint dict of DESIGN.md (plain types and CPU tensors; ``weights_only`` loadable)."""
+    return {
+        "format": POLICY_FORMAT,
+        "state_dict": {k: v.detach().cpu() for k, v in policy.state_dict().items()},
+        "config": policy.config.to_dict(),
+        "system": system_json,
+        "actions": policy.actions.detach().cpu(),
+        "source": dict(source or {}),
+        "metrics": dict(metrics or {}),
+        **({"support": policy.support.to_dict()} if policy.support is not None else {}),
+        **({"start_region": policy.region.to_dict()} if isinstance(policy, StartMLPPolicy) else {}),
+    }
+
+
+def save_policy(path: str | os.PathLike, checkpoint: dict[str, Any]) -> None:
+    """Write a checkpoint dict atomically."""
+    buf = io.BytesIO()
+    torch.save(checkpoint, buf)
+    write_bytes(path, buf.getvalue())
+
+
+def read_network_keys(ckpt: dict, config_class: type, what: str, trust_factory: Any,
+                      fail: Callable[[str], None]) -> tuple[dict[str, Tensor], Any, Any]:
+    """The checks every policy checkpoint shares: ``state_dict`` (names -> finite float tensors), ``config`` (a dict
+    that builds ``config_class``, else "config does not describe {what}"), ``system`` (rebuilt from the registry or
+    ``trust_factory``; its horizon and periodic dimensions agree with the config). Returns (state, config, system);
+    each problem is one ``fail(message)``."""
+    state = ckpt["state_dict"]
+    if not isinstance(state, dict) or not all(isinstance(k, str) and isinstance(v, Tensor) for k, v in state.items()):
+        fail("state_dict must map names to tensors")
+    for key, value in state.items():
+        if not value.is_floating_point() or not bool(torch.isfinite(value).all()):
+            fail(f"state_dict[{key!r}] holds non-finite or non-float values")
+    if not isinstance(ckpt["config"], dict):
+        fail(f"config must be a dict, got {type(ckpt['config']).__name__}")
+    try:
+        config = config_class(**ckpt["config"])
+    except (TypeError, ValueError) as exc:
+        fail(f"config does not describe {what} ({exc})")
+    try:
+        system, horizon = system_from_json(ckpt["system"], trust_factory=trust_factory)
+    except ValueError as exc:  # includes UnknownSystemError
+        fail(f"the system cannot be rebuilt: {exc}")
+    if config.horizon != horizon:
+        fail(f"config.horizon is {config.horizon} but the system JSON says {horizon}")
+    if list(config.periodic) != list(system.periodic):
+        fail(f"config.periodic {list(config.periodic)} does not match the system's {list(system.periodic)}")
+    return state, config, system
+
+
+def load_policy(source: str | os.PathLike | dict, device: torch.device | str = "cpu", *,
+                trust_factory: str | Callable[..., Any] | None = None,
+                fallback: str | Fallback = Fallback.NEAREST) -> MLPPolicy:
+    """A ready :class:`MLPPolicy` from a checkpoint path or an already loaded dict; errors are clear.
+
+    The file is read with ``torch.load(weights_only=True)`` and its system is rebuilt from the registry or from
+    ``trust_factory`` (see :func:`~cuniform_torch.systems.system_from_json`): nothing it names is imported. Every
+    field has one source of truth, checked against the others: the actions (system, top level, state_dict),
+    the feature scales (config, state_dict), the horizon and angle dimensions (config, system); weights must
+    be finite, and the network may not be larger than the weights the file holds. An optional ``support`` dict
+    (``cells``, ``level_offsets``: :class:`MLPSupport`) must describe cells per level of the system's grid.
+    """
+    where = str(source) if not isinstance(source, dict) else "checkpoint dict"
+    if isinstance(source, dict):
+        ckpt = source
+    else:
+        path = Path(source)
+        if not path.is_file():
+            raise PolicyCheckpointError(f"{path}: no checkpoint file there")
+        try:
+            ckpt = torch.load(path, map_location="cpu", weights_only=True)
+        except Exception as exc:  # corrupt, truncated, or holding objects that need arbitrary unpickling
+            raise PolicyCheckpointError(f"{path}: not a readable policy checkpoint ({type(exc).__name__}: {exc})") from None
+
+    def fail(msg: str) -> None:
+        raise PolicyCheckpointError(f"{where}: {msg}")
+
+    if not isinstance(ckpt, dict):
+        fail(f"a checkpoint must be a dict, got {type(ckpt).__name__}")
+    fmt = ckpt.get("format")
+    if fmt != POLICY_FORMAT:
+        fail(f"unknown policy format {fmt!r}; this reader knows {POLICY_FORMAT!r}")
+    missing = [k for k in ("state_dict", "config", "system", "actions") if k not in ckpt]
+    if missing:
+        fail(f"missing key(s) {', '.join(missing)}")
+    state, config, system = read_network_keys(ckpt, MLPConfig, "a policy", trust_factory, fail)
+    region = _read_region(ckpt.get("start_region"), config, system, fail)  # before the sizes: it explains them
+    held = sum(v.numel() for k, v in state.items() if k.startswith("net."))
+    if config.num_weights != held:
+        fail(f"state_dict does not match the network of its config ({config.num_weights} weights described, "
+             f"{held} held)")
+    actions = ckpt["actions"]
+    expect = system.action_set(dtype=torch.float32)
+    for field_name, value in (("actions", actions), ("state_dict['actions']", state.get("actions"))):
+        if not isinstance(value, Tensor) or value.shape != expect.shape or not torch.allclose(expect, value.float(), atol=1e-6):
+            fail(f"{field_name} does not match the actions of the system {system.name!r}")
+    inv_scale = state.get("inv_scale")
+    expect_inv = 1.0 / torch.tensor(config.feature_scale, dtype=torch.float32)
+    if not isinstance(inv_scale, Tensor) or inv_scale.shape != expect_inv.shape or not torch.equal(inv_scale.float(), expect_inv):
+        fail("state_dict['inv_scale'] does not match config.feature_scale")
+    support = _read_support(ckpt.get("support"), Grid.of(system), config.horizon, fail)
+    try:
+        if region is None:
+            policy = MLPPolicy(config, system, actions, support=support, fallback=fallback)
+        else:
+            policy = StartMLPPolicy(config, system, actions, region, support=support, fallback=fallback)
+        policy.load_state_dict(state, strict=True)
+    except (RuntimeError, TypeError, ValueError, AttributeError) as exc:
+        fail(f"state_dict does not match the network of its config ({str(exc)[:300]})")
+    return policy.to(device).eval()
+
+
+def _read_support(value: Any, grid: Grid, horizon: int, fail: Callable[[str], None]) -> MLPSupport | None:
+    """The checkpoint's optional ``support`` (None when absent); ``fail`` names what is wrong with it."""
+    if value is None:
+        return None
+    if not isinstance(value, dict) or set(value) != {"cells", "level_offsets"}:
+        fail(f"support must be a dict of cells and level_offsets, got "
+             f"{sorted(value) if isinstance(value, dict) else type(value).__name__}")
+    support = MLPSupport(value["cells"], value["level_offsets"])
+    try:
+        support.check(grid, horizon)
+    except ValueError as exc:
+        fail(str(exc))
+    return support
+
+
+def _read_region(value: Any, config: MLPConfig, system: Any, fail: Callable[[str], None]) -> StartRegion | None:
+    """The checkpoint's optional ``start_region`` (None when absent, as for a pi(u | x, t) policy); it and
+    ``config.start_dims`` come together or not at all."""
+    if value is None:
+        if config.start_dims:
+            fail(f"config.start_dims is {config.start_dims} but the checkpoint has no start_region")
+        return None
+    if not isinstance(value, dict) or set(value) != {"starts", "dims"}:
+        fail(f"start_region must be a dict of starts and dims, got "
+             f"{sorted(value) if isinstance(value, dict) else type(value).__name__}")
+    dims = value["dims"]
+    if not isinstance(dims, list) or dims != list(config.start_dims):
+        fail(f"start_region dims {dims!r} differ from config.start_dims {config.start_dims}")
+    region = StartRegion(value["starts"], dims)
+    try:
+        region.check(system)
+    except ValueError as exc:
+        fail(str(exc))
+    return region

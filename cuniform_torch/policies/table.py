@@ -1,0 +1,296 @@
+"""Table policy: p(u | cell, t) looked up from a C-Uniform table by packed keys, on any device.
+
+Shapes: N states, d state dimensions, A actions, q action dimensions, C table cells, H halo cells.
+
+:class:`TablePolicy` is a thin class over two parts, each in its own module:
+
+* the **index** (:mod:`~cuniform_torch.tables.lookup`): a frozen :class:`~cuniform_torch.tables.lookup.TableIndex` built once
+  from the table: key constants per dimension, the (level, cell) entries with their halo
+  (:mod:`~cuniform_torch.tables.halo`), a dense or hash index of their keys (``lookup=``, :class:`Lookup`), per-entry
+  probability rows, fallback codes and alias tables (:mod:`~cuniform_torch.tables.alias`);
+* a **kernel** that reads it (``kernel=``, :class:`Kernel`): :mod:`~cuniform_torch.tables.torch_kernel` (pure tensor ops,
+  any device) or :mod:`~cuniform_torch.tables.cpu_kernels` (the same arithmetic as one compiled CPU loop).
+
+The policy checks its input, draws the uniforms, runs the kernel and keeps the counters.
+
+Fallback for a state whose cell is not in L_t (``fallback=``):
+
+* ``"nearest"`` (default): the action row of the nearest cell of L_t when the state's cell is within one cell
+  of L_t (counted in ``nearest_hits``), else uniform over the actions (counted in ``misses``);
+* ``"uniform"``: uniform over the actions (counted in ``misses``).
+
+Tables are built from the origin (:attr:`TablePolicy.build_start`, the zero state). For an SE(2)-invariant
+system (``system.se2_invariant``), states given to ``action_probs`` are in the frame of the start pose;
+:func:`~cuniform_torch.sampling.rollout.rollout` does that change of frame, so one table serves every start pose
+(``start_relative`` is True). For any other system a table is valid from its build start only: a rollout from
+another start (or, SE(2)-relative, with other speeds or steering angles than the build start's) warns once per
+policy (:class:`~cuniform_torch.sampling.rollout.StartMismatchWarning`), with that rollout's miss rate.
+"""
+
+from __future__ import annotations
+
+import os
+from typing import Any, Callable
+
+import torch
+from torch import Tensor
+
+from cuniform_torch.tables import cpu_kernels
+from cuniform_torch.grid.cells import Grid
+from cuniform_torch.tables.lookup import Lookup, TableIndex, build_index
+from cuniform_torch.common.options import Option, option_label
+from cuniform_torch.sampling.rollout import StartWatch, check_generator, check_states
+from cuniform_torch.systems import System
+from cuniform_torch.tables.file import Table, read_table
+from cuniform_torch.tables.torch_kernel import lookup_and_draw, lookup_entries
+
+__all__ = ["Fallback", "Kernel", "Lookup", "TablePolicy", "UniformPolicy", "load_table"]
+
+_LOW_WORD = 0xFFFFFFFF  # a packed fallback count: nearest hits in the low 32 bits, misses above
+
+
+@option_label('fallback')
+class Fallback(Option):
+    """What a :class:`TablePolicy` does for a state outside the level set."""
+
+    NEAREST = "nearest"
+    UNIFORM = "uniform"
+
+
+@option_label('kernel')
+class Kernel(Option):
+    """What runs :meth:`TablePolicy.sample`'s per-step lookup and draw."""
+
+    AUTO = "auto"
+    """numba where it applies (see :data:`NUMBA`), else torch"""
+    TORCH = "torch"
+    """about 24 small tensor ops per step, on any device (``compile=True`` wraps them in ``torch.compile``)"""
+    NUMBA = "numba"
+    """one compiled CPU loop (:mod:`~cuniform_torch.tables.cpu_kernels`): float32 on a CPU, dense or int32-hash lookup"""
+
+
+class TablePolicy:
+    """The Policy interface over a table: ``actions [A, q]`` and ``action_probs(x [N, d], t) -> [N, A]``.
+
+    Also an :class:`~cuniform_torch.sampling.rollout.ActionSampler`: ``sample(x, t, generator)`` draws the actions with
+    Walker's alias method, one uniform per state (what :func:`~cuniform_torch.sampling.rollout.rollout` uses).
+    ``lookup`` picks how cells are found (:class:`Lookup`): a dense index over the table's key box where that is
+    small (the Dubins tables: 5 MB at horizon 10, 17 MB at 15), else a static hash; both answer exactly the same.
+    ``compile=True`` wraps the per-step lookup-and-sample kernel (about 17 small tensor ops) in
+    ``torch.compile``: a few seconds of compilation, meant for GPUs, where it saves the launches of those small
+    kernels (not measured here: no GPU). On a CPU the compiled kernel is a scalar loop (its gathers keep inductor
+    from vectorizing it) and runs slower than eager: 8.1 against 6.4 ms for a table rollout at N = 10000,
+    T = 15 on our 2-core machine.
+    """
+
+    def __init__(
+        self,
+        table: Table,
+        device: torch.device | str = "cpu",
+        dtype: torch.dtype = torch.float32,
+        fallback: str | Fallback = Fallback.NEAREST,
+        compile: bool = False,
+        lookup: str | Lookup = Lookup.AUTO,
+        kernel: str | Kernel = Kernel.AUTO,
+    ):
+        self.table = table
+        self.system: System = table.make_system()
+        self.grid = Grid.of(self.system)
+        self._dim = self.grid.dim
+        self.horizon = table.horizon
+        self.fallback = Fallback.parse(fallback)
+        self.device = torch.device(device)
+        self.dtype = dtype
+        self.index: TableIndex = build_index(table, self.grid, nearest=self.fallback is Fallback.NEAREST,
+                                             lookup=Lookup.parse(lookup), dtype=dtype, device=self.device)
+        self.lookup = self.index.lookup
+        self.actions = self.index.actions  # [A, q]
+        self.probs = torch.from_numpy(table.action_probs).to(device=self.device, dtype=dtype)  # [C, A]
+        self.entry_row = self.index.entry_row  # [C + H] table row of each entry
+        self.num_cells = self.index.num_cells
+        self.num_halo = self.index.num_entries - self.num_cells
+        build_start = None if getattr(table, "start", None) is None else torch.from_numpy(table.start)
+        self._start_watch = StartWatch(f"table policy ({self.system.name})", self.system, build_start)
+        self.kernel = self._choose_kernel(Kernel.parse(kernel), compile)
+        # the numba kernel compiles (or loads from numba's disk cache) now, not in the first control cycle
+        self._numba = cpu_kernels.NumbaKernel(self.index) if self.kernel is Kernel.NUMBA else None
+        self._torch_step = torch.compile(lookup_and_draw, dynamic=False) if compile else lookup_and_draw
+        # compiled, the level goes in as a 0-d tensor: one graph serves every level
+        self._levels = [torch.tensor(t, device=self.device) if compile else t for t in range(self.horizon + 1)]
+        self.reset_counters()
+
+    def _choose_kernel(self, kernel: Kernel, compile: bool) -> Kernel:
+        """The kernel :meth:`sample` runs: numba when asked for (an error naming what rules it out) or, for
+        ``auto``, when every condition holds; else torch."""
+        if kernel is Kernel.TORCH:
+            return kernel
+        unmet = cpu_kernels.unmet(self.index) + (["compile=True asks for the torch kernel"] if compile else [])
+        if unmet:
+            if kernel is Kernel.NUMBA:
+                raise ValueError(f"kernel='numba' cannot be used: {'; '.join(unmet)}")
+            return Kernel.TORCH
+        return Kernel.NUMBA
+
+    @property
+    def start_relative(self) -> bool:
+        """True only for an SE(2)-invariant system: then states are relative to the start pose (the table is
+        built at the origin); else they are used as they are, and the table holds from :attr:`build_start`."""
+        return bool(self.system.se2_invariant)
+
+    @property
+    def build_start(self) -> Tensor:
+        """The start the table was built from, ``[d]`` float64 (the table's ``start``, else the zero state)."""
+        return self._start_watch.build_start
+
+    def watch_start(self, x0: Tensor, relative: bool) -> Callable[[], None] | None:
+        """What :func:`~cuniform_torch.sampling.rollout.rollout` calls before a rollout from ``x0``: see
+        :class:`~cuniform_torch.sampling.rollout.StartWatch`."""
+        return self._start_watch.begin(self, x0, relative)
+
+    @property
+    def num_actions(self) -> int:
+        return int(self.actions.shape[0])
+
+    def level_size(self, t: int) -> int:
+        return int(self.table.level_offsets[t + 1] - self.table.level_offsets[t])
+
+    def _check(self, x: Tensor, t: int) -> None:
+        if isinstance(t, bool) or not isinstance(t, int) or not 0 <= t <= self.horizon:
+            raise ValueError(f"level t={t!r} is outside the table's levels 0..{self.horizon} (an integer)")
+        if (type(x) is Tensor and x.dtype == self.dtype and x.ndim == 2 and x.shape[1] == self._dim
+                and x.device == self.device):
+            return  # the common case, checked in well under a microsecond; else the checks that say what is wrong
+        check_states(x, self.grid.dim, self.device)
+        if x.dtype != self.dtype:
+            raise ValueError(f"states are {x.dtype} but the policy is {self.dtype}")
+
+    def rows(self, x: Tensor, t: int) -> Tensor:
+        """Table row of each state's cell in level ``t``: ``x [N, d]`` -> ``[N]`` int64 (-1: not in L_t)."""
+        self._check(x, t)
+        entry = lookup_entries(self.index, x, t).long()  # [N]
+        return torch.where(entry < self.num_cells, entry, -1)  # entries below C are table rows
+
+    def action_probs(self, x: Tensor, t: int) -> Tensor:
+        """p(u | cell of x, t): ``x [N, d]`` -> ``[N, A]``, with the fallback for states outside L_t."""
+        self._check(x, t)
+        entry = lookup_entries(self.index, x, t)  # [N]
+        self._count(x.shape[0], self.index.entry_code.index_select(0, entry).sum())
+        return self.index.entry_probs.index_select(0, entry)  # [N, A]; entry E: the uniform row
+
+    def sample(self, x: Tensor, t: int, generator: torch.Generator | None = None) -> Tensor:
+        """Draw one action per state from its row (alias method, one uniform each): ``x [N, d]`` -> ``[N, q]``."""
+        self._check(x, t)
+        if generator is not None and not isinstance(generator, torch.Generator):
+            check_generator(generator, self.device)  # the clear TypeError
+        n = x.shape[0]
+        if self._numba is not None:
+            u, total = self._numba.sample(x, t, generator)  # [N, q], a host int
+            self._count(n, total)
+            return u
+        r = torch.empty(n, device=self.device, dtype=self.dtype).uniform_(0, self.num_actions,
+                                                                           generator=generator)  # [N]
+        u, code = self._torch_step(self.index, x, self._levels[t], r)
+        self._count(n, code.sum())
+        return u  # [N, q]
+
+    def reset_counters(self) -> None:
+        """Zero ``queries`` (a host int), ``nearest_hits`` and ``misses`` (device tensors: counting never syncs)."""
+        zero = lambda: torch.zeros((), dtype=torch.int64, device=self.device)  # noqa: E731
+        self.queries, self._hits, self._misses, self._packed, self._packed_queries = 0, zero(), zero(), zero(), 0
+        self._packed_host = 0  # what the numba kernel counts (a host int: no tensor op per step)
+
+    def _count(self, n: int, code: Tensor | int) -> None:
+        """Add a batch of ``n`` lookups with fallback count ``code`` (nearest hits + 2^32 x misses: a device tensor,
+        or a host int from the numba kernel). One add into a packed counter; it is split into the two counters
+        before its low word could overflow."""
+        if self._packed_queries + n >= 2**32:
+            self._fold()
+        self.queries += n  # a host int
+        self._packed_queries += n
+        if isinstance(code, int):
+            self._packed_host += code
+        else:
+            self._packed += code
+
+    def _fold(self) -> None:
+        self._hits += (self._packed & _LOW_WORD) + (self._packed_host & _LOW_WORD)
+        self._misses += (self._packed >> 32) + (self._packed_host >> 32)
+        self._packed.zero_()
+        self._packed_host = self._packed_queries = 0
+
+    @property
+    def nearest_hits(self) -> Tensor:
+        """Lookups answered by the nearest cell of the level set (a 0-d device tensor)."""
+        return self._hits + (self._packed & _LOW_WORD) + (self._packed_host & _LOW_WORD)
+
+    @property
+    def misses(self) -> Tensor:
+        """Lookups that fell back to uniform probabilities (a 0-d device tensor)."""
+        return self._misses + (self._packed >> 32) + (self._packed_host >> 32)
+
+    @property
+    def miss_rate(self) -> float:
+        """Share of lookups so far that fell back to uniform probabilities (syncs the device)."""
+        q = self.queries
+        return int(self.misses) / q if q else 0.0
+
+    @property
+    def nearest_rate(self) -> float:
+        """Share of lookups so far answered by the nearest cell of the level set (syncs the device)."""
+        q = self.queries
+        return int(self.nearest_hits) / q if q else 0.0
+
+
+def load_table(
+    path: str | os.PathLike,
+    device: torch.device | str = "cpu",
+    dtype: torch.dtype = torch.float32,
+    fallback: str | Fallback = Fallback.NEAREST,
+    compile: bool = False,
+    lookup: str | Lookup = Lookup.AUTO,
+    kernel: str | Kernel = Kernel.AUTO,
+    trust_factory: str | Callable[..., Any] | None = None,
+) -> TablePolicy:
+    """Read and validate a table file (not its flow graph, which a policy does not use), and return its
+    :class:`TablePolicy` on ``device``. The table's system comes from the registry or ``trust_factory``
+    (see :func:`~cuniform_torch.systems.system_from_json`); nothing the file names is imported. (The package's
+    ``cuniform_torch.load_table`` also reads a table-set folder: :func:`cuniform_torch.policies.table_set.load_table`.)"""
+    table = read_table(path, graph=False, trust_factory=trust_factory)
+    return TablePolicy(table, device=device, dtype=dtype, fallback=fallback,
+                       compile=compile, lookup=lookup, kernel=kernel)
+
+
+class UniformPolicy:
+    """Uniform random discrete actions: ``action_probs`` is ``1/A`` everywhere (the paper's "uniform" baseline).
+
+    Has the Policy interface, so it drives :func:`~cuniform_torch.sampling.rollout.rollout` and
+    :class:`~cuniform_torch.controllers.mppi.CUniformMPPI` like a table does; ``horizon=None`` means any horizon. ``sample``
+    draws as a table draws from its uniform row (one uniform ``r`` in ``[0, A)`` per state, action ``floor(r)``),
+    so a rollout costs no more than a table's and consumes the generator alike.
+    """
+
+    start_relative = False
+
+    def __init__(self, system: System, horizon: int | None = None, device: torch.device | str = "cpu",
+                 dtype: torch.dtype = torch.float32):
+        self.system = system
+        self.horizon = horizon
+        self.device = torch.device(device)
+        self.dtype = dtype
+        self.actions = system.action_set(dtype=dtype, device=self.device)  # [A, q]
+
+    def action_probs(self, x: Tensor, t: int) -> Tensor:
+        """``x [N, d]`` -> ``[N, A]`` all ``1/A``."""
+        check_states(x, len(self.system.periodic), self.device)
+        A = self.actions.shape[0]
+        return torch.full((x.shape[0], A), 1.0 / A, dtype=self.dtype, device=self.device)
+
+    def sample(self, x: Tensor, t: int, generator: torch.Generator | None = None) -> Tensor:
+        """One uniformly drawn action per state: ``x [N, d]`` -> ``[N, q]`` in the dtype of ``x``."""
+        check_states(x, len(self.system.periodic), self.device)
+        if generator is not None and not isinstance(generator, torch.Generator):
+            check_generator(generator, self.device)  # the clear TypeError
+        A = self.actions.shape[0]
+        r = torch.empty(x.shape[0], device=self.device, dtype=self.dtype).uniform_(0, A, generator=generator)  # [N]
+        actions = self.actions if x.dtype == self.dtype else self.actions.to(x.dtype)  # [A, q]
+        return actions.index_select(0, r.to(torch.int32).clamp_(max=A - 1))  # [N, q]

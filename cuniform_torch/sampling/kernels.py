@@ -1,0 +1,115 @@
+"""A compiled CPU loop (numba) for the last step of a start-relative rollout: origin-frame states to the world.
+
+Shapes: N samples, T horizon, d >= 3 state dimensions.
+
+:func:`~cuniform_torch.sampling.rollout.rollout` of a table or MLP from a pose rolls out at the origin and then moves the
+``[N, T+1, d]`` states to the pose (:func:`~cuniform_torch.common.frames.se2_to_world`). In torch that is about ten
+passes over strided views: 1.3 ms at N = 10000, T = 15 on one core of the development machine, against
+0.24 ms here. This loop reads the time-major stack of the column-major step outputs (``[T+1, d, N]``, every row
+contiguous) once and writes the world states ``[N, T+1, d]`` once, with the arithmetic of ``se2_to_world`` in
+the states' dtype: ``x = (px + lx c) - ly s``, ``y = (py + lx s) + ly c``, heading ``wrap(lth + ptheta)`` with
+``wrap(a) = ((a + pi) mod 2 pi) - pi`` (mod as torch's ``remainder``: the sign of the divisor); the further
+dimensions are copied. Headings come out bit-identical to the torch path; x and y agree to an ulp or so
+(torch's ``addcmul`` may fuse the multiply-add).
+
+numba is imported lazily (:func:`~cuniform_torch.tables.cpu_kernels.available` says whether it can be used); the first
+call compiles the loop (cached on disk when the directory is writable). Without numba, or off the CPU, the
+rollout uses the torch path.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from cuniform_torch.tables import cpu_kernels
+
+__all__ = ["usable", "to_world", "to_world_time_major"]
+
+
+@functools.cache
+def _kernel():
+    import numba
+
+    @numba.njit(cache=True, nogil=True, inline="always")
+    def heading(lth, pth, pi, two_pi):
+        """``wrap(lth + pth)`` as ``se2_to_world`` computes it: ``((a + pi) mod 2 pi) - pi`` with torch's
+        ``remainder`` (fmod, then + 2 pi when negative)."""
+        a = (lth + pth) + pi
+        # fmod is slow, and for a in [0, 4 pi) the remainder is a or a - 2 pi, exactly (Sterbenz): only rare a's call it
+        if a >= two_pi:
+            m = a - two_pi if a < two_pi + two_pi else np.fmod(a, two_pi)
+        elif a < 0:
+            m = np.fmod(a, two_pi)
+            if m < 0:
+                m += two_pi
+        else:
+            m = a
+        return m - pi
+
+    @numba.njit(cache=True, nogil=True, boundscheck=False)
+    def to_world(local, px, py, c, s, pth, pi, two_pi, out):
+        """``local [T+1, d, N]`` (origin frame) -> ``out [N, T+1, d]`` (world frame of the pose)."""
+        steps, d, n = local.shape
+        for i in range(n):  # the output is written in order (the reads are T+1 d streams)
+            for t in range(steps):
+                lx, ly = local[t, 0, i], local[t, 1, i]
+                out[i, t, 0] = (px + lx * c) - ly * s
+                out[i, t, 1] = (py + lx * s) + ly * c
+                out[i, t, 2] = heading(local[t, 2, i], pth, pi, two_pi)
+                for j in range(3, d):
+                    out[i, t, j] = local[t, j, i]
+
+    @numba.njit(cache=True, nogil=True, boundscheck=False)
+    def to_world_time_major(local, px, py, c, s, pth, pi, two_pi, out):
+        """``local [T+1, d, N]`` (origin frame) -> ``out [T+1, d, N]`` (world frame of the pose): every read and
+        write a contiguous row; the arithmetic of ``to_world``."""
+        steps, d, n = local.shape
+        for t in range(steps):
+            for i in range(n):
+                lx, ly = local[t, 0, i], local[t, 1, i]
+                out[t, 0, i] = (px + lx * c) - ly * s
+                out[t, 1, i] = (py + lx * s) + ly * c
+            for i in range(n):
+                out[t, 2, i] = heading(local[t, 2, i], pth, pi, two_pi)
+            for j in range(3, d):
+                for i in range(n):
+                    out[t, j, i] = local[t, j, i]
+
+    return to_world, to_world_time_major
+
+
+def usable(x: Tensor) -> bool:
+    """Whether :func:`to_world` serves states like ``x`` (a CPU float32 or float64 tensor, numba installed)."""
+    return x.device.type == "cpu" and x.dtype in (torch.float32, torch.float64) and cpu_kernels.available()
+
+
+def to_world(local: Tensor, pose: Tensor) -> Tensor:
+    """``local [T+1, d, N]`` (origin frame; any strides: a time-major stack, or ``[N, T+1, d]`` states viewed
+    with ``permute(1, 2, 0)``) moved to ``pose [d]``: ``[N, T+1, d]`` contiguous."""
+    steps, d, n = local.shape
+    out = torch.empty((n, steps, d), dtype=local.dtype, device=local.device)
+    _kernel()[0](local.numpy(), *_pose_args(local, pose), out.numpy())
+    return out
+
+
+def to_world_time_major(local: Tensor, pose: Tensor) -> Tensor:
+    """``local [T+1, d, N]`` (origin frame, contiguous: a rollout's time-major states) moved to ``pose [d]``:
+    ``[T+1, d, N]`` contiguous, the values of :func:`to_world` (``to_world(local, pose)`` equals this
+    ``.permute(2, 0, 1)``)."""
+    out = torch.empty_like(local, memory_format=torch.contiguous_format)
+    _kernel()[1](local.numpy(), *_pose_args(local, pose), out.numpy())
+    return out
+
+
+def _pose_args(local: Tensor, pose: Tensor) -> tuple:
+    """The kernels' scalars for ``pose``: ``px, py, cos, sin, ptheta, pi, 2 pi`` in the dtype of ``local``."""
+    real = np.float32 if local.dtype == torch.float32 else np.float64
+    theta = pose[2]
+    px, py, pth = (real(v) for v in pose[:3].tolist())
+    c, s = real(torch.cos(theta).item()), real(torch.sin(theta).item())  # as torch rounds them in the dtype
+    return px, py, c, s, pth, real(math.pi), real(2 * math.pi)

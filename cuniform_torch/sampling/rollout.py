@@ -1,0 +1,305 @@
+"""Batched rollouts through a system: one batched step per time step, no Python loop over samples.
+
+Shapes: N samples, T horizon, d state dimensions, q action dimensions, A actions.
+
+* :func:`rollout` runs a discrete :class:`Policy` (a table or an MLP: ``actions [A, q]`` and
+  ``action_probs(x, t) -> [N, A]``) in closed loop: each step's actions are drawn for each state. A policy
+  that also has :class:`ActionSampler`'s ``sample(x, t, generator)`` (the table's alias sampler) draws through
+  it; any other draws by categorical sampling of ``action_probs``. An :class:`ActionSampler` alone (a noise
+  law of :mod:`cuniform_torch.sampling.noise`) drives it too, one ``sample`` per step.
+* :func:`rollout_actions` runs given open-loop action sequences ``[N, T, q]`` (what the Gaussian and log-normal
+  proposals of :mod:`cuniform_torch.controllers.proposals` draw).
+
+What :func:`rollout` reads from a policy, besides the protocol's members, is declared once, in
+:class:`PolicyTraits` (optional attributes, each with its default): ``horizon`` (longest rollout it serves),
+``device`` (where the start must be), ``dtype`` (what a controller around it runs in) and ``start_relative`` (a table or MLP built at the origin:
+on an SE(2)-invariant system it is rolled out from the origin and its states are moved to the start pose by a
+rigid transform) and ``watch_start`` (a table or MLP valid from one start: :class:`StartWatch` warns once,
+:class:`StartMismatchWarning`, when it is rolled out from another).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable, Protocol, runtime_checkable
+
+import torch
+from torch import Tensor
+
+from cuniform_torch.sampling import kernels as rollout_kernels
+from cuniform_torch.common.frames import se2_to_world
+from cuniform_torch.sampling.start_watch import OWN_ROBOT, StartMismatchWarning, StartWatch
+from cuniform_torch.systems import System
+from cuniform_torch.common.tensors import check_generator, check_states, same_device
+
+__all__ = ["Policy", "ActionSampler", "PolicyTraits", "RolloutPlan", "StartMismatchWarning", "StartWatch", "rollout",
+           "rollout_actions", "check_states", "check_generator", "same_device", "OWN_ROBOT"]
+
+
+@runtime_checkable
+class Policy(Protocol):
+    """Anything with a discrete action set and per-state action probabilities.
+
+    Optional attributes that :func:`rollout` reads when present are listed in :class:`PolicyTraits`.
+    """
+
+    actions: Tensor
+    """``[A, q]``"""
+
+    def action_probs(self, x: Tensor, t: int) -> Tensor:
+        """``x [N, d]`` at step ``t`` -> ``[N, A]`` probabilities (rows sum to 1)."""
+        ...
+
+
+@runtime_checkable
+class ActionSampler(Protocol):
+    """Anything that draws actions for a batch of states (a table's alias sampler, a noise law)."""
+
+    def sample(self, x: Tensor, t: int, generator: torch.Generator | None) -> Tensor:
+        """``x [N, d]`` at step ``t`` -> actions ``[N, q]``."""
+        ...
+
+
+@dataclass(frozen=True)
+class PolicyTraits:
+    """The optional attributes of a policy (or sampler) that :func:`rollout` reads, with their defaults."""
+
+    horizon: int | None = None
+    """the longest rollout the policy serves (a table's T); None: any"""
+    device: torch.device | None = None
+    """the policy's device: the start must be there; None: not checked"""
+    dtype: torch.dtype | None = None
+    """the policy's dtype (what a controller around it runs in; None: float32). A policy checks the states it is
+    given itself: a uniform policy serves any dtype"""
+    start_relative: bool = False
+    """True: the policy was built at the origin of an SE(2)-invariant system (tables, MLPs), its probabilities are
+    in the start pose's frame"""
+
+    @classmethod
+    def of(cls, policy: object) -> PolicyTraits:
+        """The traits ``policy`` declares (an attribute it lacks, or that is None, takes the default)."""
+        device = getattr(policy, "device", None)
+        dtype = getattr(policy, "dtype", None)
+        return cls(horizon=getattr(policy, "horizon", None),
+                   device=None if device is None else torch.device(device),
+                   dtype=dtype if isinstance(dtype, torch.dtype) else None,
+                   start_relative=bool(getattr(policy, "start_relative", False)))
+
+
+def _check_args(system: System, x0: Tensor, num_samples: int, horizon: int) -> int:
+    d = len(system.periodic)
+    for name, value, least in (("num_samples", num_samples, 1), ("horizon", horizon, 0)):
+        if isinstance(value, bool) or not isinstance(value, int) or value < least:
+            raise ValueError(f"{name} must be an integer >= {least}, got {value!r}")
+    if not isinstance(x0, torch.Tensor) or not x0.is_floating_point():
+        raise ValueError(f"x0 must be a floating-point tensor, got {getattr(x0, 'dtype', type(x0).__name__)}")
+    if x0.shape != (d,) and x0.shape != (num_samples, d):
+        raise ValueError(f"x0 must have shape [{d}] or [{num_samples}, {d}], got {list(x0.shape)}")
+    return d
+
+
+def _step(system: System, x: Tensor, u: Tensor, n: int, d: int) -> Tensor:
+    """``system.step`` with its output shape checked: ``[n, d]``."""
+    x = system.step(x, u)
+    if x.shape != (n, d):
+        raise ValueError(f"{getattr(system, 'name', type(system).__name__)}.step returned shape {list(x.shape)} "
+                         f"for {n} states of dimension {d}; expected [{n}, {d}]")
+    return x
+
+
+def open_loop(system: System, start: Tensor, actions: Tensor) -> Tensor:
+    """The kernel of :func:`rollout_actions`, for checked input: ``start [d]`` (or ``[N, d]``), ``actions [N, T, q]``
+    -> ``states [N, T+1, d]``. No host sync."""
+    n, horizon = actions.shape[0], actions.shape[1]
+    d = start.shape[-1]
+    x = start.expand(n, d) if start.ndim == 1 else start  # [N, d]
+    column_major_ok = steps_column_major(system)
+    if column_major_ok:
+        x = x.T.contiguous().T  # column-major [N, d]: every column a step reads is contiguous (faster)
+    states = [x]
+    for t in range(horizon):
+        x = _plain_step(system, x, actions[:, t], n, d, column_major_ok)
+        states.append(x)
+    return torch.stack(states, dim=1)  # [N, T+1, d]
+
+
+def rollout_actions(system: System, x0: Tensor, actions: Tensor) -> Tensor:
+    """The states that open-loop ``actions [N, T, q]`` drive from ``x0 [d]`` (or ``[N, d]``): ``[N, T+1, d]``.
+
+    ``x0`` and ``actions`` must share dtype and device; no gradient flows (both are detached); ValueError on a
+    non-finite ``x0``.
+    """
+    if not isinstance(actions, Tensor) or actions.ndim != 3 or not actions.is_floating_point():
+        raise ValueError(f"actions must be a floating-point [N, T, q] tensor, got "
+                         f"{list(actions.shape) if isinstance(actions, Tensor) else type(actions).__name__}")
+    _check_args(system, x0, actions.shape[0], actions.shape[1])
+    if actions.dtype != x0.dtype or not same_device(actions.device, x0.device):
+        raise ValueError(f"actions are {actions.dtype} on {actions.device} but x0 is {x0.dtype} on {x0.device}")
+    if not bool(torch.isfinite(x0).all()):
+        raise ValueError("x0 contains NaN or infinite values")
+    return open_loop(system, x0.detach(), actions.detach())
+
+
+def _step_declares(system: System, flag: str) -> bool:
+    """Whether the class that defines the ``step`` in use says ``flag = True`` itself (a subclass that overrides
+    ``step`` without saying so gets the plain treatment)."""
+    for klass in type(system).__mro__:
+        if "step" in vars(klass):
+            return vars(klass).get(flag, False) is True
+    return False
+
+
+def _steps_into(system: System) -> bool:
+    """Whether ``system.step`` takes ``out=`` (its class says ``step_out = True``)."""
+    return _step_declares(system, "step_out")
+
+
+def steps_column_major(system: System) -> bool:
+    """Whether ``system.step`` may get column-major ``[N, d]`` states (its class says ``column_major_ok = True``,
+    as the built-in models do: each column contiguous makes their steps cheaper). Any other system's ``step`` gets
+    ordinary contiguous ``[N, d]`` tensors."""
+    return _step_declares(system, "column_major_ok") or _steps_into(system)
+
+
+def _plain_step(system: System, x: Tensor, u: Tensor, n: int, d: int, column_major_ok: bool) -> Tensor:
+    """:func:`_step` with ``x`` made contiguous for a system that did not opt in to column-major states."""
+    return _step(system, x if column_major_ok else x.contiguous(), u, n, d)
+
+
+@dataclass(frozen=True)
+class RolloutPlan:
+    """How :func:`rollout` drives one policy, settled once (a proposal keeps it and skips the per-call checks)."""
+
+    sampler: bool
+    """draw through ``policy.sample`` (an :class:`ActionSampler`); else categorical draws of ``action_probs``"""
+    relative: bool
+    """roll out from the origin and move the states to the start pose (``start_relative`` on an SE(2)-invariant
+    system)"""
+    traits: PolicyTraits
+    step_out: bool = False
+    """the system's ``step`` takes ``out=`` (its class says ``step_out = True``): each step writes a row of one
+    preallocated ``[T+1, d, N]`` buffer, which the results are read from (no stack of T+1 states)"""
+    column_major_ok: bool = False
+    """the system's ``step`` may get column-major states (:func:`steps_column_major`); else contiguous ones"""
+    watch_start: Callable[[Tensor, bool], Callable[[], None] | None] | None = None
+    """the policy's ``watch_start(x0, relative)`` (a :class:`StartWatch`'s ``begin``), when it has one"""
+
+    @classmethod
+    def of(cls, system: System, policy: object) -> RolloutPlan:
+        """The plan for ``policy`` on ``system``; ValueError when it is neither a Policy nor an ActionSampler."""
+        # the two protocols' runtime checks, spelled out (typing's isinstance on a Protocol is ~20 us a call)
+        sampler = callable(getattr(policy, "sample", None))
+        if not sampler and not (hasattr(policy, "actions") and callable(getattr(policy, "action_probs", None))):
+            raise ValueError(f"{type(policy).__name__} is neither a Policy (actions, action_probs) nor an "
+                             f"ActionSampler (sample)")
+        traits = PolicyTraits.of(policy)
+        watch = getattr(policy, "watch_start", None)
+        return cls(sampler=sampler, relative=traits.start_relative and bool(system.se2_invariant), traits=traits,
+                   step_out=_steps_into(system), column_major_ok=steps_column_major(system),
+                   watch_start=watch if callable(watch) else None)
+
+    def check(self, x0: Tensor, horizon: int) -> None:
+        """ValueError unless the policy serves ``horizon`` steps from ``x0`` (its device, finite)."""
+        traits = self.traits
+        if traits.horizon is not None and horizon > traits.horizon:
+            raise ValueError(f"horizon {horizon} is longer than the policy's table ({traits.horizon} steps)")
+        if traits.device is not None and not same_device(traits.device, x0.device):
+            raise ValueError(f"x0 is on {x0.device} but the policy is on {traits.device}")
+        if not bool(torch.isfinite(x0).all()):
+            raise ValueError("x0 contains NaN or infinite values")
+
+    def run(self, system: System, policy: Policy | ActionSampler, x0: Tensor, num_samples: int, horizon: int,
+            generator: torch.Generator | None) -> tuple[Tensor, Tensor]:
+        """The rollout itself, for checked input (``x0 [d]`` or ``[N, d]``, detached, finite, on the policy's
+        device; a generator on it): ``states [N, T+1, d]``, ``actions [N, T, q]``."""
+        select = getattr(policy, "for_start", None)
+        if callable(select):  # a table set: the table nearest to this start, and its start check
+            policy = select(x0)
+            watch = getattr(policy, "watch_start", None)
+        else:
+            watch = self.watch_start
+        report = watch(x0, self.relative) if watch is not None else None
+        d = x0.shape[-1]
+        start = x0.unsqueeze(0).expand(num_samples, d) if x0.ndim == 1 else x0  # [N, d]
+        # column-major [N, d] states: every column a policy or a step reads is contiguous (faster). With step_out all
+        # T+1 of them are rows of one time-major buffer, each step writing the next in place
+        buffer = x0.new_empty((horizon + 1, d, num_samples)) if self.step_out else None  # [T+1, d, N]
+        x = buffer[0].T if buffer is not None else x0.new_empty((d, num_samples)).T  # [N, d], column-major
+        if self.relative:  # in the start pose's frame the start is (0, 0, 0, *rest): speeds etc. are unchanged
+            x[:, :3] = 0
+            x[:, 3:] = start[:, 3:]
+        else:
+            x.copy_(start)
+        actions = None if self.sampler else policy.actions.to(dtype=x0.dtype)  # [A, q]
+        states, taken = [x], []
+        for t in range(horizon):
+            if self.sampler:
+                u = policy.sample(x, t, generator)  # [N, q]
+            else:
+                probs = policy.action_probs(x, t)  # [N, A]
+                if not isinstance(probs, Tensor) or probs.shape != (num_samples, actions.shape[0]):
+                    raise ValueError(f"{type(policy).__name__}.action_probs returned "
+                                     f"{list(probs.shape) if isinstance(probs, Tensor) else type(probs).__name__} at "
+                                     f"step {t}; expected [{num_samples}, {actions.shape[0]}] probabilities (states x "
+                                     f"actions)")
+                u = actions[torch.multinomial(probs, 1, generator=generator).squeeze(1)]  # [N, q]
+            if buffer is not None and u.dtype == x.dtype and u.device == x.device:
+                x = system.step(x, u, out=buffer[t + 1].T)  # [N, d] into the buffer
+            else:
+                x = _plain_step(system, x, u, num_samples, d, self.column_major_ok)
+                if buffer is not None and x.dtype == buffer.dtype:
+                    buffer[t + 1].T.copy_(x)
+                else:  # actions of another dtype promote the states: they are stacked from the list instead
+                    buffer = None
+            states.append(x)
+            taken.append(u)
+        # the origin pose needs no change of frame (a host sync to know it: only on a CPU, where it is free)
+        if self.relative and (x0.ndim == 2 or x0.device.type != "cpu" or bool(x0[:3].any())):
+            # the column-major states time-major ([T+1, d, N], contiguous rows: the buffer, else one stack); the
+            # frame change reads that once and writes the [N, T+1, d] result once (a compiled loop on a CPU, else
+            # torch ops)
+            local = buffer if buffer is not None else torch.stack([s.T for s in states])
+            if x0.ndim == 1 and rollout_kernels.usable(local):
+                if buffer is not None:  # world states time-major too: [N, T+1, d] a view of [T+1, d, N]
+                    states_t = rollout_kernels.to_world_time_major(local, x0).permute(2, 0, 1)
+                else:
+                    states_t = rollout_kernels.to_world(local, x0)
+            else:
+                states_t = se2_to_world(local.permute(2, 0, 1), x0 if x0.ndim == 1 else start.unsqueeze(1))
+        elif buffer is not None:
+            states_t = buffer.permute(2, 0, 1)  # [N, T+1, d], a view of the time-major buffer
+        else:
+            states_t = torch.stack(states, dim=1)  # [N, T+1, d]
+        if taken:
+            # stacked time-major, then one transposing copy: cheaper on a CPU than stacking [N, q] along dim 1
+            actions_t = torch.stack(taken).transpose(0, 1).contiguous()  # [N, T, q]
+        else:
+            q = (policy.actions.shape[1] if hasattr(policy, "actions")
+                 else system.action_set(dtype=x0.dtype, device=x0.device).shape[1])
+            actions_t = x0.new_zeros((num_samples, 0, q))
+        if report is not None:
+            report()
+        return states_t, actions_t
+
+
+def rollout(
+    system: System,
+    policy: Policy | ActionSampler,
+    x0: Tensor,
+    num_samples: int,
+    horizon: int,
+    generator: torch.Generator | None = None,
+) -> tuple[Tensor, Tensor]:
+    """Sample ``num_samples`` trajectories of ``horizon`` steps from ``x0 [d]`` (or ``[N, d]``).
+
+    Returns ``states [N, T+1, d]`` (start included) and ``actions [N, T, q]``, in the dtype and on the device
+    of ``x0`` (on a system whose ``step`` takes ``out=``, the states are a view of time-major ``[T+1, d, N]``
+    storage, not contiguous: elementwise costs over them read whole rows); pass a seeded ``generator`` on that device for reproducible samples. No gradient flows through a
+    rollout: an ``x0`` that requires grad is detached. A policy's ``action_probs`` must return ``[N, A]``.
+    """
+    _check_args(system, x0, num_samples, horizon)
+    check_generator(generator, x0.device)
+    x0 = x0.detach()
+    plan = RolloutPlan.of(system, policy)
+    plan.check(x0, horizon)
+    return plan.run(system, policy, x0, num_samples, horizon, generator)

@@ -1,0 +1,184 @@
+"""The table policy's per-step lookup-and-draw kernel as one compiled CPU loop (numba).
+
+Shapes: N states, d state dimensions, E entries, S hash slots, B hash buckets, A actions.
+
+On a CPU the torch kernel (:mod:`~cuniform_torch.tables.torch_kernel`) is about 24 small tensor ops per step, each
+paying a dispatch and a pass over memory; here the same arithmetic over the same
+:class:`~cuniform_torch.tables.lookup.TableIndex` arrays runs in three loops over the states (keys one dimension at a
+time, so the loop vectorizes; the lookup; the alias draw). It computes what the torch kernel computes, value for
+value: ``shift + scale * x`` is rounded once to float32 as torch's fused multiply-add does (the product of two
+float32 is exact in float64), then the same clamp, round-half-even, exact angle wrap, Horner key, dense index or
+int32 hash probe (wrapping arithmetic), alias threshold and outcome. Only float32 indexes with float32 keys on a
+CPU are handled (a float64 multiply-add has no wider type to round from) and only int32 hashes: :func:`unmet`
+says what rules an index out.
+
+numba is imported lazily: :func:`available` says whether it can be used; the first call compiles the loops
+(about a second, cached on disk next to this file when the directory is writable). :class:`NumbaKernel` makes
+that call when it is made, so that no control cycle pays for it.
+"""
+
+from __future__ import annotations
+
+import functools
+import threading
+
+import numpy as np
+import torch
+
+from cuniform_torch.tables.lookup import Lookup, TableIndex
+
+__all__ = ["available", "unmet", "NumbaKernel"]
+
+
+@functools.cache
+def available() -> bool:
+    """Whether numba imports (the compiled CPU kernel can be used)."""
+    try:
+        import numba  # noqa: F401
+    except Exception:  # not installed, or broken against this numpy
+        return False
+    return True
+
+
+def unmet(index: TableIndex) -> list[str]:
+    """Why :class:`NumbaKernel` cannot run ``index`` (empty: it can)."""
+    return [why for ok, why in (
+        (index.actions.device.type == "cpu", f"the policy is on {index.actions.device}, not a CPU"),
+        (index.actions.dtype == torch.float32, f"the policy is {index.actions.dtype}, not float32"),
+        (index.lookup is Lookup.DENSE or index.hash.dtype == torch.int32, "the lookup is an int64 hash"),
+        (index.keys.key_dtype == torch.float32, "the table's key box needs float64 keys"),
+        (available(), "numba is not installed (pip install numba)"),
+    ) if not ok]
+
+
+class NumbaKernel:
+    """:func:`~cuniform_torch.tables.torch_kernel.lookup_and_draw` of one index as a compiled CPU loop.
+
+    Holds numpy views of the index's tensors (the same memory, no copies), so a call passes them to numba
+    without converting anything; making one compiles the loops (or loads them from numba's disk cache).
+    """
+
+    def __init__(self, index: TableIndex):
+        if unmet(index):
+            raise ValueError(f"the numba kernel cannot run this index: {'; '.join(unmet(index))}")
+        k, a = index.keys, index.alias
+        self.keys = tuple(v.numpy() for v in (k.scale, k.shift, k.low, k.high, k.span, k.period, k.inv_period, k.half))
+        self.level_base = index.level_base.numpy()
+        self.draw = (a.threshold.numpy(), a.outcome.numpy(), index.entry_code.numpy())
+        if index.lookup is Lookup.DENSE:
+            self.find = (index.dense.numpy(),)
+        else:
+            h = index.hash
+            self.find = (h.multiplier, h.bucket_shift, h.bucket_mask, h.slot_shift, h.disp.numpy(),
+                         h.slot_hash.numpy(), index.slot_entry.numpy())
+        self.step = _kernels()[0 if index.lookup is Lookup.DENSE else 1]
+        self.actions, self.outcome_is_value = index.actions, a.outcome_is_value
+        self._scratch = threading.local()  # per thread: the uniforms of its last batch size, reused
+        d = k.scale.shape[0]
+        for n in (1, 2):  # numba's two layouts of x: C (one state, or d = 1) and F (what __call__ passes otherwise)
+            self(np.zeros((n, d), dtype=np.float32), 0, np.zeros(n, dtype=np.float32),
+                 np.empty(n, dtype=a.outcome.numpy().dtype))
+
+    def __call__(self, x: np.ndarray, t: int, r: np.ndarray, out: np.ndarray) -> int:
+        """States ``x [N, d]`` float32 (any strides) in level ``t``, uniforms ``r [N]`` in ``[0, A)``: writes each
+        state's outcome into ``out [N]`` (action values, or action indices) and returns the sum of the fallback
+        codes (nearest hits + 2^32 misses)."""
+        if not x.flags.f_contiguous:  # columns first (the key loop vectorizes on them), one compiled layout
+            x = np.asfortranarray(x)
+        return int(self.step(x, self.level_base[t], *self.keys, *self.find, *self.draw, r, out))
+
+    def sample(self, x: torch.Tensor, t: int, generator: torch.Generator | None) -> tuple[torch.Tensor, int]:
+        """What the torch path of :meth:`~cuniform_torch.policies.table.TablePolicy.sample` does, on a CPU: the same
+        uniforms (``uniform_(0, A)`` from ``generator``, one per state), then :meth:`__call__`. ``x [N, d]`` ->
+        actions ``[N, q]`` and the summed fallback codes (a host int)."""
+        n = x.shape[0]
+        r = getattr(self._scratch, "r", None)
+        if r is None or r.shape[0] != n:  # numba reads them before returning, so a thread can reuse its own
+            r = self._scratch.r = torch.empty(n, dtype=torch.float32)
+            self._scratch.r_np = r.numpy()
+        r.uniform_(0, self.actions.shape[0], generator=generator)  # [N]
+        if self.outcome_is_value:  # q == 1: the outcomes are the actions
+            u = np.empty((n, 1), dtype=np.float32)
+            total = self(x.detach().numpy(), t, self._scratch.r_np, u[:, 0])
+            return torch.from_numpy(u), total  # [N, 1]
+        out = np.empty(n, dtype=np.int32)
+        total = self(x.detach().numpy(), t, self._scratch.r_np, out)
+        return self.actions.index_select(0, torch.from_numpy(out)), total  # [N, q]
+
+
+@functools.cache
+def _kernels():
+    import numba
+
+    jit = numba.njit(cache=True, nogil=True, boundscheck=False)
+
+    @jit
+    def keys(x, scale, shift, low, high, span, period, inv_period, half, key):
+        """``key [N]`` float32 cell keys of ``x [N, d]`` (NaN for a NaN state), one dimension at a time."""
+        n = x.shape[0]
+        for i in range(n):
+            key[i] = np.float32(0.0)
+        for j in range(scale.shape[0]):  # key = c_0 span_1 ... + c_{d-1}
+            s, sh, lo, hi, sp = np.float64(scale[j]), np.float64(shift[j]), low[j], high[j], span[j]
+            k, ik, hf = period[j], np.float64(inv_period[j]), np.float64(half[j])
+            for i in range(n):
+                v = x[i, j]
+                c = np.float32(sh + s * np.float64(v))  # torch.add(shift, x, alpha=scale): one rounding (FMA)
+                c = np.rint(min(max(c, lo), hi))
+                if k > 0:  # c mod K = c - K floor((c + 0.5) / K), exact (see lookup.KeyBox)
+                    c = c - k * np.floor(np.float32(hf + ik * np.float64(c)))
+                c = c + sp * key[i]
+                key[i] = c if v == v else np.float32(np.nan)
+
+    @jit
+    def draw(entry, r, threshold, outcome, code, out):
+        """Alias draw of each state's entry into ``out [N]``; returns the summed fallback codes."""
+        num_actions = threshold.shape[0] // code.shape[0]
+        total = 0
+        last = num_actions - 1
+        for i in range(entry.shape[0]):
+            e = np.uint32(entry[i])
+            total += code[e]
+            rv = r[i]
+            ix = e * np.uint32(num_actions) + np.uint32(min(np.int64(rv), last))
+            out[i] = outcome[np.uint32(2) * ix + np.uint32(rv < threshold[ix])]
+        return total
+
+    @jit
+    def step_dense(x, base, scale, shift, low, high, span, period, inv_period, half, dense, threshold, outcome, code,
+                   r, out):
+        """Keys, then ``entry`` from the dense index at ``base + key``, clamped into it (NaN: index 0, "not
+        found"), then the draw."""
+        n = x.shape[0]
+        key = np.empty(n, dtype=np.float32)
+        keys(x, scale, shift, low, high, span, period, inv_period, half, key)
+        entry = np.empty(n, dtype=np.int32)
+        top = dense.shape[0] - 1
+        b = np.int64(base)
+        for i in range(n):
+            kv = key[i]
+            kv = kv if kv == kv else np.float32(-2.0**31)
+            entry[i] = dense[np.uint32(min(max(np.int64(kv) + b, 0), top))]
+        return draw(entry, r, threshold, outcome, code, out)
+
+    @jit
+    def step_hash(x, base, scale, shift, low, high, span, period, inv_period, half, multiplier, bucket_shift,
+                  bucket_mask, slot_shift, disp, slot_hash, slot_entry, threshold, outcome, code, r, out):
+        """Keys, then what KeyHash.slots and the torch kernel's check compute in wrapping int32 arithmetic, then
+        slot -> entry, then the draw."""
+        n = x.shape[0]
+        key = np.empty(n, dtype=np.float32)
+        keys(x, scale, shift, low, high, span, period, inv_period, half, key)
+        entry = np.empty(n, dtype=np.int32)
+        num_slots = slot_hash.shape[0]
+        b = np.int64(base)
+        for i in range(n):
+            kv = key[i]
+            k = np.int64(kv) if kv == kv else np.int64(-2**31)  # torch's NaN -> int32 on x86
+            h = ((b + multiplier * k + 2**31) & 0xFFFFFFFF) - 2**31  # int32 wrap, sign-extended
+            low_bits = h >> slot_shift
+            slot = (low_bits + disp[(h >> bucket_shift) & bucket_mask]) & (num_slots - 1)
+            entry[i] = slot_entry[slot if slot_hash[slot] == h else num_slots]
+        return draw(entry, r, threshold, outcome, code, out)
+
+    return step_dense, step_hash

@@ -1,0 +1,1 @@
+"""What every experiment shares: the method registry, parameters, output paths, statistics, markdown tables, figures."""

@@ -1,0 +1,219 @@
+"""One navigation episode: a method with a sample budget on one task, under one controller seed.
+
+:func:`run_nav_episode` is a pure function of its arguments (a :class:`NavJob` and a :class:`NavContext`, both
+small and picklable), so the serial, process-pool and Ray executors (:mod:`eval.navigate.execute`) give the same record
+for the same job. Every process keeps what it loaded (the files of the methods' sources, the rasterized maps)
+in a per-process cache. Torch runs with one CPU thread per episode in every mode: the same arithmetic in every
+executor, and one episode per core is what parallel runs use anyway.
+
+The cost is the same for every method: :class:`cuniform_torch.envs.NavigationCost` (squared distance to the
+goal + ``collision_penalty`` for every colliding rollout state, both ending at the rollout's first arrival at
+the goal). The obstacles it sees:
+
+* a task with a sensing range (forest): the obstacles sensed at the robot's position, updated before every
+  control cycle (:meth:`cuniform_torch.envs.worlds.suites.NavTask.sensed_environment`);
+* a static map with more than :data:`RASTER_MIN_OBSTACLES` obstacles (BARN: 181-365 cylinders): the inflated
+  map rasterized once into an :class:`~cuniform_torch.envs.OccupancyGrid` of ``cost_resolution`` cells, a
+  cell occupied when any of its points may be inside an obstacle (its centre's clearance is below half the
+  cell's diagonal). Conservative by at most ``cost_resolution * sqrt(2)`` (1.4 cm at the default 1 cm), and
+  a cost evaluation costs one gather instead of one test per cylinder;
+* otherwise the task's inflated environment as it is.
+
+Collisions are always judged on the exact inflated geometry (:func:`cuniform_torch.envs.simulate`).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import math
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from cuniform_torch.envs import Environment, NavigationCost, OccupancyGrid, simulate
+
+from eval.navigate.cost_to_go import CostToGo
+from eval.common.methods import Sources, make_controller
+from eval.navigate.methods import NAV_METHODS
+from eval.navigate.stats import cycle_histogram
+from cuniform_torch.envs.worlds.geometry import clearance, inflate
+from cuniform_torch.envs.worlds.suites import NavTask
+
+__all__ = ["NavJob", "NavContext", "run_nav_episode", "rasterize", "episode_key", "RASTER_MIN_OBSTACLES"]
+
+RASTER_MIN_OBSTACLES = 32
+"""a static map with more obstacles than this is rasterized for the cost (module docstring)"""
+
+
+@dataclass(frozen=True)
+class NavJob:
+    """One episode to run."""
+
+    task: NavTask
+    method: str
+    """key of :data:`eval.navigate.methods.NAV_METHODS`"""
+    budget: int
+    """K: trajectories per control cycle"""
+    seed: int
+    """controller seed: the same for every method and budget on the same task and repeat (paired runs)"""
+    repeat: int = 0
+    """which controller seed of the task (0 .. repeats - 1)"""
+
+    @property
+    def key(self) -> str:
+        return episode_key(self.task.suite, self.task.task_id, self.method, self.budget, self.repeat)
+
+
+def episode_key(suite: str, task_id: int, method: str, budget: int, repeat: int) -> str:
+    """The key a record is stored and resumed under."""
+    return f"{suite}/{task_id}/{method}/{budget}/{repeat}"
+
+
+@dataclass(frozen=True)
+class NavContext:
+    """What every episode of a run shares: the source files, the horizon and the cost's settings."""
+
+    table: str
+    """the robot's max-flow table (also the system of every method)"""
+    coverage_table: str | None = None
+    policy: str | None = None
+    map_policy: str | None = None
+    horizon: int = 15
+    lambda_: float = 0.567
+    collision_penalty: float = 1e6
+    cost_resolution: float = 0.01
+    """m: cell side of the rasterized cost map of large static maps"""
+    record_path: bool = False
+    """keep the driven path ``[[x, y], ...]`` in the record"""
+    cost_to_go: float | None = None
+    """m: the goal term's geodesic cost-to-go on cells of this side (:mod:`eval.navigate.cost_to_go`); None: the straight
+    line"""
+
+
+_CACHE: dict[Any, Any] = {}
+
+
+def _sources(ctx: NavContext) -> Sources:
+    key = ("sources", ctx.table, ctx.coverage_table, ctx.policy, ctx.map_policy)
+    if key not in _CACHE:
+        _CACHE[key] = Sources(table=Path(ctx.table), coverage_table=Path(ctx.coverage_table or ctx.table),
+                              policy=Path(ctx.policy or ctx.table),
+                              map_policy=Path(ctx.map_policy) if ctx.map_policy else None, device="cpu")
+    return _CACHE[key]
+
+
+def rasterize(environment: Environment, resolution: float) -> Environment:
+    """The obstacles of ``environment`` as one conservative :class:`OccupancyGrid` of ``resolution`` cells over
+    its bounds (module docstring), with the same bounds. Needs bounds."""
+    if environment.bounds is None:
+        raise ValueError("rasterize: the environment needs bounds")
+    xmin, ymin, xmax, ymax = environment.bounds
+    h = float(resolution)
+    W, H = math.ceil((xmax - xmin) / h), math.ceil((ymax - ymin) / h)
+    xs = xmin + h * (np.arange(W) + 0.5)  # [W] cell centres
+    ys = ymin + h * (np.arange(H) + 0.5)  # [H]
+    gx, gy = np.meshgrid(xs, ys)  # [H, W]
+    free_space = Environment(environment.obstacles)  # obstacles only: the bounds stay exact
+    occupied = np.zeros(H * W, dtype=bool)
+    points = np.stack((gx.ravel(), gy.ravel()), axis=1)  # [H W, 2]
+    for lo in range(0, points.shape[0], 1 << 17):  # chunks bound the [P, K] distance matrix
+        occupied[lo:lo + (1 << 17)] = clearance(free_space, points[lo:lo + (1 << 17)]) < h * math.sqrt(0.5)
+    grid = OccupancyGrid(torch.from_numpy(occupied.reshape(H, W)), origin=(xmin, ymin), resolution=h)
+    return Environment([grid], bounds=environment.bounds)
+
+
+def sensed_world(task: NavTask) -> Environment:
+    """What a map-conditioned policy senses: the task's raw obstacles and bounds, not inflated by the robot's
+    radius (the map-table farm's patches are raw; its tables inflate by the radius themselves)."""
+    return inflate(task.discs, task.walls, task.bounds, 0.0)
+
+
+def _cost_environment(task: NavTask, ctx: NavContext) -> Environment:
+    if task.sensing_range is not None or len(task.environment.obstacles) <= RASTER_MIN_OBSTACLES:
+        return task.environment
+    # by content: each job brings its own (unpickled) copy of the task
+    geometry = hashlib.sha1(task.discs.tobytes() + task.walls.tobytes() + repr(task.bounds).encode()).hexdigest()
+    key = ("raster", geometry, task.robot_radius, ctx.cost_resolution)
+    if key not in _CACHE:
+        _CACHE[key] = rasterize(task.environment, ctx.cost_resolution)
+    return _CACHE[key]
+
+
+class _TimedSensingController:
+    """Wraps a controller: updates the cost's obstacles to what the robot senses (tasks with a sensing range)
+    before each command, and times each command (the control cycle; sensing is the world's, not timed).
+
+    With a ``trace`` list and an MPPI-family inner controller (``plan`` and ``proposal``), each command is the
+    inner ``command`` spelled out (``plan``, ``proposal.update``, the result's command: the same arithmetic), and
+    appends ``dict(t, free_share, min_cost, state)``: the command's time (s), the share of its proposals that are
+    collision-free (cost < ``collision_penalty``), the lowest proposal cost and the state ``[d]`` it planned from."""
+
+    def __init__(self, inner: Any, cost: NavigationCost, task: NavTask, trace: list | None = None,
+                 dt: float = 0.0, collision_penalty: float = 1e6, to_go: CostToGo | None = None):
+        self.inner, self.cost, self.task, self.to_go = inner, cost, task, to_go
+        self.cycle_s: list[float] = []
+        traceable = callable(getattr(inner, "plan", None)) and hasattr(inner, "proposal")
+        self.trace = trace if traceable else None
+        self.dt, self.collision_penalty = dt, collision_penalty
+
+    def reset(self) -> None:
+        if callable(getattr(self.inner, "reset", None)):
+            self.inner.reset()
+
+    def command(self, state: torch.Tensor) -> torch.Tensor:
+        if self.task.sensing_range is not None:
+            self.cost.env = self.task.sensed_environment(state[:2])
+        if self.to_go is not None:  # a global planner's work (untimed): recomputed when the sensed obstacles change
+            self.to_go.update(self.cost.env)
+        t0 = time.perf_counter()
+        if self.trace is None:
+            u = self.inner.command(state)
+            self.cycle_s.append(time.perf_counter() - t0)
+            return u
+        result = self.inner.plan(state)  # MPPICore.command, spelled out to see the proposals' costs
+        self.inner.proposal.update(result)
+        self.cycle_s.append(time.perf_counter() - t0)
+        costs = result.costs  # [K]
+        self.trace.append(dict(t=round(len(self.trace) * self.dt, 6),
+                               free_share=float((costs < self.collision_penalty).float().mean()),
+                               min_cost=float(costs.min()), state=[round(float(v), 6) for v in state.tolist()]))
+        return result.command
+
+
+def run_nav_episode(job: NavJob, ctx: NavContext, trace: list | None = None) -> dict:
+    """Run one episode; its record (plain JSON types, :mod:`eval.navigate.stats`' format) with the job's ``key``,
+    ``repeat``, ``outcome``, ``success``, ``time`` (s), ``path_length`` (m), ``steps``, ``cycles``,
+    ``cycle_hist``, ``wall_s`` (and ``path`` with ``ctx.record_path``).
+
+    ``trace``: a list to append one ``dict(t, free_share, min_cost, state)`` per command to (:mod:`eval.navigate.replay`;
+    MPPI-family controllers only, others append nothing); the record is the same with or without it."""
+    torch.set_num_threads(1)
+    task, method = job.task, NAV_METHODS[job.method]
+    sources = _sources(ctx)
+    to_go = CostToGo(task.bounds, task.goal, ctx.cost_to_go) if ctx.cost_to_go is not None else None
+    cost = NavigationCost(_cost_environment(task, ctx), task.goal, goal_tolerance=task.goal_tolerance,
+                          collision_penalty=ctx.collision_penalty, per_state=True, stop_at_goal=True,
+                          goal_distance=to_go)
+    t0 = time.perf_counter()
+    world = sensed_world(task) if method.source == "map_policy" else None
+    inner = make_controller(method, sources, cost, job.budget, ctx.horizon, job.seed, lambda_=ctx.lambda_,
+                            world=world, max_range=task.sensing_range)
+    system = sources.system
+    ctrl = _TimedSensingController(inner, cost, task, trace, dt=float(system.dt),
+                                   collision_penalty=ctx.collision_penalty, to_go=to_go)
+    x0 = torch.zeros(len(system.periodic), dtype=torch.float32)
+    x0[:3] = torch.tensor(task.start, dtype=torch.float32)
+    res = simulate(system, ctrl, x0, task.environment, task.goal, task.goal_tolerance, task.time_limit,
+                   record=ctx.record_path)
+    rec = dict(key=job.key, suite=task.suite, task_id=task.task_id, method=job.method, budget=job.budget,
+               seed=job.seed, repeat=job.repeat, outcome=res.outcome, success=res.success,
+               time=round(res.time, 6), path_length=round(res.path_length, 6), steps=res.steps,
+               cycles=len(ctrl.cycle_s), cycle_hist=cycle_histogram(ctrl.cycle_s),
+               wall_s=round(time.perf_counter() - t0, 4))
+    if ctx.record_path:
+        rec["path"] = [[round(float(x), 3), round(float(y), 3)] for x, y in res.path[:, :2].tolist()]
+    return rec

@@ -1,0 +1,88 @@
+"""The results of a benchmark run (:mod:`eval.navigate.run`): its summary rows, paired comparisons and facts; their
+markdown (the success table per budget, then :func:`eval.navigate.stats.markdown`'s); the files under ``--out``."""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+from pathlib import Path
+from typing import Any, Sequence
+
+from cuniform_torch.common.fileio import write_bytes, write_json
+
+from eval.navigate.methods import GAUSSIAN_BASELINES, NAV_METHODS
+from eval.navigate.stats import markdown, paired_comparisons, summarize
+from cuniform_torch.envs.worlds.tasks import task_summary
+from cuniform_torch.envs.worlds.suites import NavTask
+
+__all__ = ["result", "write_outputs", "render", "success_pivot"]
+
+
+def result(cfg: Any, records: list[dict], tasks: Sequence[NavTask], methods: Sequence[str], wall: float,
+           load0: float, ray_address: str | None, ran: int | None = None) -> dict:
+    """Summary rows, paired comparisons and the run's facts."""
+    summary = summarize(records)
+    baselines = [b for b in GAUSSIAN_BASELINES if b in methods]
+    comparisons = paired_comparisons(records, baselines) if baselines else []
+    return dict(config=dataclasses.asdict(cfg), tasks=task_summary(tasks), summary=summary, comparisons=comparisons,
+                run=dict(wall_s=round(wall, 1), load_before=round(load0, 2), load_after=round(os.getloadavg()[0], 2),
+                         cpus=os.cpu_count(), workers=cfg.workers, ray=ray_address, episodes=len(records),
+                         ran=len(records) if ran is None else ran,
+                         episode_compute_s=round(sum(r.get("wall_s", 0.0) for r in records), 1)),
+                labels={m: NAV_METHODS[m].label for m in methods})
+
+
+def write_outputs(res: dict, out: Path) -> list[Path]:
+    """``results.json``, ``results.md``, ``success.png`` and TensorBoard scalars under ``out``."""
+    from eval.navigate.figures import success_figure, write_tensorboard
+
+    md = render(res)
+    write_json(out / "results.json", res)
+    write_bytes(out / "results.md", md.encode())
+    colors = {m: NAV_METHODS[m].color for m in res["labels"]}
+    fig = success_figure(res["summary"], out / "success.png", labels=res["labels"], colors=colors)
+    write_tensorboard(res["summary"], out / "tb")
+    return [out / "results.json", out / "results.md", fig, out / "tb"]
+
+
+def render(res: dict) -> str:
+    """The markdown of a result: the run's facts, then :func:`eval.navigate.stats.markdown`'s tables."""
+    r, c = res["run"], res["config"]
+    ran = r.get("ran", r["episodes"])
+    earlier = f", {r['episodes'] - ran} from earlier runs" if ran < r["episodes"] else ""
+    head = (f"# Navigation benchmark: {c['suite']}\n\n{res['tasks']['count']} tasks, budgets "
+            f"{', '.join(map(str, c['budgets']))}, {r['episodes']} episodes ({ran} run now{earlier}; "
+            f"{r.get('episode_compute_s', 0):.0f} s of episode compute in all); this run took {r['wall_s']:.0f} s "
+            f"wall on {r['cpus']} CPUs with {r['workers']} worker(s){' on Ray' if r['ray'] else ''} (1-min load "
+            f"{r['load_before']} before, {r['load_after']} after)\n\n")
+    return head + success_pivot(res["summary"], res["comparisons"]) + "\n\n" + markdown(res["summary"], res["comparisons"])
+
+
+def success_pivot(summary: Sequence[dict], comparisons: Sequence[dict]) -> str:
+    """Success rate [95% CI] per method (rows) and budget (columns), each marked against the best Gaussian
+    baseline at that budget: ``+`` better, ``-`` worse (exact McNemar p < 0.05), nothing for a tie; ``(best)``
+    on the baseline itself."""
+    from eval.navigate.stats import fmt_rate
+
+    budgets = sorted({r["budget"] for r in summary})
+    verdict = {(c["suite"], c["budget"], c["method"]): c["verdict"] for c in comparisons}
+    best = {(c["suite"], c["budget"]): c["baseline"] for c in comparisons}
+    mark = {"better": " +", "worse": " -", "tie": ""}
+    out = []
+    for suite in dict.fromkeys(r["suite"] for r in summary):
+        rows = {(r["method"], r["budget"]): r for r in summary if r["suite"] == suite}
+        lines = [f"Success on {suite} (+ / -: better / worse than the best Gaussian baseline, McNemar p < 0.05):", "",
+                 "| method | " + " | ".join(f"K = {k}" for k in budgets) + " |",
+                 "|---|" + "---|" * len(budgets)]
+        for m in dict.fromkeys(r["method"] for r in summary if r["suite"] == suite):
+            cells = []
+            for k in budgets:
+                r = rows.get((m, k))
+                if r is None:
+                    cells.append("")
+                    continue
+                tag = " (best)" if best.get((suite, k)) == m else mark.get(verdict.get((suite, k, m), "tie"), "")
+                cells.append(fmt_rate(r, "success") + tag)
+            lines.append(f"| {m} | " + " | ".join(cells) + " |")
+        out.append("\n".join(lines))
+    return "\n\n".join(out)

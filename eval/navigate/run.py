@@ -1,0 +1,318 @@
+"""Closed-loop navigation benchmark: every method at every sample budget on the BARN, forest and gap suites.
+
+    python -m eval.navigate --suite barn --budgets 256 1024 --workers 2
+
+Runs each (task, method, budget, repeat) episode with the same cost, horizon and temperature for every method
+(:mod:`eval.navigate.episode`), on the built-in robot (:mod:`eval.navigate.robot_files`; its tables are built on first use and
+cached under ``--cache``) or a registered system (``--system``, ``--param``). Writes under ``--out``:
+``episodes.jsonl`` (one record per episode, resumable: a rerun skips finished episodes), ``results.md`` and
+``results.json`` (success / collision / timeout rates with 95% Wilson intervals, path length and time over
+successes, control-cycle wall times, paired comparisons with the best Gaussian baseline), ``success.png`` and
+TensorBoard scalars under ``tb/``. ``--workers N`` runs episodes in N processes, ``--ray [ADDRESS]`` as Ray
+tasks; the records are the same as a serial run's.
+
+Everything is checked before the first episode: the suite, the methods, the budgets (>= 2), the map file, every
+task's start and goal (in collision or unreachable: an error naming the task), the output folder's settings.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import sys
+import time
+import zlib
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+
+from cuniform_torch.cli import (ArgumentParser, add_dataclass_args, add_system_module_arg, cli_main,
+                                dataclass_from_args, import_system_modules)
+from cuniform_torch.common.fileio import exclusive_lock
+
+from eval.common import config
+from eval.navigate.cost_to_go import RESOLUTION as COST_TO_GO_RESOLUTION
+from eval.navigate.episode import NavContext, NavJob
+from eval.navigate.execute import execute
+from eval.navigate.methods import NAV_METHODS, parse_nav_methods
+from cuniform_torch.envs.worlds.robot import NAV_ROBOT, RobotPreset, preset_dict
+from eval.navigate.robot_files import ensure_policy, ensure_table
+from eval.navigate.results import render, result, success_pivot, write_outputs
+from eval.navigate.store import EpisodeStore
+from cuniform_torch.envs.worlds.tasks import SPLITS, SUITES, TIME_LIMITS, make_tasks
+from cuniform_torch.envs.worlds.suites import NavTask
+
+__all__ = ["NavConfig", "REPEATS", "SHORT", "QUICK", "make_jobs", "run", "short_run", "render", "result",
+           "success_pivot", "write_outputs", "main", "controller_seed"]
+
+REPEATS = {"barn": 1, "forest": 1, "gaps": 5, "clutter": 1}
+"""controller seeds per task by default: the gap suite has few tasks (9 widths), so each runs 5 times"""
+
+
+@dataclass(frozen=True)
+class NavConfig:
+    """One benchmark run (every field is a flag)."""
+
+    suite: str = "barn"
+    """barn, forest, gaps or clutter"""
+    tasks: int | None = None
+    """how many tasks (BARN: the first maps of the file; forest: seeds from --seed; gaps: widths 0.6..1.2 m);
+    default: every BARN map, 50 forests, 9 gaps"""
+    budgets: tuple[int, ...] = (256, 1024)
+    """K, trajectories per control cycle (each >= 2)"""
+    methods: tuple[str, ...] | None = None
+    """method keys (default: all but cu_mlp)"""
+    repeats: int | None = None
+    """controller seeds per task (default: 1, the gap suite 5)"""
+    seed: int = 0
+    """the first forest seed; controller seeds derive from it, the suite and the task"""
+    split: str = "all"
+    """all, or only the train / test maps (BARN map id or forest seed divisible by 5: test; the gap sweep is test):
+    the map-table farm trains on train maps only, so judge map-conditioned methods on test"""
+    sensing_range: float = 3.0
+    """forest: obstacles are sensed within this distance of the robot (m)"""
+    horizon: int = 15
+    """controller horizon, steps (the built-in robot's table depth)"""
+    lambda_: float = config.LAMBDA
+    """MPPI temperature of every method"""
+    collision_penalty: float = 1e6
+    """cost of each colliding rollout state"""
+    cost_resolution: float = 0.01
+    """m: cell side of the rasterized cost map of BARN maps (eval.navigate.episode)"""
+    cost_to_go: bool = False
+    """the goal term uses the geodesic distance to the goal around the sensed obstacles (eval.navigate.cost_to_go) instead
+    of the straight line: a cost without the straight line's minima behind obstacles"""
+    workers: int = 1
+    """local processes running episodes"""
+    paths: bool = False
+    """keep each episode's driven path in its record"""
+
+
+def controller_seed(suite: str, task_id: int, repeat: int, seed: int) -> int:
+    """The controller seed of a task's repeat: the same for every method and budget (paired episodes)."""
+    words = np.random.SeedSequence([seed, zlib.crc32(suite.encode()), task_id, repeat]).generate_state(1)
+    return int(words[0] & 0x7FFFFFFF)
+
+
+def make_jobs(tasks: Sequence[NavTask], methods: Sequence[str], budgets: Sequence[int], repeats: int,
+              seed: int) -> list[NavJob]:
+    """Every (task, repeat, budget, method) job, tasks outermost (a partial run covers whole tasks first)."""
+    return [NavJob(task, m, k, controller_seed(task.suite, task.task_id, r, seed), r)
+            for task in tasks for r in range(repeats) for k in budgets for m in methods]
+
+
+def _check(cfg: NavConfig) -> None:
+    if cfg.suite not in SUITES:
+        raise ValueError(f"unknown suite {cfg.suite!r}; choose from {', '.join(SUITES)}")
+    if cfg.split not in SPLITS:
+        raise ValueError(f"unknown split {cfg.split!r}; choose from {', '.join(SPLITS)}")
+    parse_nav_methods(cfg.methods)
+    if not cfg.budgets:
+        raise ValueError("give at least one budget (--budgets)")
+    bad = [k for k in cfg.budgets if isinstance(k, bool) or not isinstance(k, int) or k < 2]
+    if bad:
+        raise ValueError(f"every budget must be an integer >= 2 (CU-MPPI splits it in two), got {bad}")
+    if len(set(cfg.budgets)) != len(cfg.budgets):
+        raise ValueError(f"a budget is given twice: {list(cfg.budgets)}")
+    for name in ("repeats", "tasks"):
+        v = getattr(cfg, name)
+        if v is not None and (isinstance(v, bool) or v < 1):
+            raise ValueError(f"--{name} must be >= 1, got {v}")
+    if cfg.workers < 1:
+        raise ValueError(f"--workers must be >= 1, got {cfg.workers}")
+    for name in ("sensing_range", "cost_resolution", "collision_penalty", "lambda_"):
+        v = getattr(cfg, name)
+        if not (np.isfinite(v) and v > 0):
+            raise ValueError(f"--{name.rstrip('_').replace('_', '-')} must be a finite number > 0, got {v}")
+
+
+def _file_digest(path: Path | None) -> str | None:
+    """A short sha256 of a file, or of a table set's index and tables."""
+    if path is None:
+        return None
+    import hashlib
+
+    path = Path(path)
+    files = [path / "tables.json", *sorted(path.glob("*.npz"))] if path.is_dir() else [path]
+    h = hashlib.sha256()
+    for f in files:
+        h.update(f.read_bytes())
+    return h.hexdigest()[:16]
+
+
+def settings_record(cfg: NavConfig, robot: RobotPreset, barn_file: Path | None, sources: dict[str, str | None],
+                    tasks: Sequence[NavTask] = ()) -> dict:
+    """What changes an episode's outcome (:mod:`eval.navigate.store`): not the counts, methods, budgets or workers; for
+    the gap sweep, the widths of ``tasks`` (its length sets them, so a longer sweep may be other gaps)."""
+    keep = ("suite", "seed", "sensing_range", "horizon", "lambda_", "collision_penalty", "cost_resolution")
+    out: dict[str, Any] = {k: getattr(cfg, k) for k in keep}
+    out.update(robot=preset_dict(robot), time_limit=TIME_LIMITS[cfg.suite],
+               barn_file=_file_digest(barn_file) if cfg.suite == "barn" else None,
+               sources={k: _file_digest(Path(v)) if v else None for k, v in sources.items()})
+    if cfg.cost_to_go:  # absent otherwise: the folders of runs without it stay as they were
+        out["cost_to_go"] = COST_TO_GO_RESOLUTION
+    if cfg.suite == "gaps":  # the sweep's widths depend on its length: task 3 of 4 gaps is not task 3 of 7
+        if not tasks:
+            raise ValueError("settings_record: a gaps run's record needs its tasks (their widths)")
+        out["gap_widths"] = sorted({t.params["width"] for t in tasks})
+    return out
+
+
+def _sources(cfg: NavConfig, robot: RobotPreset, cache: Path, given: dict[str, Path | None],
+             quiet: bool) -> dict[str, str | None]:
+    """The files the methods need: given on the command line, else the robot's cached ones (built when missing)."""
+    methods = {m.source for m in parse_nav_methods(cfg.methods)}
+    table = given.get("table") or ensure_table(robot, cache, quiet=quiet)
+    coverage = given.get("coverage_table")
+    if "coverage_table" in methods and coverage is None:
+        coverage = ensure_table(robot, cache, method="coverage", quiet=quiet)
+    policy = given.get("policy")
+    if "policy" in methods and policy is None:
+        policy = ensure_policy(robot, cache, quiet=quiet)
+    map_policy = given.get("map_policy")
+    if "map_policy" in methods and map_policy is None:
+        raise ValueError("cfu_mppi needs --map-policy FILE (a map-conditioned policy: python -m training.maps.distill)")
+    for name, p in (("table", table), ("coverage_table", coverage), ("policy", policy), ("map_policy", map_policy)):
+        if p is not None and not (Path(p).is_file() or (Path(p) / "tables.json").is_file()):
+            raise FileNotFoundError(f"--{name.replace('_', '-')} {p} does not exist (a table file or a table set's "
+                                    "folder)")
+    out = {"table": str(table), "coverage_table": str(coverage) if coverage else None,
+           "policy": str(policy) if policy else None}
+    if map_policy is not None:  # absent otherwise: the records of runs without it stay as they were
+        out["map_policy"] = str(map_policy)
+    return out
+
+
+def run(cfg: NavConfig, out: Path, robot: RobotPreset = NAV_ROBOT, cache: Path = Path("out/navigate/cache"),
+        barn_file: Path | None = None, given: dict[str, Path | None] | None = None,
+        ray_address: str | None = None, progress: bool = True) -> dict:
+    """Run (or resume) the benchmark ``cfg`` into the folder ``out``; the result that ``results.json`` holds."""
+    _check(cfg)
+    methods = [m.key for m in parse_nav_methods(cfg.methods)]
+    tasks = make_tasks(cfg.suite, robot.radius, cfg.tasks, seed=cfg.seed, barn_file=barn_file,
+                       sensing_range=cfg.sensing_range, time_limits=TIME_LIMITS, split=cfg.split)
+    repeats = cfg.repeats or REPEATS[cfg.suite]
+    jobs = make_jobs(tasks, methods, cfg.budgets, repeats, cfg.seed)
+    with exclusive_lock(Path(out) / ".lock", what=f"the benchmark folder {out}"):
+        sources = _sources(cfg, robot, cache, given or {}, quiet=not progress)
+        store = EpisodeStore(out)
+        done = store.open(settings_record(cfg, robot, barn_file, sources, tasks))
+        todo = [j for j in jobs if j.key not in done]
+        print(f"{cfg.suite}: {len(tasks)} tasks x {repeats} repeats x {len(cfg.budgets)} budgets x {len(methods)} "
+              f"methods = {len(jobs)} episodes; {len(jobs) - len(todo)} already in {store.records_file}")
+        ctx = NavContext(table=sources["table"], coverage_table=sources["coverage_table"], policy=sources["policy"],
+                         map_policy=sources.get("map_policy"),
+                         horizon=cfg.horizon, lambda_=cfg.lambda_, collision_penalty=cfg.collision_penalty,
+                         cost_resolution=cfg.cost_resolution, record_path=cfg.paths,
+                         cost_to_go=COST_TO_GO_RESOLUTION if cfg.cost_to_go else None)
+        load0, t0 = os.getloadavg()[0], time.perf_counter()
+
+        def keep(rec: dict) -> None:
+            store.append(rec)
+            done[rec["key"]] = rec
+
+        execute(todo, ctx, keep, workers=cfg.workers, ray_address=ray_address, progress=progress,
+                desc=f"{cfg.suite} episodes")
+        wall = time.perf_counter() - t0
+        records = [done[j.key] for j in jobs]  # this run's episodes, in job order, whoever ran them
+        return result(cfg, records, tasks, methods, wall, load0, ray_address, ran=len(todo))
+
+
+SHORT = NavConfig(suite="barn", tasks=10, budgets=(64, 256))
+"""the short run of ``python -m eval.report``: the first 10 BARN maps, every default method, two budgets"""
+QUICK = NavConfig(suite="barn", tasks=2, budgets=(16, 64), methods=("mppi_1.0", "cu_table"), horizon=10)
+"""``python -m eval.report --quick``'s: 2 maps, 2 methods, a 10-step table (2 s of build instead of 8)"""
+
+
+def short_run(root: Path, quick: bool = False, progress: bool = True) -> dict:
+    """The report's short benchmark run (:data:`SHORT`, or :data:`QUICK`) under ``root`` (its results written too)."""
+    cfg = QUICK if quick else SHORT
+    out = Path(root) / ("barn_quick" if quick else "barn_short")
+    robot = dataclasses.replace(NAV_ROBOT, horizon=cfg.horizon)
+    res = run(cfg, out, robot, cache=Path(root) / "cache", progress=progress)
+    write_outputs(res, out)
+    return res
+
+
+def make_parser() -> ArgumentParser:
+    p = ArgumentParser(prog="python -m eval.navigate", description=(__doc__ or "").split("\n\n")[0])
+    add_dataclass_args(p, NavConfig, flags={"lambda_": "--lambda"}, choices={"suite": SUITES, "split": SPLITS},
+                       help={"methods": f"method keys, of {', '.join(NAV_METHODS)} (default: all but cu_mlp)"})
+    p.add_argument("--ray", nargs="?", const="local", default=None, metavar="ADDRESS",
+                   help="run episodes as Ray tasks: a local Ray runtime, or the cluster at ADDRESS ('auto', "
+                        "'ray://host:10001'); needs pip install -e '.[ray]'")
+    p.add_argument("--out", type=Path, default=None, help="output folder (default: out/navigate/<suite>)")
+    p.add_argument("--cache", type=Path, default=Path("out/navigate/cache"),
+                   help="where the robot's tables are built and kept (default: out/navigate/cache)")
+    p.add_argument("--barn-file", type=Path, default=None, help="BARN maps in the shipped format (cuniform_torch/envs/worlds/barn.py)")
+    p.add_argument("--barn-worlds", type=Path, default=None,
+                   help="a folder of BARN Gazebo world_<id>.world files (or one file), converted to --out/barn.npz")
+    p.add_argument("--table", type=Path, default=None, help="use this max-flow table (default: the robot's, cached)")
+    p.add_argument("--coverage-table", type=Path, default=None, help="use this coverage table (cu_coverage)")
+    p.add_argument("--policy", type=Path, default=None, help="use this distilled MLP (cu_mlp)")
+    p.add_argument("--map-policy", type=Path, default=None,
+                   help="a map-conditioned policy (cfu_mppi; python -m training.maps.distill)")
+    p.add_argument("--system", default=None, help="drive a registered system instead of the built-in robot")
+    p.add_argument("--param", action="append", default=[], metavar="KEY=VALUE",
+                   help="a parameter of --system as JSON (repeatable)")
+    p.add_argument("--robot-radius", type=float, default=NAV_ROBOT.radius, help="m (default: 0.2)")
+    p.add_argument("--starts", default=None, metavar="SPEC",
+                   help="with --system: the robot's tables are a set over these starts (precompute.build --starts), "
+                        "e.g. '3=0:1:6' for ks_speed's speed")
+    p.add_argument("--quiet", action="store_true", help="no progress bars")
+    add_system_module_arg(p)
+    return p
+
+
+def _robot(args, cfg: NavConfig) -> RobotPreset:
+    if args.system is None and args.param:
+        raise ValueError("--param needs --system (the built-in robot's parameters are fixed: eval/navigate/robot_files.py)")
+    from precompute.build import parse_params
+
+    params = dict(NAV_ROBOT.params) if args.system is None else parse_params(args.param)
+    radius = args.robot_radius
+    if not (np.isfinite(radius) and radius >= 0):
+        raise ValueError(f"--robot-radius must be a finite number >= 0, got {radius}")
+    if args.starts is not None and args.system is None:
+        raise ValueError("--starts needs --system (the built-in robot's state is a pose: one table serves it)")
+    robot = RobotPreset(system=args.system or NAV_ROBOT.system, params=params, radius=radius, horizon=cfg.horizon,
+                        starts=args.starts)
+    system = robot.make_system()  # a bad system or parameter fails here, before any work
+    if args.starts is not None:
+        from precompute.table_set import parse_starts
+
+        parse_starts(args.starts, system)  # a bad SPEC too
+    return robot
+
+
+@cli_main()
+def main(argv: Sequence[str] | None = None) -> int:
+    args = make_parser().parse_args(argv)
+    import_system_modules(args.system_module)
+    cfg = dataclass_from_args(NavConfig, args)
+    _check(cfg)
+    robot = _robot(args, cfg)
+    out = args.out or Path("out/navigate") / cfg.suite
+    barn_file = args.barn_file
+    if args.barn_worlds is not None:
+        if barn_file is not None:
+            raise ValueError("give --barn-file or --barn-worlds, not both")
+        from cuniform_torch.envs.worlds.barn import convert_worlds, write_barn
+
+        barn_file = out / "barn.npz"
+        write_barn(barn_file, convert_worlds(args.barn_worlds))
+        print(f"converted {args.barn_worlds} into {barn_file}")
+    given = {"table": args.table, "coverage_table": args.coverage_table, "policy": args.policy,
+             "map_policy": args.map_policy}
+    res = run(cfg, out, robot, args.cache, barn_file, given, args.ray, progress=not args.quiet)
+    print(render(res))
+    for path in write_outputs(res, out):
+        print(f"wrote {path}")
+    sys.stdout.flush()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,1 @@
+"""The paper's experiments: coverage (Table I), uniformity, sudden obstacle (Table II), cluttered (Table III)."""

@@ -1,0 +1,1 @@
+"""The coverage method: tables that make real rollouts cover the reachable cells (reachable states, exact propagation and its adjoint)."""

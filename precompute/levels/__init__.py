@@ -1,0 +1,1 @@
+"""Level sets: from a start, on a grid, optionally safe in a local map (viability)."""

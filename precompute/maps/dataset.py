@@ -1,0 +1,339 @@
+"""The map-table data set ``cuniform-map-dataset/1``: one safe table per (local map, start pose), in shards.
+
+Shapes: M entries per shard, H x W patch cells, R table rows of a shard, d state dimensions, A actions, T horizon.
+
+A folder DIR holds ``dataset.json`` (written last, atomically) and ``shard-KKKKK.npz`` files; the format is fixed
+in DESIGN.md (section "Map-table data set"). Per shard: ``patches`` uint8 [M, H, W] (1 = occupied, not
+inflated), ``poses`` float64 [M, 3] (world start poses), ``entry_offsets`` int64 [M+1] (rows of entry m),
+``level_offsets`` int64 [M, T+2] (per entry, relative to its first row), ``cells`` int32 [R, d],
+``action_probs`` float16 [R, A], ``cell_probs`` float32 [R].
+
+:func:`read_map_dataset` validates everything and raises one :class:`MapDatasetError` naming the file and the
+problem; :func:`entry_arrays` and :func:`write_shard` are the writer's half (:mod:`precompute.maps.farm`).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import re
+import zipfile
+import zlib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Iterator, Sequence
+
+import numpy as np
+import torch
+
+from cuniform_torch.common.fileio import write_npz
+from cuniform_torch.grid.cells import Grid
+from cuniform_torch.systems import System, system_from_json, system_to_json
+from cuniform_torch.tables.file import Table
+
+__all__ = ["DATASET_FORMAT", "SHARD_KEYS", "MapDatasetError", "MapEntry", "MapShard", "MapDataset", "read_map_dataset",
+           "entry_arrays", "write_shard", "file_sha256", "dataset_header"]
+
+DATASET_FORMAT = "cuniform-map-dataset/1"
+SHARD_KEYS = ("patches", "poses", "entry_offsets", "level_offsets", "cells", "action_probs", "cell_probs")
+_DTYPES = {"patches": np.uint8, "poses": np.float64, "entry_offsets": np.int64, "level_offsets": np.int64,
+           "cells": np.int32, "action_probs": np.float16, "cell_probs": np.float32}
+_SHARD_NAME = re.compile(r"shard-\d{5}\.npz")
+_ROW_TOL = 1e-2  # float16 action rows
+_LEVEL_TOL = 1e-3  # float32 cell probabilities per level
+_MAX_SIDE = 4096
+
+
+class MapDatasetError(ValueError):
+    """A map-table data set (or one of its shards) that is missing, corrupt, foreign or inconsistent."""
+
+
+@dataclass(frozen=True, eq=False)
+class MapEntry:
+    """One (map, pose) entry: its local map and its safe table's rows."""
+
+    source: str
+    pose: np.ndarray  # [3] float64, world
+    patch: np.ndarray  # [H, W] uint8
+    level_offsets: np.ndarray  # [T+2] int64, relative to the entry's first row
+    cells: np.ndarray  # [R_e, d] int32
+    action_probs: np.ndarray  # [R_e, A] float32, renormalised rows
+    cell_probs: np.ndarray  # [R_e] float32
+
+
+@dataclass(frozen=True, eq=False)
+class MapShard:
+    """The validated arrays of one shard (keys :data:`SHARD_KEYS`)."""
+
+    path: Path
+    arrays: dict[str, np.ndarray]
+
+    def __len__(self) -> int:
+        return len(self.arrays["poses"])
+
+
+@dataclass(eq=False)
+class MapDataset:
+    """A read data set: its metadata (``dataset.json``), the system, and its shards (loaded or on demand)."""
+
+    root: Path
+    meta: dict[str, Any]
+    system: System
+    horizon: int
+    method: str
+    actions: np.ndarray  # [A, q] float64
+    radius: float
+    patch_shape: tuple[int, int]
+    patch_resolution: float
+    patch_origin: tuple[float, float]
+    split: str
+    seed: int
+    entries: list[dict[str, Any]]
+    shards: list[dict[str, Any]]
+    _loaded: dict[int, MapShard] = field(default_factory=dict)
+
+    def __len__(self) -> int:
+        return len(self.entries)
+
+    def shard(self, k: int) -> MapShard:
+        """Shard ``k``, read and validated (sha256 first) on first use."""
+        if k not in self._loaded:
+            self._loaded[k] = _read_shard(self, k)
+        return self._loaded[k]
+
+    def __iter__(self) -> Iterator[MapEntry]:
+        """Every entry in order (one shard in memory at a time unless they were loaded)."""
+        for k in range(len(self.shards)):
+            sh = self.shard(k) if k in self._loaded else _read_shard(self, k)
+            a = sh.arrays
+            for m in range(len(sh)):
+                lo, hi = int(a["entry_offsets"][m]), int(a["entry_offsets"][m + 1])
+                probs = a["action_probs"][lo:hi].astype(np.float32)
+                yield MapEntry(self.entries[self._first[k] + m]["source"], a["poses"][m], a["patches"][m],
+                               a["level_offsets"][m], a["cells"][lo:hi], probs / probs.sum(axis=1, keepdims=True),
+                               a["cell_probs"][lo:hi])
+
+    @property
+    def _first(self) -> list[int]:
+        return np.concatenate(([0], np.cumsum([s["entries"] for s in self.shards]))).astype(int).tolist()
+
+
+def file_sha256(path: str | Path) -> str:
+    """sha256 (hex) of a file's bytes."""
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def dataset_header(system: System, horizon: int, method: str, radius: float, patch_shape: Sequence[int],
+                   resolution: float, origin: Sequence[float], split: str, seed: int) -> dict[str, Any]:
+    """The ``dataset.json`` keys other than ``entries`` and ``shards``."""
+    grid = Grid.of(system)
+    return {"format": DATASET_FORMAT, "system": system_to_json(system, horizon), "horizon": int(horizon),
+            "method": method, "grid": {"cell_size": [float(v) for v in grid.cell_size],
+                                       "cell_offset": [float(v) for v in grid.offset],
+                                       "periodic": [bool(v) for v in grid.periodic]},
+            "actions": system.action_set(dtype=torch.float32).double().tolist(), "radius": float(radius),
+            "patch": {"shape": [int(v) for v in patch_shape], "resolution": float(resolution),
+                      "origin": [float(v) for v in origin]},
+            "split": split, "seed": int(seed)}
+
+
+def entry_arrays(table: Table) -> dict[str, np.ndarray]:
+    """One entry's rows from a safe table: ``level_offsets`` [T+2] int64, ``cells`` int32, ``action_probs``
+    float16, ``cell_probs`` float32."""
+    cells = table.cells
+    if cells.size and (cells.min() < np.iinfo(np.int32).min or cells.max() > np.iinfo(np.int32).max):
+        raise MapDatasetError("a table's cell indices do not fit in int32")
+    return {"level_offsets": table.level_offsets.astype(np.int64), "cells": cells.astype(np.int32),
+            "action_probs": table.action_probs.astype(np.float16), "cell_probs": table.cell_probs.astype(np.float32)}
+
+
+def write_shard(path: str | Path, patches: np.ndarray, poses: np.ndarray, entries: Sequence[dict[str, np.ndarray]]) -> str:
+    """Write a shard of ``len(entries)`` entries (from :func:`entry_arrays`) atomically; returns its sha256."""
+    sizes = [len(e["cells"]) for e in entries]
+    arrays = {"patches": np.ascontiguousarray(patches, dtype=np.uint8), "poses": np.asarray(poses, dtype=np.float64),
+              "entry_offsets": np.concatenate(([0], np.cumsum(sizes))).astype(np.int64),
+              "level_offsets": np.stack([e["level_offsets"] for e in entries]).astype(np.int64),
+              **{k: np.concatenate([e[k] for e in entries]) for k in ("cells", "action_probs", "cell_probs")}}
+    write_npz(path, arrays, compress=True)
+    return file_sha256(path)
+
+
+# -------------------------------------------------------------------------------------------------- reading
+
+def read_map_dataset(root: str | Path, load: bool = False) -> MapDataset:
+    """Read and validate ``root/dataset.json`` and check every shard's sha256 (``load``: also read and validate
+    every shard now; else each is read and validated on first use). One :class:`MapDatasetError` per problem."""
+    root = Path(root)
+    path = root / "dataset.json"
+    if not path.is_file():
+        raise MapDatasetError(f"{path}: no dataset.json there (an unfinished or missing data set)")
+    try:
+        meta = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, ValueError) as exc:
+        raise MapDatasetError(f"{path}: not readable JSON ({type(exc).__name__}: {exc})") from None
+    ds = _dataset_from_meta(meta, root, path)
+    for k, sh in enumerate(ds.shards):
+        _check_sha(ds, k)
+        if load:
+            ds.shard(k)
+    return ds
+
+
+def _dataset_from_meta(meta: Any, root: Path, path: Path) -> MapDataset:
+    def fail(msg: str) -> None:
+        raise MapDatasetError(f"{path}: {msg}")
+
+    if not isinstance(meta, dict):
+        fail("must hold a JSON object")
+    if meta.get("format") != DATASET_FORMAT:
+        fail(f"format must be {DATASET_FORMAT!r}, got {meta.get('format')!r}")
+    need = ("system", "horizon", "method", "grid", "actions", "radius", "patch", "split", "seed", "entries", "shards")
+    missing = [k for k in need if k not in meta]
+    if missing:
+        fail(f"missing key(s) {', '.join(missing)}")
+    if not isinstance(meta["system"], str):
+        fail("system must be the system JSON string")
+    try:
+        system, horizon = system_from_json(meta["system"])
+    except ValueError as exc:
+        fail(f"the system cannot be rebuilt: {exc}")
+    if not _is_int(meta["horizon"]) or meta["horizon"] != horizon or horizon < 1:
+        fail(f"horizon {meta['horizon']!r} does not match the system JSON's {horizon}")
+    if meta["method"] not in ("maxflow", "coverage"):
+        fail(f"method must be maxflow or coverage, got {meta['method']!r}")
+    ref = dataset_header(system, horizon, meta["method"], 0.0, (1, 1), 1.0, (0, 0), "train", 0)
+    grid = meta["grid"]
+    if not isinstance(grid, dict) or not all(_close(grid.get(k), ref["grid"][k]) for k in ref["grid"]):
+        fail(f"grid {grid!r} does not match the system's {ref['grid']}")
+    if not _close(meta["actions"], ref["actions"]):
+        fail(f"actions do not match the system {system.name!r} ({len(ref['actions'])} actions expected)")
+    radius, patch = meta["radius"], meta["patch"]
+    if not _is_num(radius) or radius < 0:
+        fail(f"radius must be a number >= 0 (m), got {radius!r}")
+    if not isinstance(patch, dict) or set(patch) != {"shape", "resolution", "origin"}:
+        fail(f"patch must hold shape, resolution, origin, got {patch!r}")
+    shape, res, origin = patch["shape"], patch["resolution"], patch["origin"]
+    if not (isinstance(shape, list) and len(shape) == 2 and all(_is_int(v) and 1 <= v <= _MAX_SIDE for v in shape)):
+        fail(f"patch shape must be [H, W] of 1..{_MAX_SIDE}, got {shape!r}")
+    if not (_is_num(res) and res > 0):
+        fail(f"patch resolution must be > 0 (m), got {res!r}")
+    if not (isinstance(origin, list) and len(origin) == 2 and all(_is_num(v) for v in origin)):
+        fail(f"patch origin must be [x0, y0], got {origin!r}")
+    if meta["split"] not in ("train", "test"):
+        fail(f"split must be train or test, got {meta['split']!r}")
+    if not _is_int(meta["seed"]):
+        fail(f"seed must be an integer, got {meta['seed']!r}")
+    shards, entries = meta["shards"], meta["entries"]
+    if not isinstance(shards, list) or not isinstance(entries, list):
+        fail("shards and entries must be lists")
+    for k, sh in enumerate(shards):
+        if not (isinstance(sh, dict) and isinstance(sh.get("file"), str) and _SHARD_NAME.fullmatch(sh["file"])
+                and isinstance(sh.get("sha256"), str) and re.fullmatch(r"[0-9a-f]{64}", sh["sha256"])
+                and _is_int(sh.get("entries")) and sh["entries"] >= 1):
+            fail(f"shard {k} must be {{file: shard-KKKKK.npz, sha256: 64 hex digits, entries: n >= 1}}, got {sh!r}")
+    if len({sh["file"] for sh in shards}) != len(shards):
+        fail("two shards name the same file")
+    expect = [(k, i) for k, sh in enumerate(shards) for i in range(sh["entries"])]
+    if len(entries) != len(expect):
+        fail(f"{len(entries)} entries, but the shards hold {len(expect)}")
+    for n, (e, (k, i)) in enumerate(zip(entries, expect)):
+        if not (isinstance(e, dict) and isinstance(e.get("source"), str) and isinstance(e.get("pose"), list)
+                and len(e["pose"]) == 3 and all(_is_num(v) for v in e["pose"])):
+            fail(f"entry {n} must be {{source, pose: [x, y, theta], shard, index}}, got {e!r}")
+        if e.get("shard") != k or e.get("index") != i:
+            fail(f"entry {n} must be shard {k} index {i} (entries in shard order), got shard {e.get('shard')!r} "
+                 f"index {e.get('index')!r}")
+    return MapDataset(root, meta, system, horizon, meta["method"], np.asarray(meta["actions"], dtype=np.float64),
+                      float(radius), (int(shape[0]), int(shape[1])), float(res), (float(origin[0]), float(origin[1])),
+                      meta["split"], int(meta["seed"]), entries, shards)
+
+
+def _is_int(v: Any) -> bool:
+    return isinstance(v, int) and not isinstance(v, bool)
+
+
+def _is_num(v: Any) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+
+
+def _close(a: Any, b: Any) -> bool:
+    try:
+        x, y = np.asarray(a), np.asarray(b)
+        if x.shape != y.shape or x.dtype.kind not in "biuf" or y.dtype.kind not in "biuf":
+            return False
+        return bool(np.array_equal(x, y) if y.dtype == bool else np.allclose(x, y, rtol=0, atol=1e-6))
+    except (TypeError, ValueError):
+        return False
+
+
+def _check_sha(ds: MapDataset, k: int) -> Path:
+    path = ds.root / ds.shards[k]["file"]
+    if not path.is_file():
+        raise MapDatasetError(f"{path}: shard {k} is missing")
+    if file_sha256(path) != ds.shards[k]["sha256"]:
+        raise MapDatasetError(f"{path}: sha256 does not match dataset.json (a changed, truncated or foreign shard)")
+    return path
+
+
+def _read_shard(ds: MapDataset, k: int) -> MapShard:
+    path = _check_sha(ds, k)
+
+    def fail(msg: str) -> None:
+        raise MapDatasetError(f"{path}: {msg}")
+
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            if sorted(z.files) != sorted(SHARD_KEYS):
+                fail(f"must hold exactly the keys {', '.join(SHARD_KEYS)}, has {', '.join(sorted(z.files))}")
+            arrays = {key: z[key] for key in SHARD_KEYS}
+    except MapDatasetError:
+        raise
+    except (ValueError, OSError, EOFError, zipfile.BadZipFile, zlib.error) as exc:
+        fail(f"not a readable .npz shard ({type(exc).__name__}: {exc})")
+    _check_shard(arrays, ds, k, fail)
+    return MapShard(path, arrays)
+
+
+def _check_shard(a: dict[str, np.ndarray], ds: MapDataset, k: int, fail) -> None:
+    """Dtypes, shapes, offsets, poses, cells and probabilities of shard ``k`` against ``ds``'s metadata."""
+    M, (H, W), T = ds.shards[k]["entries"], ds.patch_shape, ds.horizon
+    d, A = len(ds.meta["grid"]["cell_size"]), len(ds.actions)
+    for key, dtype in _DTYPES.items():
+        if a[key].dtype != dtype:
+            fail(f"{key} must be {np.dtype(dtype)}, got {a[key].dtype}")
+    R = int(a["entry_offsets"][-1]) if a["entry_offsets"].ndim == 1 and len(a["entry_offsets"]) else -1
+    shapes = {"patches": (M, H, W), "poses": (M, 3), "entry_offsets": (M + 1,), "level_offsets": (M, T + 2),
+              "cells": (R, d), "action_probs": (R, A), "cell_probs": (R,)}
+    for key, shape in shapes.items():
+        if a[key].shape != shape:
+            fail(f"{key} must have shape {list(shape)} (from dataset.json's system, patch and entries), got "
+                 f"{list(a[key].shape)}")
+    if a["patches"].size and a["patches"].max() > 1:
+        fail("patches must hold only 0 and 1")
+    first = ds._first[k]
+    poses = np.asarray([e["pose"] for e in ds.entries[first:first + M]], dtype=np.float64)
+    if not np.array_equal(a["poses"], poses):
+        fail("poses do not match dataset.json's entries")
+    eo, lo = a["entry_offsets"], a["level_offsets"]
+    if eo[0] != 0 or np.any(np.diff(eo) <= 0):
+        fail("entry_offsets must start at 0 and increase strictly")
+    if np.any(lo[:, 0] != 0) or np.any(np.diff(lo, axis=1) <= 0) or not np.array_equal(lo[:, -1], np.diff(eo)) \
+            or np.any(lo[:, 1] != 1):
+        fail("level_offsets must rise strictly from 0 (level 0: one start cell) to each entry's row count")
+    for dim in np.flatnonzero(ds.meta["grid"]["periodic"]):
+        K = round(2 * math.pi / ds.meta["grid"]["cell_size"][dim])
+        if R and (a["cells"][:, dim].min() < 0 or a["cells"][:, dim].max() >= K):
+            fail(f"cells of angle dimension {dim} must lie in [0, {K})")
+    probs, cp = a["action_probs"].astype(np.float64), a["cell_probs"].astype(np.float64)
+    if not (np.all(np.isfinite(probs)) and np.all(probs >= 0) and np.all(np.isfinite(cp)) and np.all(cp >= 0)):
+        fail("action_probs and cell_probs must be finite and non-negative")
+    if np.any(np.abs(probs.sum(axis=1) - 1) > _ROW_TOL):
+        fail(f"action_probs rows must sum to 1 (within {_ROW_TOL}, float16)")
+    starts = (eo[:-1, None] + lo[:, :-1]).reshape(-1)  # every level's first row, entries in order
+    if np.any(np.abs(np.add.reduceat(cp, starts) - 1) > _LEVEL_TOL):
+        fail(f"cell_probs must sum to 1 in every level of every entry (within {_LEVEL_TOL})")

@@ -1,0 +1,244 @@
+"""A farm of safe tables, one per (local map, start pose):  python -m precompute.maps.farm --suite barn --count 20
+--poses-per-map 1 --split train --seed 0 --out out/maps_train
+
+For each of ``--count`` maps of the suite's ``--split`` (:mod:`precompute.maps.worlds`: which maps, the split
+rule, the start poses), ``--poses-per-map`` free start poses are drawn; around each, the local map patch
+(default 72 x 72 cells of 0.05 m centred on the robot, in its frame) is cropped and a safe table built for the
+benchmark robot (:data:`cuniform_torch.envs.worlds.robot.NAV_ROBOT`; ``--system``, ``--param``, ``--horizon``, ``--radius``
+override it). A pose whose table cannot be built (its start cell in an inflated obstacle of the patch, or a
+level with no free cell: boxed in) is replaced by the next free candidate.
+
+One shard per map, built in ``--workers`` processes or as Ray tasks (``--ray [ADDRESS]``); the data set is
+written in the format ``cuniform-map-dataset/1`` (:mod:`precompute.maps.dataset`). Resumable per shard:
+``DIR/farm-progress.json`` records each finished shard's sha256 and entries, and a rerun with the same settings
+skips the shards whose file still has that sha256 (and rebuilds the others). Errors are one ``error:`` line and
+exit code 2.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+
+from cuniform_torch.cli import (ArgumentParser, CLIError, add_dataclass_args, cli_main, field_docs, flag_name,
+                                given_fields)
+from cuniform_torch.common.fileio import exclusive_lock, write_json
+from cuniform_torch.common.parallel import run_jobs
+from cuniform_torch.systems import make_system, resolve_system, system_from_json
+
+from precompute.coverage.method import CoverageConfig
+from precompute.maps.dataset import dataset_header, entry_arrays, file_sha256, write_shard
+from precompute.maps.worlds import FARM_SUITES, SPLITS, candidate_poses, crop_patch, suite_worlds, world_of
+from precompute.levels.safe_map import LocalMap, MapError, check_map_system
+from precompute.levels.viability import SAFE_RULE
+
+__all__ = ["main", "build_shard", "MAX_TRIES"]
+
+PROGRESS = "farm-progress.json"
+MAX_TRIES = 2000
+"""candidate poses a shard may try before it gives up on its map"""
+
+
+def make_parser() -> argparse.ArgumentParser:
+    from cuniform_torch.envs.worlds.robot import NAV_ROBOT
+
+    parser = ArgumentParser(prog="python -m precompute.maps.farm",
+                            description="Build a data set of safe C-Uniform tables over local map patches.")
+    parser.add_argument("--suite", required=True, choices=list(FARM_SUITES))
+    parser.add_argument("--count", type=int, required=True, help="maps (one shard each)")
+    parser.add_argument("--poses-per-map", type=int, default=1, help="start poses (entries) per map")
+    parser.add_argument("--split", required=True, choices=list(SPLITS),
+                        help="test: the maps whose key is divisible by 5; train: the others (precompute/maps/worlds.py)")
+    parser.add_argument("--seed", type=int, default=0, help="picks the maps of the split and the start poses")
+    parser.add_argument("--out", type=Path, required=True, help="the data set folder")
+    parser.add_argument("--workers", type=int, default=1, help="shards built in parallel processes")
+    parser.add_argument("--ray", nargs="?", const="local", default=None, metavar="ADDRESS",
+                        help="shards as Ray tasks (a local runtime, or the cluster at ADDRESS)")
+    parser.add_argument("--method", default="maxflow", choices=["maxflow", "coverage"])
+    docs = field_docs(CoverageConfig)
+    add_dataclass_args(parser, CoverageConfig, only=FARM_COVERAGE,
+                       help={name: f"coverage method: {docs[name]}" for name in FARM_COVERAGE})
+    parser.add_argument("--system", default=NAV_ROBOT.system, help="default: the benchmark robot's")
+    parser.add_argument("--param", action="append", default=[], metavar="KEY=VALUE",
+                        help="a system parameter as JSON over the benchmark robot's (repeatable)")
+    parser.add_argument("--horizon", type=int, default=NAV_ROBOT.horizon)
+    parser.add_argument("--radius", type=float, default=NAV_ROBOT.radius, help="robot radius (m) to inflate by")
+    parser.add_argument("--patch", type=int, nargs=2, default=[72, 72], metavar=("H", "W"),
+                        help="patch cells (centred on the robot)")
+    parser.add_argument("--resolution", type=float, default=0.05, help="patch cell side (m)")
+    parser.add_argument("--quiet", action="store_true", help="no progress bar")
+    return parser
+
+
+def _system(args: argparse.Namespace):
+    from cuniform_torch.envs.worlds.robot import NAV_ROBOT
+
+    from precompute.build import parse_params
+
+    name = resolve_system(args.system)
+    params = dict(NAV_ROBOT.params) if name == NAV_ROBOT.system else {}
+    params.update(parse_params(args.param))
+    params = {k: tuple(v) if isinstance(v, list) else v for k, v in params.items()}
+    system = make_system(name, **params)
+    check_map_system(system)
+    return system
+
+
+def _check(args: argparse.Namespace) -> None:
+    for flag, value, low in (("--count", args.count, 1), ("--poses-per-map", args.poses_per_map, 1),
+                             ("--workers", args.workers, 1), ("--horizon", args.horizon, 1),
+                             ("--patch", min(args.patch), 1)):
+        if value < low:
+            raise CLIError(f"{flag} must be >= {low}, got {value}")
+    if not (args.resolution > 0 and np.isfinite(args.resolution)):
+        raise CLIError(f"--resolution must be > 0 (m), got {args.resolution}")
+    if not (args.radius >= 0 and np.isfinite(args.radius)):
+        raise CLIError(f"--radius must be >= 0 (m), got {args.radius}")
+    if args.out.exists() and not args.out.is_dir():
+        raise CLIError(f"--out {args.out}: not a folder")
+    given = [flag_name(k) for k in _coverage_given(args)]
+    if given and args.method != "coverage":
+        raise CLIError(f"{', '.join(given)}: only for --method coverage")
+
+
+FARM_COVERAGE = ("steps", "tol", "state_budget", "merge_resolution")
+"""the coverage builder's settings a farm takes as flags (:class:`precompute.coverage.method.CoverageConfig`)"""
+
+
+def _coverage_given(args: argparse.Namespace) -> dict[str, Any]:
+    """The :data:`FARM_COVERAGE` flags given (``--horizon`` and ``--radius`` are fields too, but the farm's own)."""
+    return {k: v for k, v in given_fields(CoverageConfig, args).items() if k in FARM_COVERAGE}
+
+
+def coverage_settings(args: argparse.Namespace) -> dict[str, Any]:
+    """The coverage builder's settings the flags give (checked by CoverageConfig: one clear error)."""
+    settings = _coverage_given(args)
+    try:
+        CoverageConfig(**settings)
+    except ValueError as e:
+        raise CLIError(f"coverage settings: {e}") from None
+    return settings
+
+
+def build_shard(spec_json: str, k: int, out: str) -> dict[str, Any]:
+    """Build shard ``k`` of the farm ``spec_json`` into the folder ``out``; its sha256 and entries."""
+    import torch
+
+    from precompute.flow.builder import BuildConfig, build_table
+    from precompute.coverage.method import build_coverage_table
+
+    torch.set_num_threads(1)
+    spec = json.loads(spec_json)
+    head, (suite, key) = spec["header"], spec["maps"][k]
+    system, horizon = system_from_json(head["system"])
+    radius, patch = head["radius"], head["patch"]
+    world = world_of(suite, key, radius)
+    rng = np.random.default_rng([head["seed"], key])
+    entries, patches, poses, tries = [], [], [], 0
+    while len(entries) < spec["poses_per_map"]:
+        for pose in candidate_poses(world, rng, radius, margin=patch["resolution"]):
+            tries += 1
+            grid = crop_patch(world, pose, tuple(patch["shape"]), patch["resolution"], tuple(patch["origin"]))
+            local = LocalMap(grid, tuple(patch["origin"]), patch["resolution"])
+            try:
+                if head["method"] == "coverage":
+                    table = build_coverage_table(system, CoverageConfig(horizon=horizon, local_map=local,
+                                                                        radius=radius, **head.get("coverage", {})))[0]
+                else:
+                    table = build_table(system, BuildConfig(horizon=horizon, local_map=local, radius=radius))[0]
+            except MapError:  # the rasterized start is blocked, or the pose is boxed in: the next candidate
+                continue
+            entries.append(entry_arrays(table))
+            patches.append(grid)
+            poses.append(pose)
+            if len(entries) == spec["poses_per_map"]:
+                break
+        if tries > MAX_TRIES and len(entries) < spec["poses_per_map"]:
+            raise MapError(f"{world.source}: only {len(entries)} of {spec['poses_per_map']} start poses with a safe "
+                           f"table after {tries} candidates")
+    sha = write_shard(Path(out) / _shard_name(k), np.stack(patches), np.stack(poses), entries)
+    return {"sha256": sha, "entries": [{"source": world.source, "pose": [float(v) for v in p]} for p in poses],
+            "tries": tries}
+
+
+def _shard_name(k: int) -> str:
+    return f"shard-{k:05d}.npz"
+
+
+def _load_progress(out: Path, spec: dict) -> dict[str, dict]:
+    """Finished shards of a previous run with the same ``spec`` whose files still match; CLIError for a folder
+    of a data set with other settings."""
+    path = out / PROGRESS
+    if not path.is_file():
+        if (out / "dataset.json").exists():
+            raise CLIError(f"--out {out} holds a data set without {PROGRESS}; choose another --out")
+        return {}
+    try:
+        saved = json.loads(path.read_text())
+        same = saved["spec"] == spec
+        done = saved["done"]
+    except (OSError, ValueError, KeyError, TypeError):
+        return {}  # a damaged record: rebuild every shard
+    if not same:
+        raise CLIError(f"--out {out} holds a data set of other settings ({PROGRESS}); choose another --out, or "
+                       "delete it to start over")
+    return {k: v for k, v in done.items() if (out / _shard_name(int(k))).is_file()
+            and file_sha256(out / _shard_name(int(k))) == v.get("sha256")}
+
+
+@cli_main(interrupted="interrupted: the finished shards are kept; rerun the same command to continue")
+def main(argv: Sequence[str] | None = None) -> int:
+    """Build the data set from the flags ``argv`` (module docstring): 0, or 2 after one ``error:`` line."""
+    args = make_parser().parse_args(sys.argv[1:] if argv is None else list(argv))
+    _check(args)
+    system = _system(args)
+    H, W = args.patch
+    origin = (-W * args.resolution / 2, -H * args.resolution / 2)
+    worlds = suite_worlds(args.suite, args.count, args.split, args.seed, args.radius)
+    header = dataset_header(system, args.horizon, args.method, args.radius, (H, W), args.resolution, origin,
+                            args.split, args.seed)
+    settings = coverage_settings(args) if args.method == "coverage" else {}
+    if settings:  # absent with the defaults: older farms still resume
+        header["coverage"] = settings
+    spec = {"header": header, "maps": [[w.suite, w.key] for w in worlds], "poses_per_map": args.poses_per_map,
+            "rule": SAFE_RULE}  # shards of another pruning rule are not resumed into this data set
+    args.out.mkdir(parents=True, exist_ok=True)
+    with exclusive_lock(args.out / ".lock", what=f"the data set {args.out}"):
+        done = _load_progress(args.out, spec)
+        todo = [k for k in range(len(worlds)) if str(k) not in done]
+        bar = None
+        if not args.quiet:
+            from tqdm import tqdm
+
+            bar = tqdm(total=len(worlds), initial=len(worlds) - len(todo), desc="shards", unit="map", file=sys.stdout)
+
+        def saved(i: int, result: dict) -> None:
+            done[str(todo[i])] = result
+            write_json(args.out / PROGRESS, {"spec": spec, "done": dict(sorted(done.items(), key=lambda kv: int(kv[0])))})
+            if bar is not None:
+                bar.update(1)
+
+        try:
+            spec_json = json.dumps(spec)
+            run_jobs(build_shard, [(spec_json, k, str(args.out)) for k in todo], workers=args.workers,
+                     ray_address=args.ray, on_done=saved)
+        finally:
+            if bar is not None:
+                bar.close()
+        entries = [{**e, "shard": k, "index": i} for k in range(len(worlds)) for i, e in enumerate(done[str(k)]["entries"])]
+        shards = [{"file": _shard_name(k), "sha256": done[str(k)]["sha256"], "entries": len(done[str(k)]["entries"])}
+                  for k in range(len(worlds))]
+        write_json(args.out / "dataset.json", {**header, "entries": entries, "shards": shards})
+    if not args.quiet:
+        print(f"wrote {len(entries)} entries in {len(shards)} shards to {args.out} ({len(todo)} built, "
+              f"{len(worlds) - len(todo)} kept)")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,151 @@
+"""Per-command time of CFU-MPPI on this machine:  python -m training.maps.timing [--checkpoint FILE]
+
+The benchmark robot (``cuniform_torch.envs.worlds.robot.NAV_ROBOT``: Dubins at 0.5 m/s, dt 0.2 s, 7 turn rates in [-1.5, 1.5]
+rad/s, horizon 15) drives through a seeded random forest (a 20 m x 20 m OccupancyGrid of 0.05 m cells) towards
+a goal; each command senses the 72 x 72 patch of 0.05 m (the map farm's default) around the pose, encodes it
+once, rolls out the map policy for half of K and runs the local Gaussian pass with the other half. Without
+``--checkpoint`` the policy is untrained (the same arithmetic: a timing, not a plan). Printed per K: the median
+and 90th percentile of the command time (map encoding included) and, separately, of sensing + encoding alone
+and of one ``action_probs`` call on the first stage's batch (K / 2 states);
+the policy's parameter count; torch's thread count and the load average.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import statistics
+import sys
+import time
+from typing import Sequence
+
+import torch
+
+from cuniform_torch.cli import ArgumentParser, cli_main
+from cuniform_torch.envs import OccupancyGrid
+from cuniform_torch.maps.checkpoint import load_map_policy
+from cuniform_torch.maps.encoder import PatchSpec
+from cuniform_torch.maps.policy import MapPolicy, MapPolicyConfig
+from cuniform_torch.controllers.cfu import CFUMPPI
+from cuniform_torch.maps.sensing import local_map
+from cuniform_torch.systems import make_system
+
+ROBOT = dict(speed=0.5, dt=0.2, max_omega=1.5, num_actions=7, cell_size=[0.05, 0.05, 2 * math.pi / 36])
+HORIZON = 15
+
+
+def forest(seed: int, size: float = 20.0, resolution: float = 0.05, discs: int = 300) -> OccupancyGrid:
+    """A seeded grid of random discs (radius 0.1-0.3 m), clear within 1 m of the origin."""
+    gen = torch.Generator().manual_seed(seed)
+    n = int(size / resolution)
+    centres = (torch.rand(discs, 2, generator=gen) - 0.5) * size  # [D, 2]
+    radii = 0.1 + 0.2 * torch.rand(discs, generator=gen)  # [D]
+    keep = centres.norm(dim=1) > 1.0 + radii
+    axis = -size / 2 + (torch.arange(n) + 0.5) * resolution
+    xy = torch.stack((axis.expand(n, n), axis.unsqueeze(1).expand(n, n)), dim=-1)  # [n, n, 2]
+    occ = torch.zeros(n, n, dtype=torch.bool)
+    for c, r in zip(centres[keep], radii[keep]):  # building the world once, not the timed path
+        occ |= (xy - c).norm(dim=-1) <= r
+    return OccupancyGrid(occ, (-size / 2, -size / 2), resolution)
+
+
+def make_cost(world: OccupancyGrid, goal: tuple[float, float]):
+    def cost(states: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
+        hit = world.contains(states[:, 1:, :2]).any(dim=1)  # [K]
+        g = torch.tensor(goal, dtype=states.dtype, device=states.device)
+        return (states[:, 1:, :2] - g).square().sum(dim=-1).sum(dim=1) + 1e4 * hit
+    return cost
+
+
+def untrained_policy(system, spec: PatchSpec, hidden: int, layers: int, embed: int, channels: int) -> MapPolicy:
+    torch.manual_seed(0)
+    reach = ROBOT["speed"] * ROBOT["dt"] * HORIZON
+    config = MapPolicyConfig(state_dim=3, num_actions=ROBOT["num_actions"], horizon=HORIZON,
+                             periodic=[False, False, True], feature_scale=[reach, reach, 1.0], patch=spec.to_dict(),
+                             hidden=hidden, layers=layers, embed=embed, channels=channels)
+    return MapPolicy(config, system, system.action_set()).eval()
+
+
+def time_commands(controller: CFUMPPI, system, commands: int, warmup: int) -> list[float]:
+    x = torch.zeros(3)
+    times = []
+    for k in range(warmup + commands):
+        start = time.perf_counter()
+        u = controller.command(x)
+        elapsed = time.perf_counter() - start
+        if not bool(torch.isfinite(u).all()):
+            raise ValueError(f"command {k} is not finite: {u.tolist()}")
+        if k >= warmup:
+            times.append(elapsed * 1e3)
+        x = system.step(x.unsqueeze(0), u.unsqueeze(0))[0]
+    return times
+
+
+def _stats(ms: list[float]) -> str:
+    ordered = sorted(ms)
+    return f"median {statistics.median(ms):6.2f} ms, p90 {ordered[int(0.9 * (len(ms) - 1))]:6.2f} ms"
+
+
+@cli_main()
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = ArgumentParser(prog="python -m training.maps.timing", description=__doc__.splitlines()[0])
+    parser.add_argument("--samples", type=int, nargs="+", default=[256, 1024], help="budgets K to time")
+    parser.add_argument("--commands", type=int, default=60, help="timed commands per K (after the warm-up)")
+    parser.add_argument("--warmup", type=int, default=5)
+    parser.add_argument("--checkpoint", default=None, help="a trained map policy (default: an untrained one)")
+    parser.add_argument("--hidden", type=int, default=128)
+    parser.add_argument("--layers", type=int, default=2)
+    parser.add_argument("--embed", type=int, default=32)
+    parser.add_argument("--channels", type=int, default=8)
+    parser.add_argument("--threads", type=int, default=1, help="torch CPU threads (0: torch's choice)")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the forest")
+    parser.add_argument("--json", default=None, help="also write the numbers here")
+    args = parser.parse_args(argv)
+    if min(args.samples) < 2 or args.commands < 1 or args.warmup < 0:
+        raise ValueError("--samples must be >= 2, --commands >= 1, --warmup >= 0")
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    system = make_system("dubins", **ROBOT)
+    spec = PatchSpec((72, 72), 0.05, (-1.8, -1.8))
+    policy = (load_map_policy(args.checkpoint) if args.checkpoint else
+              untrained_policy(system, spec, args.hidden, args.layers, args.embed, args.channels))
+    world = forest(args.seed)
+    cost = make_cost(world, (8.0, 0.0))
+    print(f"map policy: {policy.num_parameters:,} parameters (encoder {sum(p.numel() for p in policy.encoder.parameters()):,}),"
+          f" patch {list(policy.patch_spec.shape)} at {policy.patch_spec.resolution} m; torch threads "
+          f"{torch.get_num_threads()}; load {os.getloadavg()[0]:.2f}")
+    pose = torch.tensor([0.3, 0.1, 0.2])
+    encode = []
+    for k in range(args.warmup + args.commands):
+        start = time.perf_counter()
+        policy.set_map(local_map(world, pose, policy.patch_spec))
+        if k >= args.warmup:
+            encode.append((time.perf_counter() - start) * 1e3)
+    print(f"sensing + encoding the patch: {_stats(encode)}")
+    lookup = []
+    for n in (128, 512):  # the map-policy stage's batch at K = 256 and 1024
+        x = torch.zeros(n, 3)
+        per = []
+        for k in range(args.warmup + args.commands):
+            start = time.perf_counter()
+            policy.action_probs(x, 3)
+            if k >= args.warmup:
+                per.append((time.perf_counter() - start) * 1e3)
+        lookup.append(statistics.median(per))
+        print(f"action_probs on {n} states: {_stats(per)}")
+    results = {"parameters": policy.num_parameters, "encode_ms": statistics.median(encode),
+               "action_probs_ms": dict(zip((128, 512), lookup)), "commands": {}}
+    for k in args.samples:
+        controller = CFUMPPI(policy, world, cost, num_samples=k, seed=0)
+        ms = time_commands(controller, system, args.commands, args.warmup)
+        results["commands"][k] = {"median_ms": statistics.median(ms), "all_ms": ms}
+        print(f"CFU-MPPI K = {k:5d} (horizon {HORIZON}): {_stats(ms)} per command, encoding included")
+    print(f"load after: {os.getloadavg()[0]:.2f}")
+    if args.json:
+        from cuniform_torch.common.fileio import write_json
+        write_json(args.json, results)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
