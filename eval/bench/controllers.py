@@ -199,7 +199,3 @@ def main(argv=None) -> int:
                            "torch": torch.__version__})
     print(f"wrote {args.json}")
     return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())

@@ -165,7 +165,3 @@ def main(argv: Sequence[str] | None = None) -> int:
     print(format_rows(summarize(records, methods)))
     print(f"wrote {path}")
     return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())

@@ -312,7 +312,3 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"wrote {path}")
     sys.stdout.flush()
     return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())
