@@ -1,56 +1,54 @@
 """cuniform_torch: the runtime library of C-Uniform trajectory sampling.
 
-Systems, grid, table files, the table policy, batched rollouts, noise samplers, proposals, the MPPI family
-(one core, :class:`MPPICore`, that takes a :class:`Proposal`) and navigation environments. See the README for a tour.
+Load a table (or a distilled policy), roll it out, or control with one of the MPPI family, whose one core
+(:class:`MPPICore`) takes any :class:`Proposal`. The names a user needs are here:
+
+* systems: :class:`System` (the protocol), :class:`Dubins`, :class:`RandomWalk1D`, :class:`KinematicSingleTrack`,
+  :func:`make_system`, :func:`register_system`, :func:`check_system`;
+* tables: :class:`Table`, :func:`read_table`, :func:`write_table` (the file), :func:`load_table` (a table or a
+  table-set folder as a policy);
+* policies: :class:`TablePolicy`, :func:`load_policy` (a distilled MLP), :func:`load_map_policy` (a map policy);
+* sampling: :func:`rollout` (a policy's rollouts), :func:`rollout_actions` (the states of given actions: what
+  your own proposal returns);
+* controllers: :class:`MPPI`, :class:`LogMPPI`, :class:`CUniformMPPI`, :class:`CUMPPI`, :class:`CFUMPPI`,
+  :class:`MPPICore`, :class:`Proposal`;
+* environments: :class:`Environment`, :class:`Circle`, :class:`Rect`, :class:`Polygon`, :class:`NavigationCost`,
+  :func:`simulate`.
+
+Everything else stays importable from its sub-package, each with a short ``__all__``: ``cuniform_torch.systems``,
+``.grid``, ``.tables``, ``.policies``, ``.sampling``, ``.controllers``, ``.maps``, ``.envs`` (``.envs.worlds``:
+the benchmark worlds) and the modules ``.metrics`` (coverage, uniformity) and ``.cli``.
 """
 
-from cuniform_torch.common.frames import se2_to_local, se2_to_world
-from cuniform_torch.grid.cells import CellKeys, CellSet, Grid
-from cuniform_torch.policies.checkpoint import POLICY_FORMAT, PolicyCheckpointError, load_policy, save_policy
-from cuniform_torch.policies.mlp import MLPConfig, MLPPolicy, MLPSupport
-from cuniform_torch.policies.start_mlp import StartMLPPolicy, StartRegion
-from cuniform_torch.controllers.mppi import COST_CAP, CUMPPI, MPPI, CostFn, CUniformMPPI, LogMPPI, MPPICore, MPPIResult, mppi_weights
-from cuniform_torch.maps.checkpoint import MAP_POLICY_FORMAT, MapCheckpointError, load_map_policy, map_policy_checkpoint, save_map_policy
-from cuniform_torch.maps.encoder import MapEncoder, PatchSpec
-from cuniform_torch.maps.policy import MapPolicy, MapPolicyConfig
-from cuniform_torch.controllers.cfu import CFUMPPI, SensedMapPolicy
-from cuniform_torch.maps.sensing import local_map, sense_patch
-from cuniform_torch.policies.table import Fallback, TablePolicy, UniformPolicy
-from cuniform_torch.policies.table_set import TableSetPolicy, load_table, load_table_set
-from cuniform_torch.controllers.proposals import (BankProposal, BankRefreshWarning, CompositeProposal, GaussianProposal, NormalLogNormalProposal,
-                        PolicyProposal, Proposal)
-from cuniform_torch.sampling.rollout import ActionSampler, Policy, PolicyTraits, StartMismatchWarning, rollout, rollout_actions
-from cuniform_torch.sampling.noise import GaussianSampler, NormalLogNormalSampler, lognormal_params
-from cuniform_torch.systems import (
-    KinematicSingleTrack,
-    KinematicSingleTrackSpeed,
-    check_system,
-    Dubins,
-    RandomWalk1D,
-    System,
-    UnknownSystemError,
-    known_systems,
-    make_system,
-    register_system,
-    system_from_json,
-    system_to_json,
-)
-from cuniform_torch.tables.file import TABLE_FORMAT, Table, TableError, read_table, write_table
+from cuniform_torch.controllers.cfu import CFUMPPI
+from cuniform_torch.controllers.core import MPPICore
+from cuniform_torch.controllers.mppi import CUMPPI, MPPI, CUniformMPPI, LogMPPI
+from cuniform_torch.controllers.proposals import Proposal
+from cuniform_torch.envs.costs import NavigationCost
+from cuniform_torch.envs.environment import Environment
+from cuniform_torch.envs.shapes import Circle, Polygon, Rect
+from cuniform_torch.envs.sim import simulate
+from cuniform_torch.maps.checkpoint import load_map_policy
+from cuniform_torch.policies.checkpoint import load_policy
+from cuniform_torch.policies.table import TablePolicy
+from cuniform_torch.policies.table_set import load_table
+from cuniform_torch.sampling.rollout import rollout, rollout_actions
+from cuniform_torch.systems import (Dubins, KinematicSingleTrack, RandomWalk1D, System, check_system, make_system,
+                                    register_system)
+from cuniform_torch.tables.file import Table, read_table, write_table
 
 __all__ = [
-    "se2_to_local", "se2_to_world", "POLICY_FORMAT", "MLPConfig", "MLPPolicy", "MLPSupport", "PolicyCheckpointError",
-    "load_policy", "save_policy", "CellKeys", "CellSet", "Grid",
-    "COST_CAP", "CUMPPI", "MPPI", "CostFn", "CUniformMPPI", "LogMPPI", "MPPICore", "MPPIResult", "mppi_weights",
-    "BankProposal", "BankRefreshWarning", "CompositeProposal", "GaussianProposal", "NormalLogNormalProposal",
-    "PolicyProposal", "Proposal",
-    "Fallback", "TablePolicy", "UniformPolicy", "load_table", "ActionSampler", "Policy", "PolicyTraits",
-    "StartMismatchWarning", "rollout",
-    "rollout_actions",
-    "GaussianSampler", "NormalLogNormalSampler", "lognormal_params",
-    "Dubins", "KinematicSingleTrack", "KinematicSingleTrackSpeed", "check_system", "RandomWalk1D", "System", "UnknownSystemError", "known_systems", "make_system", "register_system",
-    "system_from_json", "system_to_json", "TABLE_FORMAT", "Table", "TableError", "read_table", "write_table", "TableSetPolicy", "load_table_set",
-    "MAP_POLICY_FORMAT", "MapCheckpointError", "load_map_policy", "map_policy_checkpoint", "save_map_policy",
-    "MapEncoder", "PatchSpec", "MapPolicy", "MapPolicyConfig", "CFUMPPI", "SensedMapPolicy", "local_map", "sense_patch",
-    "StartMLPPolicy", "StartRegion",
+    # systems
+    "System", "Dubins", "RandomWalk1D", "KinematicSingleTrack", "make_system", "register_system", "check_system",
+    # tables
+    "Table", "read_table", "write_table", "load_table",
+    # policies
+    "TablePolicy", "load_policy", "load_map_policy",
+    # sampling
+    "rollout", "rollout_actions",
+    # controllers
+    "MPPI", "LogMPPI", "CUniformMPPI", "CUMPPI", "CFUMPPI", "MPPICore", "Proposal",
+    # environments
+    "Environment", "Circle", "Rect", "Polygon", "NavigationCost", "simulate",
 ]
 __version__ = "0.1.0"

@@ -29,7 +29,7 @@ from cuniform_torch.common.parallel import run_jobs
 from cuniform_torch.systems import System
 from cuniform_torch.tables.file import TableError, read_table
 
-__all__ = ["SET_FORMAT", "parse_starts", "build_set", "set_complete", "ensure_set", "INDEX"]
+__all__ = ["SET_FORMAT", "parse_starts", "build_set", "set_complete", "INDEX"]
 
 SET_FORMAT = "cuniform-table-set/1"
 INDEX = "tables.json"
@@ -102,9 +102,9 @@ def _table_argv(argv: Sequence[str], start: np.ndarray, out: Path) -> list[str]:
 
 
 def _build_one(argv: list[str]) -> int:
-    from precompute.build import main
+    from precompute.one_table import main_one
 
-    return main(argv)
+    return main_one(argv)
 
 
 def _done(path: Path, start: np.ndarray) -> bool:
@@ -153,17 +153,3 @@ def set_complete(folder: Path, count: int | None = None) -> bool:
     tables = index.get("tables") if isinstance(index, dict) else None
     return isinstance(tables, list) and (count is None or len(tables) == count) and all(
         isinstance(t, dict) and (Path(folder) / str(t.get("file"))).is_file() for t in tables)
-
-
-def ensure_set(folder: Path, build_argv: Sequence[str], count: int | None = None, quiet: bool = False) -> Path:
-    """``folder``, built first by ``python -m precompute.build *build_argv --out folder`` (``build_argv`` names
-    the system and ``--starts``) when it is not a complete set; a failed build is a RuntimeError naming it."""
-    if set_complete(folder, count):
-        return Path(folder)
-    from precompute.build import main
-
-    argv = [*build_argv, "--out", str(folder), *(["--quiet"] if quiet else [])]
-    if main(argv) != 0 or not set_complete(folder, count):
-        raise RuntimeError(f"building the table set {folder} failed (python -m precompute.build {' '.join(argv)})")
-    return Path(folder)
-

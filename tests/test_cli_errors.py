@@ -24,6 +24,7 @@ import eval.paper.coverage as eval_coverage
 import eval.report as eval_report
 import eval.paper.uniformity as eval_uniformity
 import precompute.build as build
+import precompute.one_table as one_table
 import precompute.system_args as system_args
 import precompute.flow.builder as builder
 import training.distill as distill
@@ -117,7 +118,7 @@ def test_build_full_disk_on_the_final_write_keeps_the_levels(tmp_path, capsys, m
     def full_disk(path, table):
         raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
 
-    monkeypatch.setattr(build, "write_table", full_disk)
+    monkeypatch.setattr(one_table, "write_table", full_disk)
     assert build.main(_build(out)) == 2
     _one_error(capsys, "No space left on device", str(out), "--resume")
     monkeypatch.undo()

@@ -13,7 +13,8 @@ import pytest
 import torch
 
 import training.distill as distill
-from cuniform_torch import CUniformMPPI, PolicyCheckpointError, load_policy, read_table
+from cuniform_torch import CUniformMPPI, load_policy, read_table
+from cuniform_torch.policies import PolicyCheckpointError
 from cuniform_torch.systems import make_system
 from cuniform_torch.tables.file import write_table
 from precompute.flow.builder import BuildConfig, build_table

@@ -15,7 +15,8 @@ import torch
 
 import training.distill as distill
 import training.sets.distill as distill_set
-from cuniform_torch import PolicyCheckpointError, load_policy, read_table
+from cuniform_torch import load_policy, read_table
+from cuniform_torch.policies import PolicyCheckpointError
 from cuniform_torch.policies.start_mlp import StartMLPPolicy
 from precompute.build import main as build
 from training.tables.evaluate import cell_centres

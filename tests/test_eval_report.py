@@ -9,7 +9,9 @@ import numpy as np
 import pytest
 import torch
 
-from cuniform_torch import TableError, UniformPolicy, make_system, read_table, rollout
+from cuniform_torch import make_system, read_table, rollout
+from cuniform_torch.policies import UniformPolicy
+from cuniform_torch.tables import TableError
 from cuniform_torch.metrics import coverage, level_uniformity
 from eval.common.graph_sampling import GraphSampler
 from eval.paper import coverage as coverage_exp

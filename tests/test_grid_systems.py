@@ -75,7 +75,8 @@ def test_dubins_step_promotes_mixed_dtypes_and_checks_out():
 
 def test_rollout_of_a_dubins_subclass_with_its_own_step():
     """A subclass that overrides ``step`` (no ``out=``) is stepped the plain way."""
-    from cuniform_torch import UniformPolicy, rollout
+    from cuniform_torch import rollout
+    from cuniform_torch.policies import UniformPolicy
 
     class Slow(Dubins):
         def step(self, x, u):

@@ -9,8 +9,10 @@ import warnings
 import pytest
 import torch
 
-from cuniform_torch import (CUniformMPPI, MLPConfig, MLPPolicy, MLPSupport, PolicyCheckpointError,
-                            StartMismatchWarning, TablePolicy, load_policy, make_system, rollout, system_to_json)
+from cuniform_torch import CUniformMPPI, TablePolicy, load_policy, make_system, rollout
+from cuniform_torch.policies import MLPConfig, MLPPolicy, MLPSupport, PolicyCheckpointError
+from cuniform_torch.sampling import StartMismatchWarning
+from cuniform_torch.systems import system_to_json
 from cuniform_torch.grid.cells import Grid
 from cuniform_torch.policies.checkpoint import policy_checkpoint
 from cuniform_torch.policies.mlp import default_feature_scale

@@ -9,7 +9,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from cuniform_torch import GaussianSampler
+from cuniform_torch.sampling import GaussianSampler
 from eval.navigate import methods as nav_methods
 from eval.common.methods import Method
 from eval.navigate.episode import NavContext, NavJob, run_nav_episode

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-from cuniform_torch import GaussianSampler
+from cuniform_torch.sampling import GaussianSampler
 from cuniform_torch.envs import Environment
 from eval.navigate import methods as nav_methods
 from cuniform_torch.envs.worlds.barn import load_barn, write_barn, pack_maps
@@ -279,7 +279,7 @@ def test_store_merges_new_source_files_and_refuses_changed_ones(tmp_path):
 
 def _map_policy_file(path, system, horizon):
     """An untrained map policy of the robot's system (the plumbing, not the quality, is under test)."""
-    from cuniform_torch import MapPolicy, MapPolicyConfig, map_policy_checkpoint, save_map_policy
+    from cuniform_torch.maps import MapPolicy, MapPolicyConfig, map_policy_checkpoint, save_map_policy
     from cuniform_torch.systems import system_to_json
 
     config = MapPolicyConfig(state_dim=3, num_actions=7, horizon=horizon, periodic=[False, False, True],

@@ -9,9 +9,11 @@ from __future__ import annotations
 import pytest
 import torch
 
-from cuniform_torch import (CUMPPI, MPPI, BankProposal, CompositeProposal, CUniformMPPI, Dubins, GaussianProposal,
-                            LogMPPI, MPPICore, MPPIResult, NormalLogNormalProposal, PolicyProposal, Proposal,
-                            TablePolicy, rollout, rollout_actions, se2_to_local, se2_to_world)
+from cuniform_torch import CUMPPI, MPPI, CUniformMPPI, Dubins, LogMPPI, MPPICore, Proposal, TablePolicy, rollout
+from cuniform_torch.common.frames import se2_to_local, se2_to_world
+from cuniform_torch.controllers import (BankProposal, CompositeProposal, GaussianProposal, MPPIResult,
+                                        NormalLogNormalProposal, PolicyProposal)
+from cuniform_torch.sampling import rollout_actions
 from cuniform_torch.envs import Circle, Environment, NavigationCost, simulate
 
 

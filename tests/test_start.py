@@ -7,7 +7,8 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from cuniform_torch import TablePolicy, TableError, make_system, read_table, write_table
+from cuniform_torch import TablePolicy, make_system, read_table, write_table
+from cuniform_torch.tables import TableError
 from cuniform_torch.common.fileio import write_npz
 from precompute.build import main as build_main
 from precompute.flow.builder import BuildConfig, build_table

@@ -21,7 +21,8 @@ import numpy as np
 import pytest
 import torch
 
-from cuniform_torch import TablePolicy, UniformPolicy, rollout
+from cuniform_torch import TablePolicy, rollout
+from cuniform_torch.policies import UniformPolicy
 from cuniform_torch.tables.cpu_kernels import NumbaKernel, available
 from cuniform_torch.grid.cells import Grid
 from cuniform_torch.tables.halo import halo

@@ -87,7 +87,8 @@ def test_bad_set_requests_are_one_clear_error(argv, message, tmp_path, capsys):
 # ------------------------------------------------------------------------------------------------ the runtime
 
 def test_a_set_rolls_each_start_out_with_its_nearest_table(tmp_path, start_warnings):
-    from cuniform_torch import TableSetPolicy, load_table
+    from cuniform_torch import load_table
+    from cuniform_torch.policies import TableSetPolicy
 
     assert _build(tmp_path) == 0
     policy = load_table(tmp_path)
@@ -117,7 +118,8 @@ def test_a_speed_set_serves_the_speeds_between_its_starts(tmp_path, start_warnin
 
 
 def test_a_broken_set_is_refused_naming_the_file(tmp_path):
-    from cuniform_torch import TableError, load_table
+    from cuniform_torch import load_table
+    from cuniform_torch.tables import TableError
 
     assert _build(tmp_path) == 0
     index = json.loads((tmp_path / "tables.json").read_text())
@@ -141,7 +143,8 @@ def test_a_speed_set_gets_a_bank_per_start_and_proposes_exact_states(tmp_path):
     nearest member's actions and rolls them out from the state itself (so its speed, not the member's)."""
     import torch
 
-    from cuniform_torch import CUniformMPPI, load_table, rollout_actions
+    from cuniform_torch import CUniformMPPI, load_table
+    from cuniform_torch.sampling import rollout_actions
 
     ks = ["--system", "ks_speed", "--horizon", "3", "--quiet"]
     assert main([*ks, "--starts", "3=0:1:3", "--out", str(tmp_path / "set")]) == 0

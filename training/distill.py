@@ -39,13 +39,12 @@ import math
 import sys
 import time
 import typing
-from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Optional, Sequence
+from typing import Any, Sequence
 
 import torch
 
-from cuniform_torch.cli import (OUT, RUNS, ArgumentParser, add_dataclass_args, add_system_module_arg,
+from cuniform_torch.cli import (OUT, ArgumentParser, add_dataclass_args, add_system_module_arg,
                                 check_output_file, check_output_folder, cli_main, dataclass_from_args,
                                 import_system_modules)
 from cuniform_torch.common.fileio import exclusive_lock
@@ -60,56 +59,9 @@ from training.sets.distill import distill_set
 from training.tables.setup import (TableFigures, adam_cosine, best_metrics, open_run, pool_cells, run_facts,
                             say_written, seed_run, write_comparison)
 from training.tables.support import pooled_support
+from training.tables.config import DistillConfig
 from training.tables.loop import run_epochs
 from training.tables.train_state import RESUME_KEYS, UsageError, save_train_state
-
-
-@dataclass
-class DistillConfig:
-    """Settings of one distillation; every field is a flag (``--batch-size``, ...)."""
-
-    tables: list[str] = field(default_factory=list)
-    """table files (.npz) to distil; several must share the system JSON and actions (their cells are pooled); or
-    one table-set folder (python -m precompute.build --starts): a start-conditioned policy (training.sets.distill)"""
-    hidden: int = 256
-    """hidden units per layer"""
-    layers: int = 3
-    """hidden layers"""
-    epochs: int = 1500
-    """passes over the data, each with fresh jitter (on out/dubins.npz: 1500 epochs took 6 minutes on 2 CPU cores)"""
-    lr: float = 3e-3
-    """Adam's initial learning rate, cosine-annealed per epoch to lr / 100 at the last epoch"""
-    batch_size: int = 4096
-    """samples per optimiser step"""
-    seed: int = 0
-    """seed of the initial weights, the jitter, the shuffling, the validation points and the evaluation rollouts"""
-    device: str = "cpu"
-    """torch device to train and evaluate on (cpu, cuda, cuda:1, ...)"""
-    threads: int = 1
-    """torch CPU threads (0: torch's choice, one per core). 1 by default: on 2 idle cores a second thread makes
-    a 4096-sample step of the default network about 1.6x faster, but when other processes keep the cores busy it
-    makes it about 10x slower (OpenMP hand-offs between oversubscribed threads)"""
-    out: Optional[str] = None
-    """checkpoint to write (default: out/<first table stem>.policy.pt)"""
-    jitter: int = 4
-    """jittered points per cell per epoch, on top of the cell centre (also per cell in the final jittered KL;
-    4 there when 0)"""
-    val_points: int = 2
-    """held-out jittered points per cell for the validation KL (drawn once)"""
-    patience: int = 300
-    """stop when the validation KL has not improved for this many epochs"""
-    logdir: str = str(RUNS)
-    """folder of the TensorBoard runs"""
-    quiet: bool = False
-    """no progress bar"""
-    resume: bool = False
-    """continue from <out>.train.pt (refused when the settings or the tables differ)"""
-    eval_samples: list[int] = field(default_factory=lambda: [1000, 10000])
-    """rollout counts N of the final coverage comparison (the first also sets the coverage figure's N)"""
-    eval_every: int = 100
-    """epochs between the eval/kl_level_<t> scalars and the figures"""
-    system_module: list[str] = field(default_factory=list)
-    """modules to import first (--system-module, repeatable): they register the user systems the tables name"""
 
 
 class _Parser(ArgumentParser):

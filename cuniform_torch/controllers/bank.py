@@ -4,26 +4,23 @@ M rollouts pre-sampled at the origin; each command takes a random subset of K of
 a rigid transform. With a table set (a policy with ``members`` and ``starts``, e.g. a ``ks_speed`` set over the
 speed) the bank holds M rollouts per member, from its start at the origin pose; a command takes a subset of the
 actions of the member nearest to the state and rolls them out from the state (the exact states for its speed). Refreshed every ``refresh`` commands, in the control loop or in a background worker thread
-(which lives here). Re-exported by :mod:`cuniform_torch.controllers.proposals`, where it used to live.
+(which lives here).
 """
 
 from __future__ import annotations
 
 import warnings
 from concurrent.futures import Future, ThreadPoolExecutor
-from typing import TYPE_CHECKING
 
 import torch
 from torch import Tensor
 
 from cuniform_torch.sampling import kernels as rollout_kernels
 from cuniform_torch.controllers.checks import check_positive_int, seeded_generator
+from cuniform_torch.controllers.proposals import PolicyProposal
+from cuniform_torch.controllers.result import MPPIResult
 from cuniform_torch.common.frames import se2_to_world
 from cuniform_torch.sampling.rollout import check_generator, rollout_actions
-
-if TYPE_CHECKING:  # types only annotate; proposals and mppi import this module
-    from cuniform_torch.controllers.mppi import MPPIResult
-    from cuniform_torch.controllers.proposals import PolicyProposal
 
 __all__ = ["BankProposal", "BankRefreshWarning", "BANK_THREAD_PREFIX"]
 

@@ -13,7 +13,7 @@ proposal and the split are CUMPPI's, unchanged.
 from __future__ import annotations
 
 import os
-from typing import Callable
+from typing import Any, Callable
 
 import torch
 from torch import Tensor
@@ -87,7 +87,7 @@ class CFUMPPI(CUMPPI):
                  num_samples: int = 1000, cuniform_fraction: float = 0.5, lambda_: float = 0.567,
                  noise_std: float | Tensor = 0.1, local: str = "mppi", horizon: int | None = None,
                  max_range: float | None = None, terminal_cost: Callable[[Tensor], Tensor] | None = None,
-                 device: torch.device | str | None = None, seed: int | None = None, **local_kwargs):
+                 device: torch.device | str | None = None, seed: int | None = None, **local_kwargs: Any):
         if not isinstance(policy, MapPolicy):
             policy = load_map_policy(policy, device=device if device is not None else "cpu")
         elif device is not None and not same_device(policy.device, device):

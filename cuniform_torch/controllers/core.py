@@ -22,7 +22,6 @@ controller never differentiates through its input).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from typing import Callable, Protocol
 
 import torch
@@ -31,6 +30,7 @@ from torch import Tensor
 from cuniform_torch.controllers.checks import (COST_CAP, _callable_name, _check_costs, _check_lambda, _finite_costs,
                                 check_positive_int, check_proposals, check_state, make_generator)
 from cuniform_torch.controllers.proposals import PROPOSAL_MEMBERS, Closeable, Proposal
+from cuniform_torch.controllers.result import MPPIResult
 from cuniform_torch.systems import System
 from cuniform_torch.common.tensors import check_generator
 
@@ -42,29 +42,6 @@ class CostFn(Protocol):
     tensor of the controller's dtype on its device (``cuniform_torch.envs.NavigationCost`` is one)."""
 
     def __call__(self, states: Tensor, actions: Tensor) -> Tensor: ...
-
-
-@dataclass
-class MPPIResult:
-    """One command's work (returned, not kept as controller state)."""
-
-    command: Tensor
-    """``[q]`` the control to apply now"""
-    nominal: Tensor
-    """``[T, q]`` the weighted action sequence (before the warm-start shift)"""
-    states: Tensor
-    """``[K, T+1, d]`` the proposals"""
-    actions: Tensor
-    """``[K, T, q]``"""
-    costs: Tensor
-    """``[K]`` finite costs"""
-    weights: Tensor
-    """``[K]`` sum to 1"""
-
-    @property
-    def best(self) -> Tensor:
-        """Index of the lowest-cost proposal (a 0-d tensor; no host sync)."""
-        return torch.argmin(self.costs)
 
 
 def mppi_weights(costs: Tensor, lambda_: float) -> Tensor:

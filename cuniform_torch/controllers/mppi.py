@@ -7,7 +7,7 @@ Shapes: K samples (proposals), T horizon, d state dimensions, q action dimension
 * :class:`LogMPPI`: :class:`~cuniform_torch.controllers.proposals.NormalLogNormalProposal` (Mohamed et al.);
 * :class:`CUniformMPPI` (the C-Uniform paper): :class:`~cuniform_torch.controllers.proposals.PolicyProposal` (C-Uniform
   rollouts of a table or an MLP from the pose) or, with ``bank_size``,
-  :class:`~cuniform_torch.controllers.proposals.BankProposal` (a random subset of pre-sampled rollouts + a rigid transform);
+  :class:`~cuniform_torch.controllers.bank.BankProposal` (a random subset of pre-sampled rollouts + a rigid transform);
 * :class:`CUMPPI` (arXiv 2503.05819): :class:`~cuniform_torch.controllers.proposals.CompositeProposal` (the lowest-cost
   C-Uniform rollout seeds one local MPPI or log-MPPI pass, whose first control is applied).
 
@@ -18,7 +18,7 @@ importable from here too.
 
 from __future__ import annotations
 
-from typing import Callable
+from typing import Any, Callable
 
 import torch
 from torch import Tensor
@@ -27,6 +27,7 @@ from cuniform_torch.controllers.bank import BankProposal, BankRefreshWarning
 from cuniform_torch.controllers.checks import _check_seed, check_positive_int, make_generator
 from cuniform_torch.controllers.core import COST_CAP, CostFn, MPPICore, MPPIResult, mppi_weights
 from cuniform_torch.controllers.proposals import CompositeProposal, GaussianProposal, NormalLogNormalProposal, PolicyProposal
+from cuniform_torch.sampling.rollout import Policy
 from cuniform_torch.systems import System
 
 __all__ = ["CostFn", "MPPIResult", "mppi_weights", "MPPICore", "MPPI", "LogMPPI", "CUniformMPPI", "CUMPPI",
@@ -77,7 +78,7 @@ class LogMPPI(MPPI):
 
     def __init__(self, system: System, cost_fn: CostFn, num_samples: int = 1000, horizon: int = 15,
                  lambda_: float = 0.567, noise_std: float | Tensor = 0.3, lognormal_mean: float = 1.0,
-                 lognormal_var: float = 1.0, **kwargs):
+                 lognormal_var: float = 1.0, **kwargs: Any):
         self.lognormal_mean, self.lognormal_var = lognormal_mean, lognormal_var
         super().__init__(system, cost_fn, num_samples, horizon, lambda_, noise_std, **kwargs)
 
@@ -93,7 +94,7 @@ class CUniformMPPI(MPPICore):
     (:func:`~cuniform_torch.policies.checkpoint.load_policy` loads it). ``lambda_ = 0`` commands the best proposal's first action
     (as the reference robot code does). Without ``bank_size`` the proposal is a
     :class:`~cuniform_torch.controllers.proposals.PolicyProposal` (fresh rollouts every command). With ``bank_size`` it is a
-    :class:`~cuniform_torch.controllers.proposals.BankProposal`: ``bank_size`` rollouts pre-sampled at the origin
+    :class:`~cuniform_torch.controllers.bank.BankProposal`: ``bank_size`` rollouts pre-sampled at the origin
     (SE(2)-invariant systems only); each command takes a fresh random subset of ``num_samples`` of them and moves
     it to the pose by a rigid transform; ``resample_bank()`` draws a new bank (also every ``bank_refresh`` commands
     when set, from a stream seeded by ``seed + 1``). With ``bank_background=True`` that refresh runs in a worker
@@ -101,8 +102,9 @@ class CUniformMPPI(MPPICore):
     what a failed refresh does. Call ``close()`` to stop the worker (or use the controller as a context manager).
     """
 
-    def __init__(self, policy, cost_fn: CostFn, num_samples: int = 1000, lambda_: float = 0.567,
-                 horizon: int | None = None, bank_size: int | None = None, bank_refresh: int | None = None,
+    def __init__(self, policy: Policy | dict[str, Any], cost_fn: CostFn, num_samples: int = 1000,
+                 lambda_: float = 0.567, horizon: int | None = None, bank_size: int | None = None,
+                 bank_refresh: int | None = None,
                  bank_background: bool = False, terminal_cost: Callable[[Tensor], Tensor] | None = None,
                  device: torch.device | str | None = None, seed: int | None = None):
         seed = _check_seed(seed)
@@ -197,11 +199,11 @@ class CUMPPI(MPPICore):
     proposal (``lognormal_mean``, ``lognormal_var``).
     """
 
-    def __init__(self, policy, cost_fn: CostFn, num_samples: int = 1000, cuniform_fraction: float = 0.5,
-                 lambda_: float = 0.567, noise_std: float | Tensor = 0.1, local: str = "mppi",
-                 horizon: int | None = None, bank_size: int | None = None,
+    def __init__(self, policy: Policy | dict[str, Any], cost_fn: CostFn, num_samples: int = 1000,
+                 cuniform_fraction: float = 0.5, lambda_: float = 0.567, noise_std: float | Tensor = 0.1,
+                 local: str = "mppi", horizon: int | None = None, bank_size: int | None = None,
                  terminal_cost: Callable[[Tensor], Tensor] | None = None, device: torch.device | str | None = None,
-                 seed: int | None = None, **local_kwargs):
+                 seed: int | None = None, **local_kwargs: Any):
         check_positive_int("num_samples", num_samples)
         if not 0 < cuniform_fraction < 1:
             raise ValueError(f"cuniform_fraction must be in (0, 1), got {cuniform_fraction!r}")

@@ -5,7 +5,7 @@ Shapes: K proposals, T horizon, d state dimensions, q action dimensions, M rollo
 A proposal draws the K trajectories a command weighs. Per command the core calls
 
 * ``states [K, T+1, d], actions [K, T, q] = proposal.propose(state [d], generator)``, then costs and weights
-  them into an :class:`~cuniform_torch.controllers.mppi.MPPIResult`;
+  them into an :class:`~cuniform_torch.controllers.result.MPPIResult`;
 * ``proposal.update(result)`` (only from ``command``; ``plan`` leaves the proposal as it was): the warm start;
 
 and ``proposal.reset()`` at the start of an episode. :class:`Proposal` declares that, and the attributes the core
@@ -17,32 +17,29 @@ core; the ones here:
 * :class:`NormalLogNormalProposal` (log-MPPI): the same with normal x log-normal noise.
 * :class:`PolicyProposal` (C-Uniform MPPI): fresh C-Uniform rollouts of a policy (a table or an MLP) from the
   pose; no warm start.
-* :class:`BankProposal` (C-Uniform MPPI with a bank): M rollouts pre-sampled at the origin; each command takes a
-  random subset of K of them and moves it to the pose by a rigid transform. Refreshed every ``refresh``
-  commands, in the control loop or in a background worker thread (both in :mod:`cuniform_torch.controllers.bank`).
+* ``BankProposal`` (C-Uniform MPPI with a bank, in :mod:`cuniform_torch.controllers.bank`, with its background
+  worker): M rollouts pre-sampled at the origin; each command takes a random subset of K of them and moves it to
+  the pose by a rigid transform, refreshed every ``refresh`` commands.
 * :class:`CompositeProposal` (CU-MPPI): the lowest-cost trajectory of a first planner (C-Uniform MPPI) becomes
   the nominal of a local Gaussian or log-normal proposal.
 """
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Protocol, runtime_checkable
+from typing import Protocol, runtime_checkable
 
 import torch
 from torch import Tensor
 
-from cuniform_torch.controllers.bank import BankProposal, BankRefreshWarning  # noqa: F401  (in __all__: every proposal importable here)
 from cuniform_torch.controllers.checks import _check_dtype, check_positive_int
+from cuniform_torch.controllers.result import MPPIResult
 from cuniform_torch.policies.checkpoint import load_policy
 from cuniform_torch.sampling.rollout import Policy, PolicyTraits, RolloutPlan, open_loop, same_device
 from cuniform_torch.sampling.noise import GaussianSampler, NormalLogNormalSampler
 from cuniform_torch.systems import System
 
-if TYPE_CHECKING:  # the result type only annotates; mppi imports this module
-    from cuniform_torch.controllers.mppi import MPPIResult
-
-__all__ = ["Proposal", "GaussianProposal", "NormalLogNormalProposal", "PolicyProposal", "BankProposal",
-           "CompositeProposal", "BankRefreshWarning", "PROPOSAL_MEMBERS"]
+__all__ = ["Proposal", "GaussianProposal", "NormalLogNormalProposal", "PolicyProposal", "CompositeProposal",
+           "PROPOSAL_MEMBERS"]
 
 
 @runtime_checkable

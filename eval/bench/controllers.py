@@ -25,8 +25,8 @@ from typing import Callable
 
 import torch
 
-from cuniform_torch import (CUMPPI, MPPI, CUniformMPPI, Dubins, GaussianSampler, LogMPPI, load_table, rollout,
-                            write_table)
+from cuniform_torch import CUMPPI, MPPI, CUniformMPPI, Dubins, LogMPPI, load_table, rollout, write_table
+from cuniform_torch.sampling import GaussianSampler
 from cuniform_torch.cli import ArgumentParser, CLIError, check_output_file, cli_main
 from cuniform_torch.common.fileio import write_json
 from cuniform_torch.policies.table import Kernel
@@ -149,7 +149,7 @@ def main(argv=None) -> int:
                                 num_samples=K, horizon=T, device=device, lambda_=0.567,
                                 u_min=torch.tensor([-system.max_omega], device=device),
                                 u_max=torch.tensor([system.max_omega], device=device))
-                ms["pytorch_mppi"] = 1e3 * _timer(lambda: peer.command(state), args.repeats, args.warmup, device)
+                ms["pytorch_mppi"] = 1e3 * _timer(lambda peer=peer: peer.command(state), args.repeats, args.warmup, device)
                 line += f" {ms['pytorch_mppi']:>8.2f} {ms['mppi'] / ms['pytorch_mppi']:>10.2f}"
             print(line, flush=True)
             rows.append({"horizon": T, "samples": K, "ms_per_command": ms})

@@ -28,9 +28,10 @@ from typing import Any, Callable
 import torch
 from torch import Tensor
 
-from cuniform_torch import (CUMPPI, MPPI, CUniformMPPI, GaussianSampler, LogMPPI, NormalLogNormalSampler,
-                            TablePolicy, UniformPolicy, load_map_policy, load_policy, load_table, read_table,
-                            rollout)
+from cuniform_torch import (CUMPPI, MPPI, CUniformMPPI, LogMPPI, TablePolicy, load_map_policy, load_policy, load_table,
+                            read_table, rollout)
+from cuniform_torch.policies import UniformPolicy
+from cuniform_torch.sampling import GaussianSampler, NormalLogNormalSampler
 
 from eval.common import config
 from eval.common.graph_sampling import GraphSampler

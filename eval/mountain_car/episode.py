@@ -23,7 +23,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from cuniform_torch import CUMPPI, MPPI, CUniformMPPI, StartMismatchWarning, load_table
+from cuniform_torch import CUMPPI, MPPI, CUniformMPPI, load_table
+from cuniform_torch.sampling import StartMismatchWarning
 from cuniform_torch.systems.classic import MOUNTAIN_CAR, MountainCar
 
 __all__ = ["METHODS", "SET_METHODS", "NOISE_STD", "LAMBDA", "ENV_ID", "GYM_MISSING", "trajectory_cost",

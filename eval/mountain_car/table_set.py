@@ -44,7 +44,8 @@ def set_folder(cache: Path, spec: dict[str, Any]) -> Path:
 def ensure_set(cache: Path, repeat: int, horizon: int, grid: tuple[int, int], workers: int = 1,
                quiet: bool = False) -> Path:
     """The set's folder, built first when it is not complete (``precompute.build --starts ... --workers``)."""
-    from precompute.table_set import ensure_set as build_set_once, set_complete
+    from precompute.build import ensure_set as build_set_once
+    from precompute.table_set import set_complete
 
     spec = set_spec(repeat, horizon, grid)
     folder = set_folder(cache, spec)

@@ -21,7 +21,8 @@ matters for it: std 0.1, 0.3 and 1.0 rad/s (clipped to the action bounds). Metho
 
 from __future__ import annotations
 
-from cuniform_torch import CFUMPPI, CUMPPI, MPPI, CUniformMPPI, GaussianSampler, LogMPPI, NormalLogNormalSampler
+from cuniform_torch import CFUMPPI, CUMPPI, MPPI, CUniformMPPI, LogMPPI
+from cuniform_torch.sampling import GaussianSampler, NormalLogNormalSampler
 
 from eval.common.methods import Method
 

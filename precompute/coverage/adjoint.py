@@ -23,7 +23,7 @@ from typing import TYPE_CHECKING
 import torch
 
 if TYPE_CHECKING:
-    from precompute.coverage.method import ReachableLevels
+    from precompute.coverage.reachable import ReachableLevels
 
 __all__ = ["StatePropagator"]
 

@@ -5,10 +5,16 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING
+from typing import Protocol, Sized
 
-if TYPE_CHECKING:
-    from precompute.flow.builder import StepResult
+
+class StepSizes(Protocol):
+    """What the guide reads of one build step (:class:`precompute.flow.builder.StepResult` is one): the lengths
+    of its transitions, arcs and next level's cells. A protocol, so the guide does not import the builder."""
+
+    src: Sized
+    arc_src: Sized
+    next_cells: Sized
 
 __all__ = ["SizeGuide", "project_level_sizes", "estimate_build_bytes", "available_memory_bytes"]
 
@@ -108,7 +114,7 @@ class SizeGuide:
     """whether the latest projection exceeds the budget"""
     _printed_total: int | None = None
 
-    def update(self, step: "StepResult") -> list[str]:
+    def update(self, step: StepSizes) -> list[str]:
         self.transitions.append(len(step.src))
         self.arcs.append(len(step.arc_src))
         self.sizes.append(len(step.next_cells))

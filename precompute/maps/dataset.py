@@ -177,7 +177,7 @@ def read_map_dataset(root: str | Path, load: bool = False) -> MapDataset:
     except (OSError, UnicodeDecodeError, ValueError) as exc:
         raise MapDatasetError(f"{path}: not readable JSON ({type(exc).__name__}: {exc})") from None
     ds = _dataset_from_meta(meta, root, path)
-    for k, sh in enumerate(ds.shards):
+    for k in range(len(ds.shards)):
         _check_sha(ds, k)
         if load:
             ds.shard(k)

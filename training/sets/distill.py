@@ -42,7 +42,7 @@ from training.tables.loop import run_epochs
 from training.tables.train_state import RESUME_KEYS, UsageError, save_train_state
 
 if TYPE_CHECKING:
-    from training.distill import DistillConfig
+    from training.tables.config import DistillConfig
 
 __all__ = ["distill_set", "format_set_comparison"]
 

@@ -12,7 +12,7 @@ import dataclasses
 import math
 import time
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any, Callable
+from typing import Any, Callable
 
 import torch
 from torch import Tensor
@@ -21,11 +21,8 @@ from tqdm import tqdm
 from cuniform_torch.grid.cells import Grid
 
 from training.tables.evaluate import kl_rows
-from training.tables.samples import level_weights, make_samples
+from training.tables.samples import PooledCells, level_weights, make_samples
 from training.tables.train_state import TRAIN_STATE_FORMAT
-
-if TYPE_CHECKING:
-    from training.tables.setup import PooledCells
 
 __all__ = ["Progress", "kl_epoch", "validate", "log_hyperparameters", "log_epoch_scalars", "run_epochs"]
 

@@ -29,10 +29,10 @@ from cuniform_torch.tables.file import Table
 from training.tables.evaluate import cell_centres, cell_levels
 from training.tables.figures import coverage_figure, trajectory_figure
 from training.tables.loop import Progress, log_hyperparameters
-from training.tables.samples import level_weights, make_samples
+from training.tables.samples import PooledCells, level_weights, make_samples
 from training.tables.train_state import load_train_state
 
-__all__ = ["seed_run", "PooledCells", "pool_cells", "adam_cosine", "open_run", "TableFigures", "best_metrics",
+__all__ = ["seed_run", "pool_cells", "adam_cosine", "open_run", "TableFigures", "best_metrics",
            "run_facts", "write_comparison", "say_written"]
 
 
@@ -43,32 +43,6 @@ def seed_run(cfg: Any) -> tuple[torch.Generator, torch.Generator]:
         torch.set_num_threads(cfg.threads)
     torch.manual_seed(cfg.seed)
     return torch.Generator().manual_seed(cfg.seed), torch.Generator().manual_seed(cfg.seed + 1)
-
-
-@dataclass
-class PooledCells:
-    """Every cell of every (table, level) group (the group of a cell sets its weight) and the validation points."""
-
-    centres: Tensor
-    """``[C, d]`` float64 cell centres (on the CPU: the jitter is drawn there)"""
-    probs: Tensor
-    """``[C, A]`` each cell's row of ``action_probs``, on the device"""
-    levels: Tensor
-    """``[C]`` each cell's level t (its time feature)"""
-    group: Tensor
-    """``[C]`` each cell's (table, level) group: ``table index * (T + 1) + t``"""
-    G: int
-    """the number of groups"""
-    best_rows: Tensor
-    """``[C, A]`` the table's most likely actions of each cell"""
-    val_rows: Tensor
-    """``[V]`` the cell of each validation point, on the device"""
-    val_x: Tensor
-    """``[V, d]`` float32 validation points"""
-    val_t: Tensor
-    """``[V]`` their levels"""
-    val_w: Tensor
-    """``[V]`` their level weights (sum to 1)"""
 
 
 def pool_cells(tables: Sequence[Table], horizon: int, grid: Grid, val_points: int, val_gen: torch.Generator,

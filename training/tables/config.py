@@ -1,0 +1,62 @@
+"""The settings of one distillation (:class:`DistillConfig`): one table, several pooled tables, or a table set.
+
+Its own module, below both :mod:`training.distill` (one table, and the CLI) and :mod:`training.sets.distill` (a
+table set), so that neither imports the other for it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Optional
+
+from cuniform_torch.cli import RUNS
+
+__all__ = ["DistillConfig"]
+
+
+@dataclass
+class DistillConfig:
+    """Settings of one distillation; every field is a flag (``--batch-size``, ...)."""
+
+    tables: list[str] = field(default_factory=list)
+    """table files (.npz) to distil; several must share the system JSON and actions (their cells are pooled); or
+    one table-set folder (python -m precompute.build --starts): a start-conditioned policy (training.sets.distill)"""
+    hidden: int = 256
+    """hidden units per layer"""
+    layers: int = 3
+    """hidden layers"""
+    epochs: int = 1500
+    """passes over the data, each with fresh jitter (on out/dubins.npz: 1500 epochs took 6 minutes on 2 CPU cores)"""
+    lr: float = 3e-3
+    """Adam's initial learning rate, cosine-annealed per epoch to lr / 100 at the last epoch"""
+    batch_size: int = 4096
+    """samples per optimiser step"""
+    seed: int = 0
+    """seed of the initial weights, the jitter, the shuffling, the validation points and the evaluation rollouts"""
+    device: str = "cpu"
+    """torch device to train and evaluate on (cpu, cuda, cuda:1, ...)"""
+    threads: int = 1
+    """torch CPU threads (0: torch's choice, one per core). 1 by default: on 2 idle cores a second thread makes
+    a 4096-sample step of the default network about 1.6x faster, but when other processes keep the cores busy it
+    makes it about 10x slower (OpenMP hand-offs between oversubscribed threads)"""
+    out: Optional[str] = None
+    """checkpoint to write (default: out/<first table stem>.policy.pt)"""
+    jitter: int = 4
+    """jittered points per cell per epoch, on top of the cell centre (also per cell in the final jittered KL;
+    4 there when 0)"""
+    val_points: int = 2
+    """held-out jittered points per cell for the validation KL (drawn once)"""
+    patience: int = 300
+    """stop when the validation KL has not improved for this many epochs"""
+    logdir: str = str(RUNS)
+    """folder of the TensorBoard runs"""
+    quiet: bool = False
+    """no progress bar"""
+    resume: bool = False
+    """continue from <out>.train.pt (refused when the settings or the tables differ)"""
+    eval_samples: list[int] = field(default_factory=lambda: [1000, 10000])
+    """rollout counts N of the final coverage comparison (the first also sets the coverage figure's N)"""
+    eval_every: int = 100
+    """epochs between the eval/kl_level_<t> scalars and the figures"""
+    system_module: list[str] = field(default_factory=list)
+    """modules to import first (--system-module, repeatable): they register the user systems the tables name"""
