@@ -33,8 +33,15 @@ from cuniform_torch.policies.checkpoint import load_policy
 from cuniform_torch.policies.table import TablePolicy
 from cuniform_torch.policies.table_set import load_table
 from cuniform_torch.sampling.rollout import rollout, rollout_actions
-from cuniform_torch.systems import (Dubins, KinematicSingleTrack, RandomWalk1D, System, check_system, make_system,
-                                    register_system)
+from cuniform_torch.systems import (
+    Dubins,
+    KinematicSingleTrack,
+    RandomWalk1D,
+    System,
+    check_system,
+    make_system,
+    register_system,
+)
 from cuniform_torch.tables.file import Table, read_table, write_table
 
 __all__ = [

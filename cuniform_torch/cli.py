@@ -30,8 +30,9 @@ import tempfile
 import textwrap
 import types
 import typing
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from pathlib import Path
-from typing import Any, Callable, Iterable, Mapping, NoReturn, Sequence
+from typing import Any, NoReturn
 
 from cuniform_torch.systems import import_system_modules
 

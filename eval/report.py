@@ -27,21 +27,26 @@ import os
 import platform
 import sys
 import time
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
-from typing import Callable
 
 import torch
 
-from cuniform_torch.cli import ArgumentParser, add_system_module_arg, check_output_folder, cli_main, import_system_modules
+from cuniform_torch.cli import (
+    ArgumentParser,
+    add_system_module_arg,
+    check_output_folder,
+    cli_main,
+    import_system_modules,
+)
 from cuniform_torch.common.fileio import write_bytes, write_json
-
 from eval.common import config
-from eval.paper import coverage as coverage_experiment
-from eval.paper import uniformity
 from eval.common.figures import coverage_vs_samples, trajectory_fans, uniformity_per_level
 from eval.common.methods import Sources
 from eval.common.paths import DEFAULT, RUNS_EVAL, OutputPaths
+from eval.paper import coverage as coverage_experiment
+from eval.paper import uniformity
 from eval.paper.tensorboard import log_tensorboard
 
 __all__ = ["Stages", "StepFailed", "build_inputs", "machine", "write_markdown", "main"]
@@ -200,8 +205,7 @@ def _report(args) -> int:
     closed_md: list[str] = []
     closed_figs: list[Path] = []
     if not args.skip_closed_loop:
-        from eval.paper import cluttered
-        from eval.paper import sudden_obstacle
+        from eval.paper import cluttered, sudden_obstacle
 
         for module in (sudden_obstacle, cluttered):
             # --quick: the 2 s tables drive the controllers (horizon 10 instead of 15)

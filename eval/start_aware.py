@@ -17,23 +17,23 @@ import hashlib
 import json
 import math
 import warnings
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any
 
 import numpy as np
 import torch
 
 from cuniform_torch import TablePolicy, load_table, rollout
-from cuniform_torch.sampling import StartMismatchWarning
 from cuniform_torch.cli import ArgumentParser, add_system_module_arg, check_output_file, cli_main, import_system_modules
 from cuniform_torch.common.fileio import write_json
 from cuniform_torch.metrics import coverage
-from cuniform_torch.systems import System, make_system, resolve_system
 from cuniform_torch.policies.table_set import TableSetPolicy
-from precompute.build import parse_params
+from cuniform_torch.sampling import StartMismatchWarning
+from cuniform_torch.systems import System, make_system, resolve_system
+from precompute.build import ensure_set, parse_params
 from precompute.flow.builder import BuildConfig, build_table
-from precompute.build import ensure_set
 from precompute.table_set import parse_starts
 
 __all__ = ["StartRow", "random_starts", "measure_start", "main"]

@@ -27,13 +27,12 @@ from __future__ import annotations
 
 import argparse
 import sys
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Sequence
 
 from cuniform_torch.cli import OUT, cli_main
 from cuniform_torch.common.fileio import exclusive_lock
 from cuniform_torch.systems import System
-
 from precompute.build_args import COVERAGE_ONLY, MAXFLOW_ONLY, make_parser
 from precompute.one_table import parse_build_args, run_one, system_of, with_threads
 from precompute.system_args import parse_params

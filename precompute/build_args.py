@@ -13,7 +13,6 @@ from typing import Any
 
 from cuniform_torch.cli import OUT, ArgumentParser, CLIError, add_dataclass_args, field_docs, flag_name
 from cuniform_torch.systems import _REGISTRY, DEFAULT_HORIZON, known_systems
-
 from precompute.flow.builder import BuildConfig
 from precompute.levels.sets import PointMode
 

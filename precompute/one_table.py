@@ -10,18 +10,18 @@ import argparse
 import shutil
 import sys
 import time
+from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Any, Callable, Sequence
+from typing import Any
 
 from cuniform_torch.cli import OUT, CLIError, check_output_file, cli_main, dataclass_from_args
 from cuniform_torch.common.fileio import exclusive_lock, write_json
 from cuniform_torch.systems import resolve_system, system_horizon
 from cuniform_torch.tables.file import write_table
-
 from precompute.build_args import check_flags, make_parser
 from precompute.flow.builder import BuildConfig, SizeGuide, available_memory_bytes, build_table, check_resume
-from precompute.report import format_report, uniformity_report
 from precompute.levels.safe_map import map_overrides
+from precompute.report import format_report, uniformity_report
 from precompute.system_args import load_user_systems, make_cli_system, parse_params
 
 __all__ = ["main_one", "run_one", "parse_build_args", "with_threads", "system_of"]
@@ -40,8 +40,8 @@ def _check_device(device: str) -> None:
 
 def _build_coverage(system, config, bar):
     """The coverage method (precompute/coverage/method.py), with the bar counting levels, then iterations."""
-    from precompute.flow.builder import BuildStats
     from precompute.coverage.method import build_coverage_table
+    from precompute.flow.builder import BuildStats
 
     if bar is not None:
         bar.reset(total=config.horizon + config.steps)

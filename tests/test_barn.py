@@ -10,8 +10,17 @@ import pytest
 import torch
 
 from cuniform_torch.envs.worlds.barn import (
-    CHALLENGE_GOAL, CHALLENGE_START, FILE_GOAL, FILE_START, KEYS, BarnFormatError, convert_worlds, default_path,
-    load_barn, validate_barn, write_barn,
+    CHALLENGE_GOAL,
+    CHALLENGE_START,
+    FILE_GOAL,
+    FILE_START,
+    KEYS,
+    BarnFormatError,
+    convert_worlds,
+    default_path,
+    load_barn,
+    validate_barn,
+    write_barn,
 )
 
 DATA = Path(__file__).parent / "data" / "barn"

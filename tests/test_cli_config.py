@@ -12,8 +12,7 @@ from pathlib import Path
 
 import pytest
 
-from cuniform_torch.cli import (ArgumentParser, add_dataclass_args, dataclass_from_args, field_docs,
-                                given_fields)
+from cuniform_torch.cli import ArgumentParser, add_dataclass_args, dataclass_from_args, field_docs, given_fields
 
 
 class Color(enum.Enum):
@@ -102,8 +101,8 @@ DERIVED = {"precompute.build": ("horizon",)}
 def _entry_points():
     """(name, parser, config classes whose fields are flags) of every entry point with a config dataclass."""
     from precompute import build
-    from precompute.flow.builder import BuildConfig
     from precompute.coverage.method import CoverageConfig
+    from precompute.flow.builder import BuildConfig
     from training import distill
 
     out = [("precompute.build", build.make_parser(), (BuildConfig, CoverageConfig)),

@@ -21,12 +21,12 @@ import torch
 
 import eval.bench.maxflow as bench_maxflow
 import eval.paper.coverage as eval_coverage
-import eval.report as eval_report
 import eval.paper.uniformity as eval_uniformity
+import eval.report as eval_report
 import precompute.build as build
+import precompute.flow.builder as builder
 import precompute.one_table as one_table
 import precompute.system_args as system_args
-import precompute.flow.builder as builder
 import training.distill as distill
 from cuniform_torch.common import fileio
 from cuniform_torch.systems import _REGISTRY

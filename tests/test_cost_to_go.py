@@ -10,12 +10,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from test_nav_replay import ROBOT
 
 from cuniform_torch.envs import Environment, NavigationCost, Rect
+from cuniform_torch.envs.worlds.tasks import make_tasks
 from eval.navigate.cost_to_go import UNREACHABLE, CostToGo, geodesic_distance
 from eval.navigate.episode import NavContext, NavJob, run_nav_episode
-from cuniform_torch.envs.worlds.tasks import make_tasks
-from test_nav_replay import ROBOT
 
 BOX = (0.0, 0.0, 10.0, 10.0)
 GOAL = (9.05, 5.05)

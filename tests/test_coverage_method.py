@@ -11,8 +11,8 @@ import torch
 from cuniform_torch import TablePolicy, make_system, read_table, rollout, write_table
 from cuniform_torch.metrics import coverage, uniform_ceiling
 from precompute import build as build_cli
-from precompute.flow.builder import BuildConfig, build_table, propagate_cell_probs
 from precompute.coverage.method import CoverageConfig, build_coverage_table, enumerate_reachable
+from precompute.flow.builder import BuildConfig, build_table, propagate_cell_probs
 
 
 @pytest.fixture(scope="module")

@@ -21,9 +21,9 @@ import pytest
 import torch
 
 from cuniform_torch import TablePolicy, rollout
-from cuniform_torch.tables.cpu_kernels import available
 from cuniform_torch.policies.table import Kernel
 from cuniform_torch.systems import make_system
+from cuniform_torch.tables.cpu_kernels import available
 from precompute.flow.builder import BuildConfig, build_table
 
 pytestmark = pytest.mark.skipif(not available(), reason="numba is not installed")

@@ -23,9 +23,9 @@ from cuniform_torch.envs import OccupancyGrid
 from cuniform_torch.grid.cells import Grid
 from cuniform_torch.maps.checkpoint import load_map_policy
 from cuniform_torch.maps.encoder import PatchSpec
+from cuniform_torch.maps.sensing import local_map, patch_centres
 from cuniform_torch.policies.table import TablePolicy
 from cuniform_torch.sampling.rollout import rollout
-from cuniform_torch.maps.sensing import local_map, patch_centres
 from cuniform_torch.systems import make_system, system_to_json
 from precompute.flow.builder import BuildConfig, build_table
 from precompute.maps.dataset import MapDatasetError

@@ -19,8 +19,8 @@ from cuniform_torch import load_policy, read_table
 from cuniform_torch.policies import PolicyCheckpointError
 from cuniform_torch.policies.start_mlp import StartMLPPolicy
 from precompute.build import main as build
-from training.tables.evaluate import cell_centres
 from training.sets.evaluate import main as evaluate_set
+from training.tables.evaluate import cell_centres
 
 TRAIN = ["--hidden", "32", "--layers", "2", "--epochs", "150", "--jitter", "4", "--batch-size", "128", "--lr", "1e-2"]
 TINY = ["--hidden", "16", "--layers", "2", "--jitter", "2", "--batch-size", "32", "--lr", "1e-2"]

@@ -16,12 +16,11 @@ import torch
 
 from cuniform_torch.envs import Circle, Environment, NavigationCost
 from cuniform_torch.tables.file import write_table
-from eval.paper import cluttered
-from eval.paper import sudden_obstacle
-from eval.paper.episodes import OUTCOMES, ControllerSettings, Episode, run_episodes, usable_methods
 from eval.common.markdown import success_markdown
-from eval.common.stats import aggregate, wilson_interval
 from eval.common.methods import Sources
+from eval.common.stats import aggregate, wilson_interval
+from eval.paper import cluttered, sudden_obstacle
+from eval.paper.episodes import OUTCOMES, ControllerSettings, Episode, run_episodes, usable_methods
 
 METHODS = ("mppi_high", "cu_table")
 

@@ -10,12 +10,12 @@ import pytest
 import torch
 
 from cuniform_torch import make_system, read_table, rollout
+from cuniform_torch.metrics import level_uniformity
 from cuniform_torch.policies import UniformPolicy
 from cuniform_torch.tables import TableError
-from cuniform_torch.metrics import coverage, level_uniformity
 from eval.common.graph_sampling import GraphSampler
-from eval.paper import coverage as coverage_exp
 from eval.common.methods import METHODS, Sources, make_controller, parse_methods, sample_states
+from eval.paper import coverage as coverage_exp
 from eval.paper.reachable import reachable
 
 

@@ -10,14 +10,13 @@ import pytest
 import torch
 
 from cuniform_torch import CUniformMPPI, TablePolicy, load_policy, make_system, rollout
-from cuniform_torch.policies import MLPConfig, MLPPolicy, MLPSupport, PolicyCheckpointError
-from cuniform_torch.sampling import StartMismatchWarning
-from cuniform_torch.systems import system_to_json
 from cuniform_torch.grid.cells import Grid
+from cuniform_torch.policies import MLPConfig, MLPPolicy, MLPSupport, PolicyCheckpointError
 from cuniform_torch.policies.checkpoint import policy_checkpoint
 from cuniform_torch.policies.mlp import default_feature_scale
+from cuniform_torch.sampling import StartMismatchWarning
 from cuniform_torch.sampling.rollout import RolloutPlan
-from cuniform_torch.systems import se2_invariance_gap
+from cuniform_torch.systems import se2_invariance_gap, system_to_json
 from precompute.flow.builder import BuildConfig, build_table
 
 KS_SPEED_SMALL = dict(cell_size=(0.2, 0.2, 2 * math.pi / 18, 0.2), num_steer=3)

@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from test_distill_maps import MAPS, SPEC, SYSTEM, T, write_dataset
 
 import training.maps.coverage as map_coverage
 from cuniform_torch.grid.cells import Grid
@@ -25,7 +26,6 @@ from cuniform_torch.sampling.rollout import rollout
 from cuniform_torch.systems import make_system, system_to_json
 from cuniform_torch.tables.file import write_table
 from precompute.flow.builder import BuildConfig, build_table
-from test_distill_maps import MAPS, SPEC, SYSTEM, T, write_dataset
 
 GRID = Grid.of(SYSTEM)
 OTHER = make_system("dubins", speed=0.9, dt=0.2, num_actions=5, max_omega=math.pi / 2,

@@ -12,10 +12,10 @@ import numpy as np
 import pytest
 import torch
 
+from precompute.levels.safe_map import LocalMap, SafeCells
 from precompute.maps.dataset import MapDatasetError, file_sha256, read_map_dataset
 from precompute.maps.farm import main as farm_main
 from precompute.maps.worlds import World, crop_patch, split_of, suite_worlds
-from precompute.levels.safe_map import LocalMap, SafeCells
 
 TINY = ["--suite", "barn", "--count", "2", "--poses-per-map", "2", "--split", "train", "--seed", "0",
         "--horizon", "3", "--patch", "20", "20", "--quiet"]

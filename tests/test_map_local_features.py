@@ -10,6 +10,7 @@ import math
 
 import pytest
 import torch
+from test_distill_maps import MAPS, SPEC, SYSTEM, TRAIN, T, wall_collision_rates, write_dataset
 
 import training.maps.distill as distill_maps
 from cuniform_torch.envs import OccupancyGrid
@@ -18,7 +19,6 @@ from cuniform_torch.maps.local_features import PROBES, LocalFeatures
 from cuniform_torch.maps.policy import MapPolicy, MapPolicyConfig
 from cuniform_torch.systems import system_to_json
 from precompute.flow.builder import BuildConfig, build_table
-from test_distill_maps import MAPS, SPEC, SYSTEM, T, TRAIN, wall_collision_rates, write_dataset
 
 pytestmark = pytest.mark.usefixtures("restore_threads")  # conftest: main sets torch's thread count
 

@@ -12,14 +12,13 @@ import math
 import pytest
 import torch
 
+from cuniform_torch.controllers.cfu import CFUMPPI
 from cuniform_torch.envs import OccupancyGrid
-from cuniform_torch.maps.checkpoint import (MapCheckpointError, load_map_policy, map_policy_checkpoint,
-                                           save_map_policy)
+from cuniform_torch.maps.checkpoint import MapCheckpointError, load_map_policy, map_policy_checkpoint, save_map_policy
 from cuniform_torch.maps.encoder import PatchSpec
 from cuniform_torch.maps.policy import MapPolicy, MapPolicyConfig
-from cuniform_torch.controllers.cfu import CFUMPPI
-from cuniform_torch.sampling.rollout import rollout
 from cuniform_torch.maps.sensing import local_map, sense_patch
+from cuniform_torch.sampling.rollout import rollout
 from cuniform_torch.systems import make_system, system_to_json
 
 T = 4

@@ -11,8 +11,14 @@ import pytest
 import torch
 
 from cuniform_torch import metrics
-from cuniform_torch.metrics import (entropy_ratio, histogram_over, level_uniformity, noise_floor, tv_from_uniform,
-                                    tv_of_distribution)
+from cuniform_torch.metrics import (
+    entropy_ratio,
+    histogram_over,
+    level_uniformity,
+    noise_floor,
+    tv_from_uniform,
+    tv_of_distribution,
+)
 from cuniform_torch.policies.table import TablePolicy
 from cuniform_torch.sampling.rollout import rollout
 

@@ -9,8 +9,8 @@ import pytest
 import torch
 
 from cuniform_torch.systems import make_system
-from eval.mountain_car import run as experiment
 from eval.mountain_car import episode
+from eval.mountain_car import run as experiment
 from eval.mountain_car.table_set import set_folder, set_spec
 from precompute.table_set import parse_starts
 

@@ -2,9 +2,9 @@
 
 import pytest
 
+from cuniform_torch.envs.worlds.suites import SuiteError
 from cuniform_torch.envs.worlds.tasks import make_tasks, split_of
 from eval.navigate.run import NavConfig, _check
-from cuniform_torch.envs.worlds.suites import SuiteError
 from precompute.maps.worlds import suite_worlds
 
 
@@ -36,8 +36,8 @@ def test_bad_split_and_empty_split_are_clear_errors():
 
 
 def test_clutter_suite_is_the_forest_corridor_denser():
-    from cuniform_torch.envs.worlds.tasks import CLUTTER
     from cuniform_torch.envs.worlds.suites import make_suite
+    from cuniform_torch.envs.worlds.tasks import CLUTTER
 
     tasks = make_tasks("clutter", 0.2, 3, split="test")
     assert [t.task_id for t in tasks] == [0, 5, 10] and {t.suite for t in tasks} == {"clutter"}

@@ -8,10 +8,19 @@ import random
 
 import pytest
 
-from eval.navigate.stats import (BINS_PER_DECADE, NUM_BINS, cycle_histogram, histogram_quantile, markdown,
-                            mcnemar_exact_p, merge_histograms, newcombe_paired_interval, paired_comparisons,
-                            summarize)
 from eval.common.stats import wilson_interval
+from eval.navigate.stats import (
+    BINS_PER_DECADE,
+    NUM_BINS,
+    cycle_histogram,
+    histogram_quantile,
+    markdown,
+    mcnemar_exact_p,
+    merge_histograms,
+    newcombe_paired_interval,
+    paired_comparisons,
+    summarize,
+)
 
 BIN = 10 ** (1 / BINS_PER_DECADE)
 

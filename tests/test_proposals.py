@@ -11,10 +11,16 @@ import torch
 
 from cuniform_torch import CUMPPI, MPPI, CUniformMPPI, Dubins, LogMPPI, MPPICore, Proposal, TablePolicy, rollout
 from cuniform_torch.common.frames import se2_to_local, se2_to_world
-from cuniform_torch.controllers import (BankProposal, CompositeProposal, GaussianProposal, MPPIResult,
-                                        NormalLogNormalProposal, PolicyProposal)
-from cuniform_torch.sampling import rollout_actions
+from cuniform_torch.controllers import (
+    BankProposal,
+    CompositeProposal,
+    GaussianProposal,
+    MPPIResult,
+    NormalLogNormalProposal,
+    PolicyProposal,
+)
 from cuniform_torch.envs import Circle, Environment, NavigationCost, simulate
+from cuniform_torch.sampling import rollout_actions
 
 
 def _gen(seed: int) -> torch.Generator:

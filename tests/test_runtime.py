@@ -20,8 +20,8 @@ from scipy import stats
 from cuniform_torch import CUMPPI, MPPI, CUniformMPPI, LogMPPI, TablePolicy, rollout
 from cuniform_torch.common.frames import se2_to_local, se2_to_world
 from cuniform_torch.controllers import COST_CAP, MPPIResult, mppi_weights
-from cuniform_torch.sampling import GaussianSampler, NormalLogNormalSampler, lognormal_params
 from cuniform_torch.envs import Circle, Environment, NavigationCost, simulate
+from cuniform_torch.sampling import GaussianSampler, NormalLogNormalSampler, lognormal_params
 from cuniform_torch.systems import wrap_angle
 
 CUDA = torch.cuda.is_available()

@@ -12,12 +12,12 @@ import threading
 import pytest
 import torch
 
-from cuniform_torch.policies.mlp import MLPConfig, MLPPolicy
 from cuniform_torch.controllers import mppi
 from cuniform_torch.controllers.mppi import CUMPPI, MPPI, CUniformMPPI, LogMPPI, mppi_weights
+from cuniform_torch.policies.mlp import MLPConfig, MLPPolicy
 from cuniform_torch.policies.table import TablePolicy
-from cuniform_torch.sampling.rollout import rollout
 from cuniform_torch.sampling.noise import GaussianSampler, NormalLogNormalSampler
+from cuniform_torch.sampling.rollout import rollout
 
 KINDS = ["mppi", "log_mppi", "cuniform", "cuniform_bank", "cumppi"]
 

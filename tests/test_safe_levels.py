@@ -13,10 +13,10 @@ from cuniform_torch.grid.cells import Grid
 from cuniform_torch.systems import make_system
 from cuniform_torch.tables.file import TableError, read_table, write_table
 from precompute.build import main as build_main
-from precompute.flow.builder import BuildConfig, build_table
 from precompute.coverage.method import CoverageConfig, build_coverage_table
-from precompute.levels.sets import next_level
+from precompute.flow.builder import BuildConfig, build_table
 from precompute.levels.safe_map import LocalMap, MapError, SafeCells, write_map_file
+from precompute.levels.sets import next_level
 
 ROBOT = dict(speed=0.5, dt=0.2, max_omega=1.5, num_actions=7, cell_size=(0.05, 0.05, 2 * math.pi / 36))
 PARAMS = ["--system", "dubins"] + [f"--param={k}={list(v) if isinstance(v, tuple) else v}" for k, v in ROBOT.items()]

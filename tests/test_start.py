@@ -8,11 +8,11 @@ import numpy as np
 import pytest
 
 from cuniform_torch import TablePolicy, make_system, read_table, write_table
-from cuniform_torch.tables import TableError
 from cuniform_torch.common.fileio import write_npz
+from cuniform_torch.tables import TableError
 from precompute.build import main as build_main
-from precompute.flow.builder import BuildConfig, build_table
 from precompute.coverage.method import CoverageConfig, build_coverage_table
+from precompute.flow.builder import BuildConfig, build_table
 
 
 @pytest.mark.parametrize("method", ["maxflow", "coverage"])

@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 import torch
 
-from cuniform_torch.envs import Circle, Rect, simulate
-from cuniform_torch.systems import Dubins
+from cuniform_torch.envs import Circle, simulate
 from cuniform_torch.envs.worlds.geometry import inflate, reachable, sensed
 from cuniform_torch.envs.worlds.suites import GAP_WIDTHS, SuiteError, forest, gaps, make_suite, validate_task
+from cuniform_torch.systems import Dubins
 
 SEEDS = range(12)
 

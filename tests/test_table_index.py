@@ -22,12 +22,12 @@ import pytest
 import torch
 
 from cuniform_torch import TablePolicy, rollout
-from cuniform_torch.policies import UniformPolicy
-from cuniform_torch.tables.cpu_kernels import NumbaKernel, available
 from cuniform_torch.grid.cells import Grid
+from cuniform_torch.policies import UniformPolicy
+from cuniform_torch.systems import make_system
+from cuniform_torch.tables.cpu_kernels import NumbaKernel, available
 from cuniform_torch.tables.halo import halo
 from cuniform_torch.tables.lookup import MISS, NEAREST, KeyBox, Lookup, TableIndex, build_index
-from cuniform_torch.systems import make_system
 from cuniform_torch.tables.torch_kernel import draw, lookup_and_draw, lookup_entries
 from precompute.flow.builder import BuildConfig, build_table
 

@@ -10,7 +10,6 @@ from __future__ import annotations
 import json
 import math
 import sys
-import textwrap
 import uuid
 import zipfile
 from pathlib import Path

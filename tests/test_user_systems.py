@@ -7,7 +7,6 @@ import json
 import math
 import re
 import sys
-import textwrap
 from pathlib import Path
 
 import numpy as np
@@ -17,7 +16,6 @@ import torch
 from cuniform_torch import CUMPPI, CUniformMPPI, TablePolicy, load_policy, read_table, rollout, write_table
 from cuniform_torch.envs import Circle, Environment, NavigationCost, simulate
 from cuniform_torch.grid.cells import Grid
-from cuniform_torch.controllers.mppi import CUniformMPPI
 from cuniform_torch.systems import (
     _REGISTRY,
     Dubins,
@@ -25,10 +23,10 @@ from cuniform_torch.systems import (
     KinematicSingleTrackSpeed,
     UnknownSystemError,
     check_system,
+    import_system_modules,
     make_system,
     register_system,
     resolve_system,
-    import_system_modules,
     se2_invariance_gap,
     system_from_json,
     system_to_json,

@@ -39,28 +39,45 @@ import math
 import sys
 import time
 import typing
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any
 
 import torch
 
-from cuniform_torch.cli import (OUT, ArgumentParser, add_dataclass_args, add_system_module_arg,
-                                check_output_file, check_output_folder, cli_main, dataclass_from_args,
-                                import_system_modules)
+from cuniform_torch.cli import (
+    OUT,
+    ArgumentParser,
+    add_dataclass_args,
+    add_system_module_arg,
+    check_output_file,
+    check_output_folder,
+    cli_main,
+    dataclass_from_args,
+    import_system_modules,
+)
 from cuniform_torch.common.fileio import exclusive_lock
 from cuniform_torch.grid.cells import Grid
 from cuniform_torch.policies.checkpoint import file_sha256, policy_checkpoint, save_policy
 from cuniform_torch.policies.mlp import MLPConfig, MLPPolicy, default_feature_scale
 from cuniform_torch.policies.table import TablePolicy
 from cuniform_torch.tables.file import Table, read_table
-
-from training.tables.evaluate import compare, kl_per_level, sizes
 from training.sets.distill import distill_set
-from training.tables.setup import (TableFigures, adam_cosine, best_metrics, open_run, pool_cells, run_facts,
-                            say_written, seed_run, write_comparison)
-from training.tables.support import pooled_support
 from training.tables.config import DistillConfig
+from training.tables.evaluate import compare, kl_per_level, sizes
 from training.tables.loop import run_epochs
+from training.tables.setup import (
+    TableFigures,
+    adam_cosine,
+    best_metrics,
+    open_run,
+    pool_cells,
+    run_facts,
+    say_written,
+    seed_run,
+    write_comparison,
+)
+from training.tables.support import pooled_support
 from training.tables.train_state import RESUME_KEYS, UsageError, save_train_state
 
 

@@ -9,8 +9,9 @@ CPUs when > 1), any other address is passed to ``ray.init(address=...)``; one CP
 from __future__ import annotations
 
 import multiprocessing
+from collections.abc import Callable, Sequence
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
-from typing import Any, Callable, Sequence
+from typing import Any
 
 __all__ = ["RAY_MISSING", "ray_available", "run_jobs"]
 

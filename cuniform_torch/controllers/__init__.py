@@ -6,8 +6,13 @@ from cuniform_torch.controllers.bank import BankProposal, BankRefreshWarning
 from cuniform_torch.controllers.cfu import CFUMPPI, SensedMapPolicy
 from cuniform_torch.controllers.core import COST_CAP, CostFn, MPPICore, mppi_weights
 from cuniform_torch.controllers.mppi import CUMPPI, MPPI, CUniformMPPI, LogMPPI
-from cuniform_torch.controllers.proposals import (CompositeProposal, GaussianProposal, NormalLogNormalProposal,
-                                                  PolicyProposal, Proposal)
+from cuniform_torch.controllers.proposals import (
+    CompositeProposal,
+    GaussianProposal,
+    NormalLogNormalProposal,
+    PolicyProposal,
+    Proposal,
+)
 from cuniform_torch.controllers.result import MPPIResult
 
 __all__ = [

@@ -15,11 +15,11 @@ from concurrent.futures import Future, ThreadPoolExecutor
 import torch
 from torch import Tensor
 
-from cuniform_torch.sampling import kernels as rollout_kernels
+from cuniform_torch.common.frames import se2_to_world
 from cuniform_torch.controllers.checks import check_positive_int, seeded_generator
 from cuniform_torch.controllers.proposals import PolicyProposal
 from cuniform_torch.controllers.result import MPPIResult
-from cuniform_torch.common.frames import se2_to_world
+from cuniform_torch.sampling import kernels as rollout_kernels
 from cuniform_torch.sampling.rollout import check_generator, rollout_actions
 
 __all__ = ["BankProposal", "BankRefreshWarning", "BANK_THREAD_PREFIX"]

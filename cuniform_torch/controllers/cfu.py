@@ -13,18 +13,19 @@ proposal and the split are CUMPPI's, unchanged.
 from __future__ import annotations
 
 import os
-from typing import Any, Callable
+from collections.abc import Callable
+from typing import Any
 
 import torch
 from torch import Tensor
 
+from cuniform_torch.controllers.mppi import CUMPPI, CostFn
 from cuniform_torch.envs.environment import Environment
 from cuniform_torch.envs.occupancy import OccupancyGrid
 from cuniform_torch.maps.checkpoint import load_map_policy
 from cuniform_torch.maps.policy import MapPolicy
-from cuniform_torch.controllers.mppi import CUMPPI, CostFn
-from cuniform_torch.sampling.rollout import same_device
 from cuniform_torch.maps.sensing import local_map
+from cuniform_torch.sampling.rollout import same_device
 
 __all__ = ["SensedMapPolicy", "CFUMPPI"]
 

@@ -22,17 +22,27 @@ controller never differentiates through its input).
 
 from __future__ import annotations
 
-from typing import Callable, Protocol
+from collections.abc import Callable
+from typing import Protocol
 
 import torch
 from torch import Tensor
 
-from cuniform_torch.controllers.checks import (COST_CAP, _callable_name, _check_costs, _check_lambda, _finite_costs,
-                                check_positive_int, check_proposals, check_state, make_generator)
+from cuniform_torch.common.tensors import check_generator
+from cuniform_torch.controllers.checks import (
+    COST_CAP,
+    _callable_name,
+    _check_costs,
+    _check_lambda,
+    _finite_costs,
+    check_positive_int,
+    check_proposals,
+    check_state,
+    make_generator,
+)
 from cuniform_torch.controllers.proposals import PROPOSAL_MEMBERS, Closeable, Proposal
 from cuniform_torch.controllers.result import MPPIResult
 from cuniform_torch.systems import System
-from cuniform_torch.common.tensors import check_generator
 
 __all__ = ["CostFn", "MPPIResult", "mppi_weights", "MPPICore", "COST_CAP"]
 

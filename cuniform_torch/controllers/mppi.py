@@ -18,7 +18,8 @@ importable from here too.
 
 from __future__ import annotations
 
-from typing import Any, Callable
+from collections.abc import Callable
+from typing import Any
 
 import torch
 from torch import Tensor
@@ -26,7 +27,12 @@ from torch import Tensor
 from cuniform_torch.controllers.bank import BankProposal, BankRefreshWarning
 from cuniform_torch.controllers.checks import _check_seed, check_positive_int, make_generator
 from cuniform_torch.controllers.core import COST_CAP, CostFn, MPPICore, MPPIResult, mppi_weights
-from cuniform_torch.controllers.proposals import CompositeProposal, GaussianProposal, NormalLogNormalProposal, PolicyProposal
+from cuniform_torch.controllers.proposals import (
+    CompositeProposal,
+    GaussianProposal,
+    NormalLogNormalProposal,
+    PolicyProposal,
+)
 from cuniform_torch.sampling.rollout import Policy
 from cuniform_torch.systems import System
 

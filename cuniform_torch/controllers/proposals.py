@@ -34,8 +34,8 @@ from torch import Tensor
 from cuniform_torch.controllers.checks import _check_dtype, check_positive_int
 from cuniform_torch.controllers.result import MPPIResult
 from cuniform_torch.policies.checkpoint import load_policy
-from cuniform_torch.sampling.rollout import Policy, PolicyTraits, RolloutPlan, open_loop, same_device
 from cuniform_torch.sampling.noise import GaussianSampler, NormalLogNormalSampler
+from cuniform_torch.sampling.rollout import Policy, PolicyTraits, RolloutPlan, open_loop, same_device
 from cuniform_torch.systems import System
 
 __all__ = ["Proposal", "GaussianProposal", "NormalLogNormalProposal", "PolicyProposal", "CompositeProposal",

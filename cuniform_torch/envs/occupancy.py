@@ -48,7 +48,7 @@ class OccupancyGrid:
         object.__setattr__(self, "resolution", res)
         object.__setattr__(self, "appear_time", _appear_time(self.appear_time, "OccupancyGrid"))
 
-    def to(self, device: torch.device | str) -> "OccupancyGrid":
+    def to(self, device: torch.device | str) -> OccupancyGrid:
         """The same grid with ``occupied`` on ``device``."""
         return OccupancyGrid(self.occupied.to(device), self.origin, self.resolution, self.appear_time)
 

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import Sequence
+from collections.abc import Sequence
 
 from cuniform_torch.common.options import Option, option_label
 from cuniform_torch.envs.shapes import Polygon, _number, _point

@@ -26,7 +26,6 @@ from typing import Any, Protocol, runtime_checkable
 import torch
 from torch import Tensor
 
-
 __all__ = ["Obstacle", "Circle", "Rect", "Polygon"]
 
 

@@ -13,14 +13,15 @@ them (the same discretization the cost uses).
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any, Protocol, Sequence
+from typing import Any, Protocol
 
 import torch
 from torch import Tensor
 
-from cuniform_torch.systems import System
 from cuniform_torch.envs.environment import Environment
+from cuniform_torch.systems import System
 
 __all__ = ["Controller", "SimResult", "simulate", "GOAL", "COLLISION", "TIMEOUT"]
 
@@ -116,8 +117,9 @@ def simulate(
 
     goal_t = x0.new_tensor((gx, gy))  # [2]
     max_steps = max(1, math.ceil(limit / dt - 1e-9))  # t = k dt >= time_limit ends the run
-    if callable(getattr(controller, "reset", None)):
-        controller.reset()
+    reset = getattr(controller, "reset", None)  # optional: not in the Controller protocol
+    if callable(reset):
+        reset()
 
     x = x0
     states = [x0]

@@ -89,7 +89,7 @@ class Grid:
         object.__setattr__(self, "offset", offsets)
 
     @classmethod
-    def of(cls, system) -> "Grid":
+    def of(cls, system) -> Grid:
         """The grid of a :class:`~cuniform_torch.systems.System`."""
         return cls(tuple(system.cell_size), tuple(system.periodic), tuple(system.cell_offset))
 
@@ -168,7 +168,7 @@ class CellKeys:
     """box size per dimension ``[d]`` int64"""
 
     @classmethod
-    def covering(cls, cells: Tensor) -> "CellKeys":
+    def covering(cls, cells: Tensor) -> CellKeys:
         """The tightest box around ``cells [C, d]``."""
         if cells.ndim != 2 or cells.shape[0] == 0:
             raise ValueError(f"CellKeys.covering needs a non-empty [C, d] cell array, got shape {list(cells.shape)}")
@@ -189,7 +189,7 @@ class CellKeys:
             s[:-1] = torch.flip(torch.cumprod(torch.flip(self.span[1:], (0,)), 0), (0,))
         return s
 
-    def to(self, device: torch.device | str) -> "CellKeys":
+    def to(self, device: torch.device | str) -> CellKeys:
         return CellKeys(self.lo.to(device), self.span.to(device))
 
     def pack(self, cells: Tensor) -> Tensor:
@@ -216,7 +216,7 @@ class CellSet:
     """``[C]`` int64: original row of each sorted key"""
 
     @classmethod
-    def build(cls, cells: Tensor, keys: CellKeys | None = None) -> "CellSet":
+    def build(cls, cells: Tensor, keys: CellKeys | None = None) -> CellSet:
         """Index ``cells [C, d]`` (distinct); ``keys`` defaults to the box around them."""
         keys = keys or CellKeys.covering(cells)
         packed = keys.pack(cells)
@@ -230,7 +230,7 @@ class CellSet:
     def __len__(self) -> int:
         return int(self.sorted_keys.numel())
 
-    def to(self, device: torch.device | str) -> "CellSet":
+    def to(self, device: torch.device | str) -> CellSet:
         return CellSet(self.keys.to(device), self.sorted_keys.to(device), self.rows.to(device))
 
     def lookup_keys(self, packed: Tensor) -> Tensor:

@@ -61,7 +61,7 @@ class KeyHash:
         return int(self.slot_hash.numel())
 
     @classmethod
-    def build(cls, keys: Tensor, key_limit: int | None = None, seed: int = 0, load: float = 0.5) -> "KeyHash":
+    def build(cls, keys: Tensor, key_limit: int | None = None, seed: int = 0, load: float = 0.5) -> KeyHash:
         """Hash ``keys [E]`` (distinct, >= 0, int64) so that ``lookup_keys(keys[i]) == i``.
 
         ``key_limit`` (default: the largest key + 1) bounds the keys a caller of :meth:`slots` will ever probe;
@@ -112,7 +112,7 @@ class KeyHash:
             return cls(slot_hash, slot_rows, disp, mult, bucket_shift, B - 1, slot_shift, top)
         raise RuntimeError(f"KeyHash.build: no collision-free placement of {E} keys found in 8 tries")
 
-    def to(self, device: torch.device | str) -> "KeyHash":
+    def to(self, device: torch.device | str) -> KeyHash:
         return KeyHash(self.slot_hash.to(device), self.slot_rows.to(device), self.disp.to(device), self.multiplier,
                        self.bucket_shift, self.bucket_mask, self.slot_shift, self.key_limit)
 

@@ -12,14 +12,15 @@ from __future__ import annotations
 
 import math
 import os
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import torch
 from torch import Tensor
 
-from cuniform_torch.policies.checkpoint import read_network_keys, save_policy
 from cuniform_torch.maps.policy import MapPolicy, MapPolicyConfig
+from cuniform_torch.policies.checkpoint import read_network_keys, save_policy
 
 __all__ = ["MAP_POLICY_FORMAT", "MapCheckpointError", "map_policy_checkpoint", "save_map_policy", "load_map_policy"]
 

@@ -26,8 +26,9 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, Callable
+from typing import Any
 
 import torch
 from torch import Tensor, nn
@@ -114,6 +115,10 @@ class MapPolicy(nn.Module):
     and ``logits(x, t, embedding, local_map, which)`` are the training path (one embedding per state, ``[N, E]``;
     row n reads ``local_map[which[n]]``); ``encodes`` counts the maps encoded by :meth:`set_map`.
     """
+
+    # declared so that nn.Module's __getattr__ (Tensor | Module) does not hide their types
+    config: MapPolicyConfig
+    actions: Tensor
 
     def __init__(self, config: MapPolicyConfig, system: System, actions: Tensor):
         super().__init__()

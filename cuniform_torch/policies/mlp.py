@@ -28,8 +28,9 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 import torch
@@ -37,11 +38,11 @@ from torch import Tensor, nn
 
 from cuniform_torch.grid.cells import Grid
 from cuniform_torch.policies.mlp_ops import check_query, state_features
-from cuniform_torch.tables.lookup import MISS, NEAREST, Lookup, TableIndex, build_index
 from cuniform_torch.policies.table import Fallback
 from cuniform_torch.sampling.rollout import StartWatch, check_states
 from cuniform_torch.systems import System
 from cuniform_torch.tables.file import Table
+from cuniform_torch.tables.lookup import MISS, NEAREST, Lookup, TableIndex, build_index
 from cuniform_torch.tables.torch_kernel import lookup_entries
 
 __all__ = ["MLPConfig", "MLPPolicy", "MLPSupport", "default_feature_scale", "MAX_HIDDEN", "MAX_LAYERS"]
@@ -158,6 +159,10 @@ class MLPPolicy(nn.Module):
     states outside it (``queries``, ``nearest_hits``, ``misses``, ``miss_rate``) and answers them by
     ``fallback`` as a table does.
     """
+
+    # declared so that nn.Module's __getattr__ (Tensor | Module) does not hide their types
+    config: MLPConfig
+    actions: Tensor
 
     reads_start = False
     """whether the network reads start features after the state's (:class:`~cuniform_torch.policies.start_mlp.StartMLPPolicy`)"""

@@ -31,8 +31,9 @@ from __future__ import annotations
 
 import math
 import warnings
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, Callable
+from typing import Any
 
 import torch
 from torch import Tensor
@@ -41,9 +42,9 @@ from cuniform_torch.grid.cells import Grid
 from cuniform_torch.policies.mlp import MLPConfig, MLPPolicy, MLPSupport
 from cuniform_torch.policies.mlp_ops import check_query, inverse_cdf_draw
 from cuniform_torch.policies.table import Fallback
-from cuniform_torch.tables.lookup import MISS
 from cuniform_torch.sampling.rollout import OWN_ROBOT, StartMismatchWarning, check_states
 from cuniform_torch.systems import System
+from cuniform_torch.tables.lookup import MISS
 
 __all__ = ["StartRegion", "StartMLPPolicy", "start_dims_of"]
 

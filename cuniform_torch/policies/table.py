@@ -30,18 +30,19 @@ policy (:class:`~cuniform_torch.sampling.rollout.StartMismatchWarning`), with th
 from __future__ import annotations
 
 import os
-from typing import Any, Callable
+from collections.abc import Callable
+from typing import Any
 
 import torch
 from torch import Tensor
 
-from cuniform_torch.tables import cpu_kernels
-from cuniform_torch.grid.cells import Grid
-from cuniform_torch.tables.lookup import Lookup, TableIndex, build_index
 from cuniform_torch.common.options import Option, option_label
+from cuniform_torch.grid.cells import Grid
 from cuniform_torch.sampling.rollout import StartWatch, check_generator, check_states
 from cuniform_torch.systems import System
+from cuniform_torch.tables import cpu_kernels
 from cuniform_torch.tables.file import Table, read_table
+from cuniform_torch.tables.lookup import Lookup, TableIndex, build_index
 from cuniform_torch.tables.torch_kernel import lookup_and_draw, lookup_entries
 
 __all__ = ["Fallback", "Kernel", "Lookup", "TablePolicy", "UniformPolicy", "load_table"]

@@ -20,17 +20,18 @@ rigid transform) and ``watch_start`` (a table or MLP valid from one start: :clas
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable, Protocol, runtime_checkable
+from typing import Any, Protocol, cast, runtime_checkable
 
 import torch
 from torch import Tensor
 
-from cuniform_torch.sampling import kernels as rollout_kernels
 from cuniform_torch.common.frames import se2_to_world
+from cuniform_torch.common.tensors import check_generator, check_states, same_device
+from cuniform_torch.sampling import kernels as rollout_kernels
 from cuniform_torch.sampling.start_watch import OWN_ROBOT, StartMismatchWarning, StartWatch
 from cuniform_torch.systems import System
-from cuniform_torch.common.tensors import check_generator, check_states, same_device
 
 __all__ = ["Policy", "ActionSampler", "PolicyTraits", "RolloutPlan", "StartMismatchWarning", "StartWatch", "rollout",
            "rollout_actions", "check_states", "check_generator", "same_device", "OWN_ROBOT"]
@@ -230,13 +231,13 @@ class RolloutPlan:
             x[:, 3:] = start[:, 3:]
         else:
             x.copy_(start)
-        actions = None if self.sampler else policy.actions.to(dtype=x0.dtype)  # [A, q]
+        actions = cast(Tensor, None if self.sampler else cast(Policy, policy).actions.to(dtype=x0.dtype))  # [A, q]
         states, taken = [x], []
         for t in range(horizon):
             if self.sampler:
-                u = policy.sample(x, t, generator)  # [N, q]
+                u = cast(ActionSampler, policy).sample(x, t, generator)  # [N, q]
             else:
-                probs = policy.action_probs(x, t)  # [N, A]
+                probs = cast(Policy, policy).action_probs(x, t)  # [N, A]
                 if not isinstance(probs, Tensor) or probs.shape != (num_samples, actions.shape[0]):
                     raise ValueError(f"{type(policy).__name__}.action_probs returned "
                                      f"{list(probs.shape) if isinstance(probs, Tensor) else type(probs).__name__} at "
@@ -244,7 +245,7 @@ class RolloutPlan:
                                      f"actions)")
                 u = actions[torch.multinomial(probs, 1, generator=generator).squeeze(1)]  # [N, q]
             if buffer is not None and u.dtype == x.dtype and u.device == x.device:
-                x = system.step(x, u, out=buffer[t + 1].T)  # [N, d] into the buffer
+                x = cast(Any, system).step(x, u, out=buffer[t + 1].T)  # [N, d] into the buffer (step_out: takes out=)
             else:
                 x = _plain_step(system, x, u, num_samples, d, self.column_major_ok)
                 if buffer is not None and x.dtype == buffer.dtype:

@@ -6,7 +6,7 @@ warns once, :class:`StartMismatchWarning`, when such a policy is rolled out from
 from __future__ import annotations
 
 import warnings
-from typing import Callable
+from collections.abc import Callable
 
 import torch
 from torch import Tensor

@@ -30,11 +30,29 @@ registers the system first, or pass ``trust_factory="my_robots:MyRobot"``.
 from cuniform_torch.common.checks import wrap_angle
 from cuniform_torch.systems.classic import DoubleIntegrator, MountainCar
 from cuniform_torch.systems.models import Dubins, RandomWalk1D
-from cuniform_torch.systems.protocol import (DEFAULT_HORIZON, MAX_ACTIONS, MAX_HORIZON, System, check_system, se2_invariance_gap,
-                       system_horizon)
-from cuniform_torch.systems.registry import (_REGISTRY, UnknownSystemError, factory_path, import_system_modules, is_builtin,
-                       known_systems, load_factory, make_system, register_system, resolve_system, system_from_json,
-                       system_to_json)
+from cuniform_torch.systems.protocol import (
+    DEFAULT_HORIZON,
+    MAX_ACTIONS,
+    MAX_HORIZON,
+    System,
+    check_system,
+    se2_invariance_gap,
+    system_horizon,
+)
+from cuniform_torch.systems.registry import (
+    _REGISTRY,
+    UnknownSystemError,
+    factory_path,
+    import_system_modules,
+    is_builtin,
+    known_systems,
+    load_factory,
+    make_system,
+    register_system,
+    resolve_system,
+    system_from_json,
+    system_to_json,
+)
 from cuniform_torch.systems.single_track import KinematicSingleTrack, KinematicSingleTrackSpeed
 
 __all__ = [

@@ -56,11 +56,18 @@ class System(Protocol):
     """
 
     name: ClassVar[str]
-    dt: float
-    cell_size: tuple[float, ...]
     periodic: ClassVar[tuple[bool, ...]]
-    cell_offset: tuple[float, ...]
     se2_invariant: ClassVar[bool]
+
+    # read-only members: a frozen dataclass (the built-in systems) or a plain attribute both satisfy them
+    @property
+    def dt(self) -> float: ...
+
+    @property
+    def cell_size(self) -> tuple[float, ...]: ...
+
+    @property
+    def cell_offset(self) -> tuple[float, ...]: ...
 
     @property
     def state_dim(self) -> int: ...

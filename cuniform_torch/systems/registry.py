@@ -12,14 +12,15 @@ import dataclasses
 import importlib
 import inspect
 import json
-from typing import Any, Callable
+from collections.abc import Callable
+from typing import Any
 
 from cuniform_torch.common.checks import positive_int
 from cuniform_torch.systems import classic, models, single_track
 from cuniform_torch.systems.classic import DoubleIntegrator, MountainCar
 from cuniform_torch.systems.models import Dubins, RandomWalk1D
-from cuniform_torch.systems.single_track import KinematicSingleTrack, KinematicSingleTrackSpeed
 from cuniform_torch.systems.protocol import MAX_HORIZON, System, check_system
+from cuniform_torch.systems.single_track import KinematicSingleTrack, KinematicSingleTrackSpeed
 
 __all__ = ["UnknownSystemError", "register_system", "make_system", "known_systems", "is_builtin", "resolve_system",
            "import_system_modules", "factory_path", "load_factory", "system_to_json", "system_from_json"]

@@ -8,7 +8,8 @@ read); the first problem raises :class:`TableError`, naming the file and the key
 from __future__ import annotations
 
 import json
-from typing import Any, Callable
+from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 import torch

@@ -28,11 +28,11 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from cuniform_torch.tables.alias import AliasTables
-from cuniform_torch.grid.cells import CellKeys, Grid, KeyHash
-from cuniform_torch.tables.halo import halo
 from cuniform_torch.common.options import Option, option_label
+from cuniform_torch.grid.cells import CellKeys, Grid, KeyHash
+from cuniform_torch.tables.alias import AliasTables
 from cuniform_torch.tables.file import Table
+from cuniform_torch.tables.halo import halo
 
 __all__ = ["Lookup", "KeyBox", "KeyColumn", "TableIndex", "build_index", "DENSE_MIN_CELLS", "DENSE_CELLS_PER_ENTRY",
            "NEAREST", "MISS"]

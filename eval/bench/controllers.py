@@ -18,19 +18,17 @@ Writes JSON to ``--json`` (default out/bench.json).
 from __future__ import annotations
 
 import statistics
-import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
-from typing import Callable
 
 import torch
 
 from cuniform_torch import CUMPPI, MPPI, CUniformMPPI, Dubins, LogMPPI, load_table, rollout, write_table
-from cuniform_torch.sampling import GaussianSampler
 from cuniform_torch.cli import ArgumentParser, CLIError, check_output_file, cli_main
 from cuniform_torch.common.fileio import write_json
 from cuniform_torch.policies.table import Kernel
-
+from cuniform_torch.sampling import GaussianSampler
 from eval.common.paths import DEFAULT
 
 

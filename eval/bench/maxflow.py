@@ -14,13 +14,18 @@ import sys
 import time
 from pathlib import Path
 
-from cuniform_torch.cli import (ArgumentParser, CLIError, add_system_module_arg, check_output_file, cli_main,
-                                import_system_modules)
+from cuniform_torch.cli import (
+    ArgumentParser,
+    CLIError,
+    add_system_module_arg,
+    check_output_file,
+    cli_main,
+    import_system_modules,
+)
 from cuniform_torch.common.fileio import write_json
 from cuniform_torch.tables.file import read_table
-from precompute.flow.maxflow import maxflow_value_networkx, solve_maxflow
-
 from eval.common.paths import DEFAULT
+from precompute.flow.maxflow import maxflow_value_networkx, solve_maxflow
 
 
 @cli_main()

@@ -128,9 +128,8 @@ def soak(policy, commands: int, num_samples: int = 1000, bank_size: int = 20000,
 def _policy(path: Path | None, horizon: int, device: str):
     if path is not None:
         return load_table(path, device=device)
-    from precompute.flow.builder import BuildConfig, build_table
-
     from cuniform_torch.policies.table import TablePolicy
+    from precompute.flow.builder import BuildConfig, build_table
 
     table, _ = build_table(Dubins(), BuildConfig(horizon=horizon))
     return TablePolicy(table, device=device)

@@ -8,9 +8,8 @@ method's colour and line style are its :data:`eval.common.methods.METHODS` entry
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import math
+from pathlib import Path
 
 import matplotlib
 
@@ -19,7 +18,6 @@ import matplotlib.pyplot as plt  # noqa: E402
 import torch  # noqa: E402
 
 from cuniform_torch.envs import Circle, Environment, Polygon, Rect  # noqa: E402
-
 from eval.common.config import PAPER_COVERAGE  # noqa: E402
 from eval.common.methods import METHODS, Sources, sample_states  # noqa: E402
 

@@ -10,7 +10,8 @@ table on real rollouts); the other C-Uniform methods are ours and have no paper 
 
 from __future__ import annotations
 
-from typing import Any, Sequence
+from collections.abc import Sequence
+from typing import Any
 
 from eval.common.methods import METHODS
 

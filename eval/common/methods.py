@@ -21,18 +21,28 @@ Baselines sample around a zero nominal (a first solve). Method keys:
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import torch
 from torch import Tensor
 
-from cuniform_torch import (CUMPPI, MPPI, CUniformMPPI, LogMPPI, TablePolicy, load_map_policy, load_policy, load_table,
-                            read_table, rollout)
+from cuniform_torch import (
+    CUMPPI,
+    MPPI,
+    CUniformMPPI,
+    LogMPPI,
+    TablePolicy,
+    load_map_policy,
+    load_policy,
+    load_table,
+    read_table,
+    rollout,
+)
 from cuniform_torch.policies import UniformPolicy
 from cuniform_torch.sampling import GaussianSampler, NormalLogNormalSampler
-
 from eval.common import config
 from eval.common.graph_sampling import GraphSampler
 from eval.common.paths import DEFAULT

@@ -10,7 +10,7 @@ from __future__ import annotations
 import math
 import statistics
 from collections import defaultdict
-from typing import Iterable, Sequence
+from collections.abc import Iterable, Sequence
 
 __all__ = ["wilson_interval", "aggregate", "mean_or_none", "mean_over_levels"]
 

@@ -18,17 +18,25 @@ from __future__ import annotations
 import json
 import statistics
 import sys
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any
 
 from cuniform_torch.cli import OUT, ArgumentParser, CLIError, check_output_folder, cli_main
 from cuniform_torch.common.fileio import write_json
 from cuniform_torch.common.parallel import run_jobs
-
-from eval.mountain_car.episode import (GYM_MISSING, LAMBDA, METHODS, NOISE_STD, SET_METHODS, episode_job,
-                                   have_gymnasium, have_pytorch_mppi)
-from eval.mountain_car.table_set import ensure_set, parse_grid
 from eval.common.stats import wilson_interval
+from eval.mountain_car.episode import (
+    GYM_MISSING,
+    LAMBDA,
+    METHODS,
+    NOISE_STD,
+    SET_METHODS,
+    episode_job,
+    have_gymnasium,
+    have_pytorch_mppi,
+)
+from eval.mountain_car.table_set import ensure_set, parse_grid
 
 __all__ = ["main", "make_parser", "summarize"]
 

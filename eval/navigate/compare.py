@@ -15,14 +15,13 @@ interval's lower end.
 from __future__ import annotations
 
 import sys
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Sequence
 
 from cuniform_torch.cli import ArgumentParser, cli_main
-
+from eval.common.stats import wilson_interval
 from eval.navigate.replay import load_folder
 from eval.navigate.stats import _by_episode, _compare
-from eval.common.stats import wilson_interval
 
 __all__ = ["parse_cell", "compare_cells", "main"]
 

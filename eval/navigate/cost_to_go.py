@@ -15,7 +15,7 @@ point (a rollout state), it replaces the straight-line distance in
 from __future__ import annotations
 
 import math
-from typing import Sequence
+from collections.abc import Sequence
 
 import numpy as np
 import torch

@@ -8,7 +8,7 @@ bin, geometric) of a time inside the bin that holds it. :mod:`eval.navigate.stat
 from __future__ import annotations
 
 import math
-from typing import Iterable, Mapping, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 
 __all__ = ["T_MIN", "BINS_PER_DECADE", "NUM_BINS", "cycle_histogram", "merge_histograms", "histogram_quantile",
            "bin_centre"]

@@ -35,13 +35,12 @@ import numpy as np
 import torch
 
 from cuniform_torch.envs import Environment, NavigationCost, OccupancyGrid, simulate
-
-from eval.navigate.cost_to_go import CostToGo
-from eval.common.methods import Sources, make_controller
-from eval.navigate.methods import NAV_METHODS
-from eval.navigate.stats import cycle_histogram
 from cuniform_torch.envs.worlds.geometry import clearance, inflate
 from cuniform_torch.envs.worlds.suites import NavTask
+from eval.common.methods import Sources, make_controller
+from eval.navigate.cost_to_go import CostToGo
+from eval.navigate.methods import NAV_METHODS
+from eval.navigate.stats import cycle_histogram
 
 __all__ = ["NavJob", "NavContext", "run_nav_episode", "rasterize", "episode_key", "RASTER_MIN_OBSTACLES"]
 

@@ -12,10 +12,9 @@ Serial (``workers=1``, no Ray), ``workers=N`` spawned processes (each caching th
 
 from __future__ import annotations
 
-from typing import Callable, Sequence
+from collections.abc import Callable, Sequence
 
 from cuniform_torch.common.parallel import RAY_MISSING, ray_available, run_jobs
-
 from eval.navigate.episode import NavContext, NavJob, run_nav_episode
 
 __all__ = ["execute"]

@@ -22,17 +22,16 @@ A sampler can only turn *missed* failures into successes; *trapped* and *lost* o
 from __future__ import annotations
 
 import sys
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Sequence
 
 import torch
 
 from cuniform_torch import CUniformMPPI
 from cuniform_torch.cli import ArgumentParser, cli_main
-from cuniform_torch.envs import NavigationCost
 from cuniform_torch.common.fileio import write_json
-
+from cuniform_torch.envs import NavigationCost
 from eval.navigate.episode import NavContext, _cost_environment, _sources
 from eval.navigate.replay import compare_records, load_folder, replay_episode, summarize
 

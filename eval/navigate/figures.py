@@ -10,11 +10,10 @@ from __future__ import annotations
 import json
 import math
 import sys
+from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import Mapping, Sequence
 
 from cuniform_torch.cli import ArgumentParser, cli_main
-
 from eval.common.figures import method_style, plt, save_figure
 
 __all__ = ["TB_METRICS", "success_figure", "write_tensorboard", "main"]

@@ -35,7 +35,8 @@ senses now (``task.sensed_environment(xy)``), ready for a :class:`~cuniform_torc
 from __future__ import annotations
 
 import math
-from typing import Any, Sequence
+from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
 import torch
@@ -48,8 +49,8 @@ except ImportError as err:  # gymnasium is the optional extra "gym"
 
 from cuniform_torch.envs import COLLISION, GOAL, TIMEOUT, Circle, Environment, Rect
 from cuniform_torch.envs.worlds.robot import NAV_ROBOT
-from cuniform_torch.envs.worlds.tasks import DEFAULT_COUNTS, make_tasks
 from cuniform_torch.envs.worlds.suites import NavTask, make_suite
+from cuniform_torch.envs.worlds.tasks import DEFAULT_COUNTS, make_tasks
 
 __all__ = ["NavigationEnv", "register_envs", "make_env", "ENV_ID", "MAX_CIRCLES", "MAX_RECTS", "GOAL_REWARD",
            "COLLISION_PENALTY"]
@@ -279,7 +280,8 @@ def _draw(task: NavTask, sensed_env: Environment, path: np.ndarray) -> np.ndarra
     """The picture of :meth:`NavigationEnv.render`; ``path [S+1, 2]`` (m)."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
-    from matplotlib.patches import Circle as CirclePatch, Rectangle
+    from matplotlib.patches import Circle as CirclePatch
+    from matplotlib.patches import Rectangle
 
     fig = Figure(figsize=(6, 4), dpi=80)
     canvas = FigureCanvasAgg(fig)

@@ -23,7 +23,6 @@ from __future__ import annotations
 
 from cuniform_torch import CFUMPPI, CUMPPI, MPPI, CUniformMPPI, LogMPPI
 from cuniform_torch.sampling import GaussianSampler, NormalLogNormalSampler
-
 from eval.common.methods import Method
 
 __all__ = ["NAV_METHODS", "DEFAULT_METHODS", "GAUSSIAN_BASELINES", "OPT_IN", "parse_nav_methods"]

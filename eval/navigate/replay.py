@@ -19,18 +19,18 @@ from __future__ import annotations
 import difflib
 import json
 import sys
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any
 
 from cuniform_torch.cli import ArgumentParser, add_system_module_arg, cli_main, import_system_modules
 from cuniform_torch.common.fileio import write_json
-
-from eval.navigate.episode import NavContext, NavJob, run_nav_episode
 from cuniform_torch.envs.worlds.robot import RobotPreset
-from eval.navigate.store import EpisodeStore
-from cuniform_torch.envs.worlds.tasks import make_task
-from eval.navigate.run import NavConfig, _file_digest, _sources
 from cuniform_torch.envs.worlds.suites import NavTask
+from cuniform_torch.envs.worlds.tasks import make_task
+from eval.navigate.episode import NavContext, NavJob, run_nav_episode
+from eval.navigate.run import NavConfig, _file_digest, _sources
+from eval.navigate.store import EpisodeStore
 
 __all__ = ["load_folder", "load_episode", "replay_episode", "compare_records", "summarize", "plot_replay", "main"]
 

@@ -5,15 +5,15 @@ from __future__ import annotations
 
 import dataclasses
 import os
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any
 
 from cuniform_torch.common.fileio import write_bytes, write_json
-
+from cuniform_torch.envs.worlds.suites import NavTask
+from cuniform_torch.envs.worlds.tasks import task_summary
 from eval.navigate.methods import GAUSSIAN_BASELINES, NAV_METHODS
 from eval.navigate.stats import markdown, paired_comparisons, summarize
-from cuniform_torch.envs.worlds.tasks import task_summary
-from cuniform_torch.envs.worlds.suites import NavTask
 
 __all__ = ["result", "write_outputs", "render", "success_pivot"]
 

@@ -14,12 +14,8 @@ hash of everything that defines them, so a changed preset builds new files and a
 
 from __future__ import annotations
 
-import hashlib
 import json
-import math
-from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any
 
 from cuniform_torch.envs.worlds.robot import RobotPreset
 

@@ -22,27 +22,33 @@ import os
 import sys
 import time
 import zlib
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any
 
 import numpy as np
 
-from cuniform_torch.cli import (ArgumentParser, add_dataclass_args, add_system_module_arg, cli_main,
-                                dataclass_from_args, import_system_modules)
+from cuniform_torch.cli import (
+    ArgumentParser,
+    add_dataclass_args,
+    add_system_module_arg,
+    cli_main,
+    dataclass_from_args,
+    import_system_modules,
+)
 from cuniform_torch.common.fileio import exclusive_lock
-
+from cuniform_torch.envs.worlds.robot import NAV_ROBOT, RobotPreset, preset_dict
+from cuniform_torch.envs.worlds.suites import NavTask
+from cuniform_torch.envs.worlds.tasks import SPLITS, SUITES, TIME_LIMITS, make_tasks
 from eval.common import config
 from eval.navigate.cost_to_go import RESOLUTION as COST_TO_GO_RESOLUTION
 from eval.navigate.episode import NavContext, NavJob
 from eval.navigate.execute import execute
 from eval.navigate.methods import NAV_METHODS, parse_nav_methods
-from cuniform_torch.envs.worlds.robot import NAV_ROBOT, RobotPreset, preset_dict
-from eval.navigate.robot_files import ensure_policy, ensure_table
 from eval.navigate.results import render, result, success_pivot, write_outputs
+from eval.navigate.robot_files import ensure_policy, ensure_table
 from eval.navigate.store import EpisodeStore
-from cuniform_torch.envs.worlds.tasks import SPLITS, SUITES, TIME_LIMITS, make_tasks
-from cuniform_torch.envs.worlds.suites import NavTask
 
 __all__ = ["NavConfig", "REPEATS", "SHORT", "QUICK", "make_jobs", "run", "short_run", "render", "result",
            "success_pivot", "write_outputs", "main", "controller_seed"]

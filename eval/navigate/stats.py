@@ -18,11 +18,19 @@ from __future__ import annotations
 
 import math
 import statistics
-from typing import Any, Mapping, Sequence
+from collections.abc import Mapping, Sequence
+from typing import Any
 
-from eval.navigate.cycle_hist import (BINS_PER_DECADE, NUM_BINS, T_MIN, bin_centre, cycle_histogram, histogram_quantile,
-                         merge_histograms)
 from eval.common.stats import mean_or_none, wilson_interval
+from eval.navigate.cycle_hist import (
+    BINS_PER_DECADE,
+    NUM_BINS,
+    T_MIN,
+    bin_centre,
+    cycle_histogram,
+    histogram_quantile,
+    merge_histograms,
+)
 
 __all__ = ["T_MIN", "BINS_PER_DECADE", "NUM_BINS", "OUTCOMES", "cycle_histogram", "merge_histograms",
            "histogram_quantile", "bin_centre", "summarize", "newcombe_paired_interval", "mcnemar_exact_p",

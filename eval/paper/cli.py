@@ -14,15 +14,22 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import sys
+from collections.abc import Callable
 from pathlib import Path
 from types import ModuleType
-from typing import Any, Callable
+from typing import Any
 
-from cuniform_torch.cli import (ArgumentParser, add_dataclass_args, add_system_module_arg, check_output_file,
-                                check_output_folder, cli_main, dataclass_from_args, import_system_modules)
+from cuniform_torch.cli import (
+    ArgumentParser,
+    add_dataclass_args,
+    add_system_module_arg,
+    check_output_file,
+    check_output_folder,
+    cli_main,
+    dataclass_from_args,
+    import_system_modules,
+)
 from cuniform_torch.common.fileio import write_json
-
-from eval.paper.episodes import ControllerSettings
 from eval.common.methods import Sources
 from eval.common.paths import DEFAULT
 

@@ -54,15 +54,14 @@ import numpy as np
 import torch
 
 from cuniform_torch.envs import Environment, Rect, u_shape
-
-from eval.paper import cli
 from eval.common import config
-from eval.paper.episodes import ControllerSettings, Episode, run_episodes, usable_methods
 from eval.common.figures import plot_paths
 from eval.common.markdown import success_markdown
 from eval.common.markdown import table as md_table
 from eval.common.methods import METHODS, Sources
 from eval.common.stats import aggregate
+from eval.paper import cli
+from eval.paper.episodes import ControllerSettings, Episode, run_episodes, usable_methods
 
 __all__ = ["EnvSpec", "ENVIRONMENTS", "ClutteredConfig", "CONFIG", "QUICK", "make_parser",
            "config_from_args", "make_env", "start_poses", "time_limit", "SEED_STRIDE", "controller_seed",

@@ -26,11 +26,10 @@ from dataclasses import asdict, dataclass, replace
 import torch
 
 from cuniform_torch.metrics import coverage, uniform_ceiling
-
-from eval.paper import cli
 from eval.common import config
 from eval.common.markdown import table as md_table
 from eval.common.methods import Sources, parse_methods, sample_states
+from eval.paper import cli
 from eval.paper.reachable import reachable
 
 __all__ = ["CoverageConfig", "CONFIG", "QUICK", "run", "markdown", "print_table", "make_parser", "config_from_args",

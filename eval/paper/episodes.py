@@ -17,14 +17,13 @@ baselines' noise level is part of the method, CU-MPPI keeps its reference defaul
 from __future__ import annotations
 
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Sequence
 
 import torch
 
 from cuniform_torch.envs import Environment, NavigationCost, simulate
-
 from eval.common import config
 from eval.common.methods import METHODS, Method, Sources, make_controller, parse_methods
 

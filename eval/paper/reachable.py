@@ -9,6 +9,7 @@ uniformity "over the cells real rollouts can reach".
 from __future__ import annotations
 
 from dataclasses import dataclass
+
 import torch
 
 from cuniform_torch.grid.cells import CellKeys

@@ -50,14 +50,13 @@ import numpy as np
 import torch
 
 from cuniform_torch.envs import Circle, Environment
-
-from eval.paper import cli
 from eval.common import config
-from eval.paper.episodes import ControllerSettings, Episode, run_episodes, usable_methods
 from eval.common.figures import plot_paths
 from eval.common.markdown import success_markdown
 from eval.common.methods import METHODS, Sources
 from eval.common.stats import aggregate
+from eval.paper import cli
+from eval.paper.episodes import ControllerSettings, Episode, run_episodes, usable_methods
 
 __all__ = ["SuddenObstacleConfig", "CONFIG", "QUICK", "make_parser", "config_from_args", "offsets",
            "make_env", "oracle_feasible", "episodes", "run", "markdown", "figures", "main"]

@@ -26,12 +26,11 @@ from dataclasses import asdict, dataclass, replace
 import torch
 
 from cuniform_torch.metrics import level_uniformity
-
-from eval.paper import cli
 from eval.common.markdown import table as md_table
 from eval.common.methods import Sources, parse_methods, sample_states
-from eval.paper.reachable import reachable
 from eval.common.stats import mean_over_levels
+from eval.paper import cli
+from eval.paper.reachable import reachable
 
 __all__ = ["UniformityConfig", "CONFIG", "QUICK", "MEASURES", "run", "markdown", "make_parser", "config_from_args",
            "main"]

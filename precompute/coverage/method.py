@@ -35,15 +35,14 @@ from __future__ import annotations
 import json
 import math
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable
 
 import numpy as np
 import torch
 
 from cuniform_torch.systems import System
 from cuniform_torch.tables.file import Table, system_fields
-
 from precompute.coverage.adjoint import StatePropagator
 from precompute.coverage.reachable import ReachableLevels, enumerate_reachable
 from precompute.levels.safe_map import LocalMap, SafeCells, map_table_keys

@@ -11,14 +11,13 @@ by a quarter, from that level on, until it fits). With a local map, states whose
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Callable
 
 import torch
 
 from cuniform_torch.grid.cells import CellKeys, Grid
 from cuniform_torch.systems import System
-
 from precompute.levels.safe_map import MapError, SafeCells
 from precompute.levels.start import start_state
 

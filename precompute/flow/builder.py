@@ -15,9 +15,9 @@ import hashlib
 import json
 import platform
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 import scipy
@@ -27,11 +27,10 @@ from cuniform_torch.common.fileio import write_json, write_npz
 from cuniform_torch.grid.cells import Grid
 from cuniform_torch.systems import System, system_to_json
 from cuniform_torch.tables.file import Table, system_fields
-
-from precompute.levels.sets import EmptyLevelError, LevelStep, PointMode, TieRule, next_level
 from precompute.flow.maxflow import action_probs_from_flow, solve_maxflow, unique_arcs
-from precompute.levels.safe_map import LocalMap, MapError, SafeCells
 from precompute.flow.size_guide import SizeGuide, available_memory_bytes, estimate_build_bytes, project_level_sizes
+from precompute.levels.safe_map import LocalMap, MapError, SafeCells
+from precompute.levels.sets import EmptyLevelError, LevelStep, PointMode, TieRule, next_level
 from precompute.levels.start import check_start, start_array, start_state
 from precompute.levels.viability import SAFE_RULE, step_generator, viable_keep, viable_levels
 
@@ -95,7 +94,7 @@ class StepResult:
         write_npz(path, arrays, compress=False)
 
     @classmethod
-    def load(cls, path: Path, fingerprint: str) -> "StepResult | None":
+    def load(cls, path: Path, fingerprint: str) -> StepResult | None:
         try:
             with np.load(path, allow_pickle=False) as z:
                 if str(z["fingerprint"][()]) != fingerprint:

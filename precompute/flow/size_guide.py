@@ -4,8 +4,9 @@ the flags that make the build smaller (used by :mod:`precompute.build`; importab
 from __future__ import annotations
 
 import math
+from collections.abc import Sized
 from dataclasses import dataclass, field
-from typing import Protocol, Sized
+from typing import Protocol
 
 
 class StepSizes(Protocol):

@@ -20,15 +20,15 @@ from __future__ import annotations
 
 import itertools
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable
 
 import numpy as np
 import torch
 from torch import Tensor
 
-from cuniform_torch.grid.cells import CellKeys, CellSet, Grid
 from cuniform_torch.common.options import Option, option_label
+from cuniform_torch.grid.cells import CellKeys, CellSet, Grid
 from cuniform_torch.systems import System
 
 __all__ = ["PointMode", "LevelStep", "EmptyLevelError", "cell_sample_offsets", "next_level", "LATTICE_SCALE"]

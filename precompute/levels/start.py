@@ -8,7 +8,7 @@ change serves every pose, so only the dimensions after (x, y, theta) may be give
 from __future__ import annotations
 
 import math
-from typing import Sequence
+from collections.abc import Sequence
 
 import numpy as np
 import torch

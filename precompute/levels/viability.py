@@ -11,16 +11,15 @@ a backward pass keeps a cell of L_t only if one of its transitions lands in a ke
 
 from __future__ import annotations
 
-from typing import Callable
+from collections.abc import Callable
 
 import numpy as np
 import torch
 from torch import Tensor
 
 from cuniform_torch.systems import System
-
-from precompute.levels.sets import EmptyLevelError, PointMode, TieRule, next_level
 from precompute.levels.safe_map import MapError, SafeCells
+from precompute.levels.sets import EmptyLevelError, PointMode, TieRule, next_level
 
 __all__ = ["SAFE_RULE", "viable_levels", "viable_keep", "step_generator"]
 

@@ -20,22 +20,29 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any
 
 import numpy as np
 
-from cuniform_torch.cli import (ArgumentParser, CLIError, add_dataclass_args, cli_main, field_docs, flag_name,
-                                given_fields)
+from cuniform_torch.cli import (
+    ArgumentParser,
+    CLIError,
+    add_dataclass_args,
+    cli_main,
+    field_docs,
+    flag_name,
+    given_fields,
+)
 from cuniform_torch.common.fileio import exclusive_lock, write_json
 from cuniform_torch.common.parallel import run_jobs
 from cuniform_torch.systems import make_system, resolve_system, system_from_json
-
 from precompute.coverage.method import CoverageConfig
-from precompute.maps.dataset import dataset_header, entry_arrays, file_sha256, write_shard
-from precompute.maps.worlds import FARM_SUITES, SPLITS, candidate_poses, crop_patch, suite_worlds, world_of
 from precompute.levels.safe_map import LocalMap, MapError, check_map_system
 from precompute.levels.viability import SAFE_RULE
+from precompute.maps.dataset import dataset_header, entry_arrays, file_sha256, write_shard
+from precompute.maps.worlds import FARM_SUITES, SPLITS, candidate_poses, crop_patch, suite_worlds, world_of
 
 __all__ = ["main", "build_shard", "MAX_TRIES"]
 
@@ -77,7 +84,6 @@ def make_parser() -> argparse.ArgumentParser:
 
 def _system(args: argparse.Namespace):
     from cuniform_torch.envs.worlds.robot import NAV_ROBOT
-
     from precompute.build import parse_params
 
     name = resolve_system(args.system)
@@ -129,8 +135,8 @@ def build_shard(spec_json: str, k: int, out: str) -> dict[str, Any]:
     """Build shard ``k`` of the farm ``spec_json`` into the folder ``out``; its sha256 and entries."""
     import torch
 
-    from precompute.flow.builder import BuildConfig, build_table
     from precompute.coverage.method import build_coverage_table
+    from precompute.flow.builder import BuildConfig, build_table
 
     torch.set_num_threads(1)
     spec = json.loads(spec_json)

@@ -26,8 +26,8 @@ import numpy as np
 
 from cuniform_torch.envs.worlds.barn import load_barn
 from cuniform_torch.envs.worlds.geometry import clearance, inflate
-from cuniform_torch.envs.worlds.tasks import CLUTTER, split_of
 from cuniform_torch.envs.worlds.suites import forest, gaps
+from cuniform_torch.envs.worlds.tasks import CLUTTER, split_of
 
 __all__ = ["FARM_SUITES", "SPLITS", "World", "split_of", "suite_worlds", "world_of", "crop_patch", "candidate_poses"]
 

@@ -18,14 +18,20 @@ from __future__ import annotations
 
 import math
 import sys
-from typing import Sequence
+from collections.abc import Sequence
 
 import numpy as np
 import torch
 from torch import Tensor
 
-from cuniform_torch.cli import (ArgumentParser, CLIError, add_system_module_arg, check_output_file, cli_main,
-                                import_system_modules)
+from cuniform_torch.cli import (
+    ArgumentParser,
+    CLIError,
+    add_system_module_arg,
+    check_output_file,
+    cli_main,
+    import_system_modules,
+)
 from cuniform_torch.envs import OccupancyGrid
 from cuniform_torch.grid.cells import CellSet, Grid
 from cuniform_torch.policies.table import TablePolicy

@@ -21,22 +21,30 @@ import math
 import sys
 import time
 import typing
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Optional, Sequence
 
 import torch
 from torch.utils.tensorboard import SummaryWriter
 from tqdm import tqdm
 
-from cuniform_torch.cli import (OUT, RUNS, ArgumentParser, CLIError, add_dataclass_args, check_output_file,
-                                check_output_folder, cli_main, dataclass_from_args)
+from cuniform_torch.cli import (
+    OUT,
+    RUNS,
+    ArgumentParser,
+    CLIError,
+    add_dataclass_args,
+    check_output_file,
+    check_output_folder,
+    cli_main,
+    dataclass_from_args,
+)
 from cuniform_torch.common.fileio import exclusive_lock
 from cuniform_torch.maps.checkpoint import map_policy_checkpoint, save_map_policy
-
-from training.tables.loop import log_hyperparameters
 from training.maps.data import load_map_data
 from training.maps.train import Trainer, make_policy, split_entries
+from training.tables.loop import log_hyperparameters
 from training.tables.train_state import UsageError, load_train_state, save_train_state
 
 TRAIN_STATE_FORMAT = "cuniform-distill-maps-state/1"
@@ -48,7 +56,7 @@ class MapDistillConfig:
 
     maps: list[str] = field(default_factory=list)
     """data set folders (cuniform-map-dataset/1); several must share system, grid, actions and patch"""
-    out: Optional[str] = None
+    out: str | None = None
     """checkpoint to write (default: out/<first data set name>.map_policy.pt)"""
     hidden: int = 128
     """hidden units per layer of the state / map MLP"""

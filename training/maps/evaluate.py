@@ -14,7 +14,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import sys
-from typing import Sequence
+from collections.abc import Sequence
 
 import numpy as np
 import torch
@@ -23,9 +23,9 @@ from cuniform_torch.cli import ArgumentParser, cli_main
 from cuniform_torch.envs import OccupancyGrid
 from cuniform_torch.maps.checkpoint import load_map_policy
 from cuniform_torch.maps.policy import MapPolicy
+from cuniform_torch.maps.sensing import patch_centres
 from cuniform_torch.policies.table import TablePolicy
 from cuniform_torch.sampling.rollout import rollout
-from cuniform_torch.maps.sensing import patch_centres
 from cuniform_torch.tables.file import Table, read_table
 from precompute.maps.dataset import MapDataset, read_map_dataset
 

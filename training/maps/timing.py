@@ -17,16 +17,16 @@ import os
 import statistics
 import sys
 import time
-from typing import Sequence
+from collections.abc import Sequence
 
 import torch
 
 from cuniform_torch.cli import ArgumentParser, cli_main
+from cuniform_torch.controllers.cfu import CFUMPPI
 from cuniform_torch.envs import OccupancyGrid
 from cuniform_torch.maps.checkpoint import load_map_policy
 from cuniform_torch.maps.encoder import PatchSpec
 from cuniform_torch.maps.policy import MapPolicy, MapPolicyConfig
-from cuniform_torch.controllers.cfu import CFUMPPI
 from cuniform_torch.maps.sensing import local_map
 from cuniform_torch.systems import make_system
 

@@ -25,7 +25,6 @@ from torch import Tensor
 
 from cuniform_torch.grid.cells import Grid
 from cuniform_torch.maps.policy import MapPolicy, MapPolicyConfig
-
 from training.maps.data import MapData
 
 __all__ = ["Split", "split_entries", "make_policy", "level_weights", "kl_rows", "jitter_rows", "Trainer"]

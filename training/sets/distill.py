@@ -28,17 +28,25 @@ from typing import TYPE_CHECKING, Any
 
 import torch
 
-from cuniform_torch.policies.checkpoint import file_sha256, policy_checkpoint, save_policy
 from cuniform_torch.grid.cells import Grid
+from cuniform_torch.policies.checkpoint import file_sha256, policy_checkpoint, save_policy
 from cuniform_torch.policies.mlp import MLPConfig, default_feature_scale
 from cuniform_torch.policies.start_mlp import StartMLPPolicy, StartRegion, start_dims_of
 from cuniform_torch.policies.table_set import SET_INDEX, load_table_set
-
-from training.tables.setup import (TableFigures, adam_cosine, best_metrics, open_run, pool_cells, run_facts,
-                            say_written, seed_run, write_comparison)
 from training.tables.evaluate import compare, kl_per_level
-from training.tables.support import pooled_support
 from training.tables.loop import run_epochs
+from training.tables.setup import (
+    TableFigures,
+    adam_cosine,
+    best_metrics,
+    open_run,
+    pool_cells,
+    run_facts,
+    say_written,
+    seed_run,
+    write_comparison,
+)
+from training.tables.support import pooled_support
 from training.tables.train_state import RESUME_KEYS, UsageError, save_train_state
 
 if TYPE_CHECKING:

@@ -35,21 +35,21 @@ import statistics
 import sys
 import time
 import warnings
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any
 
 import numpy as np
 import torch
 
-from cuniform_torch.policies.checkpoint import load_policy
 from cuniform_torch.cli import ArgumentParser, cli_main
 from cuniform_torch.common.fileio import write_json
-from cuniform_torch.policies.start_mlp import StartMLPPolicy
 from cuniform_torch.controllers.mppi import CUniformMPPI
+from cuniform_torch.policies.checkpoint import load_policy
+from cuniform_torch.policies.start_mlp import StartMLPPolicy
 from cuniform_torch.policies.table import UniformPolicy
-from cuniform_torch.tables.file import Table, TableError, read_table
 from cuniform_torch.policies.table_set import SET_INDEX, TableSetPolicy, load_table_set
-
+from cuniform_torch.tables.file import Table, TableError, read_table
 from training.tables.evaluate import cell_centres, coverage_comparison, policy_log_probs
 from training.tables.train_state import UsageError
 

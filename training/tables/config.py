@@ -7,7 +7,6 @@ table set), so that neither imports the other for it.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Optional
 
 from cuniform_torch.cli import RUNS
 
@@ -39,7 +38,7 @@ class DistillConfig:
     """torch CPU threads (0: torch's choice, one per core). 1 by default: on 2 idle cores a second thread makes
     a 4096-sample step of the default network about 1.6x faster, but when other processes keep the cores busy it
     makes it about 10x slower (OpenMP hand-offs between oversubscribed threads)"""
-    out: Optional[str] = None
+    out: str | None = None
     """checkpoint to write (default: out/<first table stem>.policy.pt)"""
     jitter: int = 4
     """jittered points per cell per epoch, on top of the cell centre (also per cell in the final jittered KL;

@@ -27,14 +27,15 @@ from __future__ import annotations
 
 import math
 import os
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any
 
 import torch
 from torch import Tensor
 
-from cuniform_torch.metrics import coverage, uniform_ceiling
 from cuniform_torch.grid.cells import Grid
+from cuniform_torch.metrics import coverage, uniform_ceiling
 from cuniform_torch.policies.mlp import MLPPolicy
 from cuniform_torch.policies.table import TablePolicy
 from cuniform_torch.sampling.rollout import Policy, rollout

@@ -11,15 +11,15 @@ from __future__ import annotations
 import dataclasses
 import math
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, Callable
+from typing import Any
 
 import torch
 from torch import Tensor
 from tqdm import tqdm
 
 from cuniform_torch.grid.cells import Grid
-
 from training.tables.evaluate import kl_rows
 from training.tables.samples import PooledCells, level_weights, make_samples
 from training.tables.train_state import TRAIN_STATE_FORMAT
@@ -48,7 +48,7 @@ class Progress:
     finished: bool = False
 
     @classmethod
-    def start(cls, model: torch.nn.Module, run_name: str) -> "Progress":
+    def start(cls, model: torch.nn.Module, run_name: str) -> Progress:
         """A fresh run: the initial weights count as the best so far."""
         return cls(run_name, _clone(model))
 

@@ -13,7 +13,6 @@ import torch
 from torch import Tensor
 
 from cuniform_torch.grid.cells import Grid
-
 from training.tables.evaluate import jitter_cells
 
 __all__ = ["PooledCells", "make_samples", "level_weights"]

@@ -11,9 +11,10 @@ from __future__ import annotations
 
 import dataclasses
 import time
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable, Sequence
+from typing import Any
 
 import torch
 from torch import Tensor
@@ -25,7 +26,6 @@ from cuniform_torch.metrics import coverage
 from cuniform_torch.sampling.rollout import rollout
 from cuniform_torch.systems import System
 from cuniform_torch.tables.file import Table
-
 from training.tables.evaluate import cell_centres, cell_levels
 from training.tables.figures import coverage_figure, trajectory_figure
 from training.tables.loop import Progress, log_hyperparameters

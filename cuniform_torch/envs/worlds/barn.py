@@ -35,15 +35,14 @@ import math
 import os
 import zipfile
 import zlib
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Mapping, Sequence
 
 import numpy as np
 
-from cuniform_torch.envs import Circle, Environment
 from cuniform_torch.common.fileio import write_npz
-
+from cuniform_torch.envs import Circle, Environment
 from cuniform_torch.envs.worlds.barn_format import KEYS, BarnFormatError, format_error, validate_barn
 from cuniform_torch.envs.worlds.barn_worlds import FILE_GOAL, FILE_START, convert_worlds
 

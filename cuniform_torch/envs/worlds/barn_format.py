@@ -7,7 +7,7 @@ Shapes: K maps, M cylinder rows (all maps), P reference-path points (all maps).
 
 from __future__ import annotations
 
-from typing import Mapping
+from collections.abc import Mapping
 
 import numpy as np
 

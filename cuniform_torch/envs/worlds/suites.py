@@ -30,9 +30,8 @@ from typing import Any
 import numpy as np
 import torch
 
-from cuniform_torch.envs import Environment
 from cuniform_torch.common.options import Option, option_label
-
+from cuniform_torch.envs import Environment
 from cuniform_torch.envs.worlds.geometry import SuiteError, inflate, reachable, sensed
 
 __all__ = ["NavTask", "SuiteError", "Suite", "forest", "gaps", "make_suite", "validate_task", "MAX_ATTEMPTS",
