@@ -1,4 +1,5 @@
-"""The README's commands stay true: every ``python -m`` command it shows parses with today's flags.
+"""The README's and the guides' commands stay true: every ``python -m`` command they show parses with today's
+flags, and every command-line module of the project is shown somewhere.
 
 Each command is run in-process up to its argument parsing (``parse_args`` returns, then the run stops), so a
 renamed module or flag fails here in a second, without doing the command's work.
@@ -18,7 +19,10 @@ import pytest
 
 from cuniform_torch.systems import _REGISTRY
 
-README = Path(__file__).resolve().parents[1] / "README.md"
+ROOT = Path(__file__).resolve().parents[1]
+README = ROOT / "README.md"
+GUIDES = sorted((ROOT / "docs" / "guides").glob("*.md"))
+LAYERS = ("precompute", "training", "eval")  # the packages whose modules are command-line entry points
 SKIP = {"pytest"}  # not ours
 
 
@@ -44,7 +48,12 @@ class _Parsed(BaseException):
     """Raised right after the command's arguments parse (a BaseException: no CLI wrapper turns it into exit 2)."""
 
 
-COMMANDS = readme_commands(README.read_text())
+def docs_text() -> str:
+    """The README and every guide page, one text."""
+    return "\n".join(path.read_text() for path in [README, *GUIDES])
+
+
+COMMANDS = readme_commands(docs_text())
 
 
 def command_module(name: str) -> str:
@@ -59,9 +68,38 @@ def command_module(name: str) -> str:
     return found.group(1)
 
 
+def cli_modules() -> set[str]:
+    """Every ``python -m`` name of the project: a module with a ``__main__`` guard, or a package with a
+    ``__main__.py`` (whose runner module, e.g. ``eval.navigate.run``, is then covered by the package's name)."""
+    names, runners = set(), set()
+    for layer in LAYERS:
+        for path in (ROOT / layer).rglob("*.py"):
+            module = ".".join(path.relative_to(ROOT).with_suffix("").parts)
+            if path.name == "__main__.py":
+                package = module.removesuffix(".__main__")
+                names.add(package)
+                runners.add(command_module(package))
+            elif re.search(r'^if __name__ == "__main__":', path.read_text(), flags=re.M):
+                names.add(module)
+    return names - runners
+
+
 def test_the_readme_shows_commands():
-    modules = {shlex.split(c)[2] for c in COMMANDS}
-    assert {"precompute.build", "training.distill", "eval.report", "eval.bench"} <= modules, modules
+    modules = {shlex.split(c)[2] for c in readme_commands(README.read_text())}
+    assert {"precompute.build", "training.distill", "eval.report", "eval.bench", "eval.navigate"} <= modules, modules
+
+
+def test_the_docs_show_every_command_line_module():
+    shown = {shlex.split(c)[2] for c in COMMANDS}
+    mentioned = set(re.findall(r"python -m ([\w.]+)", docs_text())) | shown
+    missing = sorted(cli_modules() - mentioned)
+    assert not missing, f"command-line modules the README and docs/guides never show: {missing}"
+    assert {"eval.navigate", "eval.bench", "eval.mountain_car"} <= cli_modules()  # packages with __main__.py
+
+
+def test_command_module_follows_a_package_main():
+    assert command_module("eval.navigate") == "eval.navigate.run"
+    assert command_module("precompute.build") == "precompute.build"
 
 
 def _my_robots(text: str) -> str:
@@ -93,7 +131,7 @@ def test_readme_command_parses(command, monkeypatch, tmp_path, capsys, registry_
     if not argv:
         return  # a bare mention of the command (a heading, a sentence): the module and its main exist
     if "my_robots" in command:
-        (tmp_path / "my_robots.py").write_text(_my_robots(README.read_text()))
+        (tmp_path / "my_robots.py").write_text(_my_robots(docs_text()))
         monkeypatch.syspath_prepend(str(tmp_path))
         monkeypatch.delitem(sys.modules, "my_robots", raising=False)
     real_parse_args = argparse.ArgumentParser.parse_args
@@ -114,9 +152,9 @@ def test_readme_command_parses(command, monkeypatch, tmp_path, capsys, registry_
 
 
 def test_readme_gymnasium_example_runs():
-    """The README's gymnasium example, executed as shown."""
+    """The gymnasium example of the docs, executed as shown."""
     pytest.importorskip("gymnasium")
-    block = next(b for b in re.findall(r"```python\n(.*?)```", README.read_text(), flags=re.S)
+    block = next(b for b in re.findall(r"```python\n(.*?)```", docs_text(), flags=re.S)
                  if "from eval.navigate.gym_env import make_env" in b)
     scope: dict = {}
     exec(compile(block, "README.md", "exec"), scope)

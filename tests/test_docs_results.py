@@ -20,6 +20,9 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
+
+from test_docs import _my_robots, docs_text, registry_restored  # noqa: E402, F401  (registry_restored: a fixture)
+
 DOCS = ROOT / "docs"
 RESULTS = DOCS / "results"
 
@@ -102,12 +105,17 @@ class _Parsed(BaseException):
 
 
 @pytest.mark.parametrize("where,command", COMMANDS, ids=[f"{w}: {c[:80]}" for w, c in COMMANDS])
+@pytest.mark.usefixtures("registry_restored")
 def test_docs_command_parses(where, command, monkeypatch, tmp_path, capsys):
     words = shlex.split(command)
     module, argv = words[2], words[3:]
     kind = _entry_point(module)
     if not argv:
         return  # a bare mention of the command (a heading, a table cell): the module and its main exist
+    if "my_robots" in command:  # the user's own module of the your-own-robot example: tests/test_docs.py builds it
+        (tmp_path / "my_robots.py").write_text(_my_robots(docs_text()))
+        monkeypatch.syspath_prepend(str(tmp_path))
+        monkeypatch.delitem(sys.modules, "my_robots", raising=False)
     real_parse_args = argparse.ArgumentParser.parse_args
 
     def parse_then_stop(self, args=None, namespace=None):
