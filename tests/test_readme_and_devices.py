@@ -1,4 +1,4 @@
-"""Docs stay true (the README's Python example runs) and the table policy agrees across devices."""
+"""Docs stay true (the README's and the guides' Python examples run) and the table policy agrees across devices."""
 
 from __future__ import annotations
 
@@ -12,6 +12,20 @@ from cuniform_torch.policies.table import TablePolicy
 from cuniform_torch.tables.file import write_table
 
 README = Path(__file__).resolve().parents[1] / "README.md"
+GUIDES = sorted((README.parent / "docs" / "guides").glob("*.md"))
+
+
+def _python_blocks(text: str) -> list[str]:
+    return re.findall(r"```python\n(.*?)```", text, flags=re.S)
+
+
+def guide_examples() -> list[tuple[str, str]]:
+    """``(guide, code)`` of every guide example not already run from the README; a block opening with
+    ``# after:`` (it needs a long run first) or ``# needs:`` (an optional extra; tests/test_docs.py runs it when
+    the extra is there) is left out."""
+    readme = set(_python_blocks(README.read_text()))
+    return [(path.name, code) for path in GUIDES for code in _python_blocks(path.read_text())
+            if code not in readme and not code.startswith(("# after:", "# needs:"))]
 
 
 def test_readme_python_example_runs(tmp_path, dubins_table, monkeypatch):
@@ -33,6 +47,22 @@ def test_readme_python_example_runs(tmp_path, dubins_table, monkeypatch):
     assert {name: r.outcome for name, r in five["results"].items()} == dict.fromkeys(five["controllers"], "goal")
     # the last example (your own robot: a unicycle distilled and driven by CU-MPPI)
     assert namespaces[-1]["result"].outcome == "goal"
+
+
+@pytest.mark.parametrize("guide, code", guide_examples(), ids=lambda v: v if v.endswith(".md") else "")
+def test_guide_python_example_runs(guide, code, tmp_path, dubins_table, monkeypatch):
+    write_table(tmp_path / "out" / "dubins.npz", dubins_table)
+    monkeypatch.chdir(tmp_path)
+    namespace: dict = {}
+    exec(compile(code, f"docs/guides/{guide}", "exec"), namespace)
+    if "states" in namespace and "policy" in namespace:  # a rollout example: [N, T+1, d] states
+        assert namespace["states"].shape[1:] == (11, 3)
+    if "result" in namespace:  # a closed-loop example: it reaches its goal
+        assert namespace["result"].outcome == "goal"
+
+
+def test_the_guides_have_runnable_examples():
+    assert {guide for guide, _ in guide_examples()} >= {"python-api.md", "controllers.md"}
 
 
 @pytest.mark.gpu
