@@ -1,14 +1,21 @@
 """Independent jobs in this process, in spawned worker processes, or as Ray tasks: one helper for the table farm
 (``precompute.build --starts``) and the navigation benchmark (``eval.navigate.run``).
 
-Spawned, not forked, processes: a forked torch with threads started is unsafe. Ray is an optional extra
-(``pip install -e ".[ray]"``): ``ray_address="local"`` starts a local runtime for the call (``workers`` caps its
-CPUs when > 1), any other address is passed to ``ray.init(address=...)``; one CPU per job.
+Spawned, not forked, processes: a forked torch with threads started is unsafe. Each worker dies with the process
+that started it (:func:`_die_with_parent`): a parent killed hard (``kill -9``, out of memory) runs no cleanup,
+and its workers would otherwise run on, orphaned, and keep the multiprocessing resource tracker alive.
+
+Ray is an optional extra (``pip install -e ".[ray]"``): ``ray_address="local"`` starts a local runtime for the
+call (``workers`` caps its CPUs when > 1), any other address is passed to ``ray.init(address=...)``; one CPU per
+job.
 """
 
 from __future__ import annotations
 
 import multiprocessing
+import os
+import threading
+import time
 from collections.abc import Callable, Sequence
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from typing import Any
@@ -16,6 +23,9 @@ from typing import Any
 __all__ = ["RAY_MISSING", "ray_available", "run_jobs"]
 
 RAY_MISSING = 'the --ray executor needs Ray: pip install -e ".[ray]"'
+
+PARENT_POLL_S = 0.25
+"""s between a worker's checks that its parent is alive"""
 
 
 def ray_available() -> bool:
@@ -51,8 +61,23 @@ def run_jobs(fn: Callable[..., Any], jobs: Sequence[tuple], workers: int = 1, ra
     return results
 
 
+def _watch_parent(parent: int) -> None:
+    while os.getppid() == parent:  # an orphan is re-parented (to init or a subreaper): its parent id changes
+        time.sleep(PARENT_POLL_S)
+    os._exit(1)  # no cleanup: the job's half-done work has no one to report to
+
+
+def _die_with_parent(parent: int) -> None:
+    """A pool worker's initializer: a daemon thread ends the worker once ``parent`` (the pid that started it) is
+    gone. Polling rather than Linux's PR_SET_PDEATHSIG, which fires when the *thread* that started the worker
+    exits (a pool started from a short-lived thread) and exists on Linux only. The resource tracker follows by
+    itself: it exits when the last process holding its pipe (the parent and the workers) is gone."""
+    threading.Thread(target=_watch_parent, args=(parent,), name="die-with-parent", daemon=True).start()
+
+
 def _processes(fn: Callable[..., Any], jobs: Sequence[tuple], workers: int, done: Callable[[int, Any], None]) -> None:
-    pool = ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn"))
+    pool = ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn"),
+                               initializer=_die_with_parent, initargs=(os.getpid(),))
     try:
         pending = {pool.submit(fn, *job): i for i, job in enumerate(jobs)}
         while pending:
