@@ -17,7 +17,7 @@ import torch
 from cuniform_torch.grid.cells import Grid, check_grid
 from cuniform_torch.systems import system_from_json
 
-__all__ = ["TableError", "KNOWN_METHODS", "MAP_KEYS", "validate_table"]
+__all__ = ["TableError", "KNOWN_METHODS", "MAP_KEYS", "PROPAGATION_RTOL", "PROPAGATION_ATOL", "validate_table"]
 
 
 class TableError(ValueError):
@@ -26,6 +26,11 @@ class TableError(ValueError):
 
 _ROW_SUM_TOL = 1e-4  # float32 rows
 _LEVEL_SUM_TOL = 1e-6  # float64 cell probabilities per level
+PROPAGATION_RTOL = 1e-5
+"""relative tolerance of ``cell_probs`` against level t's mass propagated through ``transitions``: a builder
+propagates float64 action probabilities that the file stores as float32 (a relative error below 1e-7 per cell)"""
+PROPAGATION_ATOL = 1e-12
+"""absolute part of that tolerance (cells of nearly no mass)"""
 
 KNOWN_METHODS = ("maxflow", "coverage")
 """the builders whose tables this reader knows (the optional ``method`` key)"""
@@ -101,6 +106,8 @@ def validate_table(table: Any, source: str = "table", check_system: bool = True,
     _validate_cells(table, T, fail, start_cell)
     _validate_graph(table, "arc", ("arcs", "arc_flow"), 2, T, C, A, fail)
     _validate_graph(table, "transition", ("transitions", "transition_frac"), 3, T, C, A, fail)
+    _validate_arc_flow(table, T, fail)
+    _validate_propagation(table, fail)
     if check_system:
         _validate_system(table, grid, T, fail, trust_factory)
 
@@ -191,6 +198,48 @@ def _validate_graph(table: Any, prefix: str, keys: tuple[str, str], width: int, 
     lo = table.level_offsets
     if E and (np.any(src < lo[step]) or np.any(src >= lo[step + 1]) or np.any(dst < lo[step + 1]) or np.any(dst >= lo[step + 2])):
         fail(f"{keys[0]} of step t must go from level t to level t+1")
+
+
+def _validate_arc_flow(table: Any, T: int, fail) -> None:
+    """The flow into each level t+1 (the ``arc_flow`` of step t's arcs, summed) equals ``flow_value[t]``."""
+    if table.arcs is None:
+        return
+    flow, offsets = table.arc_flow, table.arc_offsets
+    if len(flow) and float(flow.sum(dtype=np.float64)) >= 2.0**62:  # the int64 sums below could wrap
+        fail("arc_flow sums to more than 2^62")
+    total = np.concatenate(([0], np.cumsum(flow, dtype=np.int64)))  # [E+1]
+    into = total[offsets[1:]] - total[offsets[:-1]]  # [T]: the flow into level t+1
+    bad = np.flatnonzero(into != table.flow_value)
+    if len(bad):
+        t = int(bad[0])
+        fail(f"arc_flow does not match flow_value: the arcs of step {t} carry {int(into[t])} into level {t + 1}, "
+             f"flow_value[{t}] is {int(table.flow_value[t])}")
+
+
+def _validate_propagation(table: Any, fail) -> None:
+    """Level t's ``cell_probs``, propagated through the transitions (``P'[j] = sum P[i] p(a | i) frac(i, a, j)``,
+    normalized per level as a safe build does), give level t+1's within :data:`PROPAGATION_RTOL` (relative) +
+    :data:`PROPAGATION_ATOL`. Not checked for a coverage table with a map: its builder propagates states, and a
+    map prunes a (state, action) state by state, so the cell-level propagation is only approximate there."""
+    if table.transitions is None or (table.method == "coverage" and table.map_sha256 is not None):
+        return
+    lo, stored = table.level_offsets, table.cell_probs
+    src, act, dst = table.transitions[:, 0], table.transitions[:, 1], table.transitions[:, 2]
+    mass = stored[src] * table.action_probs[src, act].astype(np.float64) * table.transition_frac  # [K]
+    prop = np.bincount(dst, weights=mass, minlength=len(stored))  # [C]: level 0 receives none
+    sums = np.add.reduceat(prop, lo[:-1])[1:]  # [T]: levels 1..T
+    if np.any(~(sums > 0)):
+        t = int(np.flatnonzero(~(sums > 0))[0]) + 1
+        fail(f"cell_probs do not match transitions: no probability mass reaches level {t} through them")
+    prop[lo[1]:] /= np.repeat(sums, np.diff(lo)[1:])
+    err = np.abs(prop - stored)[lo[1]:]  # [C-1]
+    bad = np.flatnonzero(err > PROPAGATION_RTOL * stored[lo[1]:] + PROPAGATION_ATOL)
+    if len(bad):
+        row = int(bad[np.argmax(err[bad])]) + int(lo[1])
+        level = int(np.searchsorted(lo, row, side="right")) - 1
+        fail(f"cell_probs do not match transitions: cell row {row} of level {level} holds {stored[row]:.9g}, but "
+             f"level {level - 1}'s cell_probs propagated through the transitions give {prop[row]:.9g} "
+             f"(tolerance {PROPAGATION_RTOL:g} relative)")
 
 
 def _validate_system(table: Any, grid: Grid, T: int, fail, trust_factory: str | Callable[..., Any] | None = None) -> None:

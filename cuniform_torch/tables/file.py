@@ -19,14 +19,18 @@ from typing import Any
 import numpy as np
 import torch
 
+from cuniform_torch.common.digest import DIGEST_KEY, DigestError, check_digest, content_digest
 from cuniform_torch.common.fileio import write_npz
 from cuniform_torch.systems import MAX_ACTIONS, MAX_HORIZON, System, system_from_json, system_to_json
 from cuniform_torch.tables.checks import KNOWN_METHODS, TableError, validate_table
 
 __all__ = ["TABLE_FORMAT", "Table", "TableError", "write_table", "read_table", "validate_table", "system_fields",
-           "KNOWN_METHODS"]
+           "KNOWN_METHODS", "DIGEST_KEY", "NOGRAPH_DIGEST_KEY", "table_digests"]
 
 TABLE_FORMAT = "cuniform-table/1"
+
+NOGRAPH_DIGEST_KEY = "content_sha256_nograph"
+"""the digest of every format key but the six of the flow graph: what a ``graph=False`` read checks"""
 
 # key -> (dtype kind check, ndim)
 _REQUIRED: dict[str, tuple[np.dtype | None, int]] = {
@@ -61,7 +65,8 @@ _OPTIONAL_META: dict[str, tuple[np.dtype, int]] = {
 }
 """optional arrays a policy reads (unlike the graph's): ``start [d]``, the state the table was built from; the
 local map of a safe table (with ``map_sha256``; see :data:`~cuniform_torch.tables.checks.MAP_KEYS`)"""
-_KNOWN_KEYS = {"format", *_REQUIRED, *_OPTIONAL_ARRAYS, *_OPTIONAL_STRINGS, *_OPTIONAL_META}
+_DIGEST_KEYS = (DIGEST_KEY, NOGRAPH_DIGEST_KEY)
+_KNOWN_KEYS = {"format", *_REQUIRED, *_OPTIONAL_ARRAYS, *_OPTIONAL_STRINGS, *_OPTIONAL_META, *_DIGEST_KEYS}
 
 
 
@@ -146,10 +151,24 @@ def system_fields(system: System, horizon: int) -> dict[str, Any]:
     }
 
 
+def table_digests(arrays: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """The two digest entries of a table's format ``arrays`` (name -> array; the ``extra`` keys left out):
+    :data:`DIGEST_KEY` over all of them, :data:`NOGRAPH_DIGEST_KEY` over all but the flow graph's."""
+    ours = {k: v for k, v in arrays.items() if k in _KNOWN_KEYS and k not in _DIGEST_KEYS}
+    core = {k: v for k, v in ours.items() if k not in _OPTIONAL_ARRAYS}
+    return {DIGEST_KEY: np.array(content_digest(ours)), NOGRAPH_DIGEST_KEY: np.array(content_digest(core))}
+
+
 def write_table(path: str | os.PathLike, table: Table) -> None:
-    """Validate ``table`` and write it atomically (a fixed-timestamp zip: equal tables give equal bytes)."""
+    """Validate ``table`` and write it atomically (a fixed-timestamp zip: equal tables give equal bytes), with
+    the content digests of its format keys (:func:`table_digests`), which :func:`read_table` checks."""
     validate_table(table, source="table to write")
-    write_npz(path, table.to_arrays())
+    clash = sorted(set(table.extra) & _KNOWN_KEYS)
+    if clash:
+        raise TableError(f"table to write: extra keys {', '.join(clash)} are keys of the format")
+    arrays = table.to_arrays()
+    arrays.update(table_digests(arrays))
+    write_npz(path, arrays)
 
 
 def read_table(path: str | os.PathLike, *, check_system: bool = True, graph: bool = True,
@@ -165,6 +184,11 @@ def read_table(path: str | os.PathLike, *, check_system: bool = True, graph: boo
     ``graph=False`` leaves the optional flow graph (``arcs``, ``transitions`` and their values: the audit data a
     max-flow build stores) in the file, unread and unchecked; the table's graph fields are then None. A policy
     needs none of it, and for a large table it is most of the file: 3.5 GB of the ks table's arrays.
+
+    Integrity: the arrays read are checked against the file's content digest (:data:`DIGEST_KEY`, or
+    :data:`NOGRAPH_DIGEST_KEY` with ``graph=False``) before any check uses a value; a mismatch (a damaged or
+    edited file) is a :class:`TableError` naming the file. A table written before digests loads, after a
+    one-line note on stderr.
     """
     path = Path(path)
     if not path.is_file():
@@ -174,7 +198,8 @@ def read_table(path: str | os.PathLike, *, check_system: bool = True, graph: boo
             arrays = _read_members(zf, path, graph)
     except (zipfile.BadZipFile, zipfile.LargeZipFile, OSError, EOFError, zlib.error) as exc:
         raise TableError(f"{path}: not a readable .npz table ({type(exc).__name__}: {exc})") from None
-    kwargs: dict[str, Any] = {k: v for k, v in arrays.items() if k != "format"}
+    _check_digests(arrays, path, graph)
+    kwargs: dict[str, Any] = {k: v for k, v in arrays.items() if k != "format" and k not in _DIGEST_KEYS}
     for key in ("system", *_OPTIONAL_STRINGS):
         if key in arrays:
             kwargs[key] = _string(arrays[key], key, path)
@@ -183,12 +208,25 @@ def read_table(path: str | os.PathLike, *, check_system: bool = True, graph: boo
     return table
 
 
+def _check_digests(arrays: dict[str, np.ndarray], path: Path, graph: bool) -> None:
+    """The arrays read against their digest (:func:`~cuniform_torch.common.digest.check_digest`): TableError
+    on a mismatch; a note for a file without one."""
+    key = DIGEST_KEY if graph else NOGRAPH_DIGEST_KEY
+    stored = _string(arrays[key], key, path) if key in arrays else None
+    covered = {k: v for k, v in arrays.items() if k not in _DIGEST_KEYS}
+    try:
+        check_digest(covered, stored, str(path))
+    except DigestError as exc:
+        raise TableError(str(exc)) from None
+
+
 MAX_EXPANSION = 200
 """a table's arrays may take at most this many times its file's size (or 64 MiB) once decompressed"""
 
 _MIN_BUDGET = 64 << 20
 _MAX_DIM = 64  # state and action dimensions
-_MAX_STRING = {"format": 64, "system": 1 << 20, "method": 64, "build_info": 1 << 22, "map_sha256": 64}  # characters
+_MAX_STRING = {"format": 64, "system": 1 << 20, "method": 64, "build_info": 1 << 22, "map_sha256": 64,
+               DIGEST_KEY: 64, NOGRAPH_DIGEST_KEY: 64}  # characters
 
 
 def _read_members(zf: zipfile.ZipFile, path: Path, graph: bool) -> dict[str, np.ndarray]:
@@ -242,7 +280,7 @@ def _read_members(zf: zipfile.ZipFile, path: Path, graph: bool) -> dict[str, np.
             raise TableError(f"{path}: key {key!r} must be {dtype} with {ndim} dimension(s), "
                              f"got {headers[key][1]} {list(headers[key][0])}")
     _check_small_shapes(headers, path)
-    for key in ("system", *_OPTIONAL_STRINGS, "level_offsets", "actions", "cell_size", "periodic", "cell_offset",
+    for key in ("system", *_OPTIONAL_STRINGS, *_DIGEST_KEYS, "level_offsets", "actions", "cell_size", "periodic", "cell_offset",
                 "flow_value", "flow_target", "arc_offsets", "transition_offsets"):
         read(key)
     C, d, A = int(arrays["level_offsets"][-1]) if len(arrays["level_offsets"]) else 0, len(arrays["cell_size"]), \
