@@ -14,7 +14,7 @@ from cuniform_torch.metrics import level_uniformity
 from cuniform_torch.policies import UniformPolicy
 from cuniform_torch.tables import TableError
 from eval.common.graph_sampling import GraphSampler
-from eval.common.methods import METHODS, Sources, make_controller, parse_methods, sample_states
+from eval.common.methods import PAPER, Sources, make_controller, methods_of, parse_methods, sample_states
 from eval.paper import coverage as coverage_exp
 from eval.paper.reachable import reachable
 
@@ -75,15 +75,18 @@ def test_uniform_policy_rows_are_uniform():
 
 
 def test_every_method_samples_and_every_closed_loop_method_commands(sources):
-    for m in parse_methods([k for k in METHODS if k != "cu_mlp" and METHODS[k].open_loop]):
+    paper = methods_of(PAPER)
+    for m in parse_methods([k for k in paper if k != "cu_mlp" and paper[k].open_loop], benchmark=PAPER,
+                           closed_loop=False):
         states = sample_states(m, sources, 50, 4, torch.Generator().manual_seed(0))
         assert states.shape == (50, 5, 3) and bool(torch.isfinite(states).all())
     cost = lambda s, a: ((s[:, :, :2] - torch.tensor([1.0, 0.0])) ** 2).sum(dim=(1, 2))  # noqa: E731
-    for m in parse_methods([k for k in METHODS if k != "cu_mlp" and METHODS[k].closed_loop], closed_loop=True):
+    for m in parse_methods([k for k in paper if k != "cu_mlp" and paper[k].closed_loop], benchmark=PAPER,
+                           closed_loop=True):
         u = make_controller(m, sources, cost, 64, 5, seed=0).command(torch.zeros(3))
         assert u.shape == (1,)
     with pytest.raises(ValueError, match="unknown method"):
-        parse_methods(["mppi_huge"])
+        parse_methods(["mppi_huge"], benchmark=PAPER, closed_loop=False)
 
 
 def test_coverage_experiment_orders_the_methods_as_the_paper_does(sources):

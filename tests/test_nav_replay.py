@@ -14,8 +14,7 @@ from cuniform_torch.envs.worlds.robot import NAV_ROBOT
 from cuniform_torch.envs.worlds.suites import SuiteError
 from cuniform_torch.envs.worlds.tasks import make_task, make_tasks
 from cuniform_torch.sampling import GaussianSampler
-from eval.common.methods import Method
-from eval.navigate import methods as nav_methods
+from eval.common.methods import METHODS, NAVIGATE, Method
 from eval.navigate.episode import NavContext, NavJob, run_nav_episode
 from eval.navigate.replay import compare_records, main, replay_episode
 from eval.navigate.robot_files import ensure_table
@@ -106,8 +105,8 @@ def test_an_unknown_key_or_a_wrong_source_file_is_one_clear_error(bench, tmp_pat
 
 def test_the_trace_leaves_every_record_unchanged(bench, monkeypatch):
     _, cache, _ = bench
-    monkeypatch.setitem(nav_methods.NAV_METHODS, "straight",
-                        Method("straight", "always straight", "mppi", Straight, GaussianSampler, 0.0))
+    monkeypatch.setitem(METHODS, "straight", Method("straight", "always straight", "mppi", Straight, GaussianSampler,
+                                                   0.0, benchmarks=(NAVIGATE,)))
     ctx = NavContext(table=str(ensure_table(ROBOT, cache, quiet=True)), horizon=6)
     task = make_task("gaps", 1, ROBOT.radius, count=3, time_limits={"gaps": 8.0})
     for method in ("mppi_1.0", "cu_table", "cumppi", "straight"):

@@ -17,8 +17,7 @@ from cuniform_torch.envs.worlds.robot import NAV_ROBOT, preset_dict
 from cuniform_torch.envs.worlds.suites import SuiteError, forest, gaps
 from cuniform_torch.envs.worlds.tasks import barn_task, make_tasks
 from cuniform_torch.sampling import GaussianSampler
-from eval.common.methods import Method
-from eval.navigate import methods as nav_methods
+from eval.common.methods import METHODS, NAVIGATE, Method
 from eval.navigate.episode import NavContext, NavJob, rasterize, run_nav_episode
 from eval.navigate.robot_files import ensure_table
 from eval.navigate.run import NavConfig, controller_seed, main, make_jobs, run
@@ -60,8 +59,8 @@ class Straight:
 
 
 def test_straight_controller_fails_with_an_obstacle_ahead_and_succeeds_without(monkeypatch, ctx):
-    monkeypatch.setitem(nav_methods.NAV_METHODS, "straight",
-                        Method("straight", "always straight", "mppi", Straight, GaussianSampler, 0.0))
+    monkeypatch.setitem(METHODS, "straight", Method("straight", "always straight", "mppi", Straight, GaussianSampler,
+                                                   0.0, benchmarks=(NAVIGATE,)))
     empty = forest(0, length=12.0, num_discs=(0, 0), robot_radius=0.2, sensing_range=None)
     blocked = gaps(width=0.6, offset=1.5, robot_radius=0.2)  # the wall sits on the straight line
     open_gap = gaps(width=0.6, offset=0.0, robot_radius=0.2)
@@ -264,9 +263,11 @@ def test_success_pivot_marks_methods_against_the_best_baseline():
 
 
 def test_store_merges_new_source_files_and_refuses_changed_ones(tmp_path):
+    from test_bench_records import bench_settings
+
     from eval.navigate.store import EpisodeStore, StoreError
 
-    base = dict(suite="barn", lambda_=0.5, sources=dict(table="aa", policy=None))
+    base = bench_settings("barn", lambda_=0.5, sources=dict(table="aa", policy=None))
     EpisodeStore(tmp_path).open(base)
     EpisodeStore(tmp_path).open({**base, "sources": dict(table="aa", policy="pp")})  # the MLP joins
     assert json.loads((tmp_path / "settings.json").read_text())["sources"] == dict(table="aa", policy="pp")

@@ -19,7 +19,7 @@ import torch  # noqa: E402
 
 from cuniform_torch.envs import Circle, Environment, Polygon, Rect  # noqa: E402
 from eval.common.config import PAPER_COVERAGE  # noqa: E402
-from eval.common.methods import METHODS, Sources, sample_states  # noqa: E402
+from eval.common.methods import PAPER, Sources, methods_of, sample_states  # noqa: E402
 
 __all__ = ["FAN_METHODS", "OUTCOME_COLORS", "method_style", "save_figure", "trajectory_fans", "coverage_vs_samples",
            "uniformity_per_level", "draw_obstacle", "plot_paths"]
@@ -34,7 +34,7 @@ OUTCOME_COLORS = {"goal": "tab:green", "collision": "tab:red", "timeout": "tab:o
 
 def method_style(key: str) -> tuple[str, str]:
     """(colour, line style) of a method, the same in every figure."""
-    m = METHODS.get(key)
+    m = methods_of(PAPER).get(key)  # the navigation benchmark's figures are given their colours
     return (m.color, m.linestyle) if m is not None else ("black", "-")
 
 
@@ -51,17 +51,18 @@ def save_figure(fig, path: Path, tight: bool = True) -> Path:
 def trajectory_fans(sources: Sources, path: Path, methods: list[str] | None = None, num_samples: int = 300,
                     seed: int = 0):
     """A panel per method: ``num_samples`` trajectories from the origin (xy), plus the last level's endpoints."""
-    keys = [k for k in (methods or FAN_METHODS) if k in METHODS and METHODS[k].open_loop]
+    paper = methods_of(PAPER)
+    keys = [k for k in (methods or FAN_METHODS) if k in paper and paper[k].open_loop]
     T = sources.horizon
     cols = min(3, len(keys))
     rows = -(-len(keys) // cols)
     fig, axes = plt.subplots(rows, cols, figsize=(4.2 * cols, 3.6 * rows), squeeze=False, sharex=True, sharey=True)
     for ax, key in zip(axes.flat, keys):
-        states = sample_states(METHODS[key], sources, num_samples, T, torch.Generator().manual_seed(seed)).cpu()
+        states = sample_states(paper[key], sources, num_samples, T, torch.Generator().manual_seed(seed)).cpu()
         xy = states[..., :2].numpy()
         ax.plot(xy[:, :, 0].T, xy[:, :, 1].T, color="tab:blue", alpha=0.12, linewidth=0.8)
         ax.scatter(xy[:, -1, 0], xy[:, -1, 1], s=3, color="tab:red", zorder=3)
-        ax.set_title(METHODS[key].label, fontsize=9)
+        ax.set_title(paper[key].label, fontsize=9)
         ax.set_aspect("equal")
         ax.grid(alpha=0.3)
     for ax in list(axes.flat)[len(keys):]:
@@ -74,6 +75,7 @@ def trajectory_fans(sources: Sources, path: Path, methods: list[str] | None = No
 def coverage_vs_samples(result: dict, path: Path):
     """Distinct cells vs N (log x) per method, mean +- std; the paper's Table I as hollow markers."""
     rows = result["results"]
+    paper = methods_of(PAPER)
     fig, ax = plt.subplots(figsize=(7.5, 4.8))
     methods = list(dict.fromkeys(r["method"] for r in rows))
     for m in methods:
@@ -83,7 +85,7 @@ def coverage_vs_samples(result: dict, path: Path):
         std = [r["cells_std"] for r in mine]
         color, style = method_style(m)
         ax.errorbar(n, mean, yerr=std, marker="o", markersize=4, capsize=2, color=color, linestyle=style,
-                    label=METHODS[m].label if m in METHODS else m)
+                    label=paper[m].label if m in paper else m)
         paper = [(N, PAPER_COVERAGE[N][m]) for N in n if m in PAPER_COVERAGE.get(N, {})]
         if paper:
             ax.plot(*zip(*paper), linestyle=":", marker="s", markerfacecolor="none", color=color, alpha=0.8)

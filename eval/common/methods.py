@@ -1,27 +1,44 @@
-"""The methods every experiment compares, as data: one :class:`Method` entry per method in :data:`METHODS`.
+"""The methods every benchmark compares, as data: one :class:`Method` entry per method in :data:`METHODS`.
 
 A method is a small frozen dataclass: its key and label, the paper column it belongs to, the controller class
 that proposes with it, what its proposals are drawn from (a noise law around a nominal, or a *source*: a table,
-the distilled MLP, uniform actions, the flow graph) and its colour in figures. :func:`make_controller` and
-:func:`sample_states` read only these fields, so adding a method is adding one entry. :class:`Sources` holds
-the files the sources come from, loaded once.
+the distilled MLP, uniform actions, the flow graph, a map-conditioned policy), its colour in figures and the
+benchmarks it belongs to (:data:`BENCHMARKS`). :func:`make_controller` and :func:`sample_states` read only these
+fields, so adding a method is adding one entry. A method two benchmarks share is one entry (the same object in
+both); :func:`methods_of` is a benchmark's view and :func:`parse_methods` resolves the keys a user types in it.
+:class:`Sources` holds the files the sources come from, loaded once.
 
-Baselines sample around a zero nominal (a first solve). Method keys:
+The paper's experiments (``paper``: :mod:`eval.paper`, :mod:`eval.report`) sample their baselines around a zero
+nominal (a first solve), at the paper's noise levels (std 0.03 / 0.1 / 0.3 rad/s, for turn rates in +-pi/4
+rad/s). The navigation benchmark's robot (``navigate``: :mod:`eval.navigate`) turns at up to 1.5 rad/s, so its
+Gaussian baselines span the range that matters for it, std 0.1, 0.3 and 1.0 rad/s, around the warm-started
+nominal. Method keys:
 
-* ``mppi_low|medium|high``: Gaussian noise, std 0.03 / 0.1 / 0.3 rad/s, clipped to the action bounds;
-* ``log_mppi_low|medium|high``: normal x log-normal noise (log-normal factor of mean 1, variance 1);
-* ``uniform``: uniform random discrete actions (the table's action set);
-* ``cu_table``: C-Uniform table policy (max-flow, the paper's method) on real rollouts;
-* ``cu_coverage``: the coverage-method table (``--method coverage``) on real rollouts;
-* ``cu_mlp``: the MLP distilled from the max-flow table, on real rollouts;
-* ``cu_graph``: cell sequences drawn on the max-flow graph in proportion to arc flow (the reference release's
-  way; not executed dynamics, see :mod:`eval.common.graph_sampling`). Open-loop only;
-* ``cumppi``: CU-MPPI (best C-Uniform rollout of the max-flow table seeds a local MPPI pass). Closed-loop only.
+* ``mppi_low|medium|high`` (paper): Gaussian noise, std 0.03 / 0.1 / 0.3 rad/s, clipped to the action bounds;
+* ``log_mppi_low|medium|high`` (paper): normal x log-normal noise (log-normal factor of mean 1, variance 1);
+* ``mppi_0.1``, ``mppi_0.3``, ``mppi_1.0`` (navigate): MPPI, Gaussian noise of that std, clipped;
+* ``log_mppi_0.3`` (navigate): log-MPPI (normal x log-normal noise), std 0.3;
+* ``uniform`` (both): uniform random discrete actions (the table's action set) on real rollouts;
+* ``cu_table`` (both): C-Uniform table policy (max-flow, the paper's method) on real rollouts;
+* ``cu_coverage`` (both): the coverage-method table (``--method coverage``; the navigation benchmark builds it on
+  first use, about 80 s for its robot) on real rollouts;
+* ``cu_mlp`` (both): the MLP distilled from the max-flow table, on real rollouts (opt-in in navigate: about 10x
+  the table's cost per cycle on a CPU, and trained on first use; ``slow`` in the paper's closed loop);
+* ``cu_graph`` (paper): cell sequences drawn on the max-flow graph in proportion to arc flow (the reference
+  release's way; not executed dynamics, see :mod:`eval.common.graph_sampling`). Open-loop only;
+* ``cumppi`` (both): CU-MPPI: the best C-Uniform rollout of the max-flow table seeds a local MPPI pass (half of
+  the budget each). Closed-loop only;
+* ``cfu_mppi`` (navigate): CFU-MPPI: the same with a map-conditioned policy (``--map-policy FILE``, from
+  ``python -m training.maps.distill``), which senses the local map at each command within the task's sensing
+  range (opt-in: it needs that file). Closed-loop only.
+
+A benchmark's Gaussian baselines (:func:`gaussian_baselines`) are what every other method is compared with in
+the navigation benchmark (the best of them per suite and budget).
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -30,6 +47,7 @@ import torch
 from torch import Tensor
 
 from cuniform_torch import (
+    CFUMPPI,
     CUMPPI,
     MPPI,
     CUniformMPPI,
@@ -47,10 +65,18 @@ from eval.common import config
 from eval.common.graph_sampling import GraphSampler
 from eval.common.paths import DEFAULT
 
-__all__ = ["Method", "METHODS", "SOURCES", "parse_methods", "Sources", "sample_states", "make_controller"]
+__all__ = ["Method", "METHODS", "SOURCES", "BENCHMARKS", "PAPER", "NAVIGATE", "methods_of", "parse_methods",
+           "gaussian_baselines", "Sources", "sample_states", "make_controller"]
 
 SOURCES = ("table", "coverage_table", "policy", "uniform", "graph", "map_policy")
 """what a method's proposals can be drawn from (:meth:`Sources.load`)"""
+
+PAPER = "paper"
+"""the paper's experiments (:mod:`eval.paper`, :mod:`eval.report`)"""
+NAVIGATE = "navigate"
+"""the navigation benchmark (:mod:`eval.navigate`)"""
+BENCHMARKS = (PAPER, NAVIGATE)
+"""what a method can belong to (:attr:`Method.benchmarks`)"""
 
 
 @dataclass(frozen=True)
@@ -59,6 +85,7 @@ class Method:
 
     key: str
     label: str
+    """its name in tables and figures (a benchmark may print another: :attr:`labels`)"""
     family: str
     """the paper's column: "mppi", "log_mppi" or "cuniform" (or "uniform", ours)"""
     controller: type | None = None
@@ -76,49 +103,104 @@ class Method:
     """the paper's own method of its column (its C-Uniform column is ours)"""
     color: str = "black"
     linestyle: str = "-"
+    benchmarks: tuple[str, ...] = ()
+    """the benchmarks it belongs to (of :data:`BENCHMARKS`): where a user can name its key"""
+    labels: tuple[tuple[str, str], ...] = ()
+    """``(benchmark, label)`` pairs: a benchmark that prints another label than :attr:`label` (its records,
+    tables and figures keep the label they always had)"""
+    opt_in: tuple[str, ...] = ()
+    """the benchmarks whose default run (no keys given) leaves it out: a user names it to run it"""
 
     def __post_init__(self) -> None:
         if (self.noise is None) == (self.source is None):
             raise ValueError(f"method {self.key}: give a noise law or a source, not both or neither")
         if self.source is not None and self.source not in SOURCES:
             raise ValueError(f"method {self.key}: unknown source {self.source!r}; choose from {', '.join(SOURCES)}")
+        if not self.benchmarks:
+            raise ValueError(f"method {self.key}: give the benchmark(s) it belongs to, of {', '.join(BENCHMARKS)}")
+        named = {"benchmarks": self.benchmarks, "labels": tuple(b for b, _ in self.labels), "opt_in": self.opt_in}
+        for what, names in named.items():
+            bad = [b for b in names if b not in BENCHMARKS or (what != "benchmarks" and b not in self.benchmarks)]
+            if bad:
+                raise ValueError(f"method {self.key}: {what} names {', '.join(map(repr, bad))}, not one of its "
+                                 f"benchmarks ({', '.join(self.benchmarks)}) of {', '.join(BENCHMARKS)}")
 
     @property
     def closed_loop(self) -> bool:
         return self.controller is not None
 
+    def label_in(self, benchmark: str) -> str:
+        """The label ``benchmark`` prints for this method."""
+        return dict(self.labels).get(benchmark, self.label)
+
 
 _SHADES = {"mppi": {"low": "#9ecae1", "medium": "#4292c6", "high": "#08519c"},  # darker = more noise
            "log_mppi": {"low": "#fdae6b", "medium": "#f16913", "high": "#a63603"}}
+_BLUES = {0.1: "#9ecae1", 0.3: "#4292c6", 1.0: "#08306b"}
+_NAV_NOISE = (0.1, 0.3, 1.0)
+"""the navigation benchmark's Gaussian stds (rad/s; module docstring)"""
+_BOTH = (PAPER, NAVIGATE)
 
 METHODS: dict[str, Method] = {m.key: m for m in [
-    *(Method(f"mppi_{lvl}", f"MPPI {lvl} (std {s:g})", "mppi", MPPI, GaussianSampler, s, color=_SHADES["mppi"][lvl])
-      for lvl, s in config.NOISE_LEVELS.items()),
+    *(Method(f"mppi_{lvl}", f"MPPI {lvl} (std {s:g})", "mppi", MPPI, GaussianSampler, s, color=_SHADES["mppi"][lvl],
+             benchmarks=(PAPER,)) for lvl, s in config.NOISE_LEVELS.items()),
     *(Method(f"log_mppi_{lvl}", f"log-MPPI {lvl} (std {s:g})", "log_mppi", LogMPPI, NormalLogNormalSampler, s,
-             color=_SHADES["log_mppi"][lvl]) for lvl, s in config.NOISE_LEVELS.items()),
-    Method("uniform", "uniform discrete actions", "uniform", CUniformMPPI, source="uniform", color="#737373"),
+             color=_SHADES["log_mppi"][lvl], benchmarks=(PAPER,)) for lvl, s in config.NOISE_LEVELS.items()),
+    *(Method(f"mppi_{s:.1f}", f"MPPI (std {s:.1f})", "mppi", MPPI, GaussianSampler, s, color=_BLUES[s],
+             benchmarks=(NAVIGATE,)) for s in _NAV_NOISE),
+    Method("log_mppi_0.3", "log-MPPI (std 0.3)", "log_mppi", LogMPPI, NormalLogNormalSampler, 0.3, color="#f16913",
+           benchmarks=(NAVIGATE,)),
+    Method("uniform", "uniform discrete actions", "uniform", CUniformMPPI, source="uniform", color="#737373",
+           benchmarks=_BOTH),
     Method("cu_table", "C-Uniform table (max-flow)", "cuniform", CUniformMPPI, source="table", paper=True,
-           color="#2ca02c"),
+           color="#2ca02c", benchmarks=_BOTH, labels=((NAVIGATE, "C-Uniform (max-flow table)"),)),
     Method("cu_coverage", "C-Uniform table (coverage method)", "cuniform", CUniformMPPI, source="coverage_table",
-           color="#d62728"),
-    Method("cu_mlp", "C-Uniform distilled MLP", "cuniform", CUniformMPPI, source="policy", slow=True, color="#9467bd"),
+           color="#d62728", benchmarks=_BOTH, labels=((NAVIGATE, "C-Uniform (coverage table)"),)),
+    Method("cu_mlp", "C-Uniform distilled MLP", "cuniform", CUniformMPPI, source="policy", slow=True, color="#9467bd",
+           benchmarks=_BOTH, labels=((NAVIGATE, "C-Uniform (distilled MLP)"),), opt_in=(NAVIGATE,)),
     Method("cu_graph", "C-Uniform graph sampling (cells, not executed)", "cuniform", source="graph",
-           color="#8c564b", linestyle="--"),
+           color="#8c564b", linestyle="--", benchmarks=(PAPER,)),
     Method("cumppi", "CU-MPPI (max-flow table)", "cuniform", CUMPPI, source="table", open_loop=False,
-           color="#e377c2"),
+           color="#e377c2", benchmarks=_BOTH),
+    Method("cfu_mppi", "CFU-MPPI (map-conditioned policy)", "cuniform", CFUMPPI, source="map_policy",
+           open_loop=False, color="#17becf", benchmarks=(NAVIGATE,), opt_in=(NAVIGATE,)),
 ]}
+"""every method of every benchmark, by key (a key names one method in all the benchmarks it belongs to)"""
 
 
-def parse_methods(keys: list[str] | tuple[str, ...] | None, closed_loop: bool = False) -> list[Method]:
-    """Methods by key (None: every method that applies); an unknown key lists the known ones."""
-    usable = [m for m in METHODS.values() if (m.closed_loop if closed_loop else m.open_loop)]
+def _check_benchmark(benchmark: str) -> None:
+    if benchmark not in BENCHMARKS:
+        raise ValueError(f"unknown benchmark {benchmark!r}; choose from {', '.join(BENCHMARKS)}")
+
+
+def methods_of(benchmark: str) -> dict[str, Method]:
+    """The methods of ``benchmark`` (of :data:`BENCHMARKS`), by key, in :data:`METHODS`' order (read at each call,
+    so an entry added to :data:`METHODS` shows)."""
+    _check_benchmark(benchmark)
+    return {k: m for k, m in METHODS.items() if benchmark in m.benchmarks}
+
+
+def parse_methods(keys: Sequence[str] | None, *, benchmark: str, closed_loop: bool) -> list[Method]:
+    """The methods of ``benchmark`` named by ``keys``, among those that run closed-loop (``closed_loop``) or draw
+    open-loop trajectories (not ``closed_loop``); None: every such method but the benchmark's opt-in ones.
+
+    An unknown key (or one of another benchmark) lists the known ones; a key named twice is refused."""
+    usable = {k: m for k, m in methods_of(benchmark).items() if (m.closed_loop if closed_loop else m.open_loop)}
     if keys is None:
-        return usable
-    known = {m.key: m for m in usable}
-    unknown = [k for k in keys if k not in known]
+        return [m for m in usable.values() if benchmark not in m.opt_in]
+    keys = list(keys)
+    unknown = [k for k in keys if k not in usable]
     if unknown:
-        raise ValueError(f"unknown method(s) {', '.join(unknown)}; choose from {', '.join(known)}")
-    return [known[k] for k in keys]
+        raise ValueError(f"unknown method(s) {', '.join(unknown)}; choose from {', '.join(usable)}")
+    if len(set(keys)) != len(keys):
+        raise ValueError(f"a method is named twice in {keys}")
+    return [usable[k] for k in keys]
+
+
+def gaussian_baselines(benchmark: str) -> tuple[str, ...]:
+    """The keys of ``benchmark``'s Gaussian-noise MPPI baselines (what the navigation benchmark compares every
+    other method with), in :data:`METHODS`' order."""
+    return tuple(k for k, m in methods_of(benchmark).items() if m.noise is GaussianSampler)
 
 
 @dataclass

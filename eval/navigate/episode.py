@@ -37,9 +37,8 @@ import torch
 from cuniform_torch.envs import Environment, NavigationCost, OccupancyGrid, simulate
 from cuniform_torch.envs.worlds.geometry import clearance, inflate
 from cuniform_torch.envs.worlds.suites import NavTask
-from eval.common.methods import Sources, make_controller
+from eval.common.methods import NAVIGATE, Sources, make_controller, methods_of
 from eval.navigate.cost_to_go import CostToGo
-from eval.navigate.methods import NAV_METHODS
 from eval.navigate.stats import cycle_histogram
 
 __all__ = ["NavJob", "NavContext", "run_nav_episode", "rasterize", "episode_key", "RASTER_MIN_OBSTACLES"]
@@ -54,7 +53,7 @@ class NavJob:
 
     task: NavTask
     method: str
-    """key of :data:`eval.navigate.methods.NAV_METHODS`"""
+    """key of :data:`eval.common.methods.METHODS` of the navigation benchmark"""
     budget: int
     """K: trajectories per control cycle"""
     seed: int
@@ -191,7 +190,7 @@ def run_nav_episode(job: NavJob, ctx: NavContext, trace: list | None = None) -> 
     ``trace``: a list to append one ``dict(t, free_share, min_cost, state)`` per command to (:mod:`eval.navigate.replay`;
     MPPI-family controllers only, others append nothing); the record is the same with or without it."""
     torch.set_num_threads(1)
-    task, method = job.task, NAV_METHODS[job.method]
+    task, method = job.task, methods_of(NAVIGATE)[job.method]
     sources = _sources(ctx)
     to_go = CostToGo(task.bounds, task.goal, ctx.cost_to_go) if ctx.cost_to_go is not None else None
     cost = NavigationCost(_cost_environment(task, ctx), task.goal, goal_tolerance=task.goal_tolerance,

@@ -134,9 +134,10 @@ def main(argv: Sequence[str] | None = None) -> int:
             labels.update(res["labels"])
         except (OSError, ValueError, KeyError, TypeError) as err:
             raise ValueError(f"{path}: not a results.json of python -m eval.navigate ({err})") from None
-    from eval.navigate.methods import NAV_METHODS
+    from eval.common.methods import NAVIGATE, methods_of
 
-    colors = {m: NAV_METHODS[m].color for m in labels if m in NAV_METHODS}
+    nav = methods_of(NAVIGATE)
+    colors = {m: nav[m].color for m in labels if m in nav}
     print(f"wrote {success_figure(rows, args.out, labels=labels, colors=colors)}")
     return 0
 

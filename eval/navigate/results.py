@@ -12,7 +12,7 @@ from typing import Any
 from cuniform_torch.common.fileio import write_bytes, write_json
 from cuniform_torch.envs.worlds.suites import NavTask
 from cuniform_torch.envs.worlds.tasks import task_summary
-from eval.navigate.methods import GAUSSIAN_BASELINES, NAV_METHODS
+from eval.common.methods import NAVIGATE, gaussian_baselines, methods_of
 from eval.navigate.stats import markdown, paired_comparisons, summarize
 
 __all__ = ["result", "write_outputs", "render", "success_pivot"]
@@ -22,14 +22,15 @@ def result(cfg: Any, records: list[dict], tasks: Sequence[NavTask], methods: Seq
            load0: float, ray_address: str | None, ran: int | None = None) -> dict:
     """Summary rows, paired comparisons and the run's facts."""
     summary = summarize(records)
-    baselines = [b for b in GAUSSIAN_BASELINES if b in methods]
+    baselines = [b for b in gaussian_baselines(NAVIGATE) if b in methods]
+    nav = methods_of(NAVIGATE)
     comparisons = paired_comparisons(records, baselines) if baselines else []
     return dict(config=dataclasses.asdict(cfg), tasks=task_summary(tasks), summary=summary, comparisons=comparisons,
                 run=dict(wall_s=round(wall, 1), load_before=round(load0, 2), load_after=round(os.getloadavg()[0], 2),
                          cpus=os.cpu_count(), workers=cfg.workers, ray=ray_address, episodes=len(records),
                          ran=len(records) if ran is None else ran,
                          episode_compute_s=round(sum(r.get("wall_s", 0.0) for r in records), 1)),
-                labels={m: NAV_METHODS[m].label for m in methods})
+                labels={m: nav[m].label_in(NAVIGATE) for m in methods})
 
 
 def write_outputs(res: dict, out: Path) -> list[Path]:
@@ -39,7 +40,8 @@ def write_outputs(res: dict, out: Path) -> list[Path]:
     md = render(res)
     write_json(out / "results.json", res)
     write_bytes(out / "results.md", md.encode())
-    colors = {m: NAV_METHODS[m].color for m in res["labels"]}
+    nav = methods_of(NAVIGATE)
+    colors = {m: nav[m].color for m in res["labels"]}
     fig = success_figure(res["summary"], out / "success.png", labels=res["labels"], colors=colors)
     write_tensorboard(res["summary"], out / "tb")
     return [out / "results.json", out / "results.md", fig, out / "tb"]

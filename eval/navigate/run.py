@@ -42,10 +42,10 @@ from cuniform_torch.envs.worlds.robot import NAV_ROBOT, RobotPreset, preset_dict
 from cuniform_torch.envs.worlds.suites import NavTask
 from cuniform_torch.envs.worlds.tasks import SPLITS, SUITES, TIME_LIMITS, make_tasks
 from eval.common import config
+from eval.common.methods import NAVIGATE, methods_of, parse_methods
 from eval.navigate.cost_to_go import RESOLUTION as COST_TO_GO_RESOLUTION
 from eval.navigate.episode import NavContext, NavJob
 from eval.navigate.execute import execute
-from eval.navigate.methods import NAV_METHODS, parse_nav_methods
 from eval.navigate.results import render, result, success_pivot, write_outputs
 from eval.navigate.robot_files import ensure_policy, ensure_table
 from eval.navigate.store import EpisodeStore
@@ -114,7 +114,7 @@ def _check(cfg: NavConfig) -> None:
         raise ValueError(f"unknown suite {cfg.suite!r}; choose from {', '.join(SUITES)}")
     if cfg.split not in SPLITS:
         raise ValueError(f"unknown split {cfg.split!r}; choose from {', '.join(SPLITS)}")
-    parse_nav_methods(cfg.methods)
+    parse_methods(cfg.methods, benchmark=NAVIGATE, closed_loop=True)
     if not cfg.budgets:
         raise ValueError("give at least one budget (--budgets)")
     bad = [k for k in cfg.budgets if isinstance(k, bool) or not isinstance(k, int) or k < 2]
@@ -169,7 +169,7 @@ def settings_record(cfg: NavConfig, robot: RobotPreset, barn_file: Path | None, 
 def _sources(cfg: NavConfig, robot: RobotPreset, cache: Path, given: dict[str, Path | None],
              quiet: bool) -> dict[str, str | None]:
     """The files the methods need: given on the command line, else the robot's cached ones (built when missing)."""
-    methods = {m.source for m in parse_nav_methods(cfg.methods)}
+    methods = {m.source for m in parse_methods(cfg.methods, benchmark=NAVIGATE, closed_loop=True)}
     table = given.get("table") or ensure_table(robot, cache, quiet=quiet)
     coverage = given.get("coverage_table")
     if "coverage_table" in methods and coverage is None:
@@ -196,7 +196,7 @@ def run(cfg: NavConfig, out: Path, robot: RobotPreset = NAV_ROBOT, cache: Path =
         ray_address: str | None = None, progress: bool = True) -> dict:
     """Run (or resume) the benchmark ``cfg`` into the folder ``out``; the result that ``results.json`` holds."""
     _check(cfg)
-    methods = [m.key for m in parse_nav_methods(cfg.methods)]
+    methods = [m.key for m in parse_methods(cfg.methods, benchmark=NAVIGATE, closed_loop=True)]
     tasks = make_tasks(cfg.suite, robot.radius, cfg.tasks, seed=cfg.seed, barn_file=barn_file,
                        sensing_range=cfg.sensing_range, time_limits=TIME_LIMITS, split=cfg.split)
     repeats = cfg.repeats or REPEATS[cfg.suite]
@@ -245,7 +245,7 @@ def short_run(root: Path, quick: bool = False, progress: bool = True) -> dict:
 def make_parser() -> ArgumentParser:
     p = ArgumentParser(prog="python -m eval.navigate", description=(__doc__ or "").split("\n\n")[0])
     add_dataclass_args(p, NavConfig, flags={"lambda_": "--lambda"}, choices={"suite": SUITES, "split": SPLITS},
-                       help={"methods": f"method keys, of {', '.join(NAV_METHODS)} (default: all but cu_mlp)"})
+                       help={"methods": f"method keys, of {', '.join(methods_of(NAVIGATE))} (default: all but cu_mlp)"})
     p.add_argument("--ray", nargs="?", const="local", default=None, metavar="ADDRESS",
                    help="run episodes as Ray tasks: a local Ray runtime, or the cluster at ADDRESS ('auto', "
                         "'ray://host:10001'); needs pip install -e '.[ray]'")

@@ -28,7 +28,7 @@ import torch
 from cuniform_torch.metrics import coverage, uniform_ceiling
 from eval.common import config
 from eval.common.markdown import table as md_table
-from eval.common.methods import Sources, parse_methods, sample_states
+from eval.common.methods import PAPER, Sources, parse_methods, sample_states
 from eval.paper import cli
 from eval.paper.reachable import reachable
 
@@ -57,7 +57,7 @@ QUICK = replace(CoverageConfig(), samples=(250, 1000), seeds=2)
 
 def run(cfg: CoverageConfig, sources: Sources, progress: bool = True) -> dict:
     """Run the experiment; returns ``{"config", "reachable", "results": [row per method and N]}``."""
-    methods = parse_methods(cfg.methods)
+    methods = parse_methods(cfg.methods, benchmark=PAPER, closed_loop=False)
     table = sources.table_policy()
     grid, T = table.grid, table.horizon
     reach = reachable(table.system, T, cfg.merge_resolution)

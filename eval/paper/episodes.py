@@ -25,7 +25,7 @@ import torch
 
 from cuniform_torch.envs import Environment, NavigationCost, simulate
 from eval.common import config
-from eval.common.methods import METHODS, Method, Sources, make_controller, parse_methods
+from eval.common.methods import METHODS, PAPER, Method, Sources, make_controller, parse_methods
 
 __all__ = ["ControllerSettings", "Episode", "OUTCOMES", "SLOW_NOTE", "usable_methods", "run_episodes"]
 
@@ -97,7 +97,7 @@ def usable_methods(keys: Sequence[str] | None, sources: Sources, requested: bool
     method whose file is missing is dropped with a printed note, unless the user named it (``requested``): then
     it raises ``FileNotFoundError``.
     """
-    methods = parse_methods(list(keys) if keys is not None else None, closed_loop=True)
+    methods = parse_methods(keys, benchmark=PAPER, closed_loop=True)
     if keys is None and not include_slow:
         slow = [m.key for m in methods if m.slow]
         if slow:

@@ -27,7 +27,7 @@ import torch
 
 from cuniform_torch.metrics import level_uniformity
 from eval.common.markdown import table as md_table
-from eval.common.methods import Sources, parse_methods, sample_states
+from eval.common.methods import PAPER, Sources, parse_methods, sample_states
 from eval.common.stats import mean_over_levels
 from eval.paper import cli
 from eval.paper.reachable import reachable
@@ -60,7 +60,7 @@ QUICK = replace(UniformityConfig(), samples=1000, seeds=1)
 
 def run(cfg: UniformityConfig, sources: Sources, progress: bool = True) -> dict:
     """Per method: per-level ``tv``, ``floor``, ``entropy``, ``outside`` against both reference sets."""
-    methods = parse_methods(cfg.methods)
+    methods = parse_methods(cfg.methods, benchmark=PAPER, closed_loop=False)
     table = sources.table_policy()
     grid, T = table.grid, table.horizon
     reach = reachable(table.system, T, cfg.merge_resolution)
