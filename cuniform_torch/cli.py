@@ -12,6 +12,18 @@ field (type, help from the field's docstring, the default shown in the help) who
 ``argparse.SUPPRESS``, so a flag that is not given leaves no attribute; :func:`dataclass_from_args` then
 builds the config from the flags that were given, over the dataclass defaults or over a base config (a
 ``--quick`` preset). A default can therefore not drift between the dataclass and the command line.
+
+Flag values are checked when they parse, so that a bad one is one ``error: argument --flag: ...`` line before any
+work: :func:`device_arg` (a torch device this machine has), :func:`int_in` / :func:`float_in` and the common cases
+:func:`positive_int`, :func:`non_negative_int`, :func:`threads_arg`, :func:`horizon_arg` (at most
+:data:`MAX_HORIZON`), :func:`count_arg` (at most :data:`MAX_COUNT`, the counts that multiply into episodes or
+rollouts), :func:`positive_float`. The rule for modes: **a flag that does not apply to the chosen mode is
+refused** (:func:`refuse_flags`), never silently ignored. A product of counts (tasks x budgets x methods) is checked
+by :func:`check_work` against :data:`MAX_WORK` unless ``--no-limit`` (:func:`add_no_limit_arg`) is given.
+
+Ctrl-C while a command's modules are still importing (torch takes seconds) is one line and exit 130 as well: the
+command packages install :func:`training.startup.exit_on_ctrl_c` when run as ``python -m``; :func:`cli_main`
+swaps it for Python's ``KeyboardInterrupt`` while ``main`` runs (which may then say what survives) and back after.
 """
 
 from __future__ import annotations
@@ -23,8 +35,10 @@ import dataclasses
 import enum
 import functools
 import inspect
+import math
 import os
 import re
+import signal
 import sys
 import tempfile
 import textwrap
@@ -38,7 +52,10 @@ from cuniform_torch.systems import import_system_modules
 
 __all__ = ["EXIT_ERROR", "EXIT_INTERRUPTED", "CLIError", "ArgumentParser", "cli_main", "error_message",
            "out_of_memory_message", "add_system_module_arg", "import_system_modules", "check_output_file", "check_output_folder",
-           "OUT", "RUNS", "field_docs", "add_dataclass_args", "dataclass_from_args", "given_fields", "flag_name"]
+           "OUT", "RUNS", "field_docs", "add_dataclass_args", "dataclass_from_args", "given_fields", "flag_name",
+           "MAX_HORIZON", "MAX_COUNT", "MAX_WORK", "device_arg", "int_in", "float_in", "positive_int",
+           "non_negative_int", "threads_arg", "horizon_arg", "count_arg", "positive_float", "refuse_flags",
+           "add_no_limit_arg", "check_work"]
 
 EXIT_ERROR = 2
 EXIT_INTERRUPTED = 130
@@ -95,6 +112,19 @@ def error_message(exc: BaseException) -> str | None:
     return " ".join(line.strip() for line in message.splitlines() if line.strip())  # one line, always
 
 
+def _swap_import_handler() -> Any:
+    """While ``main`` runs, Ctrl-C raises ``KeyboardInterrupt`` (so that ``main`` can clean up and say what survives)
+    instead of the import-time handler's immediate exit; returns that handler (to restore), or None."""
+    try:
+        handler = signal.getsignal(signal.SIGINT)
+        if getattr(handler, "exit_on_ctrl_c", False):
+            signal.signal(signal.SIGINT, signal.default_int_handler)
+            return handler
+    except ValueError:  # not the main thread: signals are not ours to set
+        pass
+    return None
+
+
 def cli_main(interrupted: str = "interrupted") -> Callable[[Callable[..., int]], Callable[..., int]]:
     """Decorator of ``main(argv) -> int``: clear errors become ``error: ...`` and 2, Ctrl-C one line and 130.
 
@@ -105,6 +135,7 @@ def cli_main(interrupted: str = "interrupted") -> Callable[[Callable[..., int]],
     def wrap(main: Callable[..., int]) -> Callable[..., int]:
         @functools.wraps(main)
         def run(argv: Sequence[str] | None = None) -> int:
+            importing = _swap_import_handler()
             try:
                 return main(argv)
             except KeyboardInterrupt as exc:
@@ -116,6 +147,9 @@ def cli_main(interrupted: str = "interrupted") -> Callable[[Callable[..., int]],
                     raise  # a bug: keep the traceback
                 print(f"error: {message}", file=sys.stderr)
                 return EXIT_ERROR
+            finally:
+                if importing is not None:  # Ctrl-C after main (on the way out) exits 130 in one line again
+                    signal.signal(signal.SIGINT, importing)
 
         return run
 
@@ -225,24 +259,28 @@ def add_dataclass_args(parser: argparse.ArgumentParser | argparse._ArgumentGroup
                        only: Iterable[str] | None = None, exclude: Iterable[str] = (),
                        flags: Mapping[str, str] | None = None, help: Mapping[str, str] | None = None,
                        required: Iterable[str] = (), choices: Mapping[str, Sequence[Any]] | None = None,
-                       metavars: Mapping[str, str] | None = None) -> list[str]:
+                       metavars: Mapping[str, str] | None = None,
+                       arg_types: Mapping[str, Callable[[str], Any]] | None = None) -> list[str]:
     """A flag per field of the dataclass ``cls`` (``only`` those, less ``exclude``); returns the field names.
 
     The flag is ``--field-name`` (or ``flags[name]``); its type comes from the annotation (``int``, ``float``,
     ``str``, ``Path``, an ``Enum`` (its values become the choices), ``list[X]`` / ``tuple[X, ...]`` (one or more
-    values), ``X | None``; ``choices`` and ``metavars`` per field); a ``bool`` field that defaults to False is a
-    switch that sets it, one that defaults to True a switch (named by ``flags``) that clears it. The help is
+    values), ``X | None``; ``choices``, ``metavars`` and ``arg_types`` per field: ``arg_types[name]`` is the argparse
+    ``type=`` of the value (of each item of a sequence), e.g. :func:`positive_int`, checked as the flag parses); a
+    ``bool`` field that defaults to False is a switch that sets it, one that defaults to True a switch (named by
+    ``flags``) that clears it. The help is
     ``help[name]``, else the field's docstring (:func:`field_docs`), followed by the dataclass default unless the
     text already speaks of the default. Every flag's parser default is ``argparse.SUPPRESS``: only given flags reach
     the namespace (:func:`dataclass_from_args`), so the dataclass holds the only copy of each default.
     """
     flags, help, choices, metavars = dict(flags or {}), dict(help or {}), dict(choices or {}), dict(metavars or {})
+    arg_types = dict(arg_types or {})
     required = set(required)
     docs = field_docs(cls)
     hints = typing.get_type_hints(cls)
     wanted = None if only is None else list(only)
     fields = {f.name: f for f in dataclasses.fields(cls) if f.init}
-    unknown = [n for n in [*(wanted or []), *exclude, *flags, *help, *required, *choices, *metavars]
+    unknown = [n for n in [*(wanted or []), *exclude, *flags, *help, *required, *choices, *metavars, *arg_types]
                if n not in fields]
     if unknown:
         raise TypeError(f"{cls.__name__} has no field(s) {', '.join(sorted(set(unknown)))}")
@@ -265,7 +303,7 @@ def add_dataclass_args(parser: argparse.ArgumentParser | argparse._ArgumentGroup
             if isinstance(base, type) and issubclass(base, enum.Enum):
                 kwargs["choices"] = [m.value for m in base]
                 base = str
-            kwargs["type"] = base
+            kwargs["type"] = arg_types.get(name, base)
             if name in choices:
                 kwargs["choices"] = list(choices[name])
             if name in metavars:
@@ -302,3 +340,132 @@ def dataclass_from_args(cls: type, args: argparse.Namespace, base: Any = None, *
     if base is None:
         return cls(**values)
     return dataclasses.replace(base, **values)
+
+
+# ------------------------------------------------------------------------------------------ flag values
+
+MAX_HORIZON = 1000
+"""the largest ``--horizon`` (steps) a command accepts: 200 s at the default dt of 0.2 s, far beyond any table
+(a build's levels, a rollout's ``[N, T + 1, d]`` states and a controller's plan all grow with it)"""
+MAX_COUNT = 1_000_000
+"""the largest count (samples, seeds, episodes, commands, repeats) one flag accepts; a larger one is a typo"""
+MAX_WORK = 100_000
+"""the most episodes (a product of counts: tasks x repeats x budgets x methods, ...) a run accepts without
+``--no-limit`` (:func:`check_work`); a paper experiment or a BARN run is a few thousand"""
+
+_DEVICE_TYPES = ("cpu", "cuda", "mps")
+
+
+def device_arg(text: str) -> str:
+    """argparse ``type=`` of ``--device``: a torch device this machine has (``cpu``, ``cuda``, ``cuda:N`` with N
+    below ``torch.cuda.device_count()``, ``mps``); returns its canonical name (``str(torch.device(text))``)."""
+    import torch  # here, not at the top: cli is imported by commands before they need torch
+
+    try:
+        device = torch.device(text)
+    except (RuntimeError, ValueError, TypeError):
+        raise argparse.ArgumentTypeError(f"{text!r} is not a torch device (cpu, cuda, cuda:N, mps)") from None
+    if device.type not in _DEVICE_TYPES:
+        raise argparse.ArgumentTypeError(f"{text!r}: only {', '.join(_DEVICE_TYPES)} devices are supported")
+    if device.type == "cuda":
+        count = torch.cuda.device_count() if torch.cuda.is_available() else 0
+        if count == 0:
+            raise argparse.ArgumentTypeError(f"{text!r}: CUDA is not available on this machine (use cpu)")
+        if device.index is not None and device.index >= count:
+            raise argparse.ArgumentTypeError(f"{text!r}: this machine has {count} CUDA device(s), cuda:0 .. "
+                                             f"cuda:{count - 1}")
+    if device.type == "mps" and not torch.backends.mps.is_available():
+        raise argparse.ArgumentTypeError(f"{text!r}: MPS is not available on this machine (use cpu)")
+    return str(device)
+
+
+def _bounds(low: float | None, high: float | None) -> str:
+    if low is not None and high is not None:
+        return f"in [{low}, {high}]"
+    return f">= {low}" if low is not None else f"<= {high}"
+
+
+def int_in(low: int | None = None, high: int | None = None, note: str = "") -> Callable[[str], int]:
+    """argparse ``type=``: an integer in ``[low, high]`` (a side None: unbounded); ``note`` follows the range in
+    the message (what the bound is for)."""
+
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"invalid int value: {text!r}") from None
+        if (low is not None and value < low) or (high is not None and value > high):
+            raise argparse.ArgumentTypeError(f"must be an integer {_bounds(low, high)}{note}, got {value}")
+        return value
+
+    parse.__name__ = f"int {_bounds(low, high)}"  # argparse's fallback message names the type
+    return parse
+
+
+def float_in(low: float | None = None, high: float | None = None, *, open_low: bool = False,
+             note: str = "") -> Callable[[str], float]:
+    """argparse ``type=``: a finite number in ``[low, high]`` (``(low, high]`` with ``open_low``)."""
+
+    def parse(text: str) -> float:
+        try:
+            value = float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"invalid float value: {text!r}") from None
+        too_low = low is not None and (value <= low if open_low else value < low)
+        if not math.isfinite(value) or too_low or (high is not None and value > high):
+            side = f"> {low}" if open_low and high is None else _bounds(low, high)
+            raise argparse.ArgumentTypeError(f"must be a finite number {side}{note}, got {text}")
+        return value
+
+    parse.__name__ = "finite number"
+    return parse
+
+
+positive_int = int_in(1, MAX_COUNT)
+"""argparse ``type=`` of a count: an integer in [1, :data:`MAX_COUNT`]"""
+count_arg = positive_int
+non_negative_int = int_in(0, MAX_COUNT)
+"""argparse ``type=``: an integer in [0, :data:`MAX_COUNT`] (0 usually meaning "all" or "none")"""
+threads_arg = int_in(0, 4096, note=" (0: torch's choice)")
+"""argparse ``type=`` of ``--threads``: torch CPU threads, 0 for torch's choice"""
+horizon_arg = int_in(1, MAX_HORIZON, note=" (cuniform_torch.cli.MAX_HORIZON)")
+"""argparse ``type=`` of ``--horizon``: steps in [1, :data:`MAX_HORIZON`]"""
+positive_float = float_in(0.0, open_low=True)
+"""argparse ``type=``: a finite number > 0"""
+
+
+def _option(parser: argparse.ArgumentParser, dest: str) -> str:
+    for action in parser._actions:
+        if action.dest == dest and action.option_strings:
+            return action.option_strings[0]
+    return flag_name(dest)
+
+
+def refuse_flags(parser: argparse.ArgumentParser, args: argparse.Namespace, dests: Iterable[str], why: str) -> None:
+    """The rule for modes: a flag that does not apply to the chosen mode is refused, never silently ignored.
+
+    ``dests`` are the flags (argparse ``dest`` names) that ``why`` (e.g. ``"with --checkpoint (the checkpoint
+    sets the sizes)"``) makes meaningless; the first one that was given -- present while its default is
+    ``argparse.SUPPRESS``, else different from its parser default -- is one ``error:`` line and exit 2."""
+    for dest in dests:
+        if not hasattr(args, dest):
+            continue
+        value, default = getattr(args, dest), parser.get_default(dest)
+        if default is argparse.SUPPRESS or value != default:
+            parser.error(f"{_option(parser, dest)} does not apply {why}")
+
+
+def add_no_limit_arg(parser: argparse.ArgumentParser) -> None:
+    """The ``--no-limit`` switch that lifts :func:`check_work`'s :data:`MAX_WORK`."""
+    parser.add_argument("--no-limit", action="store_true",
+                        help=f"allow a run of more than {MAX_WORK:,} episodes (a product of counts)")
+
+
+def check_work(counts: Mapping[str, int], what: str, no_limit: bool = False, limit: int = MAX_WORK) -> int:
+    """The product of ``counts`` (``{"--tasks": 50, "budgets": 2, ...}``): ``what`` a run will do; CLIError when it
+    exceeds ``limit`` unless ``no_limit`` (the ``--no-limit`` flag). Counts multiply: each may be fine alone."""
+    total = math.prod(int(v) for v in counts.values())
+    if total > limit and not no_limit:
+        shown = " x ".join(f"{v:,} {k}" for k, v in counts.items())
+        raise CLIError(f"{shown} = {total:,} {what}, more than {limit:,}: lower a count, or give --no-limit")
+    return total

@@ -11,3 +11,7 @@
 * helpers: :mod:`training.tables.samples` (the training points and weights), :mod:`training.tables.train_state` (``--resume``),
   :mod:`training.tables.figures` (TensorBoard figures), :mod:`training.tables.support` (the cells a checkpoint records).
 """
+
+from training.startup import install_when_run_as_command
+
+install_when_run_as_command()  # python -m ...: Ctrl-C during the imports is one line and exit 130

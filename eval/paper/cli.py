@@ -5,8 +5,11 @@ An experiment module (``eval.paper.coverage``, ``eval.paper.uniformity``, ``eval
 ``eval.paper.cluttered``) defines ``CONFIG`` (its config dataclass), ``QUICK`` (the ``--quick`` preset), ``run(cfg,
 sources, progress)``, ``markdown(result)`` (and ``figures(result, folder)`` with ``--figures``), then gets its
 ``make_parser``, ``config_from_args`` and ``main`` from :func:`entry_points`; its flags are ``CONFIG``'s fields
-(:func:`cuniform_torch.cli.add_dataclass_args`, so each default lives once, in the dataclass). Errors and exit codes
-are :mod:`cuniform_torch.cli`'s: every ``main`` is decorated with ``cli_main``.
+(:func:`cuniform_torch.cli.add_dataclass_args`, so each default lives once, in the dataclass), their values checked
+as they parse (:data:`OPEN_LOOP_TYPES`, :data:`CLOSED_LOOP_TYPES`). A closed-loop module also defines
+``episode_counts(cfg)``, the scenario counts that multiply into episodes: a run of more than
+:data:`cuniform_torch.cli.MAX_WORK` needs ``--no-limit``. Errors and exit codes are :mod:`cuniform_torch.cli`'s:
+every ``main`` is decorated with ``cli_main``.
 """
 
 from __future__ import annotations
@@ -22,20 +25,35 @@ from typing import Any
 from cuniform_torch.cli import (
     ArgumentParser,
     add_dataclass_args,
+    add_no_limit_arg,
     add_system_module_arg,
     check_output_file,
     check_output_folder,
+    check_work,
     cli_main,
     dataclass_from_args,
+    device_arg,
+    float_in,
+    horizon_arg,
     import_system_modules,
+    int_in,
+    positive_float,
+    positive_int,
 )
 from cuniform_torch.common.fileio import write_json
 from eval.common.methods import Sources
 from eval.common.paths import DEFAULT
 
-__all__ = ["add_source_args", "add_output_args", "open_loop_flags", "add_closed_loop_args", "make_parser",
-           "config_from_args", "config_from_json", "prepare", "sources_from_args", "write_result", "main",
-           "entry_points"]
+__all__ = ["add_source_args", "add_output_args", "OPEN_LOOP_TYPES", "CLOSED_LOOP_TYPES", "open_loop_flags",
+           "add_closed_loop_args", "check_episodes", "make_parser", "config_from_args", "config_from_json", "prepare",
+           "sources_from_args", "write_result", "main", "entry_points"]
+
+OPEN_LOOP_TYPES = {"samples": positive_int, "seeds": positive_int, "merge_resolution": int_in(1, 1024)}
+"""the open-loop configs' counts, checked as the flags parse (:mod:`cuniform_torch.cli`)"""
+CLOSED_LOOP_TYPES = {"samples": int_in(2, 1_000_000), "seed": int_in(0, 2**31 - 1), "horizon": horizon_arg,
+                     "positions": positive_int, "starts": positive_int, "seeds_per_start": positive_int,
+                     "appear": float_in(0.0, 3600.0), "goal_tolerance": positive_float}
+"""the closed-loop configs' fields, checked as the flags parse (N >= 2: CU-MPPI splits it in two)"""
 
 
 def add_source_args(p: argparse.ArgumentParser, closed_loop: bool = False) -> None:
@@ -46,7 +64,7 @@ def add_source_args(p: argparse.ArgumentParser, closed_loop: bool = False) -> No
     p.add_argument("--coverage-table", type=Path,
                    default=DEFAULT.coverage_table_cl if closed_loop else DEFAULT.coverage_table)
     p.add_argument("--policy", type=Path, default=DEFAULT.policy, help="distilled MLP (cu_mlp)")
-    p.add_argument("--device", default="cpu")
+    p.add_argument("--device", type=device_arg, default="cpu", help="torch device (default: cpu)")
     add_system_module_arg(p)
 
 
@@ -63,7 +81,8 @@ def open_loop_flags(cls: type, quick: str) -> Callable[[argparse.ArgumentParser]
 
     def add(p: argparse.ArgumentParser) -> None:
         add_source_args(p)
-        add_dataclass_args(p, cls)
+        fields = {f.name for f in dataclasses.fields(cls)}
+        add_dataclass_args(p, cls, arg_types={k: v for k, v in OPEN_LOOP_TYPES.items() if k in fields})
         p.add_argument("--quick", action="store_true", help=f"{quick} (flags given win)")
         add_output_args(p)
 
@@ -84,14 +103,26 @@ def add_closed_loop_args(p: argparse.ArgumentParser, cls: type, only: tuple[str,
     fields ``only`` (``kwargs``: :func:`~cuniform_torch.cli.add_dataclass_args`' for them), sources (3 s tables),
     ``--json``, ``--figures``, ``--quick`` and ``--quiet``."""
     add_source_args(p, closed_loop=True)
-    add_dataclass_args(p, cls, only=("methods", "samples", "seed", "horizon", "include_mlp", "stop_at_goal"),
-                       flags={"include_mlp": "--mlp", "stop_at_goal": "--collisions-after-goal"},
-                       help=CLOSED_LOOP_HELP)
+    shared = ("methods", "samples", "seed", "horizon", "include_mlp", "stop_at_goal")
+    add_dataclass_args(p, cls, only=shared, flags={"include_mlp": "--mlp", "stop_at_goal": "--collisions-after-goal"},
+                       help=CLOSED_LOOP_HELP, arg_types={k: v for k, v in CLOSED_LOOP_TYPES.items() if k in shared})
     if only:
-        add_dataclass_args(p, cls, only=only, **kwargs)
+        arg_types = {k: v for k, v in CLOSED_LOOP_TYPES.items() if k in only} | kwargs.pop("arg_types", {})
+        add_dataclass_args(p, cls, only=only, arg_types=arg_types, **kwargs)
     add_output_args(p, figures=True)
     p.add_argument("--quick", action="store_true", help="tiny sizes (a few seconds)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_no_limit_arg(p)
+
+
+def check_episodes(cfg: Any, scenarios: dict[str, int], no_limit: bool) -> None:
+    """CLIError when ``scenarios`` (``{"positions": 20, "appearance times": 5}``) x the budgets (x the methods
+    given; per method without ``--methods``) is more episodes than :data:`cuniform_torch.cli.MAX_WORK` (without
+    ``--no-limit``)."""
+    counts = {**scenarios, "budgets": len(cfg.samples)}
+    if cfg.methods is not None:
+        counts["methods"] = len(cfg.methods)
+    check_work(counts, "episodes" if cfg.methods is not None else "episodes per method", no_limit)
 
 
 def make_parser(module: ModuleType, add_flags: Callable[[argparse.ArgumentParser], None]) -> ArgumentParser:
@@ -169,7 +200,11 @@ def entry_points(name: str, add_flags: Callable[[argparse.ArgumentParser], None]
     def config_from_args_(args: argparse.Namespace):
         if check is not None:
             check(args)
-        return config_from_args(module(), args)
+        cfg = config_from_args(module(), args)
+        episodes = getattr(module(), "episode_counts", None)
+        if episodes is not None:
+            check_episodes(cfg, episodes(cfg), getattr(args, "no_limit", False))
+        return cfg
 
     @cli_main()
     def main_(argv=None) -> int:

@@ -65,7 +65,7 @@ from eval.paper.episodes import ControllerSettings, Episode, run_episodes, usabl
 
 __all__ = ["EnvSpec", "ENVIRONMENTS", "ClutteredConfig", "CONFIG", "QUICK", "make_parser",
            "config_from_args", "make_env", "start_poses", "time_limit", "SEED_STRIDE", "controller_seed",
-           "episodes", "per_start_markdown", "run", "markdown", "figures", "main"]
+           "episodes", "episode_counts", "per_start_markdown", "run", "markdown", "figures", "main"]
 
 
 @dataclass(frozen=True)
@@ -321,12 +321,12 @@ def _flags(p) -> None:
                                                       "paper); the success rates pool starts x R runs"})
 
 
-def _check(args) -> None:
-    if getattr(args, "seeds_per_start", 1) < 1:
-        make_parser().error(f"--seeds-per-start must be >= 1, got {args.seeds_per_start}")
+def episode_counts(cfg: ClutteredConfig) -> dict[str, int]:
+    """The scenario counts that multiply into episodes (with the budgets and methods; ``--no-limit``)."""
+    return {"environments": len(cfg.environments), "starts": cfg.starts, "seeds per start": cfg.seeds_per_start}
 
 
-make_parser, config_from_args, main = cli.entry_points(__name__, _flags, check=_check, threads=1)
+make_parser, config_from_args, main = cli.entry_points(__name__, _flags, threads=1)
 
 
 if __name__ == "__main__":

@@ -59,7 +59,7 @@ from eval.paper import cli
 from eval.paper.episodes import ControllerSettings, Episode, run_episodes, usable_methods
 
 __all__ = ["SuddenObstacleConfig", "CONFIG", "QUICK", "make_parser", "config_from_args", "offsets",
-           "make_env", "oracle_feasible", "episodes", "run", "markdown", "figures", "main"]
+           "make_env", "oracle_feasible", "episodes", "episode_counts", "run", "markdown", "figures", "main"]
 
 
 @dataclass(frozen=True)
@@ -215,6 +215,11 @@ def figures(results: dict, outdir: Path) -> list[Path]:
 
 
 CONFIG = SuddenObstacleConfig
+
+
+def episode_counts(cfg: SuddenObstacleConfig) -> dict[str, int]:
+    """The scenario counts that multiply into episodes (with the budgets and methods; ``--no-limit``)."""
+    return {"positions": cfg.positions, "appearance times": len(cfg.appear)}
 
 
 make_parser, config_from_args, main = cli.entry_points(
