@@ -6,10 +6,23 @@ A folder DIR holds ``dataset.json`` (written last, atomically) and ``shard-KKKKK
 in DESIGN.md (section "Map-table data set"). Per shard: ``patches`` uint8 [M, H, W] (1 = occupied, not
 inflated), ``poses`` float64 [M, 3] (world start poses), ``entry_offsets`` int64 [M+1] (rows of entry m),
 ``level_offsets`` int64 [M, T+2] (per entry, relative to its first row), ``cells`` int32 [R, d],
-``action_probs`` float16 [R, A], ``cell_probs`` float32 [R].
+``action_probs`` float16 [R, A], ``cell_probs`` float32 [R], and ``content_sha256`` (the digest of the others,
+:mod:`cuniform_torch.common.digest`; absent in shards written before it).
 
 :func:`read_map_dataset` validates everything and raises one :class:`MapDatasetError` naming the file and the
 problem; :func:`entry_arrays` and :func:`write_shard` are the writer's half (:mod:`precompute.maps.farm`).
+
+A shard is read with the bounded reader (:func:`cuniform_torch.common.npz.read_npz`): every member's shape and
+dtype are checked from its ``.npy`` header against ``dataset.json`` before anything is allocated. Its tables are
+then checked against what the farm's builders guarantee (:func:`_check_tables`): level 0 is the start (origin)
+cell; every level's cells are distinct and ascending; every cell's centre is free in its patch inflated by the
+data set's radius; the last level's rows are uniform; and, from the system's own dynamics, every level's cells
+are reached from the level before it (the builder's level sets: the cells of the level-t centres' successors for
+``maxflow``; within one cell of its cells' lattice points' successors for ``coverage``) and, for ``maxflow``, every
+level's ``cell_probs`` is the previous level's propagated through its ``action_probs`` (the builder's
+transitions, recomputed; by default on the data set's first entry only, on every entry with ``verify_all``: it
+costs about a third of the build), so rows permuted within a level, another speed, radius or patch resolution
+are refused.
 """
 
 from __future__ import annotations
@@ -18,8 +31,6 @@ import hashlib
 import json
 import math
 import re
-import zipfile
-import zlib
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -28,10 +39,15 @@ from typing import Any
 import numpy as np
 import torch
 
+from cuniform_torch.common.digest import DIGEST_KEY, DigestError, check_digest, content_digest
 from cuniform_torch.common.fileio import write_npz
-from cuniform_torch.grid.cells import Grid
+from cuniform_torch.common.npz import NpzError, member_headers, read_npz
+from cuniform_torch.grid.cells import CellKeys, CellSet, Grid
 from cuniform_torch.systems import System, system_from_json, system_to_json
 from cuniform_torch.tables.file import Table
+from precompute.flow.builder import propagate_cell_probs
+from precompute.levels.safe_map import LocalMap, SafeCells
+from precompute.levels.sets import PointMode, cell_sample_offsets, next_level
 
 __all__ = ["DATASET_FORMAT", "SHARD_KEYS", "MapDatasetError", "MapEntry", "MapShard", "MapDataset", "read_map_dataset",
            "entry_arrays", "write_shard", "file_sha256", "dataset_header"]
@@ -44,6 +60,7 @@ _SHARD_NAME = re.compile(r"shard-\d{5}\.npz")
 _ROW_TOL = 1e-2  # float16 action rows
 _LEVEL_TOL = 1e-3  # float32 cell probabilities per level
 _MAX_SIDE = 4096
+_PROPAGATION_TOL = 1e-2  # L1 distance of a level's stored and propagated cell_probs (float16 rows, float32 probs)
 
 
 class MapDatasetError(ValueError):
@@ -92,6 +109,8 @@ class MapDataset:
     seed: int
     entries: list[dict[str, Any]]
     shards: list[dict[str, Any]]
+    verify_all: bool = False
+    """check the propagation of every ``maxflow`` entry's table when a shard is read (else the first entry's)"""
     _loaded: dict[int, MapShard] = field(default_factory=dict)
 
     def __len__(self) -> int:
@@ -160,15 +179,18 @@ def write_shard(path: str | Path, patches: np.ndarray, poses: np.ndarray, entrie
               "entry_offsets": np.concatenate(([0], np.cumsum(sizes))).astype(np.int64),
               "level_offsets": np.stack([e["level_offsets"] for e in entries]).astype(np.int64),
               **{k: np.concatenate([e[k] for e in entries]) for k in ("cells", "action_probs", "cell_probs")}}
+    arrays[DIGEST_KEY] = np.array(content_digest(arrays))
     write_npz(path, arrays, compress=True)
     return file_sha256(path)
 
 
 # -------------------------------------------------------------------------------------------------- reading
 
-def read_map_dataset(root: str | Path, load: bool = False) -> MapDataset:
+def read_map_dataset(root: str | Path, load: bool = False, verify_all: bool = False) -> MapDataset:
     """Read and validate ``root/dataset.json`` and check every shard's sha256 (``load``: also read and validate
-    every shard now; else each is read and validated on first use). One :class:`MapDatasetError` per problem."""
+    every shard now; else each is read and validated on first use). ``verify_all``: recompute the propagation of
+    every ``maxflow`` entry (module docstring; about a third of the farm's build time), not only of the first.
+    One :class:`MapDatasetError` per problem."""
     root = Path(root)
     path = root / "dataset.json"
     if not path.is_file():
@@ -178,6 +200,7 @@ def read_map_dataset(root: str | Path, load: bool = False) -> MapDataset:
     except (OSError, UnicodeDecodeError, ValueError) as exc:
         raise MapDatasetError(f"{path}: not readable JSON ({type(exc).__name__}: {exc})") from None
     ds = _dataset_from_meta(meta, root, path)
+    ds.verify_all = bool(verify_all)
     for k in range(len(ds.shards)):
         _check_sha(ds, k)
         if load:
@@ -287,35 +310,55 @@ def _read_shard(ds: MapDataset, k: int) -> MapShard:
     def fail(msg: str) -> None:
         raise MapDatasetError(f"{path}: {msg}")
 
+    M, (H, W), T = ds.shards[k]["entries"], ds.patch_shape, ds.horizon
+    d, A = len(ds.meta["grid"]["cell_size"]), len(ds.actions)
+    try:  # shapes and dtypes from the .npy headers first: nothing is allocated for a member that does not fit
+        heads = member_headers(path)
+        keys = set(heads) - {DIGEST_KEY}
+        if sorted(keys) != sorted(SHARD_KEYS):
+            fail(f"must hold exactly the keys {', '.join(SHARD_KEYS)} (and {DIGEST_KEY}), has {', '.join(sorted(heads))}")
+        for key, dtype in _DTYPES.items():
+            if heads[key][1] != dtype:
+                fail(f"{key} must be {np.dtype(dtype)}, got {heads[key][1]}")
+        shapes = {"patches": (M, H, W), "poses": (M, 3), "entry_offsets": (M + 1,), "level_offsets": (M, T + 2)}
+        _check_shapes(heads, shapes, fail)
+        eo = read_npz(path, keys=["entry_offsets"], expect={"entry_offsets": ((M + 1,), np.int64)})["entry_offsets"]
+        R = int(eo[-1])
+        shapes.update({"cells": (R, d), "action_probs": (R, A), "cell_probs": (R,)})
+        _check_shapes(heads, shapes, fail)
+        want = list(SHARD_KEYS) + ([DIGEST_KEY] if DIGEST_KEY in heads else [])
+        arrays = read_npz(path, keys=want, expect={**{key: (shape, _DTYPES[key]) for key, shape in shapes.items()},
+                                                    DIGEST_KEY: ((), None)})
+    except NpzError as exc:
+        fail(f"not a readable .npz shard ({exc})")
+    stored = arrays.pop(DIGEST_KEY, None)
+    if stored is not None and stored.dtype.kind != "U":
+        fail(f"{DIGEST_KEY} must be a string, got {stored.dtype}")
     try:
-        with np.load(path, allow_pickle=False) as z:
-            if sorted(z.files) != sorted(SHARD_KEYS):
-                fail(f"must hold exactly the keys {', '.join(SHARD_KEYS)}, has {', '.join(sorted(z.files))}")
-            arrays = {key: z[key] for key in SHARD_KEYS}
-    except MapDatasetError:
-        raise
-    except (ValueError, OSError, EOFError, zipfile.BadZipFile, zlib.error) as exc:
-        fail(f"not a readable .npz shard ({type(exc).__name__}: {exc})")
+        check_digest(arrays, None if stored is None else str(stored[()]), str(path))
+    except DigestError as exc:
+        raise MapDatasetError(str(exc)) from None
     _check_shard(arrays, ds, k, fail)
     return MapShard(path, arrays)
 
 
-def _check_shard(a: dict[str, np.ndarray], ds: MapDataset, k: int, fail) -> None:
-    """Dtypes, shapes, offsets, poses, cells and probabilities of shard ``k`` against ``ds``'s metadata."""
-    M, (H, W), T = ds.shards[k]["entries"], ds.patch_shape, ds.horizon
-    d, A = len(ds.meta["grid"]["cell_size"]), len(ds.actions)
-    for key, dtype in _DTYPES.items():
-        if a[key].dtype != dtype:
-            fail(f"{key} must be {np.dtype(dtype)}, got {a[key].dtype}")
-    R = int(a["entry_offsets"][-1]) if a["entry_offsets"].ndim == 1 and len(a["entry_offsets"]) else -1
-    shapes = {"patches": (M, H, W), "poses": (M, 3), "entry_offsets": (M + 1,), "level_offsets": (M, T + 2),
-              "cells": (R, d), "action_probs": (R, A), "cell_probs": (R,)}
+def _check_shapes(heads: dict[str, tuple[tuple[int, ...], np.dtype]], shapes: dict[str, tuple[int, ...]],
+                  fail) -> None:
     for key, shape in shapes.items():
-        if a[key].shape != shape:
+        if heads[key][0] != shape:
             fail(f"{key} must have shape {list(shape)} (from dataset.json's system, patch and entries), got "
-                 f"{list(a[key].shape)}")
+                 f"{list(heads[key][0])}")
+
+
+def _check_shard(a: dict[str, np.ndarray], ds: MapDataset, k: int, fail) -> None:
+    """Poses, offsets, cells, patches and probabilities of shard ``k`` (dtypes and shapes are checked) against
+    ``ds``'s metadata, then its tables against the builders' guarantees (:func:`_check_tables`)."""
+    M = ds.shards[k]["entries"]
     if a["patches"].size and a["patches"].max() > 1:
         fail("patches must hold only 0 and 1")
+    full = np.flatnonzero(a["patches"].reshape(M, -1).min(axis=1) == 1) if a["patches"].size else []
+    if len(full):
+        fail(f"the patch of entry {int(full[0])} is occupied everywhere (no free cell for its start)")
     first = ds._first[k]
     poses = np.asarray([e["pose"] for e in ds.entries[first:first + M]], dtype=np.float64)
     if not np.array_equal(a["poses"], poses):
@@ -326,6 +369,7 @@ def _check_shard(a: dict[str, np.ndarray], ds: MapDataset, k: int, fail) -> None
     if np.any(lo[:, 0] != 0) or np.any(np.diff(lo, axis=1) <= 0) or not np.array_equal(lo[:, -1], np.diff(eo)) \
             or np.any(lo[:, 1] != 1):
         fail("level_offsets must rise strictly from 0 (level 0: one start cell) to each entry's row count")
+    R = int(eo[-1])
     for dim in np.flatnonzero(ds.meta["grid"]["periodic"]):
         K = round(2 * math.pi / ds.meta["grid"]["cell_size"][dim])
         if R and (a["cells"][:, dim].min() < 0 or a["cells"][:, dim].max() >= K):
@@ -338,3 +382,122 @@ def _check_shard(a: dict[str, np.ndarray], ds: MapDataset, k: int, fail) -> None
     starts = (eo[:-1, None] + lo[:, :-1]).reshape(-1)  # every level's first row, entries in order
     if np.any(np.abs(np.add.reduceat(cp, starts) - 1) > _LEVEL_TOL):
         fail(f"cell_probs must sum to 1 in every level of every entry (within {_LEVEL_TOL})")
+    _check_cells(a["cells"], eo, starts, ds, fail)
+    _check_tables(a, ds, k, fail)
+
+
+def _check_cells(cells: np.ndarray, eo: np.ndarray, starts: np.ndarray, ds: MapDataset, fail) -> None:
+    """Level 0 of every entry is the origin cell (the farm builds from the zero state of the robot's frame); the
+    cells of every level are distinct and in ascending row-major order (as the builders write them, and as the
+    rows are matched to cells by sorted keys)."""
+    origin = Grid.of(ds.system).cells(torch.zeros(1, len(ds.meta["grid"]["cell_size"]), dtype=torch.float64))[0]
+    bad = np.flatnonzero(np.any(cells[eo[:-1]] != origin.numpy(), axis=1))
+    if len(bad):
+        fail(f"level 0 of entry {int(bad[0])} must be the origin cell {origin.tolist()} (the robot's start), got "
+             f"{cells[eo[int(bad[0])]].tolist()}")
+    if len(cells) < 2:
+        return
+    diff = cells[1:].astype(np.int64) - cells[:-1]  # [R-1, d]: the first non-zero entry of each row gives the order
+    nonzero = diff != 0
+    sign = np.where(nonzero.any(axis=1), np.sign(diff[np.arange(len(diff)), np.argmax(nonzero, axis=1)]), 0)
+    same_level = np.ones(len(diff), dtype=bool)
+    same_level[starts[1:] - 1] = False  # the pair (last row of a level, first row of the next)
+    bad = np.flatnonzero(same_level & (sign <= 0))
+    if len(bad):
+        row = int(bad[0]) + 1
+        what = "repeats" if sign[bad[0]] == 0 else "comes before"
+        fail(f"the cells of a level must be distinct and ascending (as the builders write them; rows permuted or "
+             f"duplicated?): row {row} {cells[row].tolist()} {what} row {row - 1} {cells[row - 1].tolist()}")
+
+
+def _check_tables(a: dict[str, np.ndarray], ds: MapDataset, k: int, fail) -> None:
+    """Each entry's table against its patch and the system's dynamics (module docstring); one entry and one
+    level at a time (each step vectorized over its cells and actions). The propagation of ``maxflow`` tables (the
+    builder's transitions, recomputed: about a third of the build's time) runs on every entry when
+    ``ds.verify_all``, else on the data set's first entry only (a spot check)."""
+    eo, lo, T = a["entry_offsets"], a["level_offsets"], ds.horizon
+    A = len(ds.actions)
+    for m in range(len(eo) - 1):
+        rows = slice(int(eo[m]), int(eo[m + 1]))
+        cells = torch.from_numpy(a["cells"][rows].astype(np.int64))  # [R_e, d]
+        probs = a["action_probs"][rows].astype(np.float64)
+        probs /= probs.sum(axis=1, keepdims=True)
+        cp = a["cell_probs"][rows].astype(np.float64)
+        off = lo[m]
+        last = probs[off[T]:]
+        if np.any(np.abs(last - 1.0 / A) > _ROW_TOL / A):
+            fail(f"entry {m}: the rows of the last level (the horizon) must be uniform (1/{A}), as the builders write "
+                 "them")
+        for t in range(T):
+            here, there = slice(int(off[t]), int(off[t + 1])), slice(int(off[t + 1]), int(off[t + 2]))
+            _check_reach(ds, cells[here], cells[there], lambda msg, m=m, t=t: fail(f"entry {m}, level {t + 1}: {msg}"))
+        safe = SafeCells(ds.system, LocalMap(a["patches"][m], ds.patch_origin, ds.patch_resolution), ds.radius)
+        blocked = np.flatnonzero(~safe.keep(cells).numpy())
+        if len(blocked):
+            r = int(blocked[0])
+            fail(f"entry {m}: the cell {cells[r].tolist()} (level {int(np.searchsorted(off, r, side='right')) - 1}) "
+                 f"lies within radius {ds.radius:g} m of an obstacle of its patch: the patch, radius or resolution "
+                 "do not match the table (a transposed patch, another radius or resolution)")
+        if ds.method == "maxflow" and (ds.verify_all or (k == 0 and m == 0)):
+            for t in range(T):
+                here, there = slice(int(off[t]), int(off[t + 1])), slice(int(off[t + 1]), int(off[t + 2]))
+                _check_propagation(ds, cells[here], cells[there], probs[here], cp[here], cp[there],
+                                   lambda msg, m=m, t=t: fail(f"entry {m}, level {t + 1}: {msg}"))
+
+
+_CHUNK_PAIRS = 1 << 21  # (point, action) pairs stepped at once, as the builder (bounds memory on big levels)
+
+
+def _check_reach(ds: MapDataset, now: torch.Tensor, nxt: torch.Tensor, fail) -> None:
+    """Level t+1 (``nxt [m, d]``) is reached from level t (``now [n, d]``) in one step: for ``maxflow`` every cell is
+    a successor of a level-t centre (the builder's level set, before its pruning); for ``coverage`` (states
+    anywhere in a cell) every cell lies within one cell of a successor of a level-t cell's lattice point."""
+    grid = Grid.of(ds.system)
+    actions = ds.system.action_set(dtype=torch.float64)  # [A, q]
+    A, d = actions.shape[0], grid.dim
+    offsets = cell_sample_offsets(grid, PointMode.LATTICE, 1, 1, None)[0] if ds.method == "coverage" \
+        else torch.zeros(1, d, dtype=torch.float64)  # [P, d]
+    P = len(offsets)
+    centres = grid.centers(now, torch.float64)  # [n, d]
+    found = []
+    for lo in range(0, len(now), max(1, _CHUNK_PAIRS // (P * A))):
+        src = now[lo:lo + _CHUNK_PAIRS // (P * A) or 1]
+        pts = grid.wrap(centres[lo:lo + len(src)].unsqueeze(1) + offsets)  # [c, P, d]
+        x = pts.unsqueeze(2).expand(-1, P, A, d).reshape(-1, d)
+        u = actions.expand(len(src) * P, A, actions.shape[1]).reshape(-1, actions.shape[1])
+        found.append(grid.cells_from(src, ds.system.step(x, u).reshape(len(src), P * A, d)).reshape(-1, d))
+    found = torch.cat(found)
+    keys = CellKeys.covering(found)
+    uniq = torch.unique(keys.pack(found))  # sorted
+    reached = CellSet(keys, uniq, torch.arange(len(uniq)))
+    if ds.method == "coverage":  # one cell of slack: a state off its cell's lattice points
+        around = torch.cartesian_prod(*[torch.tensor([-1, 0, 1])] * d).reshape(-1, d)  # [3^d, d]
+        near = nxt.unsqueeze(1) + around  # [m, 3^d, d]
+        for dim, K in enumerate(grid.num_angle_cells):
+            if K:
+                near[..., dim] %= K
+        hit = (reached.lookup(near) >= 0).any(dim=1)
+    else:
+        hit = reached.lookup(nxt) >= 0
+    if not bool(hit.all()):
+        how = "within one cell of a state" if ds.method == "coverage" else "a cell"
+        fail(f"{int((~hit).sum())} of its {len(nxt)} cells (e.g. {nxt[~hit][0].tolist()}) are not {how} reached from "
+             "the level before in one step of the system: the speed, the actions or the cells do not match")
+
+
+def _check_propagation(ds: MapDataset, now: torch.Tensor, nxt: torch.Tensor, probs: np.ndarray, cp_now: np.ndarray,
+                       cp_next: np.ndarray, fail) -> None:
+    """A ``maxflow`` level's ``cell_probs`` (``cp_next [m]``) is the level before's (``cp_now [n]``) propagated through
+    its rows ``probs [n, A]`` and the builder's transitions (recomputed: the level-t cells' lattice points stepped
+    under every action, kept where they land in level t+1), renormalized (the mass into obstacles is gone)."""
+    target = CellSet.build(nxt)
+    step = next_level(ds.system, now.numpy(), PointMode.CENTERS, keep=lambda c: target.lookup(c) >= 0)
+    if len(step.next_cells) != len(nxt):  # _check_reach ran first: not expected
+        fail("its cells are not the successors of the level before")
+    prop = propagate_cell_probs(cp_now, probs, step.src, step.act, step.dst, step.frac, len(nxt))
+    if not prop.sum() > 0:
+        fail("no probability mass reaches it through the action_probs of the level before")
+    err = float(np.abs(prop / prop.sum() - cp_next).sum())
+    if err > _PROPAGATION_TOL:
+        fail(f"its cell_probs are not the level before's propagated through its action_probs (L1 distance "
+             f"{err:.3g} > {_PROPAGATION_TOL}): action rows permuted or changed")
