@@ -25,7 +25,19 @@ from pathlib import Path
 import torch
 
 from cuniform_torch import CUMPPI, MPPI, CUniformMPPI, Dubins, LogMPPI, load_table, rollout, write_table
-from cuniform_torch.cli import ArgumentParser, CLIError, check_output_file, cli_main
+from cuniform_torch.cli import (
+    MAX_COUNT,
+    ArgumentParser,
+    check_output_file,
+    cli_main,
+    device_arg,
+    horizon_arg,
+    int_in,
+    non_negative_int,
+    positive_int,
+    refuse_flags,
+    threads_arg,
+)
 from cuniform_torch.common.fileio import write_json
 from cuniform_torch.policies.table import Kernel
 from cuniform_torch.sampling import GaussianSampler
@@ -75,30 +87,39 @@ def _table(path: Path, horizon: int):
     return path
 
 
+def make_parser() -> ArgumentParser:
+    p = ArgumentParser(prog="python -m eval.bench", description=__doc__.split("\n\n")[0])
+    p.add_argument("--samples", type=int_in(2, MAX_COUNT), nargs="+", default=[500, 1000, 10000],
+                   help="K, samples per command (each >= 2: CU-MPPI splits it in two)")
+    p.add_argument("--horizons", type=horizon_arg, nargs="+", default=[15, 10], help="15 and the default table's 10")
+    p.add_argument("--table15", type=Path, default=DEFAULT.bench_table(15), help="a horizon-15 Dubins table")
+    p.add_argument("--table", type=Path, default=DEFAULT.table,
+                   help="the default (horizon-10) table, read when --horizons has 10 (not with --rollout-only)")
+    p.add_argument("--repeats", type=positive_int, default=20)
+    p.add_argument("--warmup", type=non_negative_int, default=3)
+    p.add_argument("--device", type=device_arg, default="cpu")
+    p.add_argument("--compile", action="store_true", help="also time the compiled table kernel (slow to compile)")
+    p.add_argument("--threads", type=threads_arg, default=0, help="torch CPU threads (default 0: torch's choice)")
+    p.add_argument("--rollout-only", action="store_true", help="only the bare-rollout section")
+    p.add_argument("--rollout-repeats", type=positive_int, default=None,
+                   help="repeats of the bare rollouts (default: --repeats)")
+    p.add_argument("--json", type=Path, default=DEFAULT.bench_json)
+    return p
+
+
 @cli_main()
 def main(argv=None) -> int:
-    p = ArgumentParser(prog="python -m eval.bench", description=__doc__.split("\n\n")[0])
-    p.add_argument("--samples", type=int, nargs="+", default=[500, 1000, 10000])
-    p.add_argument("--horizons", type=int, nargs="+", default=[15, 10], help="15 and the default table's 10")
-    p.add_argument("--table15", type=Path, default=DEFAULT.bench_table(15), help="a horizon-15 Dubins table")
-    p.add_argument("--table", type=Path, default=DEFAULT.table, help="the default (horizon-10) table")
-    p.add_argument("--repeats", type=int, default=20)
-    p.add_argument("--warmup", type=int, default=3)
-    p.add_argument("--device", default="cpu")
-    p.add_argument("--compile", action="store_true", help="also time the compiled table kernel (slow to compile)")
-    p.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's choice)")
-    p.add_argument("--rollout-only", action="store_true", help="only the bare-rollout section")
-    p.add_argument("--rollout-repeats", type=int, default=None, help="repeats of the bare rollouts (default: --repeats)")
-    p.add_argument("--json", type=Path, default=DEFAULT.bench_json)
+    p = make_parser()
     args = p.parse_args(argv)
-    try:
-        device = torch.device(args.device)
-    except RuntimeError:
-        raise CLIError(f"--device {args.device!r} is not a torch device (cpu, cuda, cuda:1, ...)") from None
-    if args.threads is not None:
+    if args.rollout_only:
+        refuse_flags(p, args, ["samples", "horizons", "table"], "with --rollout-only (only the horizon-15 table's "
+                                                                "bare rollouts are timed)")
+    elif 10 not in args.horizons:
+        refuse_flags(p, args, ["table"], f"without 10 in --horizons (the horizon-10 table; --horizons "
+                                         f"{' '.join(map(str, args.horizons))})")
+    device = torch.device(args.device)
+    if args.threads:
         torch.set_num_threads(args.threads)
-    if device.type == "cuda" and not torch.cuda.is_available():
-        raise CLIError("--device cuda but CUDA is not available")
     check_output_file(args.json, "--json", example="bench.json")
     try:
         import pytorch_mppi  # noqa: F401
@@ -118,7 +139,7 @@ def main(argv=None) -> int:
 
     state = torch.tensor([0.0, 0.0, 0.3], device=device)
     tables = {15: _table(args.table15, 15)}
-    if not args.rollout_only:
+    if not args.rollout_only and 10 in args.horizons:
         tables[10] = _table(args.table, 10)
     rows = []
     header = f"{'T':>3} {'K':>6} {'MPPI':>8} {'logMPPI':>8} {'CU-MPPI':>8} {'CU bank':>8} {'CUMPPI':>8}"

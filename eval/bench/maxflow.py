@@ -21,6 +21,8 @@ from cuniform_torch.cli import (
     check_output_file,
     cli_main,
     import_system_modules,
+    non_negative_int,
+    positive_int,
 )
 from cuniform_torch.common.fileio import write_json
 from cuniform_torch.tables.file import read_table
@@ -28,16 +30,22 @@ from eval.common.paths import DEFAULT
 from precompute.flow.maxflow import maxflow_value_networkx, solve_maxflow
 
 
-@cli_main()
-def main(argv=None) -> int:
+def make_parser() -> ArgumentParser:
     p = ArgumentParser(prog="python -m eval.bench.maxflow", description=__doc__.split("\n\n")[0])
     p.add_argument("--table", type=Path, default=DEFAULT.table)
-    p.add_argument("--levels", type=int, nargs="*", default=None, help="target levels t+1 (default: every level)")
-    p.add_argument("--repeats", type=int, default=3)
-    p.add_argument("--networkx-max-nodes", type=int, default=20000, help="skip networkx on larger networks")
+    p.add_argument("--levels", type=positive_int, nargs="+", default=None,
+                   help="target levels t+1 (default: every level)")
+    p.add_argument("--repeats", type=positive_int, default=3)
+    p.add_argument("--networkx-max-nodes", type=non_negative_int, default=20000,
+                   help="skip networkx on larger networks (0: always)")
     p.add_argument("--json", type=Path, default=None)
     add_system_module_arg(p)
-    args = p.parse_args(argv)
+    return p
+
+
+@cli_main()
+def main(argv=None) -> int:
+    args = make_parser().parse_args(argv)
     import_system_modules(args.system_module)
     if args.json is not None:
         check_output_file(args.json, "--json", example="bench_maxflow.json")

@@ -26,7 +26,19 @@ import torch
 from tqdm import tqdm
 
 from cuniform_torch import CUniformMPPI, Dubins, load_table
-from cuniform_torch.cli import ArgumentParser, add_system_module_arg, check_output_file, cli_main, import_system_modules
+from cuniform_torch.cli import (
+    MAX_COUNT,
+    ArgumentParser,
+    add_system_module_arg,
+    check_output_file,
+    cli_main,
+    device_arg,
+    horizon_arg,
+    import_system_modules,
+    int_in,
+    positive_int,
+    refuse_flags,
+)
 from cuniform_torch.common.fileio import write_json
 from cuniform_torch.controllers.mppi import BankRefreshWarning
 
@@ -135,22 +147,30 @@ def _policy(path: Path | None, horizon: int, device: str):
     return TablePolicy(table, device=device)
 
 
-@cli_main()
-def main(argv=None) -> int:
+def make_parser() -> ArgumentParser:
     p = ArgumentParser(prog="python -m eval.bench.soak_bank", description=__doc__.split("\n\n")[0])
-    p.add_argument("--commands", type=int, default=20000)
-    p.add_argument("--samples", type=int, default=1000, help="K, proposals per command")
-    p.add_argument("--bank-size", type=int, default=20000)
-    p.add_argument("--refresh", type=int, default=5, help="commands between background refreshes")
+    p.add_argument("--commands", type=positive_int, default=20000)
+    p.add_argument("--samples", type=int_in(2, MAX_COUNT), default=1000, help="K, proposals per command")
+    p.add_argument("--bank-size", type=positive_int, default=20000)
+    p.add_argument("--refresh", type=positive_int, default=5, help="commands between background refreshes")
     p.add_argument("--fail-once", action="store_true", help="make the first background refresh raise")
     p.add_argument("--table", type=Path, default=None, help="a Dubins table (default: built in memory, --horizon)")
-    p.add_argument("--horizon", type=int, default=15, help="of the table built in memory (15: the 3 s table)")
-    p.add_argument("--sample-every", type=int, default=100, help="commands between RSS / thread samples")
-    p.add_argument("--device", default="cpu")
+    p.add_argument("--horizon", type=horizon_arg, default=15,
+                   help="of the table built in memory (15: the 3 s table; not with --table)")
+    p.add_argument("--sample-every", type=positive_int, default=100, help="commands between RSS / thread samples")
+    p.add_argument("--device", type=device_arg, default="cpu")
     p.add_argument("--quiet", action="store_true")
     p.add_argument("--json", type=Path, default=None)
     add_system_module_arg(p)
+    return p
+
+
+@cli_main()
+def main(argv=None) -> int:
+    p = make_parser()
     args = p.parse_args(argv)
+    if args.table is not None:
+        refuse_flags(p, args, ["horizon"], f"with --table (the horizon is {args.table}'s)")
     import_system_modules(args.system_module)
     if args.json is not None:
         check_output_file(args.json, "--json", "soak_bank.json")

@@ -30,12 +30,22 @@ from typing import Any
 import numpy as np
 
 from cuniform_torch.cli import (
+    MAX_COUNT,
     ArgumentParser,
+    CLIError,
     add_dataclass_args,
+    add_no_limit_arg,
     add_system_module_arg,
+    check_work,
     cli_main,
     dataclass_from_args,
+    float_in,
+    horizon_arg,
     import_system_modules,
+    int_in,
+    positive_float,
+    positive_int,
+    refuse_flags,
 )
 from cuniform_torch.common.fileio import exclusive_lock
 from cuniform_torch.envs.worlds.robot import NAV_ROBOT, RobotPreset, preset_dict
@@ -50,7 +60,7 @@ from eval.navigate.results import render, result, success_pivot, write_outputs
 from eval.navigate.robot_files import ensure_policy, ensure_table
 from eval.navigate.store import EpisodeStore
 
-__all__ = ["NavConfig", "REPEATS", "SHORT", "QUICK", "make_jobs", "run", "short_run", "render", "result",
+__all__ = ["NavConfig", "NAV_TYPES", "REPEATS", "SHORT", "QUICK", "make_jobs", "run", "short_run", "render", "result",
            "success_pivot", "write_outputs", "main", "controller_seed"]
 
 REPEATS = {"barn": 1, "forest": 1, "gaps": 5, "clutter": 1}
@@ -242,19 +252,29 @@ def short_run(root: Path, quick: bool = False, progress: bool = True) -> dict:
     return res
 
 
+NAV_TYPES = {"tasks": positive_int, "budgets": int_in(2, MAX_COUNT, note=" (CU-MPPI splits it in two)"),
+             "repeats": positive_int, "seed": int_in(0, 2**31 - 1), "horizon": horizon_arg, "workers": int_in(1, 1024),
+             "sensing_range": positive_float, "lambda_": positive_float, "collision_penalty": positive_float,
+             "cost_resolution": positive_float}
+"""the :class:`NavConfig` flags' values, checked as they parse (:mod:`cuniform_torch.cli`)"""
+
+
 def make_parser() -> ArgumentParser:
     p = ArgumentParser(prog="python -m eval.navigate", description=(__doc__ or "").split("\n\n")[0])
     add_dataclass_args(p, NavConfig, flags={"lambda_": "--lambda"}, choices={"suite": SUITES, "split": SPLITS},
-                       help={"methods": f"method keys, of {', '.join(methods_of(NAVIGATE))} (default: all but cu_mlp)"})
+                       help={"methods": f"method keys, of {', '.join(methods_of(NAVIGATE))} (default: all but cu_mlp)"},
+                       arg_types=NAV_TYPES)
     p.add_argument("--ray", nargs="?", const="local", default=None, metavar="ADDRESS",
                    help="run episodes as Ray tasks: a local Ray runtime, or the cluster at ADDRESS ('auto', "
                         "'ray://host:10001'); needs pip install -e '.[ray]'")
     p.add_argument("--out", type=Path, default=None, help="output folder (default: out/navigate/<suite>)")
     p.add_argument("--cache", type=Path, default=Path("out/navigate/cache"),
                    help="where the robot's tables are built and kept (default: out/navigate/cache)")
-    p.add_argument("--barn-file", type=Path, default=None, help="BARN maps in the shipped format (cuniform_torch/envs/worlds/barn.py)")
+    p.add_argument("--barn-file", type=Path, default=None,
+                   help="BARN maps in the shipped format (cuniform_torch/envs/worlds/barn.py); --suite barn only")
     p.add_argument("--barn-worlds", type=Path, default=None,
-                   help="a folder of BARN Gazebo world_<id>.world files (or one file), converted to --out/barn.npz")
+                   help="a folder of BARN Gazebo world_<id>.world files (or one file), converted to --out/barn.npz; "
+                        "--suite barn only")
     p.add_argument("--table", type=Path, default=None, help="use this max-flow table (default: the robot's, cached)")
     p.add_argument("--coverage-table", type=Path, default=None, help="use this coverage table (cu_coverage)")
     p.add_argument("--policy", type=Path, default=None, help="use this distilled MLP (cu_mlp)")
@@ -263,13 +283,34 @@ def make_parser() -> ArgumentParser:
     p.add_argument("--system", default=None, help="drive a registered system instead of the built-in robot")
     p.add_argument("--param", action="append", default=[], metavar="KEY=VALUE",
                    help="a parameter of --system as JSON (repeatable)")
-    p.add_argument("--robot-radius", type=float, default=NAV_ROBOT.radius, help="m (default: 0.2)")
+    p.add_argument("--robot-radius", type=float_in(0.0, 100.0), default=NAV_ROBOT.radius, help="m (default: 0.2)")
     p.add_argument("--starts", default=None, metavar="SPEC",
                    help="with --system: the robot's tables are a set over these starts (precompute.build --starts), "
                         "e.g. '3=0:1:6' for ks_speed's speed")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
+    add_no_limit_arg(p)
     add_system_module_arg(p)
     return p
+
+
+def _check_flags(p: ArgumentParser, args, cfg: NavConfig, out: Path) -> None:
+    """The flags that do not apply to ``cfg``'s suite, a run too large, and ``--paths`` on a folder whose episodes
+    were kept without their paths: refused before any work (:func:`cuniform_torch.cli.refuse_flags`)."""
+    if cfg.suite != "barn":
+        refuse_flags(p, args, ["barn_file", "barn_worlds"], f"to --suite {cfg.suite} (BARN maps: --suite barn)")
+    if cfg.suite not in ("forest", "clutter"):
+        refuse_flags(p, args, ["sensing_range"], f"to --suite {cfg.suite} (obstacles are sensed in forest and "
+                                                 "clutter)")
+    counts = {"tasks": cfg.tasks, "repeats": cfg.repeats, "budgets": len(cfg.budgets),
+              "methods": len(cfg.methods) if cfg.methods is not None else None}
+    check_work({k: v for k, v in counts.items() if v is not None}, "episodes", args.no_limit)
+    if cfg.paths:
+        store = EpisodeStore(out)
+        if store.records_file.is_file():
+            without = sum("path" not in rec for rec in store.read().values())
+            if without:
+                raise CLIError(f"--paths: {without} episode(s) in {store.records_file} were run without --paths; "
+                               "a resumed run would keep them without their paths: give another --out")
 
 
 def _robot(args, cfg: NavConfig) -> RobotPreset:
@@ -295,12 +336,14 @@ def _robot(args, cfg: NavConfig) -> RobotPreset:
 
 @cli_main()
 def main(argv: Sequence[str] | None = None) -> int:
-    args = make_parser().parse_args(argv)
+    p = make_parser()
+    args = p.parse_args(argv)
     import_system_modules(args.system_module)
     cfg = dataclass_from_args(NavConfig, args)
     _check(cfg)
-    robot = _robot(args, cfg)
     out = args.out or Path("out/navigate") / cfg.suite
+    _check_flags(p, args, cfg, out)
+    robot = _robot(args, cfg)
     barn_file = args.barn_file
     if args.barn_worlds is not None:
         if barn_file is not None:
