@@ -117,18 +117,17 @@ def read_npz(path: str | os.PathLike, *, keys: Sequence[str] | None = None,
             raise NpzError(f"{what}: missing key(s) {', '.join(missing)}")
         for key in wanted:
             info, where = members[key], f"{what}: member {key!r}"
+            budget = None if max_bytes is None else max_bytes - total
             try:
-                out[key] = _read_member(zf, info, where, (expect or {}).get(key), max_ratio, slack)
+                out[key] = _read_member(zf, info, where, (expect or {}).get(key), max_ratio, slack, budget)
             except (OSError, EOFError, zipfile.BadZipFile, zlib.error) as exc:  # a damaged stream, a bad CRC
                 raise NpzError(f"{where}: not readable ({type(exc).__name__}: {exc})") from None
             total += out[key].nbytes
-            if max_bytes is not None and total > max_bytes:
-                raise NpzError(f"{what}: its arrays exceed {max_bytes} bytes")
     return out
 
 
 def _read_member(zf: zipfile.ZipFile, info: zipfile.ZipInfo, where: str, expect, max_ratio: float,
-                 slack: int) -> np.ndarray:
+                 slack: int, budget: int | None) -> np.ndarray:
     with _open_member(zf, info, where) as fh:
         shape, fortran, dtype, hlen = _header(fh, where)
         if dtype.hasobject:
@@ -139,6 +138,9 @@ def _read_member(zf: zipfile.ZipFile, info: zipfile.ZipInfo, where: str, expect,
             raise NpzError(f"{where}: its header claims {list(shape)} {dtype} ({nbytes} bytes), more than its "
                            f"{info.compress_size} compressed bytes can hold (at most {max_ratio:g} x + {slack}); "
                            "a damaged or forged file")
+        if budget is not None and nbytes > budget:
+            raise NpzError(f"{where}: its header claims {list(shape)} {dtype} ({nbytes} bytes), more than this file "
+                           f"may hold ({budget} bytes left of its cap)")
         if hlen + nbytes != info.file_size:
             raise NpzError(f"{where}: its header claims {list(shape)} {dtype} ({nbytes} bytes) but the member holds "
                            f"{info.file_size - hlen} data bytes; a damaged or forged file")

@@ -10,16 +10,17 @@ Pruning rule (the one definition, used by both builders): a level cell is remove
 centre's (x, y) lies within ``radius`` of an occupied map cell, the distance measured between map-cell centres
 (``scipy.ndimage.distance_transform_edt``); an occupied map cell itself is at distance 0.
 
-Map file (``.npz``, format ``cuniform-local-map/1``, read with ``allow_pickle=False``): ``format`` (string),
-``occupied`` uint8 ``[H, W]`` of 0/1, ``origin`` float64 ``[2]`` (x0, y0 in m), ``resolution`` float64 ``[]`` (m).
+Map file (``.npz``, format ``cuniform-local-map/1``): ``format`` (string), ``occupied`` uint8 ``[H, W]`` of 0/1,
+``origin`` float64 ``[2]`` (x0, y0 in m), ``resolution`` float64 ``[]`` (m), and ``content_sha256`` (the digest of
+the others, :mod:`cuniform_torch.common.digest`; absent in files written before it). It is read with the bounded
+reader :func:`cuniform_torch.common.npz.read_npz`: each member's shape and dtype are checked from its ``.npy``
+header (``occupied`` at most 4096 x 4096) before anything is allocated.
 """
 
 from __future__ import annotations
 
 import hashlib
 import math
-import zipfile
-import zlib
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -28,7 +29,9 @@ import numpy as np
 import scipy.ndimage
 import torch
 
+from cuniform_torch.common.digest import DIGEST_KEY, DigestError, check_digest, content_digest
 from cuniform_torch.common.fileio import write_npz
+from cuniform_torch.common.npz import NpzError, member_headers, read_npz
 from cuniform_torch.grid.cells import Grid
 from cuniform_torch.systems import System
 
@@ -98,34 +101,53 @@ def check_map_arrays(occupied: Any, origin: Any, resolution: Any, source: str) -
                        f"{list(res.shape)} {res.tolist()!r}")
 
 
+_MAP_KEYS = ("format", "occupied", "origin", "resolution")
+
+
 def read_map_file(path: str | Path) -> LocalMap:
     """Read and validate a map file (module docstring); every problem is one MapError naming the file."""
     path = Path(path)
     if not path.is_file():
         raise MapError(f"--map {path}: no such file")
-    try:
-        with np.load(path, allow_pickle=False) as z:
-            missing = [k for k in ("format", "occupied", "origin", "resolution") if k not in z.files]
-            if missing:
-                raise MapError(f"--map {path}: missing key(s) {', '.join(missing)}; a map file holds format, "
-                               "occupied, origin, resolution")
-            fmt = z["format"]
-            if fmt.shape != () or fmt.dtype.kind != "U" or str(fmt[()]) != MAP_FORMAT:
-                raise MapError(f"--map {path}: format must be {MAP_FORMAT!r}, got {fmt.tolist()!r}")
-            arrays = {k: z[k] for k in ("occupied", "origin", "resolution")}
-    except MapError:
-        raise
-    except (ValueError, OSError, EOFError, zipfile.BadZipFile, zlib.error) as exc:
-        raise MapError(f"--map {path}: not a readable .npz map ({type(exc).__name__}: {exc})") from None
-    check_map_arrays(arrays["occupied"], arrays["origin"], arrays["resolution"], f"--map {path}")
-    return LocalMap(arrays["occupied"], tuple(arrays["origin"].tolist()), float(arrays["resolution"]))
+    where = f"--map {path}"
+    try:  # headers first: a member claiming more than a map holds is refused before it is allocated
+        heads = member_headers(path)
+        missing = [k for k in _MAP_KEYS if k not in heads]
+        if missing:
+            raise MapError(f"{where}: missing key(s) {', '.join(missing)}; a map file holds format, "
+                           "occupied, origin, resolution")
+        expect = {"format": ((), None), DIGEST_KEY: ((), None)}  # the others: check_map_arrays' messages
+        occ_shape = heads["occupied"][0]
+        if len(occ_shape) == 2 and not all(1 <= n <= MAX_MAP_SIDE for n in occ_shape):
+            raise MapError(f"{where}: 'occupied' must be between 1 x 1 and {MAX_MAP_SIDE} x {MAX_MAP_SIDE}, got "
+                           f"{list(occ_shape)}")
+        keys = list(_MAP_KEYS) + ([DIGEST_KEY] if DIGEST_KEY in heads else [])
+        z = read_npz(path, keys=keys, expect=expect, max_bytes=MAX_MAP_SIDE * MAX_MAP_SIDE + (1 << 16), what=where)
+    except NpzError as exc:
+        raise MapError(f"{where}: not a readable .npz map ({exc})") from None
+    fmt = z["format"]
+    if fmt.shape != () or fmt.dtype.kind != "U" or str(fmt[()]) != MAP_FORMAT:
+        raise MapError(f"{where}: format must be {MAP_FORMAT!r}, got {fmt.tolist()!r}")
+    stored = z.pop(DIGEST_KEY, None)
+    if stored is not None and stored.dtype.kind != "U":
+        raise MapError(f"{where}: {DIGEST_KEY} must be a string, got {stored.dtype}")
+    try:  # a damaged file first; the note of an old file (no digest) only once it is otherwise valid
+        if stored is not None:
+            check_digest(z, str(stored[()]), str(path))
+    except DigestError as exc:
+        raise MapError(f"--map {exc}") from None
+    check_map_arrays(z["occupied"], z["origin"], z["resolution"], where)
+    if stored is None:
+        check_digest(z, None, str(path))
+    return LocalMap(z["occupied"], tuple(z["origin"].tolist()), float(z["resolution"]))
 
 
 def write_map_file(path: str | Path, local_map: LocalMap) -> None:
-    """Write ``local_map`` as a map file (atomic, byte-deterministic)."""
-    write_npz(path, {"format": np.array(MAP_FORMAT), "occupied": local_map.occupied,
-                     "origin": np.asarray(local_map.origin, dtype=np.float64),
-                     "resolution": np.array(local_map.resolution, dtype=np.float64)})
+    """Write ``local_map`` as a map file (atomic, byte-deterministic), with its content digest."""
+    arrays = {"format": np.array(MAP_FORMAT), "occupied": local_map.occupied,
+              "origin": np.asarray(local_map.origin, dtype=np.float64),
+              "resolution": np.array(local_map.resolution, dtype=np.float64)}
+    write_npz(path, {**arrays, DIGEST_KEY: np.array(content_digest(arrays))})
 
 
 def check_map_system(system: System) -> None:

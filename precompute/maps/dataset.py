@@ -334,11 +334,14 @@ def _read_shard(ds: MapDataset, k: int) -> MapShard:
     stored = arrays.pop(DIGEST_KEY, None)
     if stored is not None and stored.dtype.kind != "U":
         fail(f"{DIGEST_KEY} must be a string, got {stored.dtype}")
-    try:
-        check_digest(arrays, None if stored is None else str(stored[()]), str(path))
+    try:  # a damaged shard first; the note of an old shard (no digest) only once it is otherwise valid
+        if stored is not None:
+            check_digest(arrays, str(stored[()]), str(path))
     except DigestError as exc:
         raise MapDatasetError(str(exc)) from None
     _check_shard(arrays, ds, k, fail)
+    if stored is None:
+        check_digest(arrays, None, str(path))
     return MapShard(path, arrays)
 
 
