@@ -6,15 +6,15 @@ from __future__ import annotations
 import json
 
 import pytest
+from test_bench_records import bench_record, bench_settings  # complete settings and records (the store checks them)
 
 from eval.navigate.compare import compare_cells, main, parse_cell
 
 
 def _folder(tmp_path, outcomes: dict[tuple[str, int], list[bool]]):
     """A benchmark folder whose cell (method, budget) succeeded on task k as ``outcomes[cell][k]``."""
-    (tmp_path / "settings.json").write_text(json.dumps(dict(suite="clutter")))
-    lines = [json.dumps(dict(key=f"clutter/{k}/{m}/{b}/0", suite="clutter", task_id=k, method=m, budget=b,
-                             seed=1000 + k, repeat=0, success=s, outcome="goal" if s else "collision"))
+    (tmp_path / "settings.json").write_text(json.dumps(bench_settings("clutter")))
+    lines = [json.dumps(bench_record(k, m, b, outcome="goal" if s else "collision", suite="clutter", seed=1000 + k))
              for (m, b), col in outcomes.items() for k, s in enumerate(col)]
     (tmp_path / "episodes.jsonl").write_text("\n".join(lines) + "\n")
     return tmp_path

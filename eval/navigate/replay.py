@@ -17,7 +17,6 @@ with ``--json``, the trace and summary.
 from __future__ import annotations
 
 import difflib
-import json
 import sys
 from collections.abc import Sequence
 from pathlib import Path
@@ -39,15 +38,9 @@ PATH_TOLERANCE = 1e-4
 
 
 def load_folder(out: Path) -> tuple[dict, dict[str, dict]]:
-    """``(settings, every record by key)`` of the benchmark folder ``out`` (read only)."""
-    store = EpisodeStore(out)
-    if not store.settings_file.is_file():
-        raise ValueError(f"{out} is not a benchmark folder: it has no settings.json (python -m eval.navigate --out)")
-    try:
-        settings = json.loads(store.settings_file.read_text())
-    except (OSError, ValueError) as err:
-        raise ValueError(f"{store.settings_file}: unreadable ({err})") from None
-    return settings, store.read()
+    """``(settings, every record by key)`` of the benchmark folder ``out`` (read only; checked by
+    :meth:`eval.navigate.store.EpisodeStore.load`, the folder's one parser)."""
+    return EpisodeStore(out).load()
 
 
 def load_episode(out: Path, key: str) -> tuple[dict, dict, dict[str, dict]]:

@@ -8,19 +8,27 @@ is refused, naming the settings that differ, since its records would not be comp
 files the methods read (:data:`MERGED`) merge: a method that reads a new file (the MLP, say) may join later,
 but a different file under the same name is refused. A line cut short by a
 crash (the last one) is dropped with a warning; a bad line elsewhere is an error.
+
+This is the one parser of the folder: the run, and the read-only readers (replay, compare, failures) through
+:meth:`EpisodeStore.load`. Records without settings are refused (what they were run with is unknown), and so is
+any settings field or record of the wrong shape: a field missing or of the wrong type, a NaN or infinite number,
+a key given twice, a record whose key disagrees with its fields (:data:`SETTINGS`, :data:`RECORD`).
 """
 
 from __future__ import annotations
 
 import json
+import math
 import os
 import warnings
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 from cuniform_torch.common.fileio import write_json
+from eval.navigate.episode import episode_key
 
-__all__ = ["EpisodeStore", "StoreError"]
+__all__ = ["EpisodeStore", "StoreError", "SETTINGS", "RECORD", "OUTCOMES", "check_settings", "check_record"]
 
 
 class StoreError(ValueError):
@@ -30,6 +38,159 @@ class StoreError(ValueError):
 MERGED = "sources"
 """the settings key whose entries (file digests of the methods' sources) merge: a source a run does not use is
 None and matches anything, so a run that adds a method reading a new file extends the folder"""
+
+OUTCOMES = ("goal", "collision", "timeout")
+"""a record's ``outcome``"""
+
+
+def _int(v: Any) -> bool:
+    return isinstance(v, int) and not isinstance(v, bool)
+
+
+def _num(v: Any) -> bool:  # finiteness is checked for every number of a file, before the shapes
+    return isinstance(v, (int, float)) and not isinstance(v, bool)
+
+
+def _positive(v: Any) -> bool:
+    return _num(v) and v > 0
+
+
+def _nonneg(v: Any) -> bool:
+    return _num(v) and v >= 0
+
+
+def _nonneg_int(v: Any) -> bool:
+    return _int(v) and v >= 0
+
+
+def _str(v: Any) -> bool:
+    return isinstance(v, str)
+
+
+def _digest(v: Any) -> bool:
+    return v is None or isinstance(v, str)
+
+
+def _robot(v: Any) -> bool:
+    keys = {"system", "params", "radius", "horizon"}
+    return (isinstance(v, dict) and keys <= set(v) <= keys | {"starts"} and _str(v["system"])
+            and isinstance(v["params"], dict) and _nonneg(v["radius"]) and _int(v["horizon"]) and v["horizon"] >= 1
+            and _str(v.get("starts", "")))
+
+
+Check = tuple[str, Callable[[Any], bool], bool]
+"""``(what it must be, the test, required)``"""
+
+SETTINGS: dict[str, Check] = {
+    "suite": ("a string", _str, True),
+    "seed": ("an integer", _int, True),
+    "sensing_range": ("a number > 0", _positive, True),
+    "horizon": ("an integer >= 1", lambda v: _int(v) and v >= 1, True),
+    "lambda_": ("a number > 0", _positive, True),
+    "collision_penalty": ("a number > 0", _positive, True),
+    "cost_resolution": ("a number > 0", _positive, True),
+    "robot": ("an object {system: str, params: object, radius: number >= 0, horizon: int >= 1[, starts: str]}",
+              _robot, True),
+    "time_limit": ("a number > 0", _positive, True),
+    "barn_file": ("a digest string or null", _digest, True),
+    MERGED: ("an object of digest strings or nulls",
+             lambda v: isinstance(v, dict) and all(_digest(d) for d in v.values()), True),
+    "cost_to_go": ("a number > 0", _positive, False),
+    "gap_widths": ("a list of numbers > 0", lambda v: isinstance(v, list) and all(_positive(w) for w in v), False),
+}
+"""``settings.json``'s fields (``eval.navigate.run.settings_record`` writes them): another field is refused"""
+
+RECORD: dict[str, Check] = {
+    "key": ("a string", _str, True),
+    "suite": ("a string", _str, True),
+    "task_id": ("an integer >= 0", _nonneg_int, True),
+    "method": ("a string", _str, True),
+    "budget": ("an integer >= 1", lambda v: _int(v) and v >= 1, True),
+    "seed": ("an integer >= 0", _nonneg_int, True),
+    "repeat": ("an integer >= 0", _nonneg_int, True),
+    "outcome": (" or ".join(map(repr, OUTCOMES)), lambda v: v in OUTCOMES, True),
+    "success": ("true or false", lambda v: isinstance(v, bool), True),
+    "time": ("a number >= 0", _nonneg, True),
+    "path_length": ("a number >= 0", _nonneg, True),
+    "steps": ("an integer >= 0", _nonneg_int, True),
+    "cycles": ("an integer >= 0", _nonneg_int, True),
+    "cycle_hist": ("an object of integer counts >= 0",
+                   lambda v: isinstance(v, dict) and all(_nonneg_int(c) for c in v.values()), True),
+    "wall_s": ("a number >= 0", _nonneg, True),
+    "path": ("a list of [x, y] numbers",
+             lambda v: isinstance(v, list) and all(isinstance(p, list) and len(p) == 2 and all(map(_num, p))
+                                                   for p in v), False),
+}
+"""an ``episodes.jsonl`` record's fields (``eval.navigate.episode.run_nav_episode`` writes them); other fields
+are kept unchecked (a reader ignores what it does not know)"""
+
+
+def _nonfinite(obj: Any, where: str = "") -> str | None:
+    """The path (``time``, ``cycle_hist.12``) of the first NaN or infinite number in ``obj``, else None."""
+    if isinstance(obj, float):
+        return None if math.isfinite(obj) else where
+    items = obj.items() if isinstance(obj, dict) else enumerate(obj) if isinstance(obj, list) else ()
+    for k, v in items:
+        bad = _nonfinite(v, f"{where}.{k}" if where else str(k))
+        if bad is not None:
+            return bad
+    return None
+
+
+def _problem(obj: Any, fields: dict[str, Check], strict: bool) -> str | None:
+    """What is wrong with the JSON object ``obj`` against ``fields`` (None: nothing)."""
+    if not isinstance(obj, dict):
+        return f"not a JSON object but a {type(obj).__name__}"
+    bad = _nonfinite(obj)
+    if bad is not None:
+        return f"field {bad!r} is not a finite number"
+    missing = [k for k, (_, _, required) in fields.items() if required and k not in obj]
+    if missing:
+        return f"field(s) {', '.join(map(repr, missing))} missing"
+    if strict:
+        other = sorted(set(obj) - set(fields))
+        if other:
+            return f"unknown field(s) {', '.join(map(repr, other))} (known: {', '.join(fields)})"
+    for k, (what, test, _) in fields.items():
+        if k in obj and not test(obj[k]):
+            return f"field {k!r} must be {what}, got {obj[k]!r}"
+    return None
+
+
+def check_settings(settings: Any) -> str | None:
+    """What is wrong with a ``settings.json`` object (:data:`SETTINGS`), or None."""
+    return _problem(settings, SETTINGS, strict=True)
+
+
+def check_record(record: Any) -> str | None:
+    """What is wrong with one ``episodes.jsonl`` record (:data:`RECORD`; its key must be its fields'), or None."""
+    problem = _problem(record, RECORD, strict=False)
+    if problem is not None:
+        return problem
+    r = record
+    key = episode_key(r["suite"], r["task_id"], r["method"], r["budget"], r["repeat"])
+    if r["key"] != key:
+        return f"its key {r['key']!r} is not its fields' ({key!r})"
+    if r["success"] != (r["outcome"] == "goal"):
+        return f"success {r['success']} contradicts outcome {r['outcome']!r}"
+    return None
+
+
+class _Twice(ValueError):
+    """A name given twice in one JSON object: whole, so never a line cut short."""
+
+
+def _unique_names(pairs: list[tuple[str, Any]]) -> dict:
+    """json object hook: a name given twice in one object is an error (json keeps the last one silently)."""
+    out = dict(pairs)
+    if len(out) != len(pairs):
+        names = [k for k, _ in pairs]
+        raise _Twice(f"field {next(k for k in names if names.count(k) > 1)!r} given twice")
+    return out
+
+
+def _loads(text: str | bytes) -> Any:
+    return json.loads(text, object_pairs_hook=_unique_names)
 
 
 def _merge_files(old: dict, new: dict) -> tuple[dict, list[str]]:
@@ -53,58 +214,100 @@ class EpisodeStore:
 
     def open(self, settings: dict[str, Any]) -> dict[str, dict]:
         """Check or write the settings; the records already there, by key."""
-        self.folder.mkdir(parents=True, exist_ok=True)
         settings = json.loads(json.dumps(settings))  # JSON types: tuples compare as the lists they are stored as
+        problem = check_settings(settings)
+        if problem is not None:  # a settings_record out of step with SETTINGS: a bug, said before any write
+            raise ValueError(f"the run's settings for {self.settings_file}: {problem}")
+        self.folder.mkdir(parents=True, exist_ok=True)
         if self.settings_file.exists():
-            try:
-                old = json.loads(self.settings_file.read_text())
-            except (OSError, ValueError) as err:
-                raise StoreError(f"{self.settings_file}: unreadable ({err}); use another --out") from None
+            old = self.read_settings()
             differ = sorted(k for k in set(old) | set(settings) if k != MERGED and old.get(k) != settings.get(k))
-            merged, clash = _merge_files(old.get(MERGED) or {}, settings.get(MERGED) or {})
+            merged, clash = _merge_files(old[MERGED], settings[MERGED])
             differ += [f"{MERGED}.{k}" for k in clash]
             if differ:
                 shown = "; ".join(f"{k}: {_get(old, k)!r} there, {_get(settings, k)!r} now" for k in differ[:4])
                 raise StoreError(f"{self.folder} holds episodes run with other settings ({shown}); "
                                  f"use another --out, or delete {self.folder} to start over")
-            if merged != (old.get(MERGED) or {}):  # a method read a file for the first time: remember it
+            if merged != old[MERGED]:  # a method read a file for the first time: remember it
                 write_json(self.settings_file, {**old, MERGED: merged})
+        elif self._has_records():  # what these episodes ran with is unknown: they would pass for this run's
+            raise StoreError(f"{self.folder} holds episode records ({self.records_file.name}) but no settings.json, "
+                             f"so what they were run with is unknown; use another --out, or delete "
+                             f"{self.records_file} to start over")
         else:
             write_json(self.settings_file, settings)
-        return self._read()
+        return self._read(settings["suite"])
+
+    def read_settings(self) -> dict[str, Any]:
+        """The folder's settings, checked (:data:`SETTINGS`); a :class:`StoreError` naming the file otherwise."""
+        if not self.settings_file.is_file():
+            raise StoreError(f"{self.folder} is not a benchmark folder: it has no settings.json "
+                             "(python -m eval.navigate --out)")
+        try:
+            settings = _loads(self.settings_file.read_text())
+        except (OSError, ValueError) as err:
+            raise StoreError(f"{self.settings_file}: unreadable ({err}); use another --out") from None
+        problem = check_settings(settings)
+        if problem is not None:
+            raise StoreError(f"{self.settings_file}: {problem}; restore the folder's settings, or use another --out")
+        return settings
+
+    def load(self) -> tuple[dict[str, Any], dict[str, dict]]:
+        """``(settings, records by key)``, read only (:meth:`read`)."""
+        settings = self.read_settings()
+        return settings, self._parse(settings["suite"])[0]
 
     def read(self) -> dict[str, dict]:
         """The records by key, read only: a last line cut short (a run may be writing it now) is left out and left
-        alone; a bad line elsewhere is a :class:`StoreError`."""
-        return self._parse()[0]
+        alone; a bad line elsewhere is a :class:`StoreError`. Needs the settings (:meth:`load`)."""
+        return self.load()[1]
 
-    def _read(self) -> dict[str, dict]:
-        records, good, cut = self._parse()
+    def _has_records(self) -> bool:
+        return self.records_file.exists() and bool(self.records_file.read_bytes().strip())
+
+    def _read(self, suite: str) -> dict[str, dict]:
+        records, good, cut = self._parse(suite)
         if cut:  # the last write, cut short: dropped so that appends start on a fresh line
             warnings.warn(f"{self.records_file}: dropping an incomplete last line ({cut} bytes)", stacklevel=2)
             with open(self.records_file, "r+b") as f:
                 f.truncate(good)
+        elif self.records_file.exists() and self.records_file.stat().st_size:
+            with open(self.records_file, "r+b") as f:
+                f.seek(-1, os.SEEK_END)
+                if f.read(1) != b"\n":  # a whole last record cut before its newline: appends start on a fresh line
+                    f.write(b"\n")
         return records
 
-    def _parse(self) -> tuple[dict[str, dict], int, int]:
-        """``(records by key, bytes of the complete lines, bytes of a cut-short last line or 0)``."""
+    def _parse(self, suite: str) -> tuple[dict[str, dict], int, int]:
+        """``(records by key, bytes of the complete lines, bytes of a cut-short last line or 0)``: every record
+        checked (:func:`check_record`, of ``suite``), a key twice refused."""
         if not self.records_file.exists():
             return {}, 0, 0
         lines = self.records_file.read_bytes().split(b"\n")
         records: dict[str, dict] = {}
+        first: dict[str, int] = {}  # the line of each key
         good = 0  # bytes of complete, parsed lines
         for i, line in enumerate(lines):
             if not line.strip():
                 good += len(line) + 1
                 continue
             try:
-                rec = json.loads(line)
-                key = rec["key"]
-            except (ValueError, KeyError, TypeError):
-                if i == len(lines) - 1:
+                rec = _loads(line)
+            except ValueError as err:
+                if i == len(lines) - 1 and not isinstance(err, _Twice):
                     return records, good, len(line)
-                raise StoreError(f"{self.records_file}: line {i + 1} is not a record; fix or delete the file") from None
-            records[key] = rec
+                raise StoreError(f"{self.records_file}: line {i + 1} is not a record ({err}); fix or delete the "
+                                 "file") from None
+            problem = check_record(rec)
+            if problem is None and rec["suite"] != suite:
+                problem = f"suite {rec['suite']!r} in a folder of the {suite!r} suite"
+            if problem is None and rec["key"] in first:
+                problem = (f"episode {rec['key']!r} again (first on line {first[rec['key']]}): which outcome holds "
+                           "is unknown")
+            if problem is not None:
+                raise StoreError(f"{self.records_file}: line {i + 1}: {problem}; fix or delete the file")
+            records[rec["key"]] = rec
+            first[rec["key"]] = i + 1
             good += len(line) + 1
         return records, good, 0
 
