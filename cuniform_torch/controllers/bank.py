@@ -114,8 +114,8 @@ class BankProposal:
     def propose(self, state: Tensor, generator: torch.Generator) -> tuple[Tensor, Tensor]:
         idx = torch.randperm(self.bank_size, generator=generator, device=self.device)[: self.num_samples]  # [K]
         if self.member_starts is not None:  # the nearest member's actions, rolled out from the state itself
-            self.source.policy.for_start(state)
-            actions = self.bank_actions[self.source.policy.last_index][idx]  # [K, T, q]
+            member = self.source.policy.member_index(state)  # stateless: a background draw may run for_start
+            actions = self.bank_actions[member][idx]  # [K, T, q]
             return rollout_actions(self.system, state, actions), actions
         local = self.bank_states[idx]  # [K, T+1, d]
         if rollout_kernels.usable(local):  # the compiled frame change, reading the subset in its own order

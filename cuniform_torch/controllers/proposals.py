@@ -36,6 +36,7 @@ from cuniform_torch.controllers.result import MPPIResult
 from cuniform_torch.policies.checkpoint import load_policy
 from cuniform_torch.sampling.noise import GaussianSampler, NormalLogNormalSampler
 from cuniform_torch.sampling.rollout import Policy, PolicyTraits, RolloutPlan, open_loop, same_device
+from cuniform_torch.sampling.start_watch import new_episode
 from cuniform_torch.systems import System
 
 __all__ = ["Proposal", "GaussianProposal", "NormalLogNormalProposal", "PolicyProposal", "CompositeProposal",
@@ -204,6 +205,7 @@ class PolicyProposal:
         self.dtype = traits.dtype or torch.float32
         self.plan = RolloutPlan.of(self.system, self.policy)
         """how the policy is rolled out, settled here: a command runs it without the per-call checks"""
+        new_episode(self.policy)  # a controller's first episode: its off-start rollouts warn afresh
 
     def propose(self, state: Tensor, generator: torch.Generator) -> tuple[Tensor, Tensor]:
         return self.rollout(state, self.num_samples, generator)
@@ -217,7 +219,9 @@ class PolicyProposal:
         """Nothing to warm-start: every command rolls out afresh."""
 
     def reset(self) -> None:
-        """Nothing to forget."""
+        """The start of an episode: the policy's start check warns afresh and counts anew
+        (:func:`~cuniform_torch.sampling.start_watch.new_episode`)."""
+        new_episode(self.policy)
 
 
 # ------------------------------------------------------------------------------------------ composite
