@@ -47,7 +47,7 @@ from cuniform_torch.systems import System, system_from_json, system_to_json
 from cuniform_torch.tables.file import Table
 from precompute.flow.builder import propagate_cell_probs
 from precompute.levels.safe_map import LocalMap, SafeCells
-from precompute.levels.sets import PointMode, cell_sample_offsets, next_level
+from precompute.levels.sets import EmptyLevelError, PointMode, cell_sample_offsets, next_level
 
 __all__ = ["DATASET_FORMAT", "SHARD_KEYS", "MapDatasetError", "MapEntry", "MapShard", "MapDataset", "read_map_dataset",
            "entry_arrays", "write_shard", "file_sha256", "dataset_header"]
@@ -431,10 +431,11 @@ def _check_tables(a: dict[str, np.ndarray], ds: MapDataset, k: int, fail) -> Non
         if np.any(np.abs(last - 1.0 / A) > _ROW_TOL / A):
             fail(f"entry {m}: the rows of the last level (the horizon) must be uniform (1/{A}), as the builders write "
                  "them")
-        for t in range(T):
-            here, there = slice(int(off[t]), int(off[t + 1])), slice(int(off[t + 1]), int(off[t + 2]))
-            _check_reach(ds, cells[here], cells[there], lambda msg, m=m, t=t: fail(f"entry {m}, level {t + 1}: {msg}"))
         safe = SafeCells(ds.system, LocalMap(a["patches"][m], ds.patch_origin, ds.patch_resolution), ds.radius)
+        level = [cells[int(off[t]):int(off[t + 1])] for t in range(T + 1)]
+        for t in range(T):
+            _check_reach(ds, level[t], level[t + 1], level[t + 2] if t + 2 <= T else None, safe,
+                         lambda msg, m=m, t=t: fail(f"entry {m}, level {t + 1}: {msg}"))
         blocked = np.flatnonzero(~safe.keep(cells).numpy())
         if len(blocked):
             r = int(blocked[0])
@@ -451,10 +452,15 @@ def _check_tables(a: dict[str, np.ndarray], ds: MapDataset, k: int, fail) -> Non
 _CHUNK_PAIRS = 1 << 21  # (point, action) pairs stepped at once, as the builder (bounds memory on big levels)
 
 
-def _check_reach(ds: MapDataset, now: torch.Tensor, nxt: torch.Tensor, fail) -> None:
+def _check_reach(ds: MapDataset, now: torch.Tensor, nxt: torch.Tensor, after: torch.Tensor | None, safe: SafeCells,
+                 fail) -> None:
     """Level t+1 (``nxt [m, d]``) is reached from level t (``now [n, d]``) in one step: for ``maxflow`` every cell is
     a successor of a level-t centre (the builder's level set, before its pruning); for ``coverage`` (states
-    anywhere in a cell) every cell lies within one cell of a successor of a level-t cell's lattice point."""
+    anywhere in a cell) every cell lies within one cell of a successor of a level-t cell's lattice point.
+
+    For ``maxflow`` the pruning is checked too (:mod:`precompute.levels.viability`): every successor left out of
+    level t+1 is blocked in the inflated patch (``safe``), or a dead end (no transition of it lands in level t+2,
+    ``after``; at the horizon, ``after`` is None and every free successor is kept)."""
     grid = Grid.of(ds.system)
     actions = ds.system.action_set(dtype=torch.float64)  # [A, q]
     A, d = actions.shape[0], grid.dim
@@ -486,6 +492,22 @@ def _check_reach(ds: MapDataset, now: torch.Tensor, nxt: torch.Tensor, fail) -> 
         how = "within one cell of a state" if ds.method == "coverage" else "a cell"
         fail(f"{int((~hit).sum())} of its {len(nxt)} cells (e.g. {nxt[~hit][0].tolist()}) are not {how} reached from "
              "the level before in one step of the system: the speed, the actions or the cells do not match")
+    if ds.method != "maxflow":
+        return
+    left = keys.unpack(uniq[CellSet.build(nxt, keys).lookup_keys(uniq) < 0]) if bool(hit.all()) else nxt[:0]
+    left = left[safe.keep(left)]  # free successors left out: only dead ends may be
+    if len(left) and after is not None:
+        later = CellSet.build(after)
+        live = np.zeros(len(left), dtype=bool)
+        try:  # the builder's transitions of the left-out cells, kept where they land in level t+2
+            live[next_level(ds.system, left.numpy(), PointMode.CENTERS, keep=lambda c: later.lookup(c) >= 0).src] = True
+        except EmptyLevelError:  # none lands there: all dead ends
+            pass
+        left = left[torch.from_numpy(live)]
+    if len(left):
+        fail(f"{len(left)} free successor(s) of the level before are left out (e.g. {left[0].tolist()}) though they "
+             f"are {'at the horizon' if after is None else 'not dead ends'}: the patch, radius or resolution do not "
+             "match the table (a transposed patch, another radius or resolution)")
 
 
 def _check_propagation(ds: MapDataset, now: torch.Tensor, nxt: torch.Tensor, probs: np.ndarray, cp_now: np.ndarray,

@@ -1,0 +1,302 @@
+"""Map data sets and local map files refuse what is silently wrong: cells, rows, patches and metadata that do not
+match, members whose headers claim more than the file holds (refused before allocation), a damaged content
+digest; old files without a digest still load, with a one-line note."""
+
+from __future__ import annotations
+
+import io
+import json
+import shutil
+import tracemalloc
+import zipfile
+
+import numpy as np
+import pytest
+
+from cuniform_torch.common.digest import DIGEST_KEY, content_digest
+from cuniform_torch.common.fileio import write_npz
+from cuniform_torch.common.npz import NpzError, read_npz
+from precompute.levels.safe_map import LocalMap, MapError, read_map_file, write_map_file
+from precompute.maps.dataset import MapDatasetError, file_sha256, read_map_dataset
+from precompute.maps.farm import main as farm_main
+from training.maps.data import load_map_data
+
+TINY = ["--suite", "barn", "--count", "2", "--poses-per-map", "2", "--split", "train", "--seed", "0",
+        "--horizon", "3", "--patch", "20", "20", "--quiet"]
+SHARD = "shard-00000.npz"
+_MB = 1 << 20
+
+
+@pytest.fixture(scope="module")
+def tiny(tmp_path_factory):
+    out = tmp_path_factory.mktemp("strict") / "ds"
+    assert farm_main(TINY + ["--out", str(out)]) == 0
+    return out
+
+
+def _arrays(folder, k=0):
+    with np.load(folder / f"shard-{k:05d}.npz", allow_pickle=False) as z:
+        return {key: z[key] for key in z.files}
+
+
+def _plant(tiny, tmp_path, change=None, meta=None, digest="recompute", k=0):
+    """A copy of ``tiny`` whose shard ``k`` went through ``change(arrays)`` and whose dataset.json through
+    ``meta(dict)``; the shard's digest recomputed (a forger's copy), kept (damage) or dropped (an old shard), and
+    dataset.json's sha256 of it rewritten, so that only the check under test can refuse it."""
+    out = tmp_path / "ds"
+    shutil.copytree(tiny, out)
+    if change is not None:
+        arrays = _arrays(out, k)
+        old = arrays.pop(DIGEST_KEY)
+        change(arrays)
+        if digest == "recompute":
+            arrays[DIGEST_KEY] = np.array(content_digest(arrays))
+        elif digest == "keep":
+            arrays[DIGEST_KEY] = old
+        write_npz(out / f"shard-{k:05d}.npz", arrays)
+    m = json.loads((out / "dataset.json").read_text())
+    m["shards"][k]["sha256"] = file_sha256(out / m["shards"][k]["file"])
+    if meta is not None:
+        meta(m)
+    (out / "dataset.json").write_text(json.dumps(m))
+    return out
+
+
+def _level(a, m, t):
+    """Rows of level t of entry m."""
+    start = int(a["entry_offsets"][m])
+    return start + int(a["level_offsets"][m][t]), start + int(a["level_offsets"][m][t + 1])
+
+
+def _refused(folder, words, **kw):
+    with pytest.raises(MapDatasetError, match=words) as info:
+        read_map_dataset(folder, load=True, **kw)
+    assert SHARD in str(info.value) or "dataset.json" in str(info.value)
+    return str(info.value)
+
+
+def test_the_farm_writes_a_digest_and_the_reader_accepts_it(tiny, capsys):
+    assert DIGEST_KEY in _arrays(tiny)
+    ds = read_map_dataset(tiny, load=True, verify_all=True)
+    assert len(ds) == 4 and "no content digest" not in capsys.readouterr().err
+
+
+def _duplicate(a):
+    lo, hi = _level(a, 0, 2)
+    a["cells"][lo + 1] = a["cells"][lo]
+
+
+def _swap_rows(a):  # whole rows (cell, action row, cell probability) swapped: the same table, out of order
+    lo, hi = _level(a, 0, 2)
+    for key in ("cells", "action_probs", "cell_probs"):
+        a[key][[lo, hi - 1]] = a[key][[hi - 1, lo]]
+
+
+def _origin(a):
+    a["cells"][0, 0] += 1
+
+
+def _huge_index(a):
+    lo, hi = _level(a, 0, 3)
+    a["cells"][hi - 1, 0] = 2**31 - 1  # the last row of its level: still ascending
+
+
+def _reverse_actions(entry):
+    def change(a):
+        lo, hi = _level(a, entry, 2)
+        a["action_probs"][lo:hi] = a["action_probs"][lo:hi][::-1]
+    return change
+
+
+@pytest.mark.parametrize("change, words", [
+    (_duplicate, r"cells of a level must be distinct and ascending.*repeats"),
+    (_swap_rows, r"cells of a level must be distinct and ascending.*comes before"),
+    (_origin, r"level 0 of entry 0 must be the origin cell"),
+    (_huge_index, r"entry 0, level 3: .*(far beyond one step|not a cell reached)"),
+    (_reverse_actions(0), r"entry 0, level 3: its cell_probs are not the level before's propagated"),
+])
+def test_planted_cells_and_rows_are_refused(tiny, tmp_path, change, words):
+    _refused(_plant(tiny, tmp_path, change), words)
+
+
+def test_permuted_action_rows_of_any_entry_are_refused_with_verify_all(tiny, tmp_path):
+    bad = _plant(tiny, tmp_path, _reverse_actions(1))
+    _refused(bad, r"entry 1, level 3: its cell_probs are not the level before's propagated", verify_all=True)
+
+
+def test_a_huge_cell_index_stops_the_training_data(tiny, tmp_path):
+    with pytest.raises(MapDatasetError, match="far beyond one step|not a cell reached"):
+        load_map_data([_plant(tiny, tmp_path, _huge_index)])
+
+
+def _full(a):
+    a["patches"][1] = 1
+
+
+def _transposed(a):
+    a["patches"][:] = np.ascontiguousarray(a["patches"].transpose(0, 2, 1))
+
+
+def _twos(a):
+    a["patches"][0, 0, 0] = 2
+
+
+@pytest.mark.parametrize("change, words", [
+    (_full, r"the patch of entry 1 is occupied everywhere"),
+    (_transposed, r"(lies within radius 0.2 m of an obstacle of its patch|free successor\(s\) .* left out)"),
+    (_twos, r"patches must hold only 0 and 1"),
+])
+def test_planted_patches_are_refused(tiny, tmp_path, change, words):
+    a = _arrays(tiny)
+    assert not np.array_equal(a["patches"], a["patches"].transpose(0, 2, 1))
+    _refused(_plant(tiny, tmp_path, change), words)
+
+
+def _system_param(key, value):
+    def meta(m):
+        s = json.loads(m["system"])
+        s["params"][key] = value
+        m["system"] = json.dumps(s)
+    return meta
+
+
+@pytest.mark.parametrize("meta, words", [
+    (_system_param("speed", 0.25), r"not a cell reached from the level before in one step"),
+    (lambda m: m.update(radius=0.45), r"lies within radius 0.45 m of an obstacle"),
+    (lambda m: m["patch"].update(resolution=0.1), r"(lies within radius 0.2 m of an obstacle|free successor\(s\) .* "
+                                                   r"left out)"),
+    (lambda m: m.update(radius=0.1), r"free successor\(s\) of the level before are left out"),
+])
+def test_metadata_that_contradicts_the_shards_is_refused(tiny, tmp_path, meta, words):
+    _refused(_plant(tiny, tmp_path, meta=meta), words)
+
+
+def test_a_damaged_shard_is_refused_by_its_digest(tiny, tmp_path):
+    def change(a):
+        a["cell_probs"][5] += 1e-4  # within every tolerance: only the digest sees it
+    _refused(_plant(tiny, tmp_path, change, digest="keep"), r"shard-00000\.npz is damaged")
+
+
+def test_an_old_shard_without_digest_loads_with_one_note(tiny, tmp_path, capsys):
+    old = _plant(tiny, tmp_path, lambda a: None, digest="drop")
+    assert DIGEST_KEY not in _arrays(old)
+    assert len(read_map_dataset(old, load=True)) == 4
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "no content digest" in err[0] and SHARD in err[0]
+
+
+def _forged_member(name, shape, dtype, data=b"\0" * 64):
+    """The bytes of a zip member ``name.npy`` whose header claims ``shape`` but which holds only ``data``."""
+    buf = io.BytesIO()
+    np.lib.format.write_array_header_1_0(buf, {"descr": np.lib.format.dtype_to_descr(np.dtype(dtype)),
+                                               "fortran_order": False, "shape": shape})
+    return buf.getvalue() + data
+
+
+def _rezip(path, arrays, forged):
+    with zipfile.ZipFile(path, "w", zipfile.ZIP_DEFLATED) as zf:
+        for key, value in arrays.items():
+            if key in forged:
+                zf.writestr(f"{key}.npy", forged[key])
+            else:
+                buf = io.BytesIO()
+                np.lib.format.write_array(buf, np.asarray(value), allow_pickle=False)
+                zf.writestr(f"{key}.npy", buf.getvalue())
+
+
+def _peak(fn):
+    tracemalloc.start()
+    try:
+        fn()
+    finally:
+        peak = tracemalloc.get_traced_memory()[1]
+        tracemalloc.stop()
+    return peak
+
+
+def test_a_shard_whose_header_claims_a_huge_array_is_refused_before_allocation(tiny, tmp_path):
+    R = 2**26  # cells [R, 3] int32: 768 MiB claimed by a member of a few bytes
+
+    def change(a):
+        a["entry_offsets"][-1] = R
+    out = _plant(tiny, tmp_path, change)
+    arrays = _arrays(out)
+    _rezip(out / SHARD, arrays, {"cells": _forged_member("cells", (R, 3), np.int32),
+                                 "action_probs": _forged_member("action_probs", (R, 7), np.float16),
+                                 "cell_probs": _forged_member("cell_probs", (R,), np.float32)})
+    m = json.loads((out / "dataset.json").read_text())
+    m["shards"][0]["sha256"] = file_sha256(out / SHARD)
+    (out / "dataset.json").write_text(json.dumps(m))
+
+    def read():
+        with pytest.raises(MapDatasetError, match=r"shard-00000\.npz: not a readable \.npz shard .*member 'cells'.*"
+                                                  r"claims \[67108864, 3\] int32"):
+            read_map_dataset(out, load=True)
+    assert _peak(read) < 256 * _MB
+
+
+def test_a_local_map_whose_header_claims_a_huge_array_is_refused_before_allocation(tmp_path):
+    path = tmp_path / "m.npz"
+    arrays = {"format": np.array("cuniform-local-map/1"), "occupied": None, "origin": np.array([-0.2, -0.2]),
+              "resolution": np.array(0.05)}
+    _rezip(path, arrays, {"occupied": _forged_member("occupied", (100, 4096, 4096), np.uint8)})
+
+    def read():
+        with pytest.raises(MapError, match=r"m\.npz: not a readable \.npz map .*member 'occupied'.*claims"):
+            read_map_file(path)
+    assert _peak(read) < 256 * _MB
+    _rezip(path, arrays, {"occupied": _forged_member("occupied", (40000, 40000), np.uint8)})
+    with pytest.raises(MapError, match=r"'occupied' must be between 1 x 1 and 4096 x 4096, got \[40000, 40000\]"):
+        read_map_file(path)
+
+
+def test_read_npz_bounds_headers_and_refuses_objects(tmp_path):
+    path = tmp_path / "a.npz"
+    write_npz(path, {"x": np.arange(10), "y": np.zeros((3, 2), np.float32)})
+    got = read_npz(path)
+    assert np.array_equal(got["x"], np.arange(10)) and got["y"].shape == (3, 2) and got["x"].flags.writeable
+    with pytest.raises(NpzError, match=r"a\.npz: member 'y': must have shape \[3, 3\], got \[3, 2\]"):
+        read_npz(path, expect={"y": ((3, 3), np.float32)})
+    with pytest.raises(NpzError, match=r"more than this file may hold"):
+        read_npz(path, max_bytes=100)
+    obj = tmp_path / "o.npz"
+    np.savez(obj, o=np.array([None, 1], dtype=object))
+    with pytest.raises(NpzError, match=r"member 'o': dtype object holds Python objects"):
+        read_npz(obj)
+    lying = tmp_path / "l.npz"  # a header claiming more than the member holds (a few bytes short)
+    with zipfile.ZipFile(lying, "w", zipfile.ZIP_STORED) as zf:
+        zf.writestr("z.npy", _forged_member("z", (100,), np.int64, b"\0" * 80))
+    with pytest.raises(NpzError, match=r"member 'z': its header claims \[100\] int64 \(800 bytes\) but the member "
+                                       r"holds 80 data bytes"):
+        read_npz(lying)
+
+
+def _map(tmp_path):
+    occ = np.zeros((8, 8), np.uint8)
+    occ[2, 5] = 1
+    path = tmp_path / "m.npz"
+    write_map_file(path, LocalMap(occ, (-0.2, -0.2), 0.05))
+    return path, occ
+
+
+def test_a_local_map_carries_its_digest_and_a_damaged_one_is_refused(tmp_path, capsys):
+    path, occ = _map(tmp_path)
+    assert np.array_equal(read_map_file(path).occupied, occ) and "no content digest" not in capsys.readouterr().err
+    with np.load(path) as z:
+        arrays = {k: z[k] for k in z.files}
+    assert DIGEST_KEY in arrays
+    arrays["occupied"] = occ.copy()
+    arrays["occupied"][2, 5] = 0  # an obstacle erased: still a valid map
+    write_npz(path, arrays)
+    with pytest.raises(MapError, match=r"m\.npz is damaged: its content does not match the digest"):
+        read_map_file(path)
+
+
+def test_an_old_local_map_without_digest_loads_with_one_note(tmp_path, capsys):
+    path, occ = _map(tmp_path)
+    with np.load(path) as z:
+        arrays = {k: z[k] for k in z.files if k != DIGEST_KEY}
+    write_npz(path, arrays)
+    assert np.array_equal(read_map_file(path).occupied, occ)
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "no content digest" in err[0] and "m.npz" in err[0]
