@@ -5,7 +5,13 @@ Keys (nothing else is accepted): ``format``; ``state_dict`` (name -> finite floa
 ``config`` (:class:`~cuniform_torch.maps.policy.MapPolicyConfig` as a dict, patch spec included; ``local_features``
 only when > 0, so files written before it read as 0); ``system`` (the data set's system JSON); ``actions``
 ``[A, q]`` (the system's); ``source`` (str -> str: the data sets and their digests); ``metrics`` (str -> number
-or string: the training's).
+or string: the training's); and ``content_sha256`` (the file's content digest, written by
+:func:`save_map_policy`; absent from files written before digests, which load after a one-line note).
+
+Integrity and limits as for the MLP policy's checkpoint (:mod:`cuniform_torch.policies.checkpoint`): a load from a
+path checks the digest before using any value; ``state_dict`` values must be finite and within
+:data:`~cuniform_torch.policies.checkpoint.MAX_ABS_WEIGHT`; the config must be within the limits of
+:mod:`cuniform_torch.maps.policy` (parameters, feature maps), checked before the network is built.
 """
 
 from __future__ import annotations
@@ -19,8 +25,9 @@ from typing import Any
 import torch
 from torch import Tensor
 
+from cuniform_torch.common.digest import DIGEST_KEY
 from cuniform_torch.maps.policy import MapPolicy, MapPolicyConfig
-from cuniform_torch.policies.checkpoint import read_network_keys, save_policy
+from cuniform_torch.policies.checkpoint import check_checkpoint_digest, read_network_keys, save_policy
 
 __all__ = ["MAP_POLICY_FORMAT", "MapCheckpointError", "map_policy_checkpoint", "save_map_policy", "load_map_policy"]
 
@@ -47,14 +54,16 @@ def map_policy_checkpoint(policy: MapPolicy, system_json: str, source: dict[str,
 
 
 def save_map_policy(path: str | os.PathLike, checkpoint: dict[str, Any]) -> None:
-    """Write a checkpoint dict atomically (as :func:`~cuniform_torch.policies.checkpoint.save_policy` does)."""
+    """Write a checkpoint dict atomically, with its ``content_sha256`` (as
+    :func:`~cuniform_torch.policies.checkpoint.save_policy` does)."""
     save_policy(path, checkpoint)
 
 
 def load_map_policy(source: str | os.PathLike | dict, device: torch.device | str = "cpu", *,
                     trust_factory: str | Callable[..., Any] | None = None) -> MapPolicy:
     """A ready :class:`MapPolicy` (eval mode, on ``device``, no map set) from a path or a loaded dict;
-    :class:`MapCheckpointError` naming the first key that is wrong."""
+    :class:`MapCheckpointError` naming the first key that is wrong. A file's ``content_sha256`` is checked first
+    (a dict is checked for its structure only)."""
     where = "checkpoint dict" if isinstance(source, dict) else str(source)
     if isinstance(source, dict):
         ckpt = source
@@ -75,8 +84,10 @@ def load_map_policy(source: str | os.PathLike | dict, device: torch.device | str
         fail(f"a checkpoint must be a dict, got {type(ckpt).__name__}")
     if ckpt.get("format") != MAP_POLICY_FORMAT:
         fail(f"unknown format {ckpt.get('format')!r}; this reader knows {MAP_POLICY_FORMAT!r}")
-    if set(ckpt) != _KEYS:
-        missing, extra = sorted(_KEYS - set(ckpt)), sorted(set(ckpt) - _KEYS)
+    if not isinstance(source, dict):  # a file's integrity; a dict in memory is the caller's
+        check_checkpoint_digest(ckpt, where, MapCheckpointError)
+    if set(ckpt) - {DIGEST_KEY} != _KEYS:
+        missing, extra = sorted(_KEYS - set(ckpt)), sorted(set(ckpt) - _KEYS - {DIGEST_KEY})
         fail("; ".join(([f"missing key(s) {', '.join(missing)}"] if missing else [])
                        + ([f"unknown key(s) {', '.join(map(str, extra))}"] if extra else [])))
     state, config, system = read_network_keys(ckpt, MapPolicyConfig, "a map policy", trust_factory, fail)

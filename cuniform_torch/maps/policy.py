@@ -35,15 +35,28 @@ from torch import Tensor, nn
 
 from cuniform_torch.grid.cells import Grid
 from cuniform_torch.maps.encoder import MapEncoder, PatchSpec
-from cuniform_torch.maps.local_features import LocalFeatures
+from cuniform_torch.maps.local_features import PROBES, LocalFeatures
 from cuniform_torch.policies.mlp_ops import check_query, inverse_cdf_draw, state_features
 from cuniform_torch.sampling.rollout import StartWatch
-from cuniform_torch.systems import System
+from cuniform_torch.systems import MAX_ACTIONS, MAX_HORIZON, System
 
-__all__ = ["MapPolicyConfig", "MapPolicy", "MAX_MAP_HIDDEN", "MAX_MAP_LAYERS"]
+__all__ = ["MapPolicyConfig", "MapPolicy", "MAX_MAP_HIDDEN", "MAX_MAP_LAYERS", "MAX_MAP_CHANNELS",
+           "MAX_MAP_PARAMETERS", "MAX_MAP_ACTIVATIONS"]
 
-MAX_MAP_HIDDEN = 1 << 14
+# Limits of a config, checked when it is made (MapPolicyConfig.__post_init__): before any network is built, so a
+# checkpoint's config cannot make the reader allocate more than these describe (see docs/formats.md).
+MAX_MAP_HIDDEN = 4096
+"""the most hidden units (``hidden``) and embedding size (``embed``)"""
 MAX_MAP_LAYERS = 16
+"""the most hidden layers"""
+MAX_MAP_CHANNELS = 256
+"""the most encoder channels (``channels``) and local feature channels (``local_features``)"""
+MAX_MAP_PARAMETERS = 1 << 26
+"""the most parameters in all (:attr:`MapPolicyConfig.num_parameters`; 67M, 256 MiB of float32)"""
+MAX_MAP_ACTIVATIONS = 1 << 26
+"""the most values of one map's largest feature map (:attr:`MapPolicyConfig.map_activations`), which
+``set_map`` computes"""
+_MAX_STATE_DIM = 64
 
 
 @dataclass
@@ -72,10 +85,14 @@ class MapPolicyConfig:
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
                 raise ValueError(f"MapPolicyConfig.{name} must be a positive integer, got {value!r}")
-        if max(self.hidden, self.embed, self.channels) > MAX_MAP_HIDDEN or self.layers > MAX_MAP_LAYERS:
-            raise ValueError(f"MapPolicyConfig: at most {MAX_MAP_LAYERS} layers and {MAX_MAP_HIDDEN} units or "
-                             f"channels, got layers {self.layers}, hidden {self.hidden}, embed {self.embed}, "
-                             f"channels {self.channels}")
+        if max(self.hidden, self.embed) > MAX_MAP_HIDDEN or self.layers > MAX_MAP_LAYERS \
+                or self.channels > MAX_MAP_CHANNELS:
+            raise ValueError(f"MapPolicyConfig: at most {MAX_MAP_LAYERS} layers, {MAX_MAP_HIDDEN} hidden units or "
+                             f"embedding and {MAX_MAP_CHANNELS} channels, got layers {self.layers}, hidden "
+                             f"{self.hidden}, embed {self.embed}, channels {self.channels}")
+        for name, limit in (("state_dim", _MAX_STATE_DIM), ("num_actions", MAX_ACTIONS), ("horizon", MAX_HORIZON)):
+            if getattr(self, name) > limit:
+                raise ValueError(f"MapPolicyConfig.{name} is {getattr(self, name)}; at most {limit} is supported")
         if not isinstance(self.periodic, (list, tuple)) or not all(isinstance(p, bool) for p in self.periodic):
             raise ValueError(f"MapPolicyConfig: periodic must be a list of bools, got {self.periodic!r}")
         if not isinstance(self.feature_scale, (list, tuple)) or len(self.periodic) != self.state_dim \
@@ -85,12 +102,21 @@ class MapPolicyConfig:
                for s in self.feature_scale):
             raise ValueError(f"MapPolicyConfig: feature_scale must be positive finite numbers, got {self.feature_scale}")
         lf = self.local_features
-        if isinstance(lf, bool) or not isinstance(lf, int) or not 0 <= lf <= MAX_MAP_HIDDEN:
-            raise ValueError(f"MapPolicyConfig.local_features must be an integer in 0..{MAX_MAP_HIDDEN}, got {lf!r}")
+        if isinstance(lf, bool) or not isinstance(lf, int) or not 0 <= lf <= MAX_MAP_CHANNELS:
+            raise ValueError(f"MapPolicyConfig.local_features must be an integer in 0..{MAX_MAP_CHANNELS}, got {lf!r}")
         if lf and list(self.periodic[:3]) != [False, False, True]:
             raise ValueError(f"MapPolicyConfig: local_features need states (x, y, heading, ...), but periodic is "
                              f"{self.periodic}")
         self.patch = PatchSpec.from_dict(self.patch).to_dict()  # checked, normalised
+        # the one check of the network's size and of a map's feature maps, before anything is allocated
+        if self.num_parameters > MAX_MAP_PARAMETERS:
+            raise ValueError(f"MapPolicyConfig: hidden {self.hidden} x layers {self.layers}, embed {self.embed}, "
+                             f"channels {self.channels}, local_features {lf} on a {self.patch['shape']} patch make "
+                             f"{self.num_parameters} parameters; at most {MAX_MAP_PARAMETERS} are supported")
+        if self.map_activations > MAX_MAP_ACTIVATIONS:
+            raise ValueError(f"MapPolicyConfig: channels {self.channels} and local_features {lf} on a "
+                             f"{self.patch['shape']} patch make feature maps of {self.map_activations} values per "
+                             f"map; at most {MAX_MAP_ACTIVATIONS} are supported")
 
     @property
     def patch_spec(self) -> PatchSpec:
@@ -99,6 +125,25 @@ class MapPolicyConfig:
     @property
     def num_features(self) -> int:
         return sum(2 if p else 1 for p in self.periodic) + 1
+
+    @property
+    def num_parameters(self) -> int:
+        """Parameters of the :class:`MapPolicy` this config describes (counted from the sizes: nothing is built)."""
+        c, E, Hd, A, C = self.channels, self.embed, self.hidden, self.num_actions, self.local_features
+        h, w = self.patch["shape"]
+        for _ in range(3):  # MapEncoder: three stride-2, padding-1 3x3 convolutions
+            h, w = (h - 1) // 2 + 1, (w - 1) // 2 + 1
+        encoder = (9 * c + c) + (9 * c * 2 * c + 2 * c) + (9 * 2 * c * 2 * c + 2 * c) + (2 * c * h * w + 1) * E
+        mlp = (self.num_features + 1) * Hd + E * Hd + (self.layers - 1) * (Hd + 1) * Hd + (Hd + 1) * A
+        local = (9 * C + 18 * C * C + len(PROBES) * C * Hd) if C else 0  # LocalFeatures (no biases) and inp_l
+        return encoder + mlp + local
+
+    @property
+    def map_activations(self) -> int:
+        """Values of the largest feature map ``set_map`` computes for one map: the encoder's first convolution
+        (``channels`` at half resolution) or the local feature map (``local_features`` at full resolution)."""
+        H, W = self.patch["shape"]
+        return max(self.channels * ((H - 1) // 2 + 1) * ((W - 1) // 2 + 1), self.local_features * H * W)
 
     def to_dict(self) -> dict[str, Any]:
         """The checkpoint's ``config``; ``local_features`` only when > 0, so a C = 0 checkpoint is the old one."""

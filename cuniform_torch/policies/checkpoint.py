@@ -9,20 +9,29 @@ Checkpoint (``.pt``, format ``cuniform-policy/1``): a dict of plain types and te
 start-conditioned policy (:mod:`cuniform_torch.policies.start_mlp`, whose config has ``start_dims``), ``start_region``
 (:class:`~cuniform_torch.policies.start_mlp.StartRegion` as a dict: ``starts`` float64 ``[S, k]``, the set's starts over
 ``dims [k]``). A checkpoint without ``start_region`` loads as an :class:`~cuniform_torch.policies.mlp.MLPPolicy`.
+
+Integrity: :func:`save_policy` stores ``content_sha256``, the :func:`checkpoint_digest` of everything else in the
+file (every tensor by its key path, the other values as JSON); a load from a path checks it before using any
+value (a mismatch names the file; a file written before digests loads after a one-line note). Every tensor of
+``state_dict`` must be finite and within :data:`MAX_ABS_WEIGHT`, and the config's sizes within the limits of
+:mod:`cuniform_torch.policies.mlp` (checked before any network is built).
 """
 
 from __future__ import annotations
 
 import hashlib
 import io
+import json
 import os
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import torch
 from torch import Tensor
 
+from cuniform_torch.common.digest import DIGEST_KEY, DigestError, check_digest, content_digest
 from cuniform_torch.common.fileio import write_bytes
 from cuniform_torch.grid.cells import Grid
 from cuniform_torch.policies.mlp import MLPConfig, MLPPolicy, MLPSupport
@@ -31,9 +40,14 @@ from cuniform_torch.policies.table import Fallback
 from cuniform_torch.systems import system_from_json
 
 __all__ = ["POLICY_FORMAT", "PolicyCheckpointError", "policy_checkpoint", "save_policy", "load_policy", "file_sha256",
-           "read_network_keys"]
+           "read_network_keys", "checkpoint_digest", "check_checkpoint_digest", "MAX_ABS_WEIGHT"]
 
 POLICY_FORMAT = "cuniform-policy/1"
+
+MAX_ABS_WEIGHT = 1e6
+"""the largest magnitude a ``state_dict`` value may have: a trained network's weights are of order 1 (and its
+buffers, the actions and ``1 / feature_scale``, of the system's scale), while weights of 1e38 overflow float32
+activations into NaN probabilities; such a checkpoint is refused by name instead"""
 
 
 class PolicyCheckpointError(ValueError):
@@ -64,10 +78,60 @@ def policy_checkpoint(policy: MLPPolicy, system_json: str, source: dict[str, str
     }
 
 
+def _checkpoint_arrays(checkpoint: dict[str, Any]) -> dict[str, Any]:
+    """What a checkpoint's digest covers: every tensor, nested dicts included, by its key path
+    (``"state_dict/net.0.weight"``), and every other value in one JSON text (sorted keys), all but the
+    :data:`~cuniform_torch.common.digest.DIGEST_KEY` entry. ValueError for content that has no digest
+    (a key that is not a string, values JSON cannot write)."""
+    arrays: dict[str, Any] = {}
+    plain: dict[str, Any] = {}
+
+    def walk(prefix: str, value: dict) -> None:
+        for key, item in value.items():
+            if not isinstance(key, str):
+                raise ValueError(f"key {key!r} of {prefix or 'the checkpoint'} is not a string")
+            if not prefix and key == DIGEST_KEY:
+                continue
+            name = f"{prefix}/{key}" if prefix else key
+            if isinstance(item, dict):
+                walk(name, item)
+            else:
+                (arrays if isinstance(item, Tensor) else plain)[name] = item
+
+    walk("", checkpoint)
+    try:
+        text = json.dumps(plain, sort_keys=True)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"a value JSON cannot write ({exc})") from None
+    if "\0plain" in arrays:
+        raise ValueError("a tensor's key path is '\\0plain', the name of the JSON part")
+    return {**arrays, "\0plain": np.array(text)}
+
+
+def checkpoint_digest(checkpoint: dict[str, Any]) -> str:
+    """The content digest (:func:`~cuniform_torch.common.digest.content_digest`) of a checkpoint dict: its
+    tensors by key path and its other values as JSON (see :func:`save_policy`)."""
+    return content_digest(_checkpoint_arrays(checkpoint))
+
+
+def check_checkpoint_digest(checkpoint: dict[str, Any], where: str, error: type[Exception]) -> None:
+    """Check a checkpoint read from the file ``where`` against its stored ``content_sha256``, before any value is
+    used: ``error`` (the family's exception) with the digest's message, naming the file, on a mismatch or on
+    content that has no digest; a one-line note on stderr (once per file) when the file has none (written
+    before digests were recorded)."""
+    stored = checkpoint.get(DIGEST_KEY)
+    try:
+        check_digest({} if stored is None else _checkpoint_arrays(checkpoint), stored, where)
+    except DigestError as exc:
+        raise error(str(exc)) from None
+    except ValueError as exc:
+        raise error(f"{where}: its content has no digest: {exc}") from None
+
+
 def save_policy(path: str | os.PathLike, checkpoint: dict[str, Any]) -> None:
-    """Write a checkpoint dict atomically."""
+    """Write a checkpoint dict atomically, with its ``content_sha256`` (:func:`checkpoint_digest`)."""
     buf = io.BytesIO()
-    torch.save(checkpoint, buf)
+    torch.save({**checkpoint, DIGEST_KEY: checkpoint_digest(checkpoint)}, buf)
     write_bytes(path, buf.getvalue())
 
 
@@ -83,6 +147,9 @@ def read_network_keys(ckpt: dict, config_class: type, what: str, trust_factory: 
     for key, value in state.items():
         if not value.is_floating_point() or not bool(torch.isfinite(value).all()):
             fail(f"state_dict[{key!r}] holds non-finite or non-float values")
+        if value.numel() and float(value.abs().max()) > MAX_ABS_WEIGHT:
+            fail(f"state_dict[{key!r}] holds a value of magnitude {float(value.abs().max()):.3g}, beyond the "
+                 f"bound {MAX_ABS_WEIGHT:g} of a sane network (a damaged or diverged checkpoint)")
     if not isinstance(ckpt["config"], dict):
         fail(f"config must be a dict, got {type(ckpt['config']).__name__}")
     try:
@@ -106,10 +173,12 @@ def load_policy(source: str | os.PathLike | dict, device: torch.device | str = "
     """A ready :class:`MLPPolicy` from a checkpoint path or an already loaded dict; errors are clear.
 
     The file is read with ``torch.load(weights_only=True)`` and its system is rebuilt from the registry or from
-    ``trust_factory`` (see :func:`~cuniform_torch.systems.system_from_json`): nothing it names is imported. Every
+    ``trust_factory`` (see :func:`~cuniform_torch.systems.system_from_json`): nothing it names is imported. A file's
+    ``content_sha256`` is checked first (module docstring; a dict is checked for its structure only). Every
     field has one source of truth, checked against the others: the actions (system, top level, state_dict),
     the feature scales (config, state_dict), the horizon and angle dimensions (config, system); weights must
-    be finite, and the network may not be larger than the weights the file holds. An optional ``support`` dict
+    be finite and within :data:`MAX_ABS_WEIGHT`, the config within the limits of
+    :mod:`~cuniform_torch.policies.mlp`, and the network may not be larger than the weights the file holds. An optional ``support`` dict
     (``cells``, ``level_offsets``: :class:`MLPSupport`) must describe cells per level of the system's grid.
     """
     where = str(source) if not isinstance(source, dict) else "checkpoint dict"
@@ -132,6 +201,8 @@ def load_policy(source: str | os.PathLike | dict, device: torch.device | str = "
     fmt = ckpt.get("format")
     if fmt != POLICY_FORMAT:
         fail(f"unknown policy format {fmt!r}; this reader knows {POLICY_FORMAT!r}")
+    if not isinstance(source, dict):  # a file's integrity; a dict in memory is the caller's
+        check_checkpoint_digest(ckpt, where, PolicyCheckpointError)
     missing = [k for k in ("state_dict", "config", "system", "actions") if k not in ckpt]
     if missing:
         fail(f"missing key(s) {', '.join(missing)}")

@@ -40,15 +40,24 @@ from cuniform_torch.grid.cells import Grid
 from cuniform_torch.policies.mlp_ops import check_query, state_features
 from cuniform_torch.policies.table import Fallback
 from cuniform_torch.sampling.rollout import StartWatch, check_states
-from cuniform_torch.systems import System
+from cuniform_torch.systems import MAX_ACTIONS, MAX_HORIZON, System
 from cuniform_torch.tables.file import Table
 from cuniform_torch.tables.lookup import MISS, NEAREST, Lookup, TableIndex, build_index
 from cuniform_torch.tables.torch_kernel import lookup_entries
 
-__all__ = ["MLPConfig", "MLPPolicy", "MLPSupport", "default_feature_scale", "MAX_HIDDEN", "MAX_LAYERS"]
+__all__ = ["MLPConfig", "MLPPolicy", "MLPSupport", "default_feature_scale", "MAX_HIDDEN", "MAX_LAYERS",
+           "MAX_WEIGHTS", "MAX_STATE_DIM"]
 
-MAX_HIDDEN = 1 << 16
-MAX_LAYERS = 64
+# Limits of a config, checked when it is made (MLPConfig.__post_init__): before any network is built, so a
+# checkpoint's config cannot make the reader allocate more than these describe (see docs/formats.md).
+MAX_HIDDEN = 8192
+"""the most hidden units per layer"""
+MAX_LAYERS = 32
+"""the most hidden layers"""
+MAX_WEIGHTS = 1 << 26
+"""the most weights and biases in all (``num_weights``; 67M, 256 MiB of float32)"""
+MAX_STATE_DIM = 64
+"""the most state dimensions (as a table file's)"""
 
 
 @dataclass
@@ -73,6 +82,9 @@ class MLPConfig:
                 raise ValueError(f"MLPConfig.{name} must be a positive integer, got {value!r}")
         if self.hidden > MAX_HIDDEN or self.layers > MAX_LAYERS:
             raise ValueError(f"MLPConfig: at most {MAX_LAYERS} layers of {MAX_HIDDEN} units, got {self.layers} x {self.hidden}")
+        for name, limit in (("state_dim", MAX_STATE_DIM), ("num_actions", MAX_ACTIONS), ("horizon", MAX_HORIZON)):
+            if getattr(self, name) > limit:
+                raise ValueError(f"MLPConfig.{name} is {getattr(self, name)}; at most {limit} is supported")
         if not isinstance(self.periodic, (list, tuple)) or not all(isinstance(p, bool) for p in self.periodic):
             raise ValueError(f"MLPConfig: periodic must be a list of bools, got {self.periodic!r}")
         if not isinstance(self.feature_scale, (list, tuple)) or len(self.periodic) != self.state_dim \
@@ -86,6 +98,9 @@ class MLPConfig:
                 or list(dims) != sorted(set(dims)):
             raise ValueError(f"MLPConfig: start_dims must be distinct ascending dimensions in 0..{self.state_dim - 1}, "
                              f"got {dims!r}")
+        if self.num_weights > MAX_WEIGHTS:  # the one check of the network's size, before anything is allocated
+            raise ValueError(f"MLPConfig: {self.layers} layers of {self.hidden} units make {self.num_weights} weights; "
+                             f"at most {MAX_WEIGHTS} are supported")
 
     @property
     def num_state_features(self) -> int:
