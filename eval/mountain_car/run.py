@@ -22,7 +22,20 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from cuniform_torch.cli import OUT, ArgumentParser, CLIError, check_output_folder, cli_main
+from cuniform_torch.cli import (
+    MAX_COUNT,
+    OUT,
+    ArgumentParser,
+    CLIError,
+    add_no_limit_arg,
+    check_output_folder,
+    check_work,
+    cli_main,
+    horizon_arg,
+    int_in,
+    positive_int,
+    refuse_flags,
+)
 from cuniform_torch.common.fileio import write_json
 from cuniform_torch.common.parallel import run_jobs
 from eval.common.stats import wilson_interval
@@ -43,22 +56,28 @@ __all__ = ["main", "make_parser", "summarize"]
 
 def make_parser() -> ArgumentParser:
     p = ArgumentParser(prog="python -m eval.mountain_car", description=(__doc__ or "").split("\n\n")[0])
-    p.add_argument("--seeds", type=int, default=20, help="episodes per controller, seeds 0..N-1 (default 20)")
-    p.add_argument("--budget", type=int, default=256, help="samples K per command, every controller (default 256)")
+    p.add_argument("--seeds", type=positive_int, default=20, help="episodes per controller, seeds 0..N-1 (default 20)")
+    p.add_argument("--budget", type=int_in(2, MAX_COUNT), default=256,
+                   help="samples K per command, every controller (default 256)")
     p.add_argument("--methods", default=",".join(METHODS), help=f"comma-separated, from {', '.join(METHODS)}")
-    p.add_argument("--horizon", type=int, default=30, help="model steps T per plan (default 30)")
-    p.add_argument("--repeat", type=int, default=5, help="env steps per model step (default 5)")
-    p.add_argument("--max-steps", type=int, default=999, help="env steps per episode (default 999, the env's limit)")
-    p.add_argument("--set-grid", default="13x9", help="table-set starts: P positions x V velocities (default 13x9)")
-    p.add_argument("--workers", type=int, default=1, help="processes for the episodes and the set build (default 1)")
+    p.add_argument("--horizon", type=horizon_arg, default=30, help="model steps T per plan (default 30)")
+    p.add_argument("--repeat", type=int_in(1, 1000), default=5, help="env steps per model step (default 5)")
+    p.add_argument("--max-steps", type=positive_int, default=999,
+                   help="env steps per episode (default 999, the env's limit)")
+    p.add_argument("--set-grid", default="13x9",
+                   help=f"table-set starts: P positions x V velocities (default 13x9; methods {', '.join(SET_METHODS)})")
+    p.add_argument("--workers", type=int_in(1, 1024), default=1,
+                   help="processes for the episodes and the set build (default 1)")
     p.add_argument("--out", default=str(OUT / "mountain_car"), help="folder of results.json")
-    p.add_argument("--cache", default=None, help="folder of cached table sets (default out/mountain_car/sets)")
+    p.add_argument("--cache", default=None,
+                   help=f"folder of cached table sets (default out/mountain_car/sets; methods {', '.join(SET_METHODS)})")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
+    add_no_limit_arg(p)
     return p
 
 
-def _check(args: Any) -> list[str]:
-    """The methods to run; a CLIError naming the first bad flag."""
+def _check(args: Any, parser: ArgumentParser | None = None) -> list[str]:
+    """The methods to run; a CLIError naming the first bad flag (the counts are checked as they parse)."""
     methods = [m.strip() for m in args.methods.split(",") if m.strip()]
     unknown = [m for m in methods if m not in METHODS]
     if unknown or not methods:
@@ -66,12 +85,11 @@ def _check(args: Any) -> list[str]:
                        f"{', '.join(METHODS)}")
     if len(set(methods)) != len(methods):
         raise CLIError(f"--methods names a method twice: {args.methods}")
-    for flag, value, low in (("--seeds", args.seeds, 1), ("--budget", args.budget, 2), ("--horizon", args.horizon, 1),
-                             ("--repeat", args.repeat, 1), ("--max-steps", args.max_steps, 1),
-                             ("--workers", args.workers, 1)):
-        if value < low:
-            raise CLIError(f"{flag} must be at least {low}, got {value}")
+    if parser is not None and not any(m in SET_METHODS for m in methods):
+        refuse_flags(parser, args, ["set_grid", "cache"], f"without a table-set method ({', '.join(SET_METHODS)}) "
+                                                          "in --methods")
     parse_grid(args.set_grid)
+    check_work({"seeds": args.seeds, "methods": len(methods)}, "episodes", getattr(args, "no_limit", False))
     if not have_gymnasium():
         raise CLIError(GYM_MISSING)
     if "pytorch_mppi" in methods and not have_pytorch_mppi():
@@ -133,8 +151,9 @@ def _resumed(path: Path, config: dict[str, Any]) -> list[dict]:
 @cli_main(interrupted="interrupted: the finished episodes are in results.json; rerun the same command to resume")
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the experiment from the flags ``argv``: 0, or 2 after one ``error: ...`` line."""
-    args = make_parser().parse_args(sys.argv[1:] if argv is None else list(argv))
-    methods = _check(args)
+    parser = make_parser()
+    args = parser.parse_args(sys.argv[1:] if argv is None else list(argv))
+    methods = _check(args, parser)
     out = Path(args.out)
     check_output_folder(out, "--out")
     out.mkdir(parents=True, exist_ok=True)

@@ -26,19 +26,21 @@ from torch import Tensor
 
 from cuniform_torch.cli import (
     ArgumentParser,
-    CLIError,
     add_system_module_arg,
     check_output_file,
     cli_main,
     import_system_modules,
+    int_in,
+    non_negative_int,
+    positive_int,
 )
 from cuniform_torch.envs import OccupancyGrid
 from cuniform_torch.grid.cells import CellSet, Grid
 from cuniform_torch.policies.table import TablePolicy
 from cuniform_torch.sampling.rollout import rollout
-from training.maps.evaluate import add_input_args, load_inputs
+from training.maps.evaluate import add_input_args, check_entries, load_inputs
 
-__all__ = ["free_coverage", "mean_interval", "main"]
+__all__ = ["free_coverage", "mean_interval", "make_parser", "main"]
 
 METHODS = ("map_policy", "blind_table")
 
@@ -90,23 +92,23 @@ def _pm(mean: float, half: float) -> str:
     return f"{mean:.3f} +- {half:.3f}" if math.isfinite(half) else f"{mean:.3f}"
 
 
-@cli_main()
-def main(argv: Sequence[str] | None = None) -> int:
+def make_parser() -> ArgumentParser:
     parser = ArgumentParser(prog="python -m training.maps.coverage", description=__doc__.splitlines()[0])
     add_input_args(parser)
-    parser.add_argument("--samples", type=int, nargs="+", default=[256, 1024], metavar="N",
+    parser.add_argument("--samples", type=positive_int, nargs="+", default=[256, 1024], metavar="N",
                         help="rollouts per entry and method, one run per N")
-    parser.add_argument("--entries", type=int, default=0, help="first entries only (0: all)")
-    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--entries", type=non_negative_int, default=0, help="first entries only (0: all)")
+    parser.add_argument("--seed", type=int_in(0, 2**63 - 1), default=0)
     parser.add_argument("--json", default=None, help="also write the per-entry shares and the summary here")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
     add_system_module_arg(parser)
-    args = parser.parse_args(argv)
+    return parser
+
+
+@cli_main()
+def main(argv: Sequence[str] | None = None) -> int:
+    args = make_parser().parse_args(argv)
     import_system_modules(args.system_module)
-    if min(args.samples) < 1:
-        raise CLIError(f"--samples must be at least 1 each, got {args.samples}")
-    if args.entries < 0:
-        raise CLIError(f"--entries must be >= 0 (0: all), got {args.entries}")
     if args.json:
         check_output_file(args.json, "--json", "coverage.json")
     policy, ds, blind = load_inputs(args.checkpoint, args.maps, args.table)
@@ -115,7 +117,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     policies = {"map_policy": policy, "blind_table": TablePolicy(blind)}
     # shares[method][N] = {"coverage": [per entry], "in_free": [per entry]}
     shares = {m: {n: {"coverage": [], "in_free": []} for n in args.samples} for m in METHODS}
-    total = min(len(ds), args.entries) if args.entries else len(ds)
+    total = check_entries(args.entries, ds, args.maps)
     from tqdm import tqdm
     bar = tqdm(total=total, desc="map_coverage", unit="entry", disable=args.quiet)
     sources = []

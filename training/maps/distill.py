@@ -39,6 +39,12 @@ from cuniform_torch.cli import (
     check_output_folder,
     cli_main,
     dataclass_from_args,
+    device_arg,
+    int_in,
+    non_negative_int,
+    positive_float,
+    positive_int,
+    threads_arg,
 )
 from cuniform_torch.common.fileio import exclusive_lock
 from cuniform_torch.maps.checkpoint import map_policy_checkpoint, save_map_policy
@@ -100,27 +106,24 @@ class _Parser(ArgumentParser):
         raise CLIError(message)
 
 
+MAP_DISTILL_TYPES = {**{name: int_in(1, 65536) for name in ("hidden", "layers", "embed", "channels")},
+                     "epochs": positive_int, "batch_size": positive_int, "jitter": int_in(0, 1000),
+                     "local_features": int_in(0, 65536), "lr": positive_float, "seed": non_negative_int,
+                     "device": device_arg, "threads": threads_arg}
+"""the :class:`MapDistillConfig` flags' values, checked as they parse (:mod:`cuniform_torch.cli`)"""
+
+
+def make_parser() -> ArgumentParser:
+    parser = _Parser(prog="python -m training.maps.distill", description=__doc__.splitlines()[0])
+    add_dataclass_args(parser, MapDistillConfig, required=("maps",), arg_types=MAP_DISTILL_TYPES)
+    return parser
+
+
 def parse_args(argv: Sequence[str] | None = None) -> MapDistillConfig:
     """Flags -> a checked config (``out`` filled); :class:`CLIError` when bad."""
-    parser = _Parser(prog="python -m training.maps.distill", description=__doc__.splitlines()[0])
-    add_dataclass_args(parser, MapDistillConfig, required=("maps",))
-    cfg = dataclass_from_args(MapDistillConfig, parser.parse_args(argv))
-    for name in ("hidden", "layers", "embed", "channels", "epochs", "batch_size"):
-        if getattr(cfg, name) < 1:
-            raise CLIError(f"--{name.replace('_', '-')} must be a positive integer, got {getattr(cfg, name)}")
-    if cfg.jitter < 0 or cfg.threads < 0 or cfg.local_features < 0:
-        raise CLIError(f"--jitter, --threads and --local-features must be >= 0, got {cfg.jitter}, {cfg.threads} "
-                       f"and {cfg.local_features}")
-    if not (math.isfinite(cfg.lr) and cfg.lr > 0):
-        raise CLIError(f"--lr must be a positive number, got {cfg.lr}")
+    cfg = dataclass_from_args(MapDistillConfig, make_parser().parse_args(argv))
     if not 0 <= cfg.val_fraction < 1:
         raise CLIError(f"--val-fraction must be in [0, 1), got {cfg.val_fraction}")
-    try:
-        device = torch.device(cfg.device)
-    except RuntimeError as exc:
-        raise CLIError(f"--device {cfg.device!r}: {exc}") from None
-    if device.type == "cuda" and not torch.cuda.is_available():
-        raise CLIError(f"--device {cfg.device}: CUDA is not available here")
     for folder in cfg.maps:
         if not (Path(folder) / "dataset.json").is_file():
             raise CLIError(f"--maps: no map-table data set (dataset.json) in {folder}")

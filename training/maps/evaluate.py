@@ -19,7 +19,15 @@ from collections.abc import Sequence
 import numpy as np
 import torch
 
-from cuniform_torch.cli import ArgumentParser, cli_main
+from cuniform_torch.cli import (
+    ArgumentParser,
+    CLIError,
+    check_output_file,
+    cli_main,
+    int_in,
+    non_negative_int,
+    positive_int,
+)
 from cuniform_torch.envs import OccupancyGrid
 from cuniform_torch.maps.checkpoint import load_map_policy
 from cuniform_torch.maps.policy import MapPolicy
@@ -53,21 +61,35 @@ def add_input_args(parser: ArgumentParser) -> None:
     parser.add_argument("--table", required=True, help="the blind table of the same system and horizon")
 
 
-@cli_main()
-def main(argv: Sequence[str] | None = None) -> int:
+def check_entries(entries: int, ds: MapDataset, maps: str) -> int:
+    """How many entries ``--entries`` asks for (0: all); CLIError when the data set has fewer (never clamped)."""
+    if entries > len(ds):
+        raise CLIError(f"--entries {entries}: the data set {maps} has {len(ds)} entries (0: all)")
+    return entries or len(ds)
+
+
+def make_parser() -> ArgumentParser:
     parser = ArgumentParser(prog="python -m training.maps.evaluate", description=__doc__.splitlines()[0])
     add_input_args(parser)
-    parser.add_argument("--samples", type=int, default=1000, help="rollouts per entry and method")
-    parser.add_argument("--entries", type=int, default=0, help="first entries only (0: all)")
-    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--samples", type=positive_int, default=1000, help="rollouts per entry and method")
+    parser.add_argument("--entries", type=non_negative_int, default=0, help="first entries only (0: all)")
+    parser.add_argument("--seed", type=int_in(0, 2**63 - 1), default=0)
     parser.add_argument("--json", default=None, help="also write the rates here")
-    args = parser.parse_args(argv)
+    return parser
+
+
+@cli_main()
+def main(argv: Sequence[str] | None = None) -> int:
+    args = make_parser().parse_args(argv)
+    if args.json:
+        check_output_file(args.json, "--json", "map_eval.json")
     policy, ds, blind = load_inputs(args.checkpoint, args.maps, args.table)
+    total = check_entries(args.entries, ds, args.maps)
     spec, system, T = policy.patch_spec, policy.system, policy.horizon
     blind_policy, x0 = TablePolicy(blind), torch.zeros(len(system.periodic))
     rates = {"map_policy": [], "blind_table": [], "safe_table": []}
     for k, entry in enumerate(ds):
-        if args.entries and k >= args.entries:
+        if k >= total:
             break
         grid = inflated(entry.patch, spec, ds.radius)
         policy.set_map(OccupancyGrid(torch.from_numpy(entry.patch.astype(bool)), spec.origin, spec.resolution))

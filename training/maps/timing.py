@@ -21,7 +21,16 @@ from collections.abc import Sequence
 
 import torch
 
-from cuniform_torch.cli import ArgumentParser, cli_main
+from cuniform_torch.cli import (
+    MAX_COUNT,
+    ArgumentParser,
+    cli_main,
+    int_in,
+    non_negative_int,
+    positive_int,
+    refuse_flags,
+    threads_arg,
+)
 from cuniform_torch.controllers.cfu import CFUMPPI
 from cuniform_torch.envs import OccupancyGrid
 from cuniform_torch.maps.checkpoint import load_map_policy
@@ -86,23 +95,32 @@ def _stats(ms: list[float]) -> str:
     return f"median {statistics.median(ms):6.2f} ms, p90 {ordered[int(0.9 * (len(ms) - 1))]:6.2f} ms"
 
 
+SIZES = ("hidden", "layers", "embed", "channels")
+"""the untrained policy's sizes: flags that a --checkpoint (which has its own) refuses"""
+
+
+def make_parser() -> ArgumentParser:
+    parser = ArgumentParser(prog="python -m training.maps.timing", description=__doc__.splitlines()[0])
+    parser.add_argument("--samples", type=int_in(2, MAX_COUNT), nargs="+", default=[256, 1024],
+                        help="budgets K to time (each >= 2)")
+    parser.add_argument("--commands", type=positive_int, default=60, help="timed commands per K (after the warm-up)")
+    parser.add_argument("--warmup", type=non_negative_int, default=5)
+    parser.add_argument("--checkpoint", default=None, help="a trained map policy (default: an untrained one)")
+    for name, default in zip(SIZES, (128, 2, 32, 8)):
+        parser.add_argument(f"--{name}", type=int_in(1, 65536), default=default,
+                            help=f"of the untrained policy (default {default}; not with --checkpoint)")
+    parser.add_argument("--threads", type=threads_arg, default=1, help="torch CPU threads (0: torch's choice)")
+    parser.add_argument("--seed", type=int_in(0, 2**31 - 1), default=0, help="seed of the forest")
+    parser.add_argument("--json", default=None, help="also write the numbers here")
+    return parser
+
+
 @cli_main()
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = ArgumentParser(prog="python -m training.maps.timing", description=__doc__.splitlines()[0])
-    parser.add_argument("--samples", type=int, nargs="+", default=[256, 1024], help="budgets K to time")
-    parser.add_argument("--commands", type=int, default=60, help="timed commands per K (after the warm-up)")
-    parser.add_argument("--warmup", type=int, default=5)
-    parser.add_argument("--checkpoint", default=None, help="a trained map policy (default: an untrained one)")
-    parser.add_argument("--hidden", type=int, default=128)
-    parser.add_argument("--layers", type=int, default=2)
-    parser.add_argument("--embed", type=int, default=32)
-    parser.add_argument("--channels", type=int, default=8)
-    parser.add_argument("--threads", type=int, default=1, help="torch CPU threads (0: torch's choice)")
-    parser.add_argument("--seed", type=int, default=0, help="seed of the forest")
-    parser.add_argument("--json", default=None, help="also write the numbers here")
+    parser = make_parser()
     args = parser.parse_args(argv)
-    if min(args.samples) < 2 or args.commands < 1 or args.warmup < 0:
-        raise ValueError("--samples must be >= 2, --commands >= 1, --warmup >= 0")
+    if args.checkpoint is not None:
+        refuse_flags(parser, args, SIZES, "with --checkpoint (the checkpoint has its own sizes)")
     if args.threads:
         torch.set_num_threads(args.threads)
     system = make_system("dubins", **ROBOT)
