@@ -29,7 +29,7 @@ from pathlib import Path
 import torch
 
 from cuniform_torch import CUniformMPPI
-from cuniform_torch.cli import ArgumentParser, cli_main
+from cuniform_torch.cli import MAX_COUNT, ArgumentParser, cli_main, int_in, positive_int
 from cuniform_torch.common.fileio import write_json
 from cuniform_torch.envs import NavigationCost
 from eval.navigate.episode import NavContext, _cost_environment, _sources
@@ -109,8 +109,9 @@ def make_parser() -> ArgumentParser:
     p = ArgumentParser(prog="python -m eval.navigate.failures", description=(__doc__ or "").split("\n\n")[0])
     p.add_argument("--out", type=Path, required=True, help="the benchmark folder (python -m eval.navigate --out)")
     p.add_argument("--methods", nargs="+", default=None, help="only these methods (default: every one in the folder)")
-    p.add_argument("--budgets", nargs="+", type=int, default=None, help="only these budgets (default: all)")
-    p.add_argument("--probe-samples", type=int, default=PROBE_SAMPLES,
+    p.add_argument("--budgets", nargs="+", type=int_in(2, MAX_COUNT), default=None,
+                   help="only these budgets (default: all)")
+    p.add_argument("--probe-samples", type=positive_int, default=PROBE_SAMPLES,
                    help=f"C-Uniform rollouts of the trap probe (default: {PROBE_SAMPLES})")
     p.add_argument("--cache", type=Path, default=Path("out/navigate/cache"),
                    help="where the robot's tables are kept (default: out/navigate/cache)")
