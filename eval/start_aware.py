@@ -26,7 +26,17 @@ import numpy as np
 import torch
 
 from cuniform_torch import TablePolicy, load_table, rollout
-from cuniform_torch.cli import ArgumentParser, add_system_module_arg, check_output_file, cli_main, import_system_modules
+from cuniform_torch.cli import (
+    MAX_COUNT,
+    ArgumentParser,
+    add_system_module_arg,
+    check_output_file,
+    cli_main,
+    horizon_arg,
+    import_system_modules,
+    int_in,
+    positive_int,
+)
 from cuniform_torch.common.fileio import write_json
 from cuniform_torch.metrics import coverage
 from cuniform_torch.policies.table_set import TableSetPolicy
@@ -145,15 +155,15 @@ def make_parser() -> ArgumentParser:
     p.add_argument("--system", default="ks_speed", help="registered system (or module:factory)")
     add_system_module_arg(p)
     p.add_argument("--param", action="append", default=[], metavar="KEY=VALUE", help="a system parameter")
-    p.add_argument("--horizon", type=int, default=5)
+    p.add_argument("--horizon", type=horizon_arg, default=5)
     p.add_argument("--starts", default="3=0:1:6", metavar="SPEC",
                    help="the set's starts (precompute.build --starts; default: ks_speed's speeds 0, 0.2, ..., 1, "
                         "one cell apart)")
     p.add_argument("--set", type=Path, default=None, metavar="DIR", help="a built set to measure instead")
-    p.add_argument("--random", type=int, default=20, help="random starts to measure")
-    p.add_argument("--seed", type=int, default=0, help="seed of the random starts and the rollouts")
-    p.add_argument("--samples", type=int, default=1000, help="rollouts per start and policy")
-    p.add_argument("--workers", type=int, default=1, help="processes for building the set")
+    p.add_argument("--random", type=positive_int, default=20, help="random starts to measure")
+    p.add_argument("--seed", type=int_in(0, 2**31 - 1), default=0, help="seed of the random starts and the rollouts")
+    p.add_argument("--samples", type=int_in(2, MAX_COUNT), default=1000, help="rollouts per start and policy")
+    p.add_argument("--workers", type=int_in(1, 1024), default=1, help="processes for building the set")
     p.add_argument("--cache", type=Path, default=Path("out/start_aware"), help="where built sets are kept")
     p.add_argument("--json", type=Path, default=None, help="write the rows and the summary here")
     p.add_argument("--quiet", action="store_true")

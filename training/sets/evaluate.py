@@ -42,7 +42,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from cuniform_torch.cli import ArgumentParser, cli_main
+from cuniform_torch.cli import ArgumentParser, cli_main, int_in, non_negative_int, positive_int
 from cuniform_torch.common.fileio import write_json
 from cuniform_torch.controllers.mppi import CUniformMPPI
 from cuniform_torch.policies.checkpoint import load_policy
@@ -172,11 +172,12 @@ def make_parser() -> ArgumentParser:
                         help="held-out starts over the start dimensions, comma-separated per start (default: the "
                              "midpoints between the set's grid values)")
     parser.add_argument("--cache", default=None, help="folder of the held-out tables (default: <set>/held_out)")
-    parser.add_argument("--samples", type=int, default=1000, help="rollouts N of the coverage comparison")
-    parser.add_argument("--num-samples", type=int, nargs="+", default=[256, 1000], help="K of the command timing")
-    parser.add_argument("--repeats", type=int, default=30, help="timed commands per controller and K")
-    parser.add_argument("--warmup", type=int, default=5, help="untimed commands first")
-    parser.add_argument("--seed", type=int, default=0, help="seed of the coverage rollouts")
+    parser.add_argument("--samples", type=positive_int, default=1000, help="rollouts N of the coverage comparison")
+    parser.add_argument("--num-samples", type=positive_int, nargs="+", default=[256, 1000],
+                        help="K of the command timing")
+    parser.add_argument("--repeats", type=positive_int, default=30, help="timed commands per controller and K")
+    parser.add_argument("--warmup", type=non_negative_int, default=5, help="untimed commands first")
+    parser.add_argument("--seed", type=int_in(0, 2**63 - 1), default=0, help="seed of the coverage rollouts")
     parser.add_argument("--json", default=None, help="also write every number to this JSON file")
     return parser
 
