@@ -49,15 +49,7 @@ from eval.paper import coverage as coverage_experiment
 from eval.paper import uniformity
 from eval.paper.tensorboard import log_tensorboard
 
-__all__ = ["Stages", "StepFailed", "build_inputs", "machine", "write_markdown", "main"]
-
-
-class StepFailed(Exception):
-    """A command the report runs failed; it has printed its own one-line error, the report exits with its code."""
-
-    def __init__(self, code: int) -> None:
-        super().__init__(f"exit code {code}")
-        self.code = code
+__all__ = ["Stages", "build_inputs", "machine", "write_markdown", "main"]
 
 
 @dataclass
@@ -88,12 +80,12 @@ class Stages:
         self.made.append(str(path))
         return False
 
-    def run_cli(self, module: str, main: Callable[[list[str]], int], argv: list[str]) -> None:
+    def run_step(self, module: str, argv: list[str], run: Callable[[list[str]], object]) -> None:
+        """Record and print the command ``python -m module argv``, then ``run(argv)``: the library function behind
+        it on the same flags (an error propagates as that function raises it)."""
         self.commands.append(f"python -m {module} " + " ".join(argv))
         print("$ " + self.commands[-1], flush=True)
-        code = main(argv)
-        if code:
-            raise StepFailed(code)
+        run(argv)
 
     def cached(self, path: Path, cfg: dict, compute: Callable[[], dict]) -> dict:
         """The result in ``path`` when it holds one of the same config, else ``compute()`` written there."""
@@ -114,8 +106,14 @@ class Stages:
 
 def build_inputs(paths: OutputPaths, runs: Path, stages: Stages) -> None:
     """Tables and the distilled policy, each made only when missing (or ``force``)."""
-    from precompute.build import main as build_main
-    from training.distill import main as distill_main
+    from precompute.build import build_table_file, parse_job
+    from training.distill import distill, parse_args
+
+    def build(argv: list[str]) -> None:
+        build_table_file(parse_job(argv)[0])
+
+    def train(argv: list[str]) -> None:
+        distill(parse_args(argv))
 
     quiet = ["--quiet"] if paths.quick else []
     tables = [(paths.table, []), (paths.coverage_table, ["--method", "coverage"])]
@@ -124,13 +122,13 @@ def build_inputs(paths: OutputPaths, runs: Path, stages: Stages) -> None:
                    (paths.coverage_table_cl, ["--method", "coverage", "--horizon", "15"])]
     for path, extra in tables:
         if not stages.reuse(path):
-            stages.run_cli("precompute.build", build_main, ["--out", str(path), *extra, *quiet])
+            stages.run_step("precompute.build", ["--out", str(path), *extra, *quiet], build)
     if stages.reuse(paths.policy):
         return
     # 3 s table: 30 606 cells, 150 epochs ~ 5 min on 2 cores; --quick: a brief run, enough to drive a controller
     epochs = ["--epochs", "15", "--eval-samples", "200", "--eval-every", "5"] if paths.quick else ["--epochs", "150"]
-    stages.run_cli("training.distill", distill_main, ["--tables", str(paths.table_cl), "--out", str(paths.policy),
-                                                      "--logdir", str(runs / "distill"), *epochs, *quiet])
+    stages.run_step("training.distill", ["--tables", str(paths.table_cl), "--out", str(paths.policy),
+                                         "--logdir", str(runs / "distill"), *epochs, *quiet], train)
 
 
 def machine() -> str:
@@ -174,10 +172,7 @@ def main(argv=None) -> int:
     import_system_modules(args.system_module)
     check_output_folder(args.out, "--out")
     check_output_folder(args.runs, "--runs")
-    try:
-        return _report(args)
-    except StepFailed as exc:  # the step printed its error line (or its Ctrl-C line) already
-        return exc.code
+    return _report(args)
 
 
 def _report(args) -> int:

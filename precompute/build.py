@@ -27,18 +27,17 @@ from __future__ import annotations
 
 import argparse
 import sys
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 from cuniform_torch.cli import OUT, cli_main
-from cuniform_torch.common.fileio import exclusive_lock
-from cuniform_torch.systems import System
-from precompute.build_args import COVERAGE_ONLY, MAXFLOW_ONLY, make_parser
-from precompute.one_table import parse_build_args, run_one, system_of, with_threads
+from precompute.build_args import COVERAGE_ONLY, MAXFLOW_ONLY, make_parser, parse_build_args, system_of, table_job
+from precompute.one_table import TableJob, build_table_file
 from precompute.system_args import parse_params
-from precompute.table_set import build_set, parse_starts, set_complete
+from precompute.table_set import build_table_set, ensure_table_set, parse_starts
 
-__all__ = ["main", "ensure_set", "make_parser", "MAXFLOW_ONLY", "COVERAGE_ONLY", "parse_params"]
+__all__ = ["main", "parse_job", "TableJob", "build_table_file", "build_table_set", "ensure_table_set", "make_parser",
+           "MAXFLOW_ONLY", "COVERAGE_ONLY", "parse_params"]
 
 
 @cli_main(interrupted="interrupted: no table written")
@@ -47,18 +46,35 @@ def main(argv: Sequence[str] | None = None) -> int:
     ``error: ...`` line, or 130 on Ctrl-C."""
     argv = sys.argv[1:] if argv is None else list(argv)
     args = parse_build_args(argv)
-    return with_threads(args, lambda: _run(args, argv))
+    return _with_threads(args.threads, lambda: _run(args))
 
 
-def _run(args: argparse.Namespace, argv: Sequence[str] = ()) -> int:
-    if args.starts is not None:
-        name, system = system_of(args)
-        return _run_set(args, argv, name, system)
-    return run_one(args)
+def _with_threads(threads: int, run: Callable[[], int]) -> int:
+    """``run()`` with ``threads`` torch threads (0: unchanged), the caller's setting restored after."""
+    import torch
+
+    previous = torch.get_num_threads()
+    if threads:
+        torch.set_num_threads(threads)
+    try:
+        return run()
+    finally:
+        torch.set_num_threads(previous)
 
 
-def _run_set(args: argparse.Namespace, argv: Sequence[str], name: str, system: System) -> int:
-    """``--starts``: every start's table into the folder ``--out`` (:mod:`precompute.table_set`)."""
+def parse_job(argv: Sequence[str]) -> tuple[TableJob, dict]:
+    """The flags ``argv`` of ``python -m precompute.build`` as a job: ``(job, set)`` where ``set`` is ``{}`` for
+    one table, else ``{"starts": [S, d], "out": folder, "workers": N, "ray_address": ...}`` for a table set
+    (the job is then the members' template). A clear error for bad or conflicting flags."""
+    return _job_of(parse_build_args(argv))
+
+
+def _job_of(args: argparse.Namespace) -> tuple[TableJob, dict]:
+    name, system = system_of(args)
+    if args.starts is None:
+        if args.workers != 1 or args.ray is not None:
+            raise ValueError("--workers and --ray build a table set: give --starts too")
+        return table_job(args, system, args.out or OUT / f"{name}.npz"), {}
     if getattr(args, "start", None) is not None:
         raise ValueError("give --start (one table) or --starts (a table set), not both")
     if args.map_file is not None:
@@ -69,20 +85,17 @@ def _run_set(args: argparse.Namespace, argv: Sequence[str], name: str, system: S
     out: Path = args.out or OUT / f"{name}_set"
     if out.suffix == ".npz":
         raise ValueError(f"--out {out}: a table set is a folder (e.g. --out out/{name}_set)")
-    with exclusive_lock(out / ".lock", what=f"the table set {out}"):
-        return build_set(argv, system, starts, out, workers=args.workers, ray_address=args.ray, method=args.method,
-                         quiet=args.quiet)
+    template = table_job(args, system, out / "start_0000.npz")
+    return template, {"starts": starts, "out": out, "workers": args.workers, "ray_address": args.ray}
 
 
-def ensure_set(folder: Path, build_argv: Sequence[str], count: int | None = None, quiet: bool = False) -> Path:
-    """``folder``, built first by ``python -m precompute.build *build_argv --out folder`` (``build_argv`` names
-    the system and ``--starts``) when it is not a complete set; a failed build is a RuntimeError naming it."""
-    if set_complete(folder, count):
-        return Path(folder)
-    argv = [*build_argv, "--out", str(folder), *(["--quiet"] if quiet else [])]
-    if main(argv) != 0 or not set_complete(folder, count):
-        raise RuntimeError(f"building the table set {folder} failed (python -m precompute.build {' '.join(argv)})")
-    return Path(folder)
+def _run(args: argparse.Namespace) -> int:
+    job, table_set = _job_of(args)
+    if table_set:
+        build_table_set(job, **table_set)
+    else:
+        build_table_file(job)
+    return 0
 
 
 if __name__ == "__main__":

@@ -8,15 +8,28 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from cuniform_torch.cli import OUT, ArgumentParser, CLIError, add_dataclass_args, field_docs, flag_name
-from cuniform_torch.systems import _REGISTRY, DEFAULT_HORIZON, known_systems
+from cuniform_torch.cli import (
+    OUT,
+    ArgumentParser,
+    CLIError,
+    add_dataclass_args,
+    dataclass_from_args,
+    field_docs,
+    flag_name,
+)
+from cuniform_torch.systems import _REGISTRY, DEFAULT_HORIZON, System, known_systems, resolve_system, system_horizon
 from precompute.flow.builder import BuildConfig
+from precompute.levels.safe_map import map_overrides
 from precompute.levels.sets import PointMode
+from precompute.one_table import TableJob
+from precompute.system_args import load_user_systems, make_cli_system, parse_params
 
-__all__ = ["make_parser", "check_flags", "MAXFLOW_ONLY", "COVERAGE_ONLY"]
+__all__ = ["make_parser", "check_flags", "parse_build_args", "system_of", "table_job", "MAXFLOW_ONLY",
+           "COVERAGE_ONLY"]
 
 
 def _system_fields() -> dict[str, dataclasses.Field]:
@@ -144,3 +157,45 @@ def check_flags(args: argparse.Namespace) -> None:
         raise CLIError(f"--points-per-cell applies to --points random only, not to --points {points}")
     if _given(args, "rollouts") and args.no_report:
         raise CLIError("--rollouts sets the report's rollouts, but --no-report skips the report")
+
+
+def parse_build_args(argv: Sequence[str]) -> argparse.Namespace:
+    """The flags ``argv`` of a build, user system modules imported first and combinations checked."""
+    load_user_systems(argv)
+    args = make_parser().parse_args(argv)
+    check_flags(args)
+    if args.threads < 0:
+        raise CLIError(f"--threads must be >= 0 (0: torch's choice), got {args.threads}")
+    return args
+
+
+def system_of(args: argparse.Namespace) -> tuple[str, System]:
+    """The registry name and the system the flags describe."""
+    params = {k[4:]: v for k, v in vars(args).items() if k.startswith("sys_") and v is not None}
+    for key, value in params.items():
+        if isinstance(value, list):
+            params[key] = tuple(value)
+    extra_params = parse_params(args.param)
+    both = sorted(set(params) & set(extra_params))
+    if both:
+        raise ValueError(f"parameter(s) {', '.join(both)} given both as a flag and as --param")
+    params.update({k: tuple(v) if isinstance(v, list) else v for k, v in extra_params.items()})
+    name = resolve_system(args.system)
+    return name, make_cli_system(args.system, name, params)
+
+
+def table_job(args: argparse.Namespace, system: System, out: Path) -> TableJob:
+    """The :class:`TableJob` that the parsed flags ``args`` describe (the one path from flags to a job, so each
+    default lives in its dataclass only)."""
+    from precompute.coverage.method import CoverageConfig
+
+    horizon = system_horizon(system) if args.horizon is None else args.horizon
+    map_fields = map_overrides(args, system)
+    build = dataclass_from_args(BuildConfig, args, horizon=horizon, **map_fields)
+    coverage = None
+    if args.method == "coverage":
+        coverage = dataclass_from_args(CoverageConfig, args, horizon=horizon, local_map=build.local_map,
+                                       radius=build.radius)
+    return TableJob(system=system, out=out, build=build, coverage=coverage, report=not args.no_report,
+                    rollouts=args.rollouts, device=args.device, resume=args.resume, max_memory_gb=args.max_memory,
+                    quiet=args.quiet)

@@ -1,33 +1,84 @@
-"""One table from the flags of ``python -m precompute.build`` (no ``--starts``): the build, its report, its files.
-
-:func:`main_one` is the whole command for one table; :mod:`precompute.build` (the CLI, which also builds table
-sets) and :mod:`precompute.table_set` (one call per member start) both run it, so neither imports the other.
+"""One table, built and written: :class:`TableJob` (the typed form of ``python -m precompute.build`` without
+``--starts``) and :func:`build_table_file`, the library function that the CLI (:mod:`precompute.build`), the table
+set (one job per member start, :mod:`precompute.table_set`) and the evaluations call.
 """
 
 from __future__ import annotations
 
-import argparse
+import dataclasses
+import math
 import shutil
 import sys
 import time
-from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from cuniform_torch.cli import OUT, CLIError, check_output_file, cli_main, dataclass_from_args
+from cuniform_torch.cli import CLIError, check_output_file
 from cuniform_torch.common.fileio import exclusive_lock, write_json
-from cuniform_torch.systems import resolve_system, system_horizon
+from cuniform_torch.systems import System
 from cuniform_torch.tables.file import write_table
-from precompute.build_args import check_flags, make_parser
+from precompute.coverage.method import CoverageConfig
 from precompute.flow.builder import BuildConfig, SizeGuide, available_memory_bytes, build_table, check_resume
-from precompute.levels.safe_map import map_overrides
 from precompute.report import format_report, uniformity_report
-from precompute.system_args import load_user_systems, make_cli_system, parse_params
 
-__all__ = ["main_one", "run_one", "parse_build_args", "with_threads", "system_of"]
+__all__ = ["TableJob", "build_table_file", "check_device"]
 
 
-def _check_device(device: str) -> None:
+@dataclass(frozen=True)
+class TableJob:
+    """One table to build and write (every field has the meaning of the ``precompute.build`` flag of its name)."""
+
+    system: System
+    out: Path
+    """the table file (``.npz``) to write; ``<out stem>.report.json`` is written beside it"""
+    build: BuildConfig = dataclasses.field(default_factory=BuildConfig)
+    """horizon, points, seed, ties, start, local map: everything that changes a max-flow table's bytes"""
+    coverage: CoverageConfig | None = None
+    """the coverage method's settings (``--method coverage``); None: the max-flow method"""
+    report: bool = True
+    """measure the table's uniformity on real rollouts and print it (``--no-report``: False)"""
+    rollouts: int | None = None
+    """rollouts of the report (None: 10 x the largest level)"""
+    device: str = "cpu"
+    """torch device of the report's rollouts"""
+    resume: bool = False
+    """continue an interrupted max-flow build from ``<out>.partial/``"""
+    max_memory_gb: float | None = None
+    """memory budget of the size guidance (None: the available memory)"""
+    quiet: bool = False
+    """no progress bar and no report printed (warnings still are)"""
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "out", Path(self.out))
+        if self.coverage is not None:
+            if self.coverage.horizon != self.build.horizon:
+                raise ValueError(f"the coverage config's horizon {self.coverage.horizon} differs from the build's "
+                                 f"{self.build.horizon}")
+            if self.resume:
+                raise ValueError("--resume continues a max-flow build; the coverage method has no checkpoints")
+        if self.max_memory_gb is not None and not (math.isfinite(self.max_memory_gb) and self.max_memory_gb > 0):
+            raise ValueError(f"--max-memory must be a positive number of GB, got {self.max_memory_gb}")
+        if self.rollouts is not None and (isinstance(self.rollouts, bool) or self.rollouts < 1):
+            raise ValueError(f"--rollouts must be positive, got {self.rollouts}")
+        if self.rollouts is not None and not self.report:
+            raise ValueError("--rollouts sets the report's rollouts, but --no-report skips the report")
+
+    @property
+    def method(self) -> str:
+        """``"maxflow"`` or ``"coverage"``."""
+        return "maxflow" if self.coverage is None else "coverage"
+
+    def from_start(self, start: tuple[float, ...], out: Path) -> TableJob:
+        """This job built from ``start`` into ``out``, quietly and without a report (a member of a table set)."""
+        build = dataclasses.replace(self.build, start=start)
+        coverage = None if self.coverage is None else dataclasses.replace(self.coverage, start=start)
+        return dataclasses.replace(self, build=build, coverage=coverage, out=Path(out), report=False, rollouts=None,
+                                   quiet=True)
+
+
+def check_device(device: str) -> None:
+    """A clear ValueError unless ``device`` names a torch device this machine has."""
     import torch
 
     try:
@@ -60,108 +111,47 @@ def _build_coverage(system, config, bar):
     return table, stats, {"coverage_method": {k: v for k, v in facts.items() if k != "seconds"}}
 
 
-def parse_build_args(argv: Sequence[str]) -> argparse.Namespace:
-    """The flags ``argv`` of a build, user system modules imported first and combinations checked."""
-    load_user_systems(argv)
-    args = make_parser().parse_args(argv)
-    check_flags(args)
-    if args.threads < 0:
-        raise CLIError(f"--threads must be >= 0 (0: torch's choice), got {args.threads}")
-    return args
+def build_table_file(job: TableJob) -> Path:
+    """Build the table ``job`` describes, write it (atomically) and its report JSON; return the table's path.
+    A bad setting, an unusable ``out`` or a refused resume is a ValueError / CLIError; Ctrl-C a KeyboardInterrupt
+    saying what survives."""
+    check_output_file(job.out, "--out", example="table.npz")
+    if job.report:
+        check_device(job.device)
+    with exclusive_lock(job.out.with_name(job.out.name + ".lock"), what=f"--out {job.out}"):
+        return _build(job)
 
 
-def with_threads(args: argparse.Namespace, run: Callable[[], int]) -> int:
-    """``run()`` with ``--threads`` torch threads, the caller's setting restored after (eval.report keeps its own)."""
-    import torch
-
-    previous = torch.get_num_threads()
-    if args.threads:
-        torch.set_num_threads(args.threads)
-    try:
-        return run()
-    finally:
-        torch.set_num_threads(previous)
-
-
-@cli_main(interrupted="interrupted: no table written")
-def main_one(argv: Sequence[str] | None = None) -> int:
-    """Build one table from the flags ``argv``: 0, or 2 after one ``error: ...`` line, or 130 on Ctrl-C."""
-    argv = sys.argv[1:] if argv is None else list(argv)
-    args = parse_build_args(argv)
-    if args.starts is not None:
-        raise ValueError("--starts builds a table set: run python -m precompute.build")
-    return with_threads(args, lambda: run_one(args))
-
-
-def run_one(args: argparse.Namespace) -> int:
-    """Build the one table that the parsed flags ``args`` describe."""
-    name, system = system_of(args)
-    if args.workers != 1 or args.ray is not None:
-        raise ValueError("--workers and --ray build a table set: give --starts too")
-    horizon = system_horizon(system) if args.horizon is None else args.horizon
-    map_fields = map_overrides(args, system)
-    config = dataclass_from_args(BuildConfig, args, horizon=horizon, **map_fields)
-    out: Path = args.out or OUT / f"{name}.npz"
-    if args.max_memory is not None and not args.max_memory > 0:
-        raise ValueError(f"--max-memory must be a positive number of GB, got {args.max_memory}")
-    check_output_file(out, "--out", example="table.npz")
-    if args.rollouts is not None and args.rollouts < 1:
-        raise ValueError(f"--rollouts must be positive, got {args.rollouts}")
-    _check_device(args.device)
-    with exclusive_lock(out.with_name(out.name + ".lock"), what=f"--out {out}"):
-        return _build(args, system, horizon, config, out)
-
-
-
-def system_of(args: argparse.Namespace):
-    """The registry name and the system the flags describe."""
-    params = {k[4:]: v for k, v in vars(args).items() if k.startswith("sys_") and v is not None}
-    for key, value in params.items():
-        if isinstance(value, list):
-            params[key] = tuple(value)
-    extra_params = parse_params(args.param)
-    both = sorted(set(params) & set(extra_params))
-    if both:
-        raise ValueError(f"parameter(s) {', '.join(both)} given both as a flag and as --param")
-    params.update({k: tuple(v) if isinstance(v, list) else v for k, v in extra_params.items()})
-    name = resolve_system(args.system)
-    return name, make_cli_system(args.system, name, params)
-
-
-def _build(args: argparse.Namespace, system, horizon: int, config: BuildConfig, out: Path) -> int:
-    """Build, write and report, holding the lock of ``out``."""
+def _build(job: TableJob) -> Path:
+    """Build, write and report, holding the lock of ``job.out``."""
+    system, config, coverage_config, out = job.system, job.build, job.coverage, job.out
+    horizon = config.horizon
     ckpt = out.with_name(out.name + ".partial")
-    if ckpt.exists() and not args.resume:
+    if ckpt.exists() and not job.resume:
         shutil.rmtree(ckpt)
-    if args.method == "maxflow":
-        if args.resume and ckpt.is_dir():
+    if job.method == "maxflow":
+        if job.resume and ckpt.is_dir():
             check_resume(ckpt, system, config)
         ckpt.mkdir(parents=True, exist_ok=True)
-    say = (lambda *a: None) if args.quiet else (lambda *a: print(*a, flush=True))
-    coverage_config = None
-    if args.method == "coverage":
-        from precompute.coverage.method import CoverageConfig
-
-        coverage_config = dataclass_from_args(CoverageConfig, args, horizon=horizon, local_map=config.local_map,
-                                              radius=config.radius)
+    say = (lambda *a: None) if job.quiet else (lambda *a: print(*a, flush=True))
     detail = (f"points={config.points.value}" if coverage_config is None
               else f"target N={coverage_config.target_samples}")
-    say(f"building {system.name} table ({args.method}): {system.params()} horizon={horizon} {detail}")
+    say(f"building {system.name} table ({job.method}): {system.params()} horizon={horizon} {detail}")
 
     bar = None
-    if not args.quiet:
+    if not job.quiet:
         from tqdm import tqdm
 
         bar = tqdm(total=horizon, desc="levels", unit="level", file=sys.stdout)
 
-    budget = args.max_memory * 1e9 if args.max_memory is not None else available_memory_bytes()
-    guide = SizeGuide(horizon, system.action_set().shape[0], len(system.periodic), budget, report=not args.no_report)
+    budget = job.max_memory_gb * 1e9 if job.max_memory_gb is not None else available_memory_bytes()
+    guide = SizeGuide(horizon, system.action_set().shape[0], len(system.periodic), budget, report=job.report)
 
     def progress(t: int, step) -> None:
         for line in guide.update(step):
             loud = line.startswith(("warning", "the projection now fits"))
             stream = sys.stderr if loud else sys.stdout
-            if loud or not args.quiet:
+            if loud or not job.quiet:
                 (bar.write(line, file=stream) if bar is not None else print(line, file=stream, flush=True))
         if bar is not None:
             bar.set_postfix(cells=len(step.next_cells), flow=f"{step.flow_value / (len(step.probs) * len(step.next_cells)):.4f}")
@@ -170,12 +160,12 @@ def _build(args: argparse.Namespace, system, horizon: int, config: BuildConfig, 
     t_start = time.perf_counter()
     extra: dict[str, Any] = {}
     try:
-        if args.method == "coverage":
+        if coverage_config is not None:
             table, stats, extra = _build_coverage(system, coverage_config, bar)
         else:
-            table, stats = build_table(system, config, checkpoint_dir=ckpt, resume=args.resume, progress=progress)
+            table, stats = build_table(system, config, checkpoint_dir=ckpt, resume=job.resume, progress=progress)
     except KeyboardInterrupt:
-        if args.method == "coverage":
+        if coverage_config is not None:
             raise
         raise KeyboardInterrupt("interrupted: no table written; rerun with --resume to continue from the last "
                                 "finished level") from None
@@ -186,7 +176,7 @@ def _build(args: argparse.Namespace, system, horizon: int, config: BuildConfig, 
     try:
         write_table(out, table)
     except OSError as exc:
-        kept = f"; the finished levels stay in {ckpt} (rerun with --resume)" if args.method == "maxflow" else ""
+        kept = f"; the finished levels stay in {ckpt} (rerun with --resume)" if coverage_config is None else ""
         raise CLIError(f"cannot write the table {out}: {exc.strerror or exc}{kept}") from None
     stats.seconds["write"] = time.perf_counter() - t0
     shutil.rmtree(ckpt, ignore_errors=True)
@@ -206,23 +196,22 @@ def _build(args: argparse.Namespace, system, horizon: int, config: BuildConfig, 
         "horizon": horizon,
         "points": config.points.value,
         "level_sizes": table.level_sizes,
-        "flow_ratio": (table.flow_value / table.flow_target).tolist() if args.method == "maxflow" else None,
+        "flow_ratio": (table.flow_value / table.flow_target).tolist() if coverage_config is None else None,
         "seconds": {**stats.seconds, "total": total},
-        "method": args.method,
+        "method": job.method,
         "zero_outflow_cells": stats.zero_outflow,
         "kept_point_fraction": stats.kept_fraction,
         "size_guide": {"projected_level_sizes": guide.projection, "estimated_peak_bytes": guide.estimate_bytes,
                        "budget_bytes": budget, "warned": guide.warned},
         **extra,
     }
-    if not args.no_report:
+    if job.report:
         t0 = time.perf_counter()
-        report = uniformity_report(table, num_rollouts=args.rollouts, seed=config.seed, device=args.device)
+        report = uniformity_report(table, num_rollouts=job.rollouts, seed=config.seed, device=job.device)
         summary["report_seconds"] = time.perf_counter() - t0
         summary["uniformity"] = report.to_dict()
         say(format_report(report))
         say(f"report: {report.num_rollouts} rollouts in {summary['report_seconds']:.2f}s")
     write_json(report_path, summary)
     say(f"wrote {report_path}")
-    return 0
-
+    return out

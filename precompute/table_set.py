@@ -8,10 +8,11 @@
   [0, 1], numpy's generator seeded with ``--seed``).
 
 For an SE(2)-invariant system x, y, theta (dimensions 0-2) cannot be given: one table serves every pose.
-Every table is built by the same command as a single table, with ``--start`` added and ``--out
-DIR/start_0000.npz``, ... (so each is byte-identical to a table built alone), in parallel over ``--workers N``
-processes or Ray tasks (``--ray [ADDRESS]``), and skipped when it is already there with the same start (resumable
-per table). ``DIR/tables.json`` describes the set: format ``cuniform-table-set/1``, the system, the method, and
+The grid includes both ends (``np.linspace``): on an angle dimension ``K``, ``K=-3.14159:3.14159:9`` puts two
+members at the same angle; grid ``LO:HI-step:N-1`` instead. Every table is built by :func:`build_table_set` as the same
+:class:`~precompute.one_table.TableJob` as a single table from its start into ``DIR/start_0000.npz``, ... (so
+each is byte-identical to a table built alone), in parallel over ``--workers N`` processes or Ray tasks
+(``--ray [ADDRESS]``), and skipped when it is already there with the same start (resumable per table). ``DIR/tables.json`` describes the set: format ``cuniform-table-set/1``, the system, the method, and
 per table its file and start.
 """
 
@@ -19,22 +20,22 @@ from __future__ import annotations
 
 import json
 import re
-from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
 
-from cuniform_torch.common.fileio import write_json
+from cuniform_torch.cli import CLIError
+from cuniform_torch.common.fileio import exclusive_lock, write_json
 from cuniform_torch.common.parallel import run_jobs
 from cuniform_torch.systems import System
 from cuniform_torch.tables.file import TableError, read_table
+from precompute.one_table import TableJob, build_table_file
 
-__all__ = ["SET_FORMAT", "parse_starts", "build_set", "set_complete", "INDEX"]
+__all__ = ["SET_FORMAT", "parse_starts", "build_table_set", "ensure_table_set", "set_complete", "INDEX"]
 
 SET_FORMAT = "cuniform-table-set/1"
 INDEX = "tables.json"
 _ITEM = re.compile(r"^(\d+)=([^:]+):([^:]+)(?::(\d+))?$")
-_SET_ONLY = {"--starts": 1, "--workers": 1, "--out": 1}  # flag -> number of values it takes
 
 
 def parse_starts(spec: str, system: System, seed: int = 0) -> np.ndarray:
@@ -86,25 +87,8 @@ def parse_starts(spec: str, system: System, seed: int = 0) -> np.ndarray:
     return np.round(starts, 12)  # 0.25, not 0.25000000000000006: the starts are printed and compared
 
 
-def _table_argv(argv: Sequence[str], start: np.ndarray, out: Path) -> list[str]:
-    """The single-table command of one start: ``argv`` less the set's own flags, plus ``--start`` and ``--out``."""
-    kept, skip = [], 0
-    for word in argv:
-        if skip:
-            skip -= 1
-            continue
-        flag = word.split("=", 1)[0]
-        if flag in _SET_ONLY or flag == "--ray":
-            skip = 0 if "=" in word or flag == "--ray" else _SET_ONLY[flag]
-            continue
-        kept.append(word)
-    return [*kept, "--quiet", "--no-report", "--start", *[repr(float(v)) for v in start], "--out", str(out)]
-
-
-def _build_one(argv: list[str]) -> int:
-    from precompute.one_table import main_one
-
-    return main_one(argv)
+def _build_member(job: TableJob) -> Path:
+    return build_table_file(job)
 
 
 def _done(path: Path, start: np.ndarray) -> bool:
@@ -118,30 +102,61 @@ def _done(path: Path, start: np.ndarray) -> bool:
     return table.start is not None and np.array_equal(table.start, start)
 
 
-def build_set(argv: Sequence[str], system: System, starts: np.ndarray, out: Path, workers: int = 1,
-              ray_address: str | None = None, method: str = "maxflow", quiet: bool = False) -> int:
-    """Build every start's table under ``out`` (module docstring); 0, or the first failing build's exit code."""
+def build_table_set(template: TableJob, starts: np.ndarray, out: Path, workers: int = 1,
+                    ray_address: str | None = None) -> Path:
+    """Build one table per start ``[S, d]`` into the folder ``out`` (module docstring), each ``template`` built
+    from that start (:meth:`TableJob.from_start`, so byte-identical to the table built alone); a member already
+    there with its start is kept (resumable per table). Returns ``out``; a failing member raises, naming its start."""
+    out = Path(out)
+    if out.suffix == ".npz":
+        raise ValueError(f"--out {out}: a table set is a folder (e.g. --out out/{template.system.name}_set)")
+    starts = np.asarray(starts, dtype=np.float64)
+    if starts.ndim != 2 or starts.shape[1] != len(template.system.periodic) or len(starts) == 0:
+        raise ValueError(f"starts must be [S, {len(template.system.periodic)}] with S >= 1, got {starts.shape}")
+    with exclusive_lock(out / ".lock", what=f"the table set {out}"):
+        return _build_set(template, starts, out, workers, ray_address)
+
+
+def _build_set(template: TableJob, starts: np.ndarray, out: Path, workers: int, ray_address: str | None) -> Path:
     out.mkdir(parents=True, exist_ok=True)
     files = [out / f"start_{i:04d}.npz" for i in range(len(starts))]
-    todo = [(i, _table_argv(argv, s, f)) for i, (s, f) in enumerate(zip(starts, files)) if not _done(f, s)]
-    say = (lambda *a: None) if quiet else print
+    todo = [(i, template.from_start(tuple(float(v) for v in s), f))
+            for i, (s, f) in enumerate(zip(starts, files)) if not _done(f, s)]
+    say = (lambda *a: None) if template.quiet else print
     say(f"table set: {len(starts)} starts, {len(starts) - len(todo)} already built in {out}; building {len(todo)} "
         f"({'Ray' if ray_address else f'{workers} worker(s)'})")
     from tqdm.auto import tqdm
 
-    with tqdm(total=len(todo), desc="tables", unit="table", disable=quiet) as bar:
-        codes = run_jobs(_build_one, [(a,) for _, a in todo], workers, ray_address, lambda i, code: bar.update())
-    failed = [(i, c) for (i, _), c in zip(todo, codes) if c != 0]
-    if failed:
-        i, code = failed[0]
-        print(f"error: the table of start {starts[i].tolist()} failed (exit {code}); rerun to resume")
-        return code
+    done = 0
+    with tqdm(total=len(todo), desc="tables", unit="table", disable=template.quiet) as bar:
+        def finished(i: int, path: Path) -> None:
+            nonlocal done
+            done += 1
+            bar.update()
+
+        try:
+            run_jobs(_build_member, [(job,) for _, job in todo], workers, ray_address, finished)
+        except (ValueError, OSError, CLIError) as exc:
+            raise ValueError(f"a table of the set failed ({exc}); {done} of {len(todo)} were written: rerun to "
+                             "resume") from None
     write_json(out / INDEX, {
-        "format": SET_FORMAT, "system": system.name, "params": json.loads(json.dumps(system.params(), default=list)),
-        "method": method, "tables": [{"file": f.name, "start": s.tolist()} for f, s in zip(files, starts)],
+        "format": SET_FORMAT, "system": template.system.name,
+        "params": json.loads(json.dumps(template.system.params(), default=list)),
+        "method": template.method, "tables": [{"file": f.name, "start": s.tolist()} for f, s in zip(files, starts)],
     })
     say(f"wrote {len(starts)} tables and {out / INDEX}")
-    return 0
+    return out
+
+
+def ensure_table_set(template: TableJob, starts: np.ndarray, folder: Path, workers: int = 1,
+                     ray_address: str | None = None) -> Path:
+    """``folder``, built first by :func:`build_table_set` when it is not a complete set of ``len(starts)``."""
+    if set_complete(folder, len(starts)):
+        return Path(folder)
+    build_table_set(template, starts, folder, workers, ray_address)
+    if not set_complete(folder, len(starts)):
+        raise RuntimeError(f"building the table set {folder} left it incomplete")
+    return Path(folder)
 
 
 def set_complete(folder: Path, count: int | None = None) -> bool:

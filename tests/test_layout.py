@@ -287,3 +287,73 @@ def test_every_module_imports_on_its_own():
     )
     done = subprocess.run([sys.executable, "-c", script], cwd=ROOT, capture_output=True, text=True, timeout=600)
     assert done.returncode == 0, (done.stdout + done.stderr)[-2000:]
+
+
+# ------------------------------------------------------------------------------------------ the docs' graph
+
+_LEFT_OUT = ("cuniform_torch.common", "cuniform_torch.cli")
+"""nodes almost every module imports: left out of the docs' graph to keep it readable (the page says so)"""
+
+
+def _node(module: str, packages: set[str]) -> str:
+    """The docs' node of a module: its package at most two levels below the layer (``cuniform_torch.envs.worlds``),
+    a top-level module itself, the layer's ``__init__`` the layer."""
+    parts = module.split(".")
+    for depth in (3, 2):
+        if len(parts) > depth and ".".join(parts[:depth]) in packages:
+            return ".".join(parts[:depth])
+    return ".".join(parts[:2]) if len(parts) >= 2 else module
+
+
+def architecture_mermaid(root: Path = ROOT) -> str:
+    """The mermaid block of ``docs/architecture.md``: one node per sub-package or top-level module, an edge
+    ``A --> B`` when a module of A imports a module of B directly (any import; the package ``__init__`` files an
+    import runs on the way are not edges), :data:`_LEFT_OUT` left out."""
+    modules = _modules(root)
+    packages = _packages(modules)
+    edges: set[tuple[str, str]] = set()
+    nodes: set[str] = set()
+    for name, path in modules.items():
+        src = _node(name, packages)
+        if src in _LEFT_OUT or name.endswith(".__main__") and src == name.rpartition(".")[0] == name.split(".")[0]:
+            continue
+        if src.count(".") or src == "cuniform_torch":
+            nodes.add(src)
+        here = name if path.name == "__init__.py" else name.rpartition(".")[0]
+        for node in ast.walk(ast.parse(path.read_text(), str(path))):
+            for dotted in _imported_names(node, here, modules):
+                while dotted and dotted not in modules:
+                    dotted = dotted.rpartition(".")[0]
+                if not dotted:
+                    continue
+                dst = _node(dotted, packages)
+                if dst != src and dst not in _LEFT_OUT and (dst.count(".") or dst == "cuniform_torch"):
+                    edges.add((src, dst))
+    ident = {n: n.replace(".", "_") for n in nodes}
+    lines = ["```mermaid", "flowchart LR"]
+    for i, layer in enumerate(LAYERS):
+        lines.append(f'    subgraph L{i}["{layer}"]')
+        for n in sorted(x for x in nodes if x.split(".")[0] == layer):
+            label = "__init__ (public API)" if n == layer else n.split(".", 1)[1]
+            lines.append(f'        {ident[n]}["{label}"]')
+        lines.append("    end")
+    lines += [f"    {ident[a]} --> {ident[b]}" for a, b in sorted(edges) if a in ident and b in ident]
+    lines.append("```")
+    return "\n".join(lines)
+
+
+def test_the_architecture_page_draws_the_real_import_graph():
+    """docs/architecture.md's mermaid graph is the one the source has (regenerate: python tests/test_layout.py)."""
+    page = (ROOT / "docs" / "architecture.md").read_text()
+    start = page.index("```mermaid")
+    drawn = page[start:page.index("```", start + 3) + 3]
+    assert drawn == architecture_mermaid(), "docs/architecture.md's import graph is stale: run python tests/test_layout.py"
+
+
+if __name__ == "__main__":  # rewrite the graph of docs/architecture.md from the source
+    page_path = ROOT / "docs" / "architecture.md"
+    text = page_path.read_text()
+    begin = text.index("```mermaid")
+    end = text.index("```", begin + 3) + 3
+    page_path.write_text(text[:begin] + architecture_mermaid() + text[end:])
+    print(f"wrote the import graph of {page_path}")

@@ -34,6 +34,7 @@ path that cannot be written, checked before training starts, a full disk, a refu
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import sys
@@ -97,7 +98,11 @@ def make_parser() -> ArgumentParser:
 
 def parse_args(argv: Sequence[str] | None = None) -> DistillConfig:
     """Flags -> a checked :class:`DistillConfig` with its derived fields filled; :class:`UsageError` when bad."""
-    cfg = dataclass_from_args(DistillConfig, make_parser().parse_args(argv))
+    return check_config(dataclass_from_args(DistillConfig, make_parser().parse_args(argv)))
+
+
+def check_config(cfg: DistillConfig) -> DistillConfig:
+    """``cfg`` checked (:class:`UsageError` naming the bad setting by its flag), its derived fields filled."""
     for name in ("hidden", "layers", "epochs", "batch_size", "val_points", "patience", "eval_every"):
         if getattr(cfg, name) < 1:
             raise UsageError(f"--{name.replace('_', '-')} must be a positive integer, got {getattr(cfg, name)}")
@@ -157,8 +162,10 @@ def read_tables(paths: Sequence[str]) -> list[Table]:
 
 
 def distill(cfg: DistillConfig) -> int:
-    """Train, checkpoint and compare (see the module docstring)."""
+    """Train, checkpoint and compare (see the module docstring): the library function behind the command. 0, or
+    a clear error (:class:`UsageError`, :class:`TableError`) before training starts."""
     import_system_modules(cfg.system_module)
+    cfg = check_config(dataclasses.replace(cfg))
     out = output_paths(cfg)[0]
     with exclusive_lock(out.with_name(out.name + ".lock"), what=f"--out {out}"):
         if Path(cfg.tables[0]).is_dir():

@@ -1,5 +1,5 @@
 """The start-aware table set of ``eval.mountain_car.run``: a grid of starts over the env's (position, velocity) box,
-built on first use by ``python -m precompute.build --starts`` into a cache folder named by a hash of its
+built on first use by :func:`precompute.table_set.ensure_table_set` into a cache folder named by a hash of its
 parameters (a rerun reuses it; an interrupted build resumes per table)."""
 
 from __future__ import annotations
@@ -43,19 +43,21 @@ def set_folder(cache: Path, spec: dict[str, Any]) -> Path:
 
 def ensure_set(cache: Path, repeat: int, horizon: int, grid: tuple[int, int], workers: int = 1,
                quiet: bool = False) -> Path:
-    """The set's folder, built first when it is not complete (``precompute.build --starts ... --workers``)."""
-    from precompute.build import ensure_set as build_set_once
-    from precompute.table_set import set_complete
+    """The set's folder, built first when it is not complete (:func:`precompute.table_set.ensure_table_set`)."""
+    from precompute.flow.builder import BuildConfig
+    from precompute.one_table import TableJob
+    from precompute.table_set import ensure_table_set, parse_starts, set_complete
 
     spec = set_spec(repeat, horizon, grid)
     folder = set_folder(cache, spec)
-    count = grid[0] * grid[1]
-    if not set_complete(folder, count) and not quiet:
+    system = MountainCar(repeat=repeat)
+    starts = parse_starts(spec["starts"], system)
+    if not set_complete(folder, len(starts)) and not quiet:
         print(f"building the table set ({grid[0]} x {grid[1]} starts, horizon {horizon}) into {folder}", flush=True)
-    argv = ["--system", MountainCar.name, "--param", f"repeat={repeat}", "--horizon", str(horizon),
-            "--starts", spec["starts"], "--workers", str(workers), "--no-report"]
+    template = TableJob(system=system, out=folder / "start_0000.npz", build=BuildConfig(horizon=horizon),
+                        report=False, quiet=quiet)
     try:
-        build_set_once(folder, argv, count, quiet)
+        ensure_table_set(template, starts, folder, workers=workers)
     except RuntimeError as exc:
         raise CLIError(str(exc)) from None
     write_json(folder / "spec.json", spec)

@@ -8,13 +8,12 @@ max-flow table (81 329 cells) builds in about 8 s on a laptop CPU.
 
 Any registered system can drive the suites instead (:class:`RobotPreset` with another ``system`` name and
 ``params``); it needs ``(x, y, heading, ...)`` states. The files a method needs are built by
-``python -m precompute.build`` (and ``python -m training.distill`` for the MLP) into a cache folder, named by a
+:func:`precompute.one_table.build_table_file` (and :func:`training.distill.distill` for the MLP) into a cache folder, named by a
 hash of everything that defines them, so a changed preset builds new files and an unchanged one reuses them.
 """
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 from cuniform_torch.envs.worlds.robot import RobotPreset
@@ -37,33 +36,41 @@ def policy_file(robot: RobotPreset, cache: Path) -> Path:
     return Path(cache) / f"{robot.system}-{robot.fingerprint('maxflow')}-e{DISTILL_EPOCHS}.policy.pt"
 
 
-def _build_args(robot: RobotPreset) -> list[str]:
-    args = ["--system", robot.system, "--horizon", str(robot.horizon), "--no-report"]
-    for key, value in robot.params.items():
-        args += ["--param", f"{key}={json.dumps(value)}"]
-    return args
+def _system(robot: RobotPreset):
+    """The robot's system, its list parameters as tuples (as the build's flags give them)."""
+    from cuniform_torch.systems import make_system
+
+    params = {k: tuple(v) if isinstance(v, list) else v for k, v in robot.params.items()}
+    return make_system(robot.system, **params)
 
 
 def ensure_table(robot: RobotPreset, cache: Path, method: str = "maxflow", quiet: bool = False) -> Path:
-    """``robot``'s table of ``method``, built by ``python -m precompute.build`` when not cached yet."""
+    """``robot``'s table of ``method`` (:func:`precompute.one_table.build_table_file`, or a table set when the
+    robot has ``starts``), built when not cached yet."""
+    from precompute.coverage.method import CoverageConfig
+    from precompute.flow.builder import BuildConfig
+    from precompute.one_table import TableJob, build_table_file
+    from precompute.table_set import build_table_set, parse_starts
+
     path = table_file(robot, cache, method)
     done = path / "tables.json" if robot.starts is not None else path
     if done.exists():
         return path
-    from precompute.build import main as build_main
-
     path.parent.mkdir(parents=True, exist_ok=True)
     what = f"table set (starts {robot.starts})" if robot.starts is not None else "table"
     print(f"building the {method} {what} of the navigation robot into {path} (once; cached)")
-    # the coverage ascent of this 15-step robot stops early (--tol 1e-3: about 105 of 300 steps; within 0.3% of
+    system = _system(robot)
+    # the coverage ascent of this 15-step robot stops early (tol 1e-3: about 105 of 300 steps; within 0.3% of
     # the full ascent's coverage at N = 1000 and 10 000), which keeps its first build to about 80 s
-    approx = ["--tol", "1e-3"] if method == "coverage" else []
-    starts = ["--starts", robot.starts] if robot.starts is not None else []
-    args = [*_build_args(robot), "--method", method, *approx, *starts, "--out", str(path),
-            *(["--quiet"] if quiet else [])]
-    code = build_main(args)
-    if code != 0 or not done.exists():
-        raise RuntimeError(f"building {path} failed (python -m precompute.build {' '.join(args)}; exit {code})")
+    coverage = CoverageConfig(horizon=robot.horizon, tol=1e-3) if method == "coverage" else None
+    job = TableJob(system=system, out=path, build=BuildConfig(horizon=robot.horizon), coverage=coverage,
+                   report=False, quiet=quiet)
+    if robot.starts is not None:
+        build_table_set(job, parse_starts(robot.starts, system), path)
+    else:
+        build_table_file(job)
+    if not done.exists():
+        raise RuntimeError(f"building {path} left no {done.name}")
     return path
 
 
@@ -74,13 +81,13 @@ def ensure_policy(robot: RobotPreset, cache: Path, quiet: bool = False) -> Path:
     path = policy_file(robot, cache)
     if path.exists():
         return path
-    from training.distill import main as distill_main
+    from training.distill import distill
+    from training.tables.config import DistillConfig
 
     table = ensure_table(robot, cache, quiet=quiet)
     print(f"distilling the navigation robot's table into {path} (once; cached)")
-    args = ["--tables", str(table), "--out", str(path), "--epochs", str(DISTILL_EPOCHS),
-            "--logdir", str(Path(cache) / "runs" / path.stem), *(["--quiet"] if quiet else [])]
-    code = distill_main(args)
-    if code != 0 or not path.exists():
-        raise RuntimeError(f"distilling {path} failed (python -m training.distill {' '.join(args)}; exit {code})")
+    distill(DistillConfig(tables=[str(table)], out=str(path), epochs=DISTILL_EPOCHS,
+                          logdir=str(Path(cache) / "runs" / path.stem), quiet=quiet))
+    if not path.exists():
+        raise RuntimeError(f"distilling {path} wrote no checkpoint")
     return path

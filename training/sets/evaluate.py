@@ -73,19 +73,18 @@ def held_out_table(tset: TableSetPolicy, index: dict[str, Any], start: np.ndarra
     first = tset.members[0].table
     path = cache / ("start_" + "_".join(f"{v:g}" for v in start) + ".npz")
     if not path.exists():
-        from precompute.build import main as build  # the build command, in this process
+        from precompute.coverage.method import CoverageConfig
+        from precompute.flow.builder import BuildConfig
+        from precompute.one_table import TableJob, build_table_file
 
-        system = json.loads(first.system)
         info = json.loads(first.build_info) if isinstance(first.build_info, str) else (first.build_info or {})
-        argv = ["--system", system["name"], "--horizon", str(first.horizon), "--method", index.get("method", "maxflow"),
-                *[f"--param={k}={json.dumps(v)}" for k, v in index.get("params", {}).items()]]
-        for flag in ("points", "points_per_cell", "seed", "ties"):
-            if info.get(flag) is not None:
-                argv += [f"--{flag.replace('_', '-')}", str(info[flag])]
-        argv += ["--start", *[repr(float(v)) for v in start], "--out", str(path), "--quiet", "--no-report"]
-        if build(argv) != 0:
-            raise UsageError(f"building the held-out table at {start.tolist()} failed: python -m precompute.build "
-                             + " ".join(argv))
+        settings = {k: info[k] for k in ("points", "points_per_cell", "seed", "ties") if info.get(k) is not None}
+        where = tuple(float(v) for v in start)
+        build = BuildConfig(horizon=first.horizon, start=where, **settings)  # the set's settings, another start
+        coverage = (CoverageConfig(horizon=first.horizon, start=where) if index.get("method") == "coverage"
+                    else None)
+        build_table_file(TableJob(system=tset.system, out=path, build=build, coverage=coverage,
+                                  report=False, quiet=True))
     table = read_table(path, graph=False)
     if json.loads(table.system) != json.loads(first.system) or table.start is None \
             or not np.array_equal(table.start, start):
