@@ -8,7 +8,10 @@ the table of each exact start, rolls both out N times from that start, and print
 the exact-start table's coverage. The targets it checks: miss rate < 5%, coverage within 10% of the exact table.
 
 The set is built on first use into ``--cache`` (one folder per settings hash, resumable) unless ``--set DIR`` names
-one; the exact tables are built in this process (``precompute.flow.builder``).
+one: then the system, its parameters and the horizon are the set's (read from its tables; a user system's module
+comes with ``--system-module``), and ``--system``, ``--param``, ``--horizon`` given too must agree with them. The
+exact tables are built in this process (``precompute.flow.builder``). Every start is an episode of the set
+(``new_episode``): its warning column says whether that start's rollout warned.
 """
 
 from __future__ import annotations
@@ -42,7 +45,7 @@ from cuniform_torch.metrics import coverage
 from cuniform_torch.policies.table_set import TableSetPolicy
 from cuniform_torch.sampling import StartMismatchWarning
 from cuniform_torch.systems import System, make_system, resolve_system
-from precompute.build import ensure_set, parse_params
+from precompute.build import ensure_table_set, parse_job, parse_params
 from precompute.flow.builder import BuildConfig, build_table
 from precompute.table_set import parse_starts
 
@@ -102,6 +105,7 @@ def measure_start(system: System, policy: TableSetPolicy, start: np.ndarray, hor
         build_start[:3] = 0.0  # the exact table is built at the origin pose and moved by the frame change
     exact = TablePolicy(build_table(system, BuildConfig(horizon=horizon, start=tuple(build_start.tolist())))[0])
     policy.reset_counters()
+    policy.new_episode()  # each start its own episode: it warns (or not) on its own, whatever came before
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always", StartMismatchWarning)
         states, _ = rollout(system, policy, x0, samples, horizon, torch.Generator().manual_seed(seed))
@@ -152,14 +156,16 @@ def format_rows(rows: list[StartRow], dims: list[int]) -> str:
 
 def make_parser() -> ArgumentParser:
     p = ArgumentParser(prog="python -m eval.start_aware", description=(__doc__ or "").split("\n\n")[0])
-    p.add_argument("--system", default="ks_speed", help="registered system (or module:factory)")
+    p.add_argument("--system", default=None,
+                   help="registered system (or module:factory); default ks_speed, or the --set's own")
     add_system_module_arg(p)
     p.add_argument("--param", action="append", default=[], metavar="KEY=VALUE", help="a system parameter")
-    p.add_argument("--horizon", type=horizon_arg, default=5)
-    p.add_argument("--starts", default="3=0:1:6", metavar="SPEC",
+    p.add_argument("--horizon", type=horizon_arg, default=None, help="steps (default 5, or the --set's own)")
+    p.add_argument("--starts", default=None, metavar="SPEC",
                    help="the set's starts (precompute.build --starts; default: ks_speed's speeds 0, 0.2, ..., 1, "
                         "one cell apart)")
-    p.add_argument("--set", type=Path, default=None, metavar="DIR", help="a built set to measure instead")
+    p.add_argument("--set", type=Path, default=None, metavar="DIR",
+                   help="a built set to measure instead (its system and horizon are read from its tables)")
     p.add_argument("--random", type=positive_int, default=20, help="random starts to measure")
     p.add_argument("--seed", type=int_in(0, 2**31 - 1), default=0, help="seed of the random starts and the rollouts")
     p.add_argument("--samples", type=int_in(2, MAX_COUNT), default=1000, help="rollouts per start and policy")
@@ -172,10 +178,39 @@ def make_parser() -> ArgumentParser:
 
 def _check(args) -> None:
     for name, low in (("horizon", 1), ("random", 1), ("samples", 2), ("workers", 1)):
-        if getattr(args, name) < low:
+        if getattr(args, name) is not None and getattr(args, name) < low:
             raise ValueError(f"--{name} must be >= {low}, got {getattr(args, name)}")
     if args.json is not None:
         check_output_file(args.json, "--json")
+    if args.set is not None and args.starts is not None:
+        raise ValueError("give --set DIR (a built set) or --starts SPEC (a set to build), not both")
+
+
+def _load_set(folder: Path) -> TableSetPolicy:
+    """The set in ``folder``; a clear error when it is none."""
+    if not folder.is_dir():
+        raise ValueError(f"--set {folder}: no such folder (a table set is a folder with tables.json)")
+    policy = load_table(folder)
+    if not isinstance(policy, TableSetPolicy):
+        raise ValueError(f"--set {folder} is one table, not a table set (a folder with tables.json)")
+    return policy
+
+
+def _set_system(args, policy: TableSetPolicy) -> tuple[str, dict[str, Any], System, int]:
+    """The name, parameters, system and horizon of a built set (its tables'), checked against the flags given."""
+    system = policy.system
+    name = system.name
+    params = json.loads(json.dumps(system.params(), default=list)) if callable(getattr(system, "params", None)) else {}
+    if args.system is not None and resolve_system(args.system) != name:
+        raise ValueError(f"--set {args.set} holds a {name} set, but --system says {args.system}; leave --system out "
+                         f"(the set's system is used)")
+    asked = parse_params(args.param)
+    differ = {k: v for k, v in asked.items() if k not in params or params[k] != json.loads(json.dumps(v, default=list))}
+    if differ:
+        raise ValueError(f"--set {args.set}: its {name} tables were built with {params}; --param asks for {differ}")
+    if args.horizon is not None and args.horizon != policy.horizon:
+        raise ValueError(f"--set {args.set}: its tables have horizon {policy.horizon}, --horizon says {args.horizon}")
+    return name, params, system, policy.horizon
 
 
 @cli_main()
@@ -184,20 +219,25 @@ def main(argv: Sequence[str] | None = None) -> int:
     _check(args)
     torch.set_num_threads(1)
     import_system_modules(args.system_module)
-    name, params = resolve_system(args.system), parse_params(args.param)
-    system = make_system(name, **params)
-    parse_starts(args.starts, system)  # a bad SPEC: its own message, before anything is built
     folder = args.set
-    if folder is None:
-        folder = set_folder(args.cache, name, params, args.horizon, args.starts)
-        build_argv = ["--system", args.system, "--horizon", str(args.horizon), "--starts", args.starts,
+    if folder is not None:  # the set says what it is
+        policy = _load_set(folder)
+        name, params, system, horizon = _set_system(args, policy)
+        spec = None
+    else:
+        name, params = resolve_system(args.system or "ks_speed"), parse_params(args.param)
+        system = make_system(name, **params)
+        horizon = 5 if args.horizon is None else args.horizon
+        spec = "3=0:1:6" if args.starts is None else args.starts
+        parse_starts(spec, system)  # a bad SPEC: its own message, before anything is built
+        folder = set_folder(args.cache, name, params, horizon, spec)
+        build_argv = ["--system", args.system or "ks_speed", "--horizon", str(horizon), "--starts", spec,
                       "--workers", str(args.workers), "--no-report"]
         build_argv += [w for item in args.param for w in ("--param", item)]
         build_argv += [w for m in args.system_module for w in ("--system-module", m)]
-        ensure_set(folder, build_argv, quiet=args.quiet)
-    policy = load_table(folder)
-    if not isinstance(policy, TableSetPolicy):
-        raise ValueError(f"--set {folder} is one table, not a table set (a folder with tables.json)")
+        template, table_set = parse_job([*build_argv, "--out", str(folder), *(["--quiet"] if args.quiet else [])])
+        ensure_table_set(template, table_set["starts"], folder, table_set["workers"])
+        policy = _load_set(folder)
     set_starts = policy.starts.numpy()
     dims = [k for k in range(set_starts.shape[1]) if np.ptp(set_starts[:, k]) > 0]
     if getattr(system, "se2_invariant", False):
@@ -205,14 +245,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     starts = random_starts(system, set_starts, args.random, args.seed)
     from tqdm.auto import tqdm
 
-    rows = [measure_start(system, policy, s, args.horizon, args.samples, args.seed + i)
+    rows = [measure_start(system, policy, s, horizon, args.samples, args.seed + i)
             for i, s in enumerate(tqdm(starts, desc="starts", disable=args.quiet))]
-    print(f"{name} horizon {args.horizon}: set of {len(set_starts)} starts ({folder}), {args.samples} rollouts per "
+    print(f"{name} horizon {horizon}: set of {len(set_starts)} starts ({folder}), {args.samples} rollouts per "
           f"start and policy")
     print(format_rows(rows, dims))
     if args.json is not None:
-        write_json(args.json, dict(system=name, params=params, horizon=args.horizon, set=str(folder),
-                                   starts_spec=args.starts, rows=[asdict(r) | {"ratio": r.ratio} for r in rows],
+        write_json(args.json, dict(system=name, params=params, horizon=horizon, set=str(folder),
+                                   starts_spec=spec, rows=[asdict(r) | {"ratio": r.ratio} for r in rows],
                                    summary=summary(rows)))
     return 0
 
