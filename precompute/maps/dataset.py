@@ -110,8 +110,9 @@ class MapDataset:
     entries: list[dict[str, Any]]
     shards: list[dict[str, Any]]
     verify_all: bool = False
-    """check the propagation of every ``maxflow`` entry's table when a shard is read (else the first entry's)"""
+    """check every ``maxflow`` entry's table against the farm's builder when a shard is read (module docstring)"""
     _loaded: dict[int, MapShard] = field(default_factory=dict)
+    _blind: list[CellSet] | None = None
 
     def __len__(self) -> int:
         return len(self.entries)
@@ -434,15 +435,22 @@ def _check_tables(a: dict[str, np.ndarray], ds: MapDataset, k: int, fail) -> Non
         safe = SafeCells(ds.system, LocalMap(a["patches"][m], ds.patch_origin, ds.patch_resolution), ds.radius)
         level = [cells[int(off[t]):int(off[t + 1])] for t in range(T + 1)]
         for t in range(T):
-            _check_reach(ds, level[t], level[t + 1], level[t + 2] if t + 2 <= T else None, safe,
-                         lambda msg, m=m, t=t: fail(f"entry {m}, level {t + 1}: {msg}"))
+            where = lambda msg, m=m, t=t: fail(f"entry {m}, level {t + 1}: {msg}")  # noqa: E731
+            if ds.method == "coverage" or ds.verify_all:
+                _check_reach(ds, level[t], level[t + 1], level[t + 2] if t + 2 <= T else None, safe, where)
+            else:
+                hit = _blind_levels(ds)[t + 1].lookup(level[t + 1]) >= 0
+                if not bool(hit.all()):
+                    where(f"{int((~hit).sum())} of its {len(hit)} cells (e.g. {level[t + 1][~hit][0].tolist()}) are "
+                          f"not reached from the origin in {t + 1} step(s) of the system: the speed, the actions or "
+                          "the cells do not match")
         blocked = np.flatnonzero(~safe.keep(cells).numpy())
         if len(blocked):
             r = int(blocked[0])
             fail(f"entry {m}: the cell {cells[r].tolist()} (level {int(np.searchsorted(off, r, side='right')) - 1}) "
                  f"lies within radius {ds.radius:g} m of an obstacle of its patch: the patch, radius or resolution "
                  "do not match the table (a transposed patch, another radius or resolution)")
-        if ds.method == "maxflow" and (ds.verify_all or (k == 0 and m == 0)):
+        if ds.method == "maxflow" and ds.verify_all:
             for t in range(T):
                 here, there = slice(int(off[t]), int(off[t + 1])), slice(int(off[t + 1]), int(off[t + 2]))
                 _check_propagation(ds, cells[here], cells[there], probs[here], cp[here], cp[there],
@@ -462,22 +470,8 @@ def _check_reach(ds: MapDataset, now: torch.Tensor, nxt: torch.Tensor, after: to
     level t+1 is blocked in the inflated patch (``safe``), or a dead end (no transition of it lands in level t+2,
     ``after``; at the horizon, ``after`` is None and every free successor is kept)."""
     grid = Grid.of(ds.system)
-    actions = ds.system.action_set(dtype=torch.float64)  # [A, q]
-    A, d = actions.shape[0], grid.dim
-    offsets = cell_sample_offsets(grid, PointMode.LATTICE, 1, 1, None)[0] if ds.method == "coverage" \
-        else torch.zeros(1, d, dtype=torch.float64)  # [P, d]
-    P = len(offsets)
-    centres = grid.centers(now, torch.float64)  # [n, d]
-    found = []
-    for lo in range(0, len(now), max(1, _CHUNK_PAIRS // (P * A))):
-        src = now[lo:lo + _CHUNK_PAIRS // (P * A) or 1]
-        pts = grid.wrap(centres[lo:lo + len(src)].unsqueeze(1) + offsets)  # [c, P, d]
-        x = pts.unsqueeze(2).expand(-1, P, A, d).reshape(-1, d)
-        u = actions.expand(len(src) * P, A, actions.shape[1]).reshape(-1, actions.shape[1])
-        found.append(grid.cells_from(src, ds.system.step(x, u).reshape(len(src), P * A, d)).reshape(-1, d))
-    found = torch.cat(found)
-    keys = CellKeys.covering(found)
-    uniq = torch.unique(keys.pack(found))  # sorted
+    d = grid.dim
+    keys, uniq = _successors(ds, now, lattice=ds.method == "coverage")
     reached = CellSet(keys, uniq, torch.arange(len(uniq)))
     if ds.method == "coverage":  # one cell of slack: a state off its cell's lattice points
         around = torch.cartesian_prod(*[torch.tensor([-1, 0, 1])] * d).reshape(-1, d)  # [3^d, d]
@@ -508,6 +502,44 @@ def _check_reach(ds: MapDataset, now: torch.Tensor, nxt: torch.Tensor, after: to
         fail(f"{len(left)} free successor(s) of the level before are left out (e.g. {left[0].tolist()}) though they "
              f"are {'at the horizon' if after is None else 'not dead ends'}: the patch, radius or resolution do not "
              "match the table (a transposed patch, another radius or resolution)")
+
+
+def _successors(ds: MapDataset, now: torch.Tensor, lattice: bool) -> tuple[CellKeys, torch.Tensor]:
+    """The cells reached in one step from the centres (``lattice``: the 3^d lattice points) of ``now [n, d]`` under
+    every action, as the builder assigns them (ties by direction): their key box and sorted distinct keys."""
+    grid = Grid.of(ds.system)
+    actions = ds.system.action_set(dtype=torch.float64)  # [A, q]
+    A, d = actions.shape[0], grid.dim
+    offsets = cell_sample_offsets(grid, PointMode.LATTICE, 1, 1, None)[0] if lattice \
+        else torch.zeros(1, d, dtype=torch.float64)  # [P, d]
+    P = len(offsets)
+    centres = grid.centers(now, torch.float64)  # [n, d]
+    chunk = max(1, _CHUNK_PAIRS // (P * A))
+    found = []
+    for lo in range(0, len(now), chunk):
+        src = now[lo:lo + chunk]
+        pts = grid.wrap(centres[lo:lo + chunk].unsqueeze(1) + offsets)  # [c, P, d]
+        x = pts.unsqueeze(2).expand(-1, P, A, d).reshape(-1, d)
+        u = actions.expand(len(src) * P, A, actions.shape[1]).reshape(-1, actions.shape[1])
+        found.append(grid.cells_from(src, ds.system.step(x, u).reshape(len(src), P * A, d)).reshape(-1, d))
+    found = torch.cat(found)
+    keys = CellKeys.covering(found)
+    return keys, torch.unique(keys.pack(found))
+
+
+def _blind_levels(ds: MapDataset) -> list[CellSet]:
+    """The blind level sets from the origin cell (every cell a ``maxflow`` table may hold at each level, before
+    any map pruned it), computed once per data set."""
+    if ds._blind is None:
+        grid = Grid.of(ds.system)
+        cells = grid.cells(torch.zeros(1, grid.dim, dtype=torch.float64))
+        levels = [CellSet.build(cells)]
+        for _ in range(ds.horizon):
+            keys, uniq = _successors(ds, cells, lattice=False)
+            cells = keys.unpack(uniq)
+            levels.append(CellSet(keys, uniq, torch.arange(len(uniq))))
+        ds._blind = levels
+    return ds._blind
 
 
 def _check_propagation(ds: MapDataset, now: torch.Tensor, nxt: torch.Tensor, probs: np.ndarray, cp_now: np.ndarray,
