@@ -45,11 +45,10 @@ def _line(rec: dict) -> str:
 
 
 def _refused(store: EpisodeStore, match: str) -> None:
-    """Both the resuming run (open) and the read-only readers (load) refuse the folder, naming the problem."""
-    with pytest.raises(StoreError, match=match):
-        store.open(_settings())
-    with pytest.raises(StoreError, match=match):
-        store.load()
+    """The resuming run (check, then open) and the read-only readers (load) refuse the folder, naming the problem."""
+    for read in (store.check, lambda: store.open(_settings()), store.load):
+        with pytest.raises(StoreError, match=match):
+            read()
 
 
 def test_a_good_folder_reads_back_and_resumes(tmp_path):
@@ -70,9 +69,11 @@ def test_records_without_settings_are_refused(tmp_path):
                                          r"another --out, or delete .*episodes.jsonl"):
         store.open(_settings(horizon=20))
     assert not store.settings_file.exists()  # nothing written: the folder is as it was
-    with pytest.raises(StoreError, match="not a benchmark folder: it has no settings.json"):
-        store.load()
+    for read in (store.load, store.check):  # the read-only readers, and the run before it builds anything
+        with pytest.raises(StoreError, match="run holds episode records .* but no settings.json"):
+            read()
     store.records_file.write_text("\n")  # no record at all: a fresh folder
+    store.check()
     assert store.open(_settings(horizon=20)) == {} and store.read_settings()["horizon"] == 20
 
 
@@ -164,3 +165,17 @@ def test_the_run_refuses_to_write_settings_of_the_wrong_shape(tmp_path):
     with pytest.raises(ValueError, match=r"unknown field\(s\) 'new_knob'"):
         EpisodeStore(tmp_path / "run").open(_settings(new_knob=1))
     assert not (tmp_path / "run").exists()
+
+
+def test_the_run_refuses_records_without_settings_before_building_any_table(tmp_path, capsys):
+    """The attack end to end: python -m eval.navigate into a folder whose settings.json was deleted."""
+    from eval.navigate.run import main as navigate_main
+
+    store = _folder(tmp_path, [_line(_record(0))])
+    store.settings_file.unlink()
+    argv = ["--suite", "gaps", "--tasks", "1", "--budgets", "16", "--methods", "mppi_1.0", "--horizon", "8",
+            "--out", str(store.folder), "--cache", str(tmp_path / "cache"), "--quiet"]
+    assert navigate_main(argv) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error: ") and err.count("\n") == 1 and "but no settings.json" in err, err
+    assert not (tmp_path / "cache").exists() and not store.settings_file.exists()  # no work done, nothing written

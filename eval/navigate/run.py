@@ -212,8 +212,9 @@ def run(cfg: NavConfig, out: Path, robot: RobotPreset = NAV_ROBOT, cache: Path =
     repeats = cfg.repeats or REPEATS[cfg.suite]
     jobs = make_jobs(tasks, methods, cfg.budgets, repeats, cfg.seed)
     with exclusive_lock(Path(out) / ".lock", what=f"the benchmark folder {out}"):
-        sources = _sources(cfg, robot, cache, given or {}, quiet=not progress)
         store = EpisodeStore(out)
+        store.check()  # a damaged folder is refused before the tables are built
+        sources = _sources(cfg, robot, cache, given or {}, quiet=not progress)
         done = store.open(settings_record(cfg, robot, barn_file, sources, tasks))
         todo = [j for j in jobs if j.key not in done]
         print(f"{cfg.suite}: {len(tasks)} tasks x {repeats} repeats x {len(cfg.budgets)} budgets x {len(methods)} "

@@ -231,16 +231,28 @@ class EpisodeStore:
             if merged != old[MERGED]:  # a method read a file for the first time: remember it
                 write_json(self.settings_file, {**old, MERGED: merged})
         elif self._has_records():  # what these episodes ran with is unknown: they would pass for this run's
-            raise StoreError(f"{self.folder} holds episode records ({self.records_file.name}) but no settings.json, "
-                             f"so what they were run with is unknown; use another --out, or delete "
-                             f"{self.records_file} to start over")
+            raise self._no_settings()
         else:
             write_json(self.settings_file, settings)
         return self._read(settings["suite"])
 
+    def check(self) -> None:
+        """Refuse early, before the work that makes a run's settings (the source files' digests), a folder that
+        :meth:`open` refuses whatever the settings: records without settings, settings or records of the wrong
+        shape. A folder without either passes (a new run)."""
+        if self.settings_file.exists() or self._has_records():
+            self.load()
+
+    def _no_settings(self) -> StoreError:
+        return StoreError(f"{self.folder} holds episode records ({self.records_file.name}) but no settings.json, so "
+                          f"what they were run with is unknown; use another --out, or delete {self.records_file} "
+                          "to start over")
+
     def read_settings(self) -> dict[str, Any]:
         """The folder's settings, checked (:data:`SETTINGS`); a :class:`StoreError` naming the file otherwise."""
         if not self.settings_file.is_file():
+            if self._has_records():
+                raise self._no_settings()
             raise StoreError(f"{self.folder} is not a benchmark folder: it has no settings.json "
                              "(python -m eval.navigate --out)")
         try:
