@@ -35,7 +35,7 @@ import numpy as np
 import torch
 
 from cuniform_torch.envs import Environment, NavigationCost, OccupancyGrid, simulate
-from cuniform_torch.envs.worlds.geometry import clearance, inflate
+from cuniform_torch.envs.worlds.geometry import inflate, obstacle_tables
 from cuniform_torch.envs.worlds.suites import NavTask
 from eval.common.methods import NAVIGATE, Sources, make_controller, methods_of
 from eval.navigate.cost_to_go import CostToGo
@@ -106,7 +106,12 @@ def _sources(ctx: NavContext) -> Sources:
 
 def rasterize(environment: Environment, resolution: float) -> Environment:
     """The obstacles of ``environment`` as one conservative :class:`OccupancyGrid` of ``resolution`` cells over
-    its bounds (module docstring), with the same bounds. Needs bounds."""
+    its bounds (module docstring), with the same bounds. Needs bounds.
+
+    Each obstacle marks the cells of its own bounding box widened by the margin (all obstacles of a kind at once,
+    in boxes padded to the largest), with the distance arithmetic of
+    :func:`~cuniform_torch.envs.worlds.geometry.clearance`: the same raster as testing every cell against every
+    obstacle, for the cells near an obstacle only (a BARN map: ~1 M distances instead of ~150 M)."""
     if environment.bounds is None:
         raise ValueError("rasterize: the environment needs bounds")
     xmin, ymin, xmax, ymax = environment.bounds
@@ -114,14 +119,56 @@ def rasterize(environment: Environment, resolution: float) -> Environment:
     W, H = math.ceil((xmax - xmin) / h), math.ceil((ymax - ymin) / h)
     xs = xmin + h * (np.arange(W) + 0.5)  # [W] cell centres
     ys = ymin + h * (np.arange(H) + 0.5)  # [H]
-    gx, gy = np.meshgrid(xs, ys)  # [H, W]
-    free_space = Environment(environment.obstacles)  # obstacles only: the bounds stay exact
-    occupied = np.zeros(H * W, dtype=bool)
-    points = np.stack((gx.ravel(), gy.ravel()), axis=1)  # [H W, 2]
-    for lo in range(0, points.shape[0], 1 << 17):  # chunks bound the [P, K] distance matrix
-        occupied[lo:lo + (1 << 17)] = clearance(free_space, points[lo:lo + (1 << 17)]) < h * math.sqrt(0.5)
-    grid = OccupancyGrid(torch.from_numpy(occupied.reshape(H, W)), origin=(xmin, ymin), resolution=h)
+    margin = h * math.sqrt(0.5)  # a cell is occupied when its centre's clearance is below this
+    circles, rects = obstacle_tables(Environment(environment.obstacles))  # [C, 3], [R, 4]
+    occupied = np.zeros((H, W), dtype=bool)
+    boxes = np.concatenate([circles[:, :2] - circles[:, 2:3], rects[:, :2]]), \
+        np.concatenate([circles[:, :2] + circles[:, 2:3], rects[:, 2:]])  # [C + R, 2] each: lower, upper corners
+    if len(boxes[0]):
+        lo = np.floor((boxes[0] - margin - (xmin, ymin)) / h - 0.5).astype(np.int64) - 1  # [K, 2] first cells
+        hi = np.ceil((boxes[1] + margin - (xmin, ymin)) / h - 0.5).astype(np.int64) + 1  # [K, 2] last cells
+        kind = np.arange(len(lo)) >= len(circles)  # [K] True: a rect
+        size = np.prod(hi - lo + 1, axis=1)  # [K] cells of each box
+        order = np.lexsort((size, kind))  # by kind, then size: chunks of similar boxes pad little
+        start = 0
+        while start < len(order):  # chunks of at most _RASTER_CHUNK padded cells bound the memory
+            stop = start + 1
+            while stop < len(order) and kind[order[stop]] == kind[order[start]] \
+                    and (stop + 1 - start) * size[order[stop]] <= _RASTER_CHUNK:
+                stop += 1
+            _mark_boxes(occupied, order[start:stop], lo, hi, circles, rects, xs, ys, margin)
+            start = stop
+    grid = OccupancyGrid(torch.from_numpy(occupied), origin=(xmin, ymin), resolution=h)
     return Environment([grid], bounds=environment.bounds)
+
+
+_RASTER_CHUNK = 1 << 22
+"""padded box cells rasterized at once (a bound on the temporaries: ~100 MB)"""
+
+
+def _mark_boxes(occupied: np.ndarray, ks: np.ndarray, lo: np.ndarray, hi: np.ndarray, circles: np.ndarray,
+                rects: np.ndarray, xs: np.ndarray, ys: np.ndarray, margin: float) -> None:
+    """Mark in ``occupied [H, W]`` the cells of the boxes ``lo[ks]..hi[ks]`` whose centre is within ``margin`` of
+    obstacle ``k`` (circles first, then rects, in :func:`obstacle_tables` order); one kind per call."""
+    H, W = occupied.shape
+    C = len(circles)
+    span = (hi[ks] - lo[ks]).max(axis=0) + 1  # [2] the padded box, x and y
+    ix = lo[ks, 0, None, None] + np.arange(span[0])[None, None, :]  # [k, 1, Bx] column of each box cell
+    iy = lo[ks, 1, None, None] + np.arange(span[1])[None, :, None]  # [k, By, 1] row
+    inside = (ix >= 0) & (ix < W) & (iy >= 0) & (iy < H) & (ix <= hi[ks, 0, None, None]) \
+        & (iy <= hi[ks, 1, None, None])  # [k, By, Bx]
+    px = xs[np.clip(ix, 0, W - 1)]  # [k, 1, Bx]
+    py = ys[np.clip(iy, 0, H - 1)]  # [k, By, 1]
+    if ks[0] < C:  # circles: the distance from the centre less the radius
+        c = circles[ks][:, :, None, None]  # [k, 3, 1, 1]
+        dist = np.sqrt((c[:, 0] - px) ** 2 + (c[:, 1] - py) ** 2) - c[:, 2]
+    else:  # rects: outside, the distance to the box; inside, minus the distance to its nearest side
+        r = rects[ks - C][:, :, None, None]  # [k, 4, 1, 1]
+        qx = np.abs(px - 0.5 * (r[:, 0] + r[:, 2])) - 0.5 * (r[:, 2] - r[:, 0])
+        qy = np.abs(py - 0.5 * (r[:, 1] + r[:, 3])) - 0.5 * (r[:, 3] - r[:, 1])
+        dist = np.hypot(np.clip(qx, 0, None), np.clip(qy, 0, None)) + np.clip(np.maximum(qx, qy), None, 0)
+    k, by, bx = np.nonzero(inside & (dist < margin))
+    occupied[iy[k, by, 0], ix[k, 0, bx]] = True
 
 
 def sensed_world(task: NavTask) -> Environment:

@@ -24,7 +24,7 @@ import torch
 
 from cuniform_torch.envs import Circle, Environment, Rect
 
-__all__ = ["SuiteError", "inflate", "clearance", "sensed", "reachable"]
+__all__ = ["SuiteError", "inflate", "clearance", "obstacle_tables", "sensed", "reachable"]
 
 
 class SuiteError(ValueError):
@@ -57,7 +57,7 @@ def inflate(discs: np.ndarray, walls: np.ndarray, bounds: tuple[float, float, fl
     return Environment(obstacles, bounds=(xmin + r, ymin + r, xmax - r, ymax - r))
 
 
-def _tables(environment: Environment) -> tuple[np.ndarray, np.ndarray]:
+def obstacle_tables(environment: Environment) -> tuple[np.ndarray, np.ndarray]:
     """The circles ``[C, 3]`` (x, y, r) and rects ``[R, 4]`` of ``environment``; any other obstacle raises."""
     circles, rects = [], []
     for k, obs in enumerate(environment.obstacles):
@@ -73,7 +73,7 @@ def _tables(environment: Environment) -> tuple[np.ndarray, np.ndarray]:
 def _distances(environment: Environment, xy: np.ndarray) -> np.ndarray:
     """``xy [P, 2]`` -> ``[P, K]``: signed distance (negative inside) from each point to each obstacle (a
     transposed view of a ``[K, P]`` array: filling whole rows per obstacle kind is what keeps this fast)."""
-    circles, rects = _tables(environment)
+    circles, rects = obstacle_tables(environment)
     is_circle = np.array([isinstance(o, Circle) for o in environment.obstacles], dtype=bool)
     out = np.empty((len(environment.obstacles), xy.shape[0]))  # [K, P]
     # torch's cdist without the matrix-product shortcut: exact to an ulp and ~10x numpy's broadcast hypot
