@@ -75,7 +75,7 @@ def trajectory_fans(sources: Sources, path: Path, methods: list[str] | None = No
 def coverage_vs_samples(result: dict, path: Path):
     """Distinct cells vs N (log x) per method, mean +- std; the paper's Table I as hollow markers."""
     rows = result["results"]
-    paper = methods_of(PAPER)
+    known = methods_of(PAPER)
     fig, ax = plt.subplots(figsize=(7.5, 4.8))
     methods = list(dict.fromkeys(r["method"] for r in rows))
     for m in methods:
@@ -85,7 +85,7 @@ def coverage_vs_samples(result: dict, path: Path):
         std = [r["cells_std"] for r in mine]
         color, style = method_style(m)
         ax.errorbar(n, mean, yerr=std, marker="o", markersize=4, capsize=2, color=color, linestyle=style,
-                    label=paper[m].label if m in paper else m)
+                    label=known[m].label if m in known else m)
         paper = [(N, PAPER_COVERAGE[N][m]) for N in n if m in PAPER_COVERAGE.get(N, {})]
         if paper:
             ax.plot(*zip(*paper), linestyle=":", marker="s", markerfacecolor="none", color=color, alpha=0.8)

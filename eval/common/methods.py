@@ -216,8 +216,8 @@ class Sources:
     device: str = "cpu"
     _cache: dict = field(default_factory=dict, repr=False)
 
-    def file_of(self, source: str) -> Path:
-        """The file ``source`` is read from."""
+    def file_of(self, source: str) -> Path | None:
+        """The file ``source`` is read from (None: no map policy given)."""
         return {"coverage_table": self.coverage_table, "policy": self.policy,
                 "map_policy": self.map_policy}.get(source, self.table)
 
@@ -258,6 +258,8 @@ def _noise_sampler(method: Method, system, horizon: int, device: str):
     actions = system.action_set(dtype=torch.float32, device=device)  # [A, q]
     low, high = actions.min(dim=0).values, actions.max(dim=0).values
     nominal = torch.zeros((horizon, actions.shape[1]), device=device)
+    if method.noise is None:
+        raise ValueError(f"{method.key} draws from the source {method.source!r}, not a noise law")
     return method.noise(nominal, method.noise_std, low, high)
 
 
@@ -279,13 +281,14 @@ def make_controller(method: Method, sources: Sources, cost_fn, num_samples: int,
                     seed: int, lambda_: float = config.LAMBDA, world: Any = None, max_range: float | None = None):
     """The MPPI-family controller that proposes with ``method`` (``command(state) -> [q]``); a map-conditioned
     method (source ``map_policy``) senses ``world`` within ``max_range`` (m) at each command."""
-    if not method.closed_loop:
+    controller = method.controller
+    if controller is None:  # not closed_loop
         raise ValueError(f"{method.key} samples cells, not executable actions: it has no controller")
     kw = dict(num_samples=num_samples, horizon=horizon, lambda_=lambda_, device=sources.device, seed=seed)
     if method.source is None:  # a noise baseline: the system and the noise level
-        return method.controller(sources.system, cost_fn, noise_std=method.noise_std, **kw)
+        return controller(sources.system, cost_fn, noise_std=method.noise_std, **kw)
     if method.source == "map_policy":
         if world is None:
             raise ValueError(f"{method.key} senses a world map: give world=")
-        return method.controller(sources.load(method.source), world, cost_fn, max_range=max_range, **kw)
-    return method.controller(sources.load(method.source), cost_fn, **kw)
+        return controller(sources.load(method.source), world, cost_fn, max_range=max_range, **kw)
+    return controller(sources.load(method.source), cost_fn, **kw)
