@@ -14,15 +14,15 @@ problem; :func:`entry_arrays` and :func:`write_shard` are the writer's half (:mo
 
 A shard is read with the bounded reader (:func:`cuniform_torch.common.npz.read_npz`): every member's shape and
 dtype are checked from its ``.npy`` header against ``dataset.json`` before anything is allocated. Its tables are
-then checked against what the farm's builders guarantee (:func:`_check_tables`): level 0 is the start (origin)
-cell; every level's cells are distinct and ascending; every cell's centre is free in its patch inflated by the
-data set's radius; the last level's rows are uniform; and, from the system's own dynamics, every level's cells
-are reached from the level before it (the builder's level sets: the cells of the level-t centres' successors for
-``maxflow``; within one cell of its cells' lattice points' successors for ``coverage``) and, for ``maxflow``, every
-level's ``cell_probs`` is the previous level's propagated through its ``action_probs`` (the builder's
-transitions, recomputed; by default on the data set's first entry only, on every entry with ``verify_all``: it
-costs about a third of the build), so rows permuted within a level, another speed, radius or patch resolution
-are refused.
+then checked against what the farm's builders guarantee (:func:`_check_tables`): no patch occupied everywhere;
+level 0 is the origin cell; every level's cells are distinct and ascending; every cell's centre is free in its
+patch inflated by the data set's radius; the last level's rows are uniform; every cell of level t is in the blind
+level set of t steps from the origin (``maxflow``), or within one cell of a successor of the level before's
+lattice points (``coverage``). With ``verify_all`` every ``maxflow`` entry is also checked against the builder step
+by step (about a third of the build's time): each level's cells are successors of the level before's centres,
+every free successor left out is a dead end, and each level's ``cell_probs`` is the level before's propagated
+through its ``action_probs`` and the builder's transitions (recomputed). So rows permuted within a level, another
+speed, radius or patch resolution, a transposed patch are refused.
 """
 
 from __future__ import annotations
@@ -416,9 +416,8 @@ def _check_cells(cells: np.ndarray, eo: np.ndarray, starts: np.ndarray, ds: MapD
 
 def _check_tables(a: dict[str, np.ndarray], ds: MapDataset, k: int, fail) -> None:
     """Each entry's table against its patch and the system's dynamics (module docstring); one entry and one
-    level at a time (each step vectorized over its cells and actions). The propagation of ``maxflow`` tables (the
-    builder's transitions, recomputed: about a third of the build's time) runs on every entry when
-    ``ds.verify_all``, else on the data set's first entry only (a spot check)."""
+    level at a time (each step vectorized over its cells and actions). The builder's step-by-step checks of
+    ``maxflow`` tables (reach, pruning, propagation: about a third of the build's time) run when ``ds.verify_all``."""
     eo, lo, T = a["entry_offsets"], a["level_offsets"], ds.horizon
     A = len(ds.actions)
     for m in range(len(eo) - 1):
