@@ -12,7 +12,7 @@ from dataclasses import dataclass, field
 import torch
 from torch import Tensor
 
-from cuniform_torch.envs.shapes import _appear_time, _check_xy
+from cuniform_torch.envs.shapes import Circle, Rect, _appear_time, _check_xy
 
 __all__ = ["Environment"]
 
@@ -70,6 +70,47 @@ class Environment:
             xmin, ymin, xmax, ymax = self.bounds
             x, y = xy[..., 0], xy[..., 1]
             hit |= (x < xmin) | (x > xmax) | (y < ymin) | (y > ymax)
-        for obs in obstacles:
+        circles, rects, others = self._batched(obstacles)
+        if len(circles) or len(rects):
+            hit |= _any_contains(xy, circles, rects)
+        for obs in others:
             hit |= obs.contains(xy)
         return hit
+
+    def _batched(self, obstacles: list) -> tuple[Tensor, Tensor, list]:
+        """The Circles ``[C, 3]`` (x, y, r^2) and Rects ``[R, 4]`` of ``obstacles`` as float64 tables, and the
+        other obstacles; cached while the obstacles are the same objects (they are frozen dataclasses)."""
+        cached = getattr(self, "_batch_cache", None)
+        if cached is not None and len(cached[0]) == len(obstacles) and all(a is b for a, b in zip(cached[0], obstacles)):
+            return cached[1]
+        circles = [(o.center[0], o.center[1], o.radius * o.radius) for o in obstacles if type(o) is Circle]
+        rects = [(o.xmin, o.ymin, o.xmax, o.ymax) for o in obstacles if type(o) is Rect]
+        others = [o for o in obstacles if type(o) not in (Circle, Rect)]  # a subclass keeps its own contains
+        batched = (torch.tensor(circles, dtype=torch.float64).reshape(-1, 3),
+                   torch.tensor(rects, dtype=torch.float64).reshape(-1, 4), others)
+        object.__setattr__(self, "_batch_cache", (tuple(obstacles), batched))
+        return batched
+
+
+_CONTAINS_CHUNK = 1 << 22
+"""point-obstacle pairs tested at once (bounds the temporaries of a large batch of points)"""
+
+
+def _any_contains(xy: Tensor, circles: Tensor, rects: Tensor) -> Tensor:
+    """``xy [..., 2]`` -> ``bool [...]``: inside any closed disc (``circles [C, 3]``: x, y, r^2) or closed
+    rectangle (``rects [R, 4]``), with the arithmetic of :meth:`Circle.contains` / :meth:`Rect.contains` in the
+    points' dtype (so the same answer to the last bit)."""
+    pts = xy.reshape(-1, 1, 2)  # [P, 1, 2]
+    hit = torch.zeros(pts.shape[0], dtype=torch.bool, device=xy.device)  # [P]
+    step = max(1, _CONTAINS_CHUNK // max(1, len(circles) + len(rects)))
+    c = circles.to(device=xy.device, dtype=xy.dtype)  # [C, 3]
+    r = rects.to(device=xy.device, dtype=xy.dtype)  # [R, 4]
+    for lo in range(0, pts.shape[0], step):
+        p = pts[lo:lo + step]  # [p, 1, 2]
+        x, y = p[..., 0], p[..., 1]  # [p, 1]
+        if len(c):
+            dx, dy = x - c[:, 0], y - c[:, 1]  # [p, C]
+            hit[lo:lo + step] |= (dx * dx + dy * dy <= c[:, 2]).any(dim=1)
+        if len(r):
+            hit[lo:lo + step] |= ((x >= r[:, 0]) & (x <= r[:, 2]) & (y >= r[:, 1]) & (y <= r[:, 3])).any(dim=1)
+    return hit.reshape(xy.shape[:-1])
