@@ -19,9 +19,9 @@ which compare methods at the same sample count K. From a benchmark folder (read 
   smaller K. A method with no K that fits says so, with its fastest p95;
 * each method at its K against the best Gaussian baseline (the registry's, :func:`eval.common.methods
   .gaussian_baselines`) at the baseline's own K that fits the same B: the exact McNemar test and the Newcombe
-  interval of the difference, paired on (task, seed) over the episodes both ran
-  (as :mod:`eval.navigate.compare` pairs cells of different K). The best baseline is the one with the highest success rate at
-  its fitting K (a tie: the earlier in the registry), chosen like the benchmark's own per-K comparison.
+  interval of the difference, paired on (task, seed) over the episodes both ran (as :mod:`eval.navigate.compare`
+  pairs cells of different K). The best baseline is the one with the highest success rate at its fitting K (a
+  tie: the earlier in the registry), chosen like the benchmark's own per-K comparison.
 
 Both sides' K are chosen by success on the same episodes the test then uses, so the pick is a little
 optimistic for each; the table lists every K that fits so a reader can see what was chosen from.
@@ -114,9 +114,9 @@ def budget_rows(records: Sequence[Mapping], cell_rows: Sequence[Mapping], budget
     """One row per (budget, method): ``budget_ms``, ``method``, ``cell`` (the chosen (method, K) cell of
     :func:`cells`, None when no K fits), ``fits`` (every K that fits), ``fastest`` (its fastest cell, for the
     note when none fits), ``baseline`` / ``baseline_k`` (the best Gaussian baseline at its own fitting K, None
-    when none fits), ``is_baseline`` (this row is that baseline) and ``comparison``
-    (the benchmark's paired comparison row against it, :func:`eval.navigate.stats.paired_comparisons`' fields, None for the baseline itself, without a
-    fitting K or without a common (task, seed) episode; ``pairs_note`` says which)."""
+    when none fits), ``is_baseline`` (this row is that baseline) and ``comparison`` (the benchmark's paired
+    comparison row against it, :func:`eval.navigate.stats.paired_comparisons`' fields; None for the baseline
+    itself, without a fitting K or without a common (task, seed) episode, and ``pairs_note`` says which)."""
     for b in budgets_ms:
         if isinstance(b, bool) or not isinstance(b, (int, float)) or not math.isfinite(b) or b <= 0:
             raise ValueError(f"cycle budgets are finite numbers of ms > 0, got {b!r}")
@@ -303,6 +303,7 @@ def budget_figure(res: Mapping, path: str | Path, labels: Mapping[str, str] | No
 # ------------------------------------------------------------------------------------------------ command
 
 def make_parser() -> ArgumentParser:
+    """The command's flags (checked as they parse)."""
     p = ArgumentParser(prog="python -m eval.navigate.budget", description=(__doc__ or "").split("\n\n")[0])
     p.add_argument("folder", type=Path, help="the benchmark folder (python -m eval.navigate --out)")
     p.add_argument("--budgets-ms", nargs="+", type=positive_float, default=list(DEFAULT_BUDGETS_MS),
