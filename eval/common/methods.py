@@ -38,6 +38,7 @@ the navigation benchmark (the best of them per suite and budget).
 
 from __future__ import annotations
 
+import json
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -247,11 +248,35 @@ class Sources:
 
     @property
     def system(self):
-        return self.table_policy().system
+        """The table's system: from the loaded table when a method has loaded it, else from the table file's
+        system JSON alone (a noise baseline needs the system, not the table: loading the table would cost it
+        seconds per process for nothing)."""
+        if "table" in self._cache:
+            return self._cache["table"].system
+        if "system" not in self._cache:
+            self._cache["system"] = _table_system(self.table)
+        return self._cache["system"]
 
     @property
     def horizon(self) -> int:
         return self.table_policy().horizon
+
+
+def _table_system(path: Path):
+    """The system of the table at ``path`` (a table file or a table set's folder) from its system JSON only: read
+    with the bounded reader and rebuilt from the registry (nothing the file names is imported or called)."""
+    from cuniform_torch.common.npz import read_npz
+    from cuniform_torch.policies.table_set import SET_INDEX
+    from cuniform_torch.systems import system_from_json
+
+    path = Path(path)
+    if path.is_dir():  # a table set: every member is the same system; the first one says which
+        index = json.loads((path / SET_INDEX).read_text())
+        path = path / str(index["tables"][0]["file"])
+    if not path.is_file():
+        raise FileNotFoundError(f"table file {path} not found (python -m eval.report builds it)")
+    text = read_npz(path, keys=["system"], expect={"system": ((), None)}, max_bytes=1 << 20)["system"]
+    return system_from_json(str(text[()]))[0]
 
 
 def _noise_sampler(method: Method, system, horizon: int, device: str):
