@@ -340,3 +340,22 @@ def test_a_set_opens_lazily_and_reads_a_member_on_its_first_use(tmp_path, monkey
     eager = load_table(tmp_path, lazy=False)
     assert sorted(opened) == [f"start_{i:04d}.npz" for i in range(5)] and eager.loaded == [0, 1, 2, 3, 4]
     assert [m.build_start.tolist() for m in policy.members] == [[-1.0], [-0.5], [0.0], [0.5], [1.0]]
+
+
+def test_a_table_or_a_start_listed_twice_is_refused(tmp_path):
+    """A duplicated entry of tables.json (the same file, or another file with the same start) is one clear error."""
+    from cuniform_torch import load_table
+    from cuniform_torch.tables import TableError
+
+    assert _build(tmp_path) == 0
+    index = json.loads((tmp_path / "tables.json").read_text())
+    good = json.loads(json.dumps(index))
+    index["tables"].append(dict(index["tables"][1]))
+    (tmp_path / "tables.json").write_text(json.dumps(index))
+    with pytest.raises(TableError, match="start_0001.npz listed more than once"):
+        load_table(tmp_path)
+    index = json.loads(json.dumps(good))
+    index["tables"][3]["start"] = index["tables"][1]["start"]
+    (tmp_path / "tables.json").write_text(json.dumps(index))
+    with pytest.raises(TableError, match="same start"):
+        load_table(tmp_path)

@@ -353,7 +353,8 @@ def load_table_set(folder: str | os.PathLike, device: torch.device | str = "cpu"
             or not index["tables"]:
         raise TableError(f"{index_path}: not a {SET_FORMAT!r} index with a non-empty list of tables")
     trust = kwargs.pop("trust_factory", None)
-    paths, starts = [], []
+    paths: list[Path] = []
+    starts: list[np.ndarray] = []
     for entry in index["tables"]:
         if not isinstance(entry, dict) or not isinstance(entry.get("file"), str) or "/" in entry["file"] \
                 or "\\" in entry["file"]:
@@ -370,6 +371,13 @@ def load_table_set(folder: str | os.PathLike, device: torch.device | str = "cpu"
                              f"dimension, got {entry.get('start')!r}")
         paths.append(path)
         starts.append(start)
+    if len(set(paths)) != len(paths):
+        twice = sorted({p.name for p in paths if paths.count(p) > 1})
+        raise TableError(f"{index_path}: {', '.join(twice)} listed more than once; each table of a set is listed once")
+    unique_starts = np.unique(np.stack(starts), axis=0)
+    if len(unique_starts) != len(starts):
+        raise TableError(f"{index_path}: two tables are listed with the same start; each start of a set is built once "
+                         "(nearest-member lookups would pick one of them arbitrarily)")
 
     def read(i: int, first: Table | None) -> Table:
         table = read_table(paths[i], graph=False, trust_factory=trust)
