@@ -28,7 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["NpzError", "DEFLATE_MAX_RATIO", "read_npz", "member_headers"]
+__all__ = ["NpzError", "DEFLATE_MAX_RATIO", "read_npz", "member_headers", "npy_header"]
 
 DEFLATE_MAX_RATIO = 1032
 """deflate's largest possible expansion (a stream of one repeated byte): no genuine member exceeds it"""
@@ -48,8 +48,9 @@ def _open_member(zf: zipfile.ZipFile, info: zipfile.ZipInfo, where: str):
         raise NpzError(f"{where}: cannot be opened ({exc})") from None
 
 
-def _header(fh, where: str) -> tuple[tuple[int, ...], bool, np.dtype, int]:
-    """``(shape, fortran_order, dtype, header_bytes)`` of the ``.npy`` stream ``fh`` (at its start)."""
+def npy_header(fh, where: str) -> tuple[tuple[int, ...], bool, np.dtype, int]:
+    """``(shape, fortran_order, dtype, header_bytes)`` of the ``.npy`` stream ``fh`` (at its start); an
+    :class:`NpzError` naming ``where`` when it is not a header numpy reads."""
     try:
         version = np.lib.format.read_magic(fh)
         if version == (1, 0):
@@ -58,7 +59,7 @@ def _header(fh, where: str) -> tuple[tuple[int, ...], bool, np.dtype, int]:
             shape, fortran, dtype = np.lib.format.read_array_header_2_0(fh)
         else:
             raise ValueError(f"unsupported .npy version {version}")
-    except (ValueError, TypeError, SyntaxError, EOFError, OverflowError) as exc:
+    except (ValueError, TypeError, SyntaxError, EOFError, OverflowError, zlib.error) as exc:
         raise NpzError(f"{where}: not a .npy header ({type(exc).__name__}: {exc})") from None
     return tuple(int(n) for n in shape), bool(fortran), np.dtype(dtype), int(fh.tell())
 
@@ -74,7 +75,7 @@ def member_headers(path: str | os.PathLike) -> dict[str, tuple[tuple[int, ...], 
     with _zip(path) as zf:
         for info in zf.infolist():
             with _open_member(zf, info, f"{where}: member {info.filename}") as fh:
-                shape, _, dtype, _ = _header(fh, f"{where}: member {info.filename}")
+                shape, _, dtype, _ = npy_header(fh, f"{where}: member {info.filename}")
             out[info.filename.removesuffix(".npy")] = (shape, dtype)
     return out
 
@@ -129,7 +130,7 @@ def read_npz(path: str | os.PathLike, *, keys: Sequence[str] | None = None,
 def _read_member(zf: zipfile.ZipFile, info: zipfile.ZipInfo, where: str, expect, max_ratio: float,
                  slack: int, budget: int | None) -> np.ndarray:
     with _open_member(zf, info, where) as fh:
-        shape, fortran, dtype, hlen = _header(fh, where)
+        shape, fortran, dtype, hlen = npy_header(fh, where)
         if dtype.hasobject:
             raise NpzError(f"{where}: dtype {dtype} holds Python objects (reading it would run pickle); refused")
         nbytes = _size(shape, dtype)

@@ -21,6 +21,7 @@ import torch
 
 from cuniform_torch.common.digest import DIGEST_KEY, DigestError, check_digest, content_digest
 from cuniform_torch.common.fileio import write_npz
+from cuniform_torch.common.npz import NpzError, npy_header
 from cuniform_torch.systems import MAX_ACTIONS, MAX_HORIZON, System, system_from_json, system_to_json
 from cuniform_torch.tables.checks import KNOWN_METHODS, TableError, validate_table
 
@@ -303,16 +304,9 @@ def _npy_header(zf: zipfile.ZipFile, info: zipfile.ZipInfo, key: str, path: Path
     """``(shape, dtype)`` from a member's ``.npy`` header; its data must be exactly what the header declares."""
     with zf.open(info) as fh:
         try:
-            version = np.lib.format.read_magic(fh)
-            if version == (1, 0):
-                shape, _, dtype = np.lib.format.read_array_header_1_0(fh)
-            elif version == (2, 0):
-                shape, _, dtype = np.lib.format.read_array_header_2_0(fh)
-            else:
-                raise ValueError(f".npy version {version} is not supported")
-        except (ValueError, EOFError, zlib.error) as exc:
-            raise TableError(f"{path}: array {key!r} has no readable .npy header ({type(exc).__name__}: {exc})") from None
-        header_size = fh.tell()
+            shape, _, dtype, header_size = npy_header(fh, f"{path}: array {key!r}")
+        except NpzError as exc:
+            raise TableError(str(exc)) from None
     if dtype.hasobject:
         raise TableError(f"{path}: array {key!r} holds Python objects (that would need pickle); refusing")
     expected = header_size + math.prod(shape) * dtype.itemsize
