@@ -21,6 +21,8 @@ import argparse
 import json
 import sys
 from collections.abc import Sequence
+from dataclasses import dataclass
+from dataclasses import field as dataclass_field
 from pathlib import Path
 from typing import Any
 
@@ -44,7 +46,7 @@ from precompute.levels.viability import SAFE_RULE
 from precompute.maps.dataset import dataset_header, entry_arrays, file_sha256, write_shard
 from precompute.maps.worlds import FARM_SUITES, SPLITS, candidate_poses, crop_patch, suite_worlds, world_of
 
-__all__ = ["main", "build_shard", "MAX_TRIES"]
+__all__ = ["main", "FarmConfig", "build_farm", "build_shard", "MAX_TRIES"]
 
 PROGRESS = "farm-progress.json"
 MAX_TRIES = 2000
@@ -197,52 +199,114 @@ def _load_progress(out: Path, spec: dict) -> dict[str, dict]:
             and file_sha256(out / _shard_name(int(k))) == v.get("sha256")}
 
 
-@cli_main(interrupted="interrupted: the finished shards are kept; rerun the same command to continue")
-def main(argv: Sequence[str] | None = None) -> int:
-    """Build the data set from the flags ``argv`` (module docstring): 0, or 2 after one ``error:`` line."""
-    args = make_parser().parse_args(sys.argv[1:] if argv is None else list(argv))
-    _check(args)
-    system = _system(args)
-    H, W = args.patch
-    origin = (-W * args.resolution / 2, -H * args.resolution / 2)
-    worlds = suite_worlds(args.suite, args.count, args.split, args.seed, args.radius)
-    header = dataset_header(system, args.horizon, args.method, args.radius, (H, W), args.resolution, origin,
-                            args.split, args.seed)
-    settings = coverage_settings(args) if args.method == "coverage" else {}
-    if settings:  # absent with the defaults: older farms still resume
-        header["coverage"] = settings
-    spec = {"header": header, "maps": [[w.suite, w.key] for w in worlds], "poses_per_map": args.poses_per_map,
+@dataclass(frozen=True)
+class FarmConfig:
+    """One farm (module docstring): the typed form of the command's flags."""
+
+    suite: str
+    count: int
+    """maps (one shard each)"""
+    split: str
+    """``train`` or ``test`` (:mod:`precompute.maps.worlds`)"""
+    out: Path
+    """the data set folder"""
+    system: Any = None
+    """the robot's system (None: the benchmark robot's, :data:`~cuniform_torch.envs.worlds.robot.NAV_ROBOT`)"""
+    poses_per_map: int = 1
+    seed: int = 0
+    horizon: int = 15
+    radius: float = 0.2
+    patch: tuple[int, int] = (72, 72)
+    resolution: float = 0.05
+    method: str = "maxflow"
+    coverage: dict[str, Any] = dataclass_field(default_factory=dict)
+    """the coverage builder's settings (:data:`FARM_COVERAGE` fields of :class:`CoverageConfig`)"""
+    workers: int = 1
+    ray_address: str | None = None
+    quiet: bool = False
+
+
+def build_farm(cfg: FarmConfig) -> Path:
+    """Build (or resume) the data set ``cfg`` describes; its folder. A clear error (CLIError / ValueError) for bad
+    settings or a folder of another data set; Ctrl-C keeps the finished shards."""
+    from cuniform_torch.envs.worlds.robot import NAV_ROBOT
+
+    if cfg.suite not in FARM_SUITES or cfg.split not in SPLITS or cfg.method not in ("maxflow", "coverage"):
+        raise CLIError(f"farm: suite {cfg.suite!r} (of {', '.join(FARM_SUITES)}), split {cfg.split!r} (of "
+                       f"{', '.join(SPLITS)}) and method {cfg.method!r} (maxflow, coverage) must all be known")
+    for name, value, low in (("count", cfg.count, 1), ("poses_per_map", cfg.poses_per_map, 1),
+                             ("workers", cfg.workers, 1), ("horizon", cfg.horizon, 1), ("patch", min(cfg.patch), 1)):
+        if value < low:
+            raise CLIError(f"{flag_name(name)} must be >= {low}, got {value}")
+    if not (cfg.resolution > 0 and np.isfinite(cfg.resolution)):
+        raise CLIError(f"--resolution must be > 0 (m), got {cfg.resolution}")
+    if not (cfg.radius >= 0 and np.isfinite(cfg.radius)):
+        raise CLIError(f"--radius must be >= 0 (m), got {cfg.radius}")
+    out = Path(cfg.out)
+    if out.exists() and not out.is_dir():
+        raise CLIError(f"--out {out}: not a folder")
+    unknown = sorted(set(cfg.coverage) - set(FARM_COVERAGE))
+    if unknown or (cfg.coverage and cfg.method != "coverage"):
+        raise CLIError(f"coverage settings {sorted(cfg.coverage)}: only {', '.join(FARM_COVERAGE)}, and only for "
+                       "--method coverage")
+    try:
+        CoverageConfig(**cfg.coverage)
+    except ValueError as e:
+        raise CLIError(f"coverage settings: {e}") from None
+    system = cfg.system if cfg.system is not None else NAV_ROBOT.make_system()
+    check_map_system(system)
+    H, W = cfg.patch
+    origin = (-W * cfg.resolution / 2, -H * cfg.resolution / 2)
+    worlds = suite_worlds(cfg.suite, cfg.count, cfg.split, cfg.seed, cfg.radius)
+    header = dataset_header(system, cfg.horizon, cfg.method, cfg.radius, (H, W), cfg.resolution, origin,
+                            cfg.split, cfg.seed)
+    if cfg.coverage:  # absent with the defaults: older farms still resume
+        header["coverage"] = dict(cfg.coverage)
+    spec = {"header": header, "maps": [[w.suite, w.key] for w in worlds], "poses_per_map": cfg.poses_per_map,
             "rule": SAFE_RULE}  # shards of another pruning rule are not resumed into this data set
-    args.out.mkdir(parents=True, exist_ok=True)
-    with exclusive_lock(args.out / ".lock", what=f"the data set {args.out}"):
-        done = _load_progress(args.out, spec)
+    out.mkdir(parents=True, exist_ok=True)
+    with exclusive_lock(out / ".lock", what=f"the data set {out}"):
+        done = _load_progress(out, spec)
         todo = [k for k in range(len(worlds)) if str(k) not in done]
         bar = None
-        if not args.quiet:
+        if not cfg.quiet:
             from tqdm import tqdm
 
             bar = tqdm(total=len(worlds), initial=len(worlds) - len(todo), desc="shards", unit="map", file=sys.stdout)
 
         def saved(i: int, result: dict) -> None:
             done[str(todo[i])] = result
-            write_json(args.out / PROGRESS, {"spec": spec, "done": dict(sorted(done.items(), key=lambda kv: int(kv[0])))})
+            write_json(out / PROGRESS, {"spec": spec, "done": dict(sorted(done.items(), key=lambda kv: int(kv[0])))})
             if bar is not None:
                 bar.update(1)
 
         try:
             spec_json = json.dumps(spec)
-            run_jobs(build_shard, [(spec_json, k, str(args.out)) for k in todo], workers=args.workers,
-                     ray_address=args.ray, on_done=saved)
+            run_jobs(build_shard, [(spec_json, k, str(out)) for k in todo], workers=cfg.workers,
+                     ray_address=cfg.ray_address, on_done=saved)
         finally:
             if bar is not None:
                 bar.close()
         entries = [{**e, "shard": k, "index": i} for k in range(len(worlds)) for i, e in enumerate(done[str(k)]["entries"])]
         shards = [{"file": _shard_name(k), "sha256": done[str(k)]["sha256"], "entries": len(done[str(k)]["entries"])}
                   for k in range(len(worlds))]
-        write_json(args.out / "dataset.json", {**header, "entries": entries, "shards": shards})
-    if not args.quiet:
-        print(f"wrote {len(entries)} entries in {len(shards)} shards to {args.out} ({len(todo)} built, "
+        write_json(out / "dataset.json", {**header, "entries": entries, "shards": shards})
+    if not cfg.quiet:
+        print(f"wrote {len(entries)} entries in {len(shards)} shards to {out} ({len(todo)} built, "
               f"{len(worlds) - len(todo)} kept)")
+    return out
+
+
+@cli_main(interrupted="interrupted: the finished shards are kept; rerun the same command to continue")
+def main(argv: Sequence[str] | None = None) -> int:
+    """Build the data set from the flags ``argv`` (module docstring): 0, or 2 after one ``error:`` line."""
+    args = make_parser().parse_args(sys.argv[1:] if argv is None else list(argv))
+    _check(args)
+    build_farm(FarmConfig(suite=args.suite, count=args.count, split=args.split, out=args.out, system=_system(args),
+                          poses_per_map=args.poses_per_map, seed=args.seed, horizon=args.horizon, radius=args.radius,
+                          patch=tuple(args.patch), resolution=args.resolution, method=args.method,
+                          coverage=coverage_settings(args) if args.method == "coverage" else {},
+                          workers=args.workers, ray_address=args.ray, quiet=args.quiet))
     return 0
 
 
