@@ -27,6 +27,7 @@ from torch import Tensor
 
 from cuniform_torch.common.digest import DIGEST_KEY
 from cuniform_torch.maps.policy import MapPolicy, MapPolicyConfig
+from cuniform_torch.maps.pretrained import pretrained_names, pretrained_path
 from cuniform_torch.policies.checkpoint import check_checkpoint_digest, read_network_keys, save_policy
 
 __all__ = ["MAP_POLICY_FORMAT", "MapCheckpointError", "map_policy_checkpoint", "save_map_policy", "load_map_policy"]
@@ -61,9 +62,12 @@ def save_map_policy(path: str | os.PathLike, checkpoint: dict[str, Any]) -> None
 
 def load_map_policy(source: str | os.PathLike | dict, device: torch.device | str = "cpu", *,
                     trust_factory: str | Callable[..., Any] | None = None) -> MapPolicy:
-    """A ready :class:`MapPolicy` (eval mode, on ``device``, no map set) from a path or a loaded dict;
+    """A ready :class:`MapPolicy` (eval mode, on ``device``, no map set) from a path, a loaded dict, or the name
+    of a shipped policy (:mod:`cuniform_torch.maps.pretrained`, e.g. ``"unicycle-0.5"``);
     :class:`MapCheckpointError` naming the first key that is wrong. A file's ``content_sha256`` is checked first
     (a dict is checked for its structure only)."""
+    if isinstance(source, str) and not Path(source).exists() and source in pretrained_names():
+        source = pretrained_path(source)  # a shipped policy by name, checked against its model card
     where = "checkpoint dict" if isinstance(source, dict) else str(source)
     if isinstance(source, dict):
         ckpt = source
