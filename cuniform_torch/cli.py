@@ -15,11 +15,11 @@ builds the config from the flags that were given, over the dataclass defaults or
 
 Flag values are checked when they parse, so that a bad one is one ``error: argument --flag: ...`` line before any
 work: :func:`device_arg` (a torch device this machine has), :func:`int_in` / :func:`float_in` and the common cases
-:func:`positive_int`, :func:`non_negative_int`, :func:`threads_arg`, :func:`horizon_arg` (at most
-:data:`MAX_HORIZON`), :func:`count_arg` (at most :data:`MAX_COUNT`, the counts that multiply into episodes or
-rollouts), :func:`positive_float`. The rule for modes: **a flag that does not apply to the chosen mode is
-refused** (:func:`refuse_flags`), never silently ignored. A product of counts (tasks x budgets x methods) is checked
-by :func:`check_work` against :data:`MAX_WORK` unless ``--no-limit`` (:func:`add_no_limit_arg`) is given.
+:func:`positive_int` (a count, at most :data:`MAX_COUNT`), :func:`non_negative_int`, :func:`threads_arg`,
+:func:`horizon_arg` (at most :data:`MAX_HORIZON`), :func:`positive_float`. The rule for modes: **a flag that
+does not apply to the chosen mode is refused** (:func:`refuse_flags`), never silently ignored. A product of counts
+(tasks x budgets x methods) is checked by :func:`check_work` against :data:`MAX_WORK` unless ``--no-limit``
+(:func:`add_no_limit_arg`) is given.
 
 Ctrl-C while a command's modules are still importing (torch takes seconds) is one line and exit 130 as well: the
 command packages install :func:`training.startup.exit_on_ctrl_c` when run as ``python -m``; :func:`cli_main`
@@ -54,7 +54,7 @@ __all__ = ["EXIT_ERROR", "EXIT_INTERRUPTED", "CLIError", "ArgumentParser", "cli_
            "out_of_memory_message", "add_system_module_arg", "import_system_modules", "check_output_file", "check_output_folder",
            "OUT", "RUNS", "field_docs", "add_dataclass_args", "dataclass_from_args", "given_fields", "flag_name",
            "MAX_HORIZON", "MAX_COUNT", "MAX_WORK", "device_arg", "int_in", "float_in", "positive_int",
-           "non_negative_int", "threads_arg", "horizon_arg", "count_arg", "positive_float", "refuse_flags",
+           "non_negative_int", "threads_arg", "horizon_arg", "positive_float", "refuse_flags",
            "add_no_limit_arg", "check_work"]
 
 EXIT_ERROR = 2
@@ -423,7 +423,6 @@ def float_in(low: float | None = None, high: float | None = None, *, open_low: b
 
 positive_int = int_in(1, MAX_COUNT)
 """argparse ``type=`` of a count: an integer in [1, :data:`MAX_COUNT`]"""
-count_arg = positive_int
 non_negative_int = int_in(0, MAX_COUNT)
 """argparse ``type=``: an integer in [0, :data:`MAX_COUNT`] (0 usually meaning "all" or "none")"""
 threads_arg = int_in(0, 4096, note=" (0: torch's choice)")

@@ -65,12 +65,14 @@ def make_parser() -> ArgumentParser:
     p.add_argument("--max-steps", type=positive_int, default=999,
                    help="env steps per episode (default 999, the env's limit)")
     p.add_argument("--set-grid", default="13x9",
-                   help=f"table-set starts: P positions x V velocities (default 13x9; methods {', '.join(SET_METHODS)})")
+                   help="table-set starts: P positions x V velocities (default 13x9; methods "
+                        f"{', '.join(SET_METHODS)})")
     p.add_argument("--workers", type=int_in(1, 1024), default=1,
                    help="processes for the episodes and the set build (default 1)")
     p.add_argument("--out", default=str(OUT / "mountain_car"), help="folder of results.json")
     p.add_argument("--cache", default=None,
-                   help=f"folder of cached table sets (default out/mountain_car/sets; methods {', '.join(SET_METHODS)})")
+                   help="folder of cached table sets (default out/mountain_car/sets; methods "
+                        f"{', '.join(SET_METHODS)})")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     add_no_limit_arg(p)
     return p
