@@ -27,7 +27,7 @@ from cuniform_torch.maps.policy import MapPolicy
 from cuniform_torch.maps.sensing import local_map
 from cuniform_torch.sampling.rollout import same_device
 
-__all__ = ["SensedMapPolicy", "CFUMPPI"]
+__all__ = ["SensedMapPolicy", "CFUMPPI", "check_policy_robot"]
 
 
 class SensedMapPolicy:
@@ -74,12 +74,30 @@ class SensedMapPolicy:
         return self.policy.sample(x, t, generator)
 
 
+def check_policy_robot(policy: MapPolicy, system: Any, horizon: int | None = None) -> None:
+    """A clear ValueError naming every difference between the robot ``policy`` was trained for and ``system``
+    (its name and parameters) and, when given, the controller ``horizon`` (at most the policy's)."""
+    trained, given = policy.system, system
+    diff = [f"system: trained {trained.name!r}, given {given.name!r}"] if trained.name != given.name else []
+    a, b = trained.params(), given.params()
+    for key in sorted(set(a) | set(b)):
+        va, vb = a.get(key), b.get(key)
+        same = va == vb or (isinstance(va, (list, tuple)) and isinstance(vb, (list, tuple)) and list(va) == list(vb))
+        if not same:
+            diff.append(f"{key}: trained {va!r}, given {vb!r}")
+    if horizon is not None and horizon > policy.horizon:
+        diff.append(f"horizon: trained {policy.horizon}, given {horizon}")
+    if diff:
+        raise ValueError("the map policy was trained for another robot: " + "; ".join(diff))
+
+
 class CFUMPPI(CUMPPI):
     """CFU-MPPI: ``policy`` (a :class:`MapPolicy`, a checkpoint path or a loaded checkpoint dict) sensing
     ``world`` (an OccupancyGrid or an Environment, world frame, not inflated) seeds one local MPPI pass; see the
     module docstring.
 
-    The arguments after ``world`` are :class:`~cuniform_torch.controllers.mppi.CUMPPI`'s (``cuniform_fraction`` of the
+    ``system`` (optional): the robot being controlled; a policy trained for another system (name, speed, turn
+    rates, time step, grid) is refused naming what differs. The arguments after ``world`` are :class:`~cuniform_torch.controllers.mppi.CUMPPI`'s (``cuniform_fraction`` of the
     budget are map-policy rollouts); ``max_range`` (m) limits the sensed patch like a costmap. The device is the
     policy's (a checkpoint is loaded onto ``device``, default the CPU). :meth:`set_world` swaps the world map.
     """
@@ -88,12 +106,15 @@ class CFUMPPI(CUMPPI):
                  num_samples: int = 1000, cuniform_fraction: float = 0.5, lambda_: float = 0.567,
                  noise_std: float | Tensor = 0.1, local: str = "mppi", horizon: int | None = None,
                  max_range: float | None = None, terminal_cost: Callable[[Tensor], Tensor] | None = None,
-                 device: torch.device | str | None = None, seed: int | None = None, **local_kwargs: Any):
+                 device: torch.device | str | None = None, seed: int | None = None, system: Any = None,
+                 **local_kwargs: Any):
         if not isinstance(policy, MapPolicy):
             policy = load_map_policy(policy, device=device if device is not None else "cpu")
         elif device is not None and not same_device(policy.device, device):
             raise ValueError(f"the map policy is on {policy.device} but device={torch.device(device)} was asked "
                              f"for; move it with policy.to(device)")
+        if system is not None:
+            check_policy_robot(policy, system)
         self.sensed = SensedMapPolicy(policy, world, max_range)
         super().__init__(self.sensed, cost_fn, num_samples, cuniform_fraction, lambda_, noise_std, local, horizon,
                          terminal_cost=terminal_cost, device=policy.device, seed=seed, **local_kwargs)

@@ -79,7 +79,7 @@ class NavConfig:
     budgets: tuple[int, ...] = (256, 1024)
     """K, trajectories per control cycle (each >= 2)"""
     methods: tuple[str, ...] | None = None
-    """method keys (default: all but cu_mlp)"""
+    """method keys (default: all but the opt-in cu_mlp and cfu_mppi)"""
     repeats: int | None = None
     """controller seeds per task (default: 1, the gap suite 5)"""
     seed: int = 0
@@ -188,8 +188,8 @@ def _sources(cfg: NavConfig, robot: RobotPreset, cache: Path, given: dict[str, P
     if "policy" in methods and policy is None:
         policy = ensure_policy(robot, cache, quiet=quiet)
     map_policy = given.get("map_policy")
-    if "map_policy" in methods and map_policy is None:
-        raise ValueError("cfu_mppi needs --map-policy FILE (a map-conditioned policy: python -m training.maps.distill)")
+    if "map_policy" in methods:
+        map_policy = map_policy_for(robot, map_policy)
     for name, p in (("table", table), ("coverage_table", coverage), ("policy", policy), ("map_policy", map_policy)):
         if p is not None and not (Path(p).is_file() or (Path(p) / "tables.json").is_file()):
             raise FileNotFoundError(f"--{name.replace('_', '-')} {p} does not exist (a table file or a table set's "
@@ -199,6 +199,57 @@ def _sources(cfg: NavConfig, robot: RobotPreset, cache: Path, given: dict[str, P
     if map_policy is not None:  # absent otherwise: the records of runs without it stay as they were
         out["map_policy"] = str(map_policy)
     return out
+
+
+def map_policy_for(robot: RobotPreset, given: Path | str | None) -> Path:
+    """The map policy CFU-MPPI drives ``robot`` with: ``given`` (a file, or the name of a shipped policy) checked
+    against the robot, or with none the shipped policy trained for this robot. A policy of another robot (system,
+    speed, turn rates, time step, grid, radius, horizon) is one clear error naming what differs."""
+    from cuniform_torch.controllers.cfu import check_policy_robot
+    from cuniform_torch.maps.checkpoint import load_map_policy
+    from cuniform_torch.maps.pretrained import pretrained_card, pretrained_names, pretrained_path, robot_mismatch
+
+    want = preset_dict(robot)
+    if given is None:
+        differs = {}
+        for name in pretrained_names():
+            diff = robot_mismatch(pretrained_card(name)["robot"], want)
+            if not diff:
+                return pretrained_path(name)
+            differs[name] = diff
+        shipped = "; ".join(f"the shipped {n!r} was trained for another robot ({', '.join(d)})"
+                            for n, d in differs.items()) or "no policy is shipped"
+        raise ValueError(f"cfu_mppi needs a map policy for this robot: {shipped}; give --map-policy FILE "
+                         "(python -m training.maps.distill trains one)")
+    name = str(given)
+    path = pretrained_path(name) if not Path(name).exists() and name in pretrained_names() else Path(given)
+    if not path.is_file():
+        raise FileNotFoundError(f"--map-policy {given}: no such file (nor a shipped policy: "
+                                f"{', '.join(pretrained_names()) or 'none'})")
+    policy = load_map_policy(path)
+    try:
+        check_policy_robot(policy, robot.make_system(), robot.horizon)
+    except ValueError as exc:
+        raise ValueError(f"--map-policy {given}: {exc}") from None
+    trained_radius = _trained_radius(path, name)
+    if trained_radius is not None and abs(trained_radius - robot.radius) > 1e-9:
+        raise ValueError(f"--map-policy {given}: the map policy was trained for another robot: radius: trained "
+                         f"{trained_radius}, given {robot.radius}")
+    return path
+
+
+def _trained_radius(path: Path, name: str) -> float | None:
+    """The robot radius a map policy's tables inflated obstacles by: its card's (a shipped policy), else its
+    checkpoint's ``metrics.robot_radius`` (None when the file predates that record)."""
+    from cuniform_torch.maps.pretrained import pretrained_card, pretrained_names
+
+    if name in pretrained_names():
+        return float(pretrained_card(name)["robot"]["radius"])
+    import torch
+
+    metrics = torch.load(path, map_location="cpu", weights_only=True).get("metrics", {})
+    radius = metrics.get("robot_radius") if isinstance(metrics, dict) else None
+    return float(radius) if isinstance(radius, (int, float)) and not isinstance(radius, bool) else None
 
 
 def run(cfg: NavConfig, out: Path, robot: RobotPreset = NAV_ROBOT, cache: Path = Path("out/navigate/cache"),
@@ -263,7 +314,7 @@ NAV_TYPES = {"tasks": positive_int, "budgets": int_in(2, MAX_COUNT, note=" (CU-M
 def make_parser() -> ArgumentParser:
     p = ArgumentParser(prog="python -m eval.navigate", description=(__doc__ or "").split("\n\n")[0])
     add_dataclass_args(p, NavConfig, flags={"lambda_": "--lambda"}, choices={"suite": SUITES, "split": SPLITS},
-                       help={"methods": f"method keys, of {', '.join(methods_of(NAVIGATE))} (default: all but cu_mlp)"},
+                       help={"methods": f"method keys, of {', '.join(methods_of(NAVIGATE))} (default: all but the opt-in cu_mlp and cfu_mppi)"},
                        arg_types=NAV_TYPES)
     p.add_argument("--ray", nargs="?", const="local", default=None, metavar="ADDRESS",
                    help="run episodes as Ray tasks: a local Ray runtime, or the cluster at ADDRESS ('auto', "
@@ -280,7 +331,8 @@ def make_parser() -> ArgumentParser:
     p.add_argument("--coverage-table", type=Path, default=None, help="use this coverage table (cu_coverage)")
     p.add_argument("--policy", type=Path, default=None, help="use this distilled MLP (cu_mlp)")
     p.add_argument("--map-policy", type=Path, default=None,
-                   help="a map-conditioned policy (cfu_mppi; python -m training.maps.distill)")
+                   help="cfu_mppi's map-conditioned policy: a file (python -m training.maps.distill) or the name of a "
+                        "shipped one (default: the shipped policy trained for this robot, e.g. unicycle-0.5)")
     p.add_argument("--system", default=None, help="drive a registered system instead of the built-in robot")
     p.add_argument("--param", action="append", default=[], metavar="KEY=VALUE",
                    help="a parameter of --system as JSON (repeatable)")

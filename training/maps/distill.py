@@ -17,6 +17,7 @@ resume, an output that cannot be written), or 130 on Ctrl-C.
 
 from __future__ import annotations
 
+import json
 import math
 import sys
 import time
@@ -203,6 +204,9 @@ def _run(cfg: MapDistillConfig, out: Path, state_path: Path) -> int:
     trainer.policy.load_state_dict(best)
     metrics = {"best_epoch": best_epoch, "best_val_kl": best_val if split.val_entries else math.nan,
                "train_seconds": seconds, "entries": data.num_entries, "rows": int(data.centres.shape[0])}
+    radii = {json.loads((Path(src["path"]) / "dataset.json").read_text()).get("radius") for src in data.sources}
+    if len(radii) == 1 and isinstance(next(iter(radii)), (int, float)):
+        metrics["robot_radius"] = float(next(iter(radii)))  # the obstacles' inflation the tables were built with
     metrics = {k: v for k, v in metrics.items() if not (isinstance(v, float) and math.isnan(v))}
     source = {f"map_{i}": f"{s['path']} sha256={s['sha256']}" for i, s in enumerate(data.sources)}
     save_map_policy(out, map_policy_checkpoint(trainer.policy.cpu(), data.system_json, source, metrics))
