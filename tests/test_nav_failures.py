@@ -82,5 +82,6 @@ def test_cli_errors_are_one_line(bench, capsys):  # noqa: F811
     assert main(["--out", str(out), "--cache", str(cache), "--methods", "nope"]) == 2
     err = capsys.readouterr().err
     assert "no episode" in err and len(err.strip().splitlines()) == 1
-    assert main(["--out", str(out), "--probe-samples", "0"]) == 2
-    assert "--probe-samples must be >= 1" in capsys.readouterr().err
+    with pytest.raises(SystemExit, match="2"):  # refused as it parses
+        main(["--out", str(out), "--probe-samples", "0"])
+    assert "--probe-samples: must be an integer in [1, " in capsys.readouterr().err
