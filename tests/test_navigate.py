@@ -157,7 +157,7 @@ def exit_code(argv) -> int:
 @pytest.mark.parametrize("argv, message", [
     (["--suite", "maze"], "maze"),
     (["--methods", "mppi_1.0", "magic"], "unknown method"),
-    (["--budgets", "1", "64"], "budget must be an integer >= 2"),
+    (["--budgets", "1", "64"], "--budgets: must be an integer in [2, "),
     (["--param", "speed=1"], "--param needs --system"),
     (["--starts", "3=0:1:3"], "--starts needs --system"),
     (["--system", "ks_speed", "--starts", "1=0:1:3"], "SE(2)-invariant"),
