@@ -42,12 +42,11 @@ import torch
 from cuniform_torch.common.digest import DIGEST_KEY, DigestError, check_digest, content_digest
 from cuniform_torch.common.fileio import write_npz
 from cuniform_torch.common.npz import NpzError, member_headers, read_npz
-from cuniform_torch.grid.cells import CellKeys, CellSet, Grid
+from cuniform_torch.grid.cells import CellKeys, Grid
 from cuniform_torch.systems import System, system_from_json, system_to_json
 from cuniform_torch.tables.file import Table
-from precompute.flow.builder import propagate_cell_probs
-from precompute.levels.safe_map import LocalMap, SafeCells
-from precompute.levels.sets import EmptyLevelError, PointMode, cell_sample_offsets, next_level
+from precompute.levels.safe_map import LocalMap, MapError, check_map_system
+from precompute.levels.sets import PointMode, cell_sample_offsets
 
 __all__ = ["DATASET_FORMAT", "SHARD_KEYS", "MapDatasetError", "MapEntry", "MapShard", "MapDataset", "read_map_dataset",
            "entry_arrays", "write_shard", "file_sha256", "dataset_header"]
@@ -112,7 +111,6 @@ class MapDataset:
     verify_all: bool = False
     """check every ``maxflow`` entry's table against the farm's builder when a shard is read (module docstring)"""
     _loaded: dict[int, MapShard] = field(default_factory=dict)
-    _blind: list[CellSet] | None = None
 
     def __len__(self) -> int:
         return len(self.entries)
@@ -415,145 +413,220 @@ def _check_cells(cells: np.ndarray, eo: np.ndarray, starts: np.ndarray, ds: MapD
 
 
 def _check_tables(a: dict[str, np.ndarray], ds: MapDataset, k: int, fail) -> None:
-    """Each entry's table against its patch and the system's dynamics (module docstring); one entry and one
-    level at a time (each step vectorized over its cells and actions). The builder's step-by-step checks of
-    ``maxflow`` tables (reach, pruning, propagation: about a third of the build's time) run when ``ds.verify_all``."""
-    eo, lo, T = a["entry_offsets"], a["level_offsets"], ds.horizon
-    A = len(ds.actions)
-    for m in range(len(eo) - 1):
-        rows = slice(int(eo[m]), int(eo[m + 1]))
-        cells = torch.from_numpy(a["cells"][rows].astype(np.int64))  # [R_e, d]
-        probs = a["action_probs"][rows].astype(np.float64)
-        probs /= probs.sum(axis=1, keepdims=True)
-        cp = a["cell_probs"][rows].astype(np.float64)
-        off = lo[m]
-        last = probs[off[T]:]
-        if np.any(np.abs(last - 1.0 / A) > _ROW_TOL / A):
-            fail(f"entry {m}: the rows of the last level (the horizon) must be uniform (1/{A}), as the builders write "
-                 "them")
-        safe = SafeCells(ds.system, LocalMap(a["patches"][m], ds.patch_origin, ds.patch_resolution), ds.radius)
-        level = [cells[int(off[t]):int(off[t + 1])] for t in range(T + 1)]
-        for t in range(T):
-            where = lambda msg, m=m, t=t: fail(f"entry {m}, level {t + 1}: {msg}")  # noqa: E731
-            if ds.method == "coverage" or ds.verify_all:
-                _check_reach(ds, level[t], level[t + 1], level[t + 2] if t + 2 <= T else None, safe, where)
-            else:
-                hit = _blind_levels(ds)[t + 1].lookup(level[t + 1]) >= 0
-                if not bool(hit.all()):
-                    where(f"{int((~hit).sum())} of its {len(hit)} cells (e.g. {level[t + 1][~hit][0].tolist()}) are "
-                          f"not reached from the origin in {t + 1} step(s) of the system: the speed, the actions or "
-                          "the cells do not match")
-        blocked = np.flatnonzero(~safe.keep(cells).numpy())
-        if len(blocked):
-            r = int(blocked[0])
-            fail(f"entry {m}: the cell {cells[r].tolist()} (level {int(np.searchsorted(off, r, side='right')) - 1}) "
-                 f"lies within radius {ds.radius:g} m of an obstacle of its patch: the patch, radius or resolution "
-                 "do not match the table (a transposed patch, another radius or resolution)")
-        if ds.method == "maxflow" and ds.verify_all:
-            for t in range(T):
-                here, there = slice(int(off[t]), int(off[t + 1])), slice(int(off[t + 1]), int(off[t + 2]))
-                _check_propagation(ds, cells[here], cells[there], probs[here], cp[here], cp[there],
-                                   lambda msg, m=m, t=t: fail(f"entry {m}, level {t + 1}: {msg}"))
+    """The tables of every entry of a shard against its patch and the system's dynamics (module docstring).
+
+    Vectorized over the shard's entries: one pass per level (its cells of every entry stepped at once, told apart
+    by compound keys ``entry * box + cell key``), so the cost is the stepping itself, not Python."""
+    eo, lo, T, A = a["entry_offsets"], a["level_offsets"], ds.horizon, len(ds.actions)
+    M = len(eo) - 1
+    entry = np.repeat(np.arange(M), np.diff(eo))  # [R]
+    level = np.repeat(np.tile(np.arange(T + 1), M), np.diff(lo, axis=1).ravel())  # [R]
+    probs = a["action_probs"].astype(np.float64)
+    probs /= probs.sum(axis=1, keepdims=True)
+    cp = a["cell_probs"].astype(np.float64)
+    last = np.flatnonzero(level == T)
+    bad = last[np.any(np.abs(probs[last] - 1.0 / A) > _ROW_TOL / A, axis=1)]
+    if len(bad):
+        fail(f"entry {int(entry[bad[0]])}: the rows of the last level (the horizon) must be uniform (1/{A}), as the "
+             "builders write them")
+    cells = torch.from_numpy(a["cells"].astype(np.int64))  # [R, d]
+    ent = torch.from_numpy(entry)
+    blocked = _inflated(a["patches"], ds, fail)  # [M, H, W]
+    hit = np.flatnonzero(_blocked(ds, blocked, cells, ent).numpy())
+    if len(hit):
+        r = int(hit[0])
+        fail(f"entry {int(entry[r])}: the cell {cells[r].tolist()} (level {int(level[r])}) lies within radius "
+             f"{ds.radius:g} m of an obstacle of its patch: the patch, radius or resolution do not match the table (a "
+             "transposed patch, another radius or resolution)")
+    order = np.argsort(level, kind="stable")  # rows by level, entries in order within each
+    bounds = np.concatenate(([0], np.cumsum(np.bincount(level, minlength=T + 1))))
+    rows = [torch.from_numpy(order[bounds[t]:bounds[t + 1]]) for t in range(T + 1)]
+    left = None  # the free successors of level t-1 left out of level t: (cells [n, d], entries [n])
+    for t in range(T):
+        now, nxt = rows[t], rows[t + 1]
+
+        def where(e: int, lvl: int, msg: str) -> None:
+            fail(f"entry {e}, level {lvl}: {msg}")
+
+        if ds.method == "coverage":
+            _check_coverage_reach(ds, cells[now], ent[now], cells[nxt], ent[nxt], t + 1, where)
+            continue
+        deep = ds.verify_all
+        target = _Level(cells[nxt], ent[nxt], M)
+        succ, prop = [], np.zeros(len(nxt))
+        w = cp[now.numpy(), None] * probs[now.numpy()]  # [n, A]: the mass each (cell, action) sends on
+        for i, j, reached in _stepped(ds, cells[now], lattice=deep):  # [c, P, A, d], point 0 the centre
+            succ.append(reached[:, 0])
+            if deep:  # the builder's transitions: every lattice point, kept where it lands in level t+1
+                at = target.lookup(ent[now][i:j], reached)  # [c, P, A]
+                ok = at >= 0
+                kept = ok.sum(dim=1, keepdim=True).numpy()  # [c, 1, A] kept points per (cell, action)
+                share = np.where(kept > 0, w[i:j, None, :] / np.maximum(kept, 1), 0.0)  # [c, 1, A]
+                prop += np.bincount(at[ok].numpy(), np.broadcast_to(share, ok.shape)[ok.numpy()], len(nxt))
+        left = _check_builder_reach(ds, torch.cat(succ), ent[now], cells[nxt], ent[nxt], M, blocked, left, target,
+                                    t + 1, t + 1 == T, where)
+        if deep:
+            _check_propagation(prop, cp[nxt.numpy()], entry[nxt.numpy()], M, t + 1, where)
+
+
+class _Level:
+    """Cells of one level of several entries, looked up by (entry, cell) through compound keys."""
+
+    def __init__(self, cells: torch.Tensor, entry: torch.Tensor, M: int, distinct: bool = False) -> None:
+        self.keys = CellKeys.covering(cells)
+        self.size = int(torch.prod(self.keys.span))
+        if self.size * max(M, 1) >= 2**62:  # physical successors: not expected
+            raise MapDatasetError(f"the cells of a level spread over {self.keys.span.tolist()} cells: too far to key")
+        if distinct:  # a set of the distinct (entry, cell) pairs: rows are positions in ``sorted``
+            self.sorted = torch.unique(self.key(entry, cells))
+            self.rows = torch.arange(len(self.sorted))
+        else:
+            self.sorted, self.rows = torch.sort(self.key(entry, cells))
+
+    def key(self, entry: torch.Tensor, cells: torch.Tensor) -> torch.Tensor:
+        """``entry [n]``, ``cells [n, ..., d]`` -> compound keys ``[n, ...]`` (-1 outside the key box)."""
+        packed = self.keys.pack(cells)
+        e = entry.view((-1,) + (1,) * (packed.ndim - 1))
+        return torch.where(packed >= 0, e * self.size + packed, torch.full_like(packed, -1))
+
+    def lookup(self, entry: torch.Tensor, cells: torch.Tensor) -> torch.Tensor:
+        """Row of each (entry, cell) in the cells given ``[n, ...]`` (-1 where it is not there)."""
+        q = self.key(entry, cells)
+        pos = torch.searchsorted(self.sorted, q.contiguous()).clamp_(max=len(self.sorted) - 1)
+        return torch.where(self.sorted[pos] == q, self.rows[pos], -1)
+
+    def unpack(self, keys: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Compound keys ``[n]`` -> (cells ``[n, d]``, entries ``[n]``)."""
+        e = torch.div(keys, self.size, rounding_mode="floor")
+        return self.keys.unpack(keys - e * self.size), e
 
 
 _CHUNK_PAIRS = 1 << 21  # (point, action) pairs stepped at once, as the builder (bounds memory on big levels)
 
 
-def _check_reach(ds: MapDataset, now: torch.Tensor, nxt: torch.Tensor, after: torch.Tensor | None, safe: SafeCells,
-                 fail) -> None:
-    """Level t+1 (``nxt [m, d]``) is reached from level t (``now [n, d]``) in one step: for ``maxflow`` every cell is
-    a successor of a level-t centre (the builder's level set, before its pruning); for ``coverage`` (states
-    anywhere in a cell) every cell lies within one cell of a successor of a level-t cell's lattice point.
-
-    For ``maxflow`` the pruning is checked too (:mod:`precompute.levels.viability`): every successor left out of
-    level t+1 is blocked in the inflated patch (``safe``), or a dead end (no transition of it lands in level t+2,
-    ``after``; at the horizon, ``after`` is None and every free successor is kept)."""
-    grid = Grid.of(ds.system)
-    d = grid.dim
-    keys, uniq = _successors(ds, now, lattice=ds.method == "coverage")
-    reached = CellSet(keys, uniq, torch.arange(len(uniq)))
-    if ds.method == "coverage":  # one cell of slack: a state off its cell's lattice points
-        around = torch.cartesian_prod(*[torch.tensor([-1, 0, 1])] * d).reshape(-1, d)  # [3^d, d]
-        near = nxt.unsqueeze(1) + around  # [m, 3^d, d]
-        for dim, K in enumerate(grid.num_angle_cells):
-            if K:
-                near[..., dim] %= K
-        hit = (reached.lookup(near) >= 0).any(dim=1)
-    else:
-        hit = reached.lookup(nxt) >= 0
-    if not bool(hit.all()):
-        how = "within one cell of a state" if ds.method == "coverage" else "a cell"
-        fail(f"{int((~hit).sum())} of its {len(nxt)} cells (e.g. {nxt[~hit][0].tolist()}) are not {how} reached from "
-             "the level before in one step of the system: the speed, the actions or the cells do not match")
-    if ds.method != "maxflow":
-        return
-    left = keys.unpack(uniq[CellSet.build(nxt, keys).lookup_keys(uniq) < 0]) if bool(hit.all()) else nxt[:0]
-    left = left[safe.keep(left)]  # free successors left out: only dead ends may be
-    if len(left) and after is not None:
-        later = CellSet.build(after)
-        live = np.zeros(len(left), dtype=bool)
-        try:  # the builder's transitions of the left-out cells, kept where they land in level t+2
-            live[next_level(ds.system, left.numpy(), PointMode.CENTERS, keep=lambda c: later.lookup(c) >= 0).src] = True
-        except EmptyLevelError:  # none lands there: all dead ends
-            pass
-        left = left[torch.from_numpy(live)]
-    if len(left):
-        fail(f"{len(left)} free successor(s) of the level before are left out (e.g. {left[0].tolist()}) though they "
-             f"are {'at the horizon' if after is None else 'not dead ends'}: the patch, radius or resolution do not "
-             "match the table (a transposed patch, another radius or resolution)")
-
-
-def _successors(ds: MapDataset, now: torch.Tensor, lattice: bool) -> tuple[CellKeys, torch.Tensor]:
-    """The cells reached in one step from the centres (``lattice``: the 3^d lattice points) of ``now [n, d]`` under
-    every action, as the builder assigns them (ties by direction): their key box and sorted distinct keys."""
+def _stepped(ds: MapDataset, cells: torch.Tensor, lattice: bool) -> Iterator[tuple[int, int, torch.Tensor]]:
+    """The cells reached from the centres (``lattice``: the builder's 3^d sample points, the centre first) of
+    ``cells [n, d]`` under every action, as the builder assigns them (ties by direction): chunks ``(i, j,
+    reached [j - i, P, A, d])``."""
     grid = Grid.of(ds.system)
     actions = ds.system.action_set(dtype=torch.float64)  # [A, q]
-    A, d = actions.shape[0], grid.dim
-    offsets = cell_sample_offsets(grid, PointMode.LATTICE, 1, 1, None)[0] if lattice \
+    A, q, d = actions.shape[0], actions.shape[1], grid.dim
+    offsets = cell_sample_offsets(grid, PointMode.CENTERS, 1, 1, None)[0] if lattice \
         else torch.zeros(1, d, dtype=torch.float64)  # [P, d]
     P = len(offsets)
-    centres = grid.centers(now, torch.float64)  # [n, d]
+    centres = grid.centers(cells, torch.float64)  # [n, d]
     chunk = max(1, _CHUNK_PAIRS // (P * A))
-    found = []
-    for lo in range(0, len(now), chunk):
-        src = now[lo:lo + chunk]
-        pts = grid.wrap(centres[lo:lo + chunk].unsqueeze(1) + offsets)  # [c, P, d]
-        x = pts.unsqueeze(2).expand(-1, P, A, d).reshape(-1, d)
-        u = actions.expand(len(src) * P, A, actions.shape[1]).reshape(-1, actions.shape[1])
-        found.append(grid.cells_from(src, ds.system.step(x, u).reshape(len(src), P * A, d)).reshape(-1, d))
-    found = torch.cat(found)
-    keys = CellKeys.covering(found)
-    return keys, torch.unique(keys.pack(found))
+    for i in range(0, len(cells), chunk):
+        src = cells[i:i + chunk]
+        c = len(src)
+        pts = grid.wrap(centres[i:i + chunk].unsqueeze(1) + offsets)  # [c, P, d]
+        x = pts.unsqueeze(2).expand(c, P, A, d).reshape(-1, d)
+        u = actions.expand(c * P, A, q).reshape(-1, q)
+        yield i, i + c, grid.cells_from(src, ds.system.step(x, u).reshape(c, P * A, d)).reshape(c, P, A, d)
 
 
-def _blind_levels(ds: MapDataset) -> list[CellSet]:
-    """The blind level sets from the origin cell (every cell a ``maxflow`` table may hold at each level, before
-    any map pruned it), computed once per data set."""
-    if ds._blind is None:
-        grid = Grid.of(ds.system)
-        cells = grid.cells(torch.zeros(1, grid.dim, dtype=torch.float64))
-        levels = [CellSet.build(cells)]
-        for _ in range(ds.horizon):
-            keys, uniq = _successors(ds, cells, lattice=False)
-            cells = keys.unpack(uniq)
-            levels.append(CellSet(keys, uniq, torch.arange(len(uniq))))
-        ds._blind = levels
-    return ds._blind
+def _inflated(patches: np.ndarray, ds: MapDataset, fail) -> torch.Tensor:
+    """``[M, H, W]`` bool: each entry's patch inflated by the data set's radius (the farm's free-cell test)."""
+    try:
+        check_map_system(ds.system)
+        return torch.from_numpy(np.stack([LocalMap(p, ds.patch_origin, ds.patch_resolution).inflated(ds.radius)
+                                          for p in patches]))  # one distance transform per entry
+    except MapError as exc:
+        fail(f"the patches cannot be used with the system: {exc}")
 
 
-def _check_propagation(ds: MapDataset, now: torch.Tensor, nxt: torch.Tensor, probs: np.ndarray, cp_now: np.ndarray,
-                       cp_next: np.ndarray, fail) -> None:
-    """A ``maxflow`` level's ``cell_probs`` (``cp_next [m]``) is the level before's (``cp_now [n]``) propagated through
-    its rows ``probs [n, A]`` and the builder's transitions (recomputed: the level-t cells' lattice points stepped
-    under every action, kept where they land in level t+1), renormalized (the mass into obstacles is gone)."""
-    target = CellSet.build(nxt)
-    step = next_level(ds.system, now.numpy(), PointMode.CENTERS, keep=lambda c: target.lookup(c) >= 0)
-    if len(step.next_cells) != len(nxt):  # _check_reach ran first: not expected
-        fail("its cells are not the successors of the level before")
-    prop = propagate_cell_probs(cp_now, probs, step.src, step.act, step.dst, step.frac, len(nxt))
-    if not prop.sum() > 0:
-        fail("no probability mass reaches it through the action_probs of the level before")
-    err = float(np.abs(prop / prop.sum() - cp_next).sum())
-    if err > _PROPAGATION_TOL:
-        fail(f"its cell_probs are not the level before's propagated through its action_probs (L1 distance "
-             f"{err:.3g} > {_PROPAGATION_TOL}): action rows permuted or changed")
+def _blocked(ds: MapDataset, blocked: torch.Tensor, cells: torch.Tensor, entry: torch.Tensor) -> torch.Tensor:
+    """``cells [n, d]`` of the entries ``entry [n]`` -> bool ``[n]``: the centre lies in its entry's inflated
+    obstacles (:meth:`precompute.levels.safe_map.SafeCells.blocked_xy`, one patch per entry)."""
+    _, H, W = blocked.shape
+    xy = Grid.of(ds.system).centers(cells, torch.float64)[:, :2]
+    fx = (xy[:, 0] - ds.patch_origin[0]) / ds.patch_resolution
+    fy = (xy[:, 1] - ds.patch_origin[1]) / ds.patch_resolution
+    inside = (fx >= 0) & (fx < W) & (fy >= 0) & (fy < H)
+    j = torch.where(inside, fx, torch.zeros_like(fx)).floor().long().clamp(0, W - 1)
+    i = torch.where(inside, fy, torch.zeros_like(fy)).floor().long().clamp(0, H - 1)
+    return blocked.reshape(-1)[(entry * H + i) * W + j] & inside
+
+
+def _first_entry(entry: torch.Tensor, bad: torch.Tensor) -> tuple[int, torch.Tensor, int]:
+    """The first entry with a ``bad`` row: (entry, its bad rows as a mask, its row count)."""
+    e = int(entry[bad][0])
+    mine = entry == e
+    return e, bad & mine, int(mine.sum())
+
+
+def _check_builder_reach(ds: MapDataset, succ: torch.Tensor, ent_now: torch.Tensor, nxt: torch.Tensor,
+                         ent_nxt: torch.Tensor, M: int, blocked: torch.Tensor,
+                         left: tuple[torch.Tensor, torch.Tensor] | None, target: _Level, lvl: int, horizon: bool,
+                         where) -> tuple[torch.Tensor, torch.Tensor]:
+    """A ``maxflow`` step into level ``lvl``: each of its cells (``nxt [m, d]``) is a successor of a centre of the
+    level before (``succ [n, A, d]``, the builder's level set before its pruning); the free successors ``left`` left
+    out of the level before are dead ends (none of their transitions lands in this level, ``target``); at the
+    horizon no free successor is left out. Returns the free successors left out of this level (checked next)."""
+    reached = _Level(succ.reshape(-1, succ.shape[-1]), ent_now.repeat_interleave(succ.shape[1]), M, distinct=True)
+    uniq = reached.sorted  # [u] compound keys of the distinct successors
+    want = reached.key(ent_nxt, nxt)
+    pos = torch.searchsorted(uniq, want).clamp_(max=len(uniq) - 1)
+    miss = uniq[pos] != want
+    if bool(miss.any()):
+        e, mine, m = _first_entry(ent_nxt, miss)
+        where(e, lvl, f"{int(mine.sum())} of its {m} cells (e.g. {nxt[mine][0].tolist()}) are not a cell reached from "
+                      "the level before in one step of the system: the speed, the actions or the cells do not match")
+    if left is not None and len(left[0]):
+        live = torch.zeros(len(left[0]), dtype=torch.bool)
+        for i, j, pts in _stepped(ds, left[0], lattice=True):
+            live[i:j] = (target.lookup(left[1][i:j], pts) >= 0).flatten(1).any(dim=1)
+        if bool(live.any()):
+            e, mine, _ = _first_entry(left[1], live)
+            _left_out(where, e, lvl - 1, int(mine.sum()), left[0][mine][0], "not dead ends")
+    kept = torch.zeros(len(uniq), dtype=torch.bool)
+    kept[pos] = True
+    out, out_ent = reached.unpack(uniq[~kept])
+    free = ~_blocked(ds, blocked, out, out_ent)
+    out, out_ent = out[free], out_ent[free]
+    if horizon and len(out):
+        e, mine, _ = _first_entry(out_ent, torch.ones(len(out), dtype=torch.bool))
+        _left_out(where, e, lvl, int(mine.sum()), out[mine][0], "at the horizon")
+    return out, out_ent
+
+
+def _left_out(where, e: int, lvl: int, n: int, cell: torch.Tensor, why: str) -> None:
+    where(e, lvl, f"{n} free successor(s) of the level before are left out (e.g. {cell.tolist()}) though they are "
+                  f"{why}: the patch, radius or resolution do not match the table (a transposed patch, another radius "
+                  "or resolution)")
+
+
+def _check_coverage_reach(ds: MapDataset, now: torch.Tensor, ent_now: torch.Tensor, nxt: torch.Tensor,
+                          ent_nxt: torch.Tensor, lvl: int, where) -> None:
+    """A ``coverage`` step into level ``lvl`` (states anywhere in a cell): each of its cells ``nxt [m, d]`` lies within
+    one cell of a successor of a lattice point of a cell of the level before (``now [n, d]``)."""
+    grid = Grid.of(ds.system)
+    found = torch.cat([pts.flatten(1, 2) for _, _, pts in _stepped(ds, now, lattice=True)])  # [n, P A, d]
+    reached = _Level(found.reshape(-1, grid.dim), ent_now.repeat_interleave(found.shape[1]), int(ent_now.max()) + 1,
+                     distinct=True)
+    around = torch.cartesian_prod(*[torch.tensor([-1, 0, 1])] * grid.dim).reshape(-1, grid.dim)  # [3^d, d]
+    near = nxt.unsqueeze(1) + around  # [m, 3^d, d]
+    for dim, K in enumerate(grid.num_angle_cells):
+        if K:
+            near[..., dim] %= K
+    miss = ~(reached.lookup(ent_nxt, near) >= 0).any(dim=1)
+    if bool(miss.any()):
+        e, mine, m = _first_entry(ent_nxt, miss)
+        where(e, lvl, f"{int(mine.sum())} of its {m} cells (e.g. {nxt[mine][0].tolist()}) are not within one cell of "
+                      "a state reached from the level before in one step of the system: the speed, the actions or the "
+                      "cells do not match")
+
+
+def _check_propagation(prop: np.ndarray, cp_next: np.ndarray, entry: np.ndarray, M: int, lvl: int, where) -> None:
+    """A ``maxflow`` level's ``cell_probs`` (``cp_next [m]``, entries ``entry [m]``) is the level before's propagated
+    through its rows and the builder's transitions (``prop [m]``, unnormalized: the mass into obstacles is gone)."""
+    total = np.bincount(entry, prop, M)
+    empty = np.flatnonzero(~(total[np.unique(entry)] > 0))
+    if len(empty):
+        where(int(np.unique(entry)[empty[0]]), lvl, "no probability mass reaches it through the action_probs of the "
+                                                     "level before")
+    err = np.bincount(entry, np.abs(prop / total[entry] - cp_next), M)
+    bad = np.flatnonzero(err > _PROPAGATION_TOL)
+    if len(bad):
+        where(int(bad[0]), lvl, f"its cell_probs are not the level before's propagated through its action_probs (L1 "
+                                f"distance {err[bad[0]]:.3g} > {_PROPAGATION_TOL}): action rows permuted or changed")
