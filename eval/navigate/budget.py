@@ -313,6 +313,20 @@ def make_parser() -> ArgumentParser:
     return p
 
 
+def write_budget(res: Mapping, md_path: str | Path | None, figure_path: str | Path | None) -> list[Path]:
+    """The judgement ``res`` as markdown and as the figure (each when its path is given); the paths written."""
+    written = []
+    if md_path is not None:
+        write_bytes(md_path, render(res).encode())
+        written.append(Path(md_path))
+    if figure_path is not None:
+        nav = methods_of(NAVIGATE)
+        known = [c["method"] for c in res["cells"] if c["method"] in nav]
+        written.append(Path(budget_figure(res, figure_path, labels={m: nav[m].label_in(NAVIGATE) for m in known},
+                                          colors={m: nav[m].color for m in known})))
+    return written
+
+
 @cli_main()
 def main(argv: Sequence[str] | None = None) -> int:
     args = make_parser().parse_args(argv)
@@ -320,17 +334,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         if path is not None:
             check_output_file(path, flag, example)
     res = judge_folder(args.folder, args.budgets_ms)
-    md = render(res)
-    print(md, end="")
-    if args.out is not None:
-        write_bytes(args.out, md.encode())
-        print(f"wrote {args.out}")
-    if args.figure is not None:
-        nav = methods_of(NAVIGATE)
-        known = [c["method"] for c in res["cells"] if c["method"] in nav]
-        fig = budget_figure(res, args.figure, labels={m: nav[m].label_in(NAVIGATE) for m in known},
-                            colors={m: nav[m].color for m in known})
-        print(f"wrote {fig}")
+    print(render(res), end="")
+    for path in write_budget(res, args.out, args.figure):
+        print(f"wrote {path}")
     return 0
 
 

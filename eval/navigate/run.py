@@ -412,5 +412,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     print(render(res))
     for path in write_outputs(res, out):
         print(f"wrote {path}")
+    from eval.navigate.budget import judge_folder, write_budget
+    from eval.navigate.budget import render as render_budget
+
+    budget = judge_folder(out)  # the folder's episodes judged at equal cycle time (eval.navigate.budget)
+    print(render_budget(budget), end="")
+    for path in write_budget(budget, out / "budget.md", out / "budget.png"):
+        print(f"wrote {path}")
     sys.stdout.flush()
     return 0
