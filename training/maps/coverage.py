@@ -111,7 +111,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     import_system_modules(args.system_module)
     if args.json:
         check_output_file(args.json, "--json", "coverage.json")
-    policy, ds, blind = load_inputs(args.checkpoint, args.maps, args.table)
+    policy, ds, blind = load_inputs(args.checkpoint, args.maps, args.table, deep_checks=not args.skip_deep_checks)
     spec, system, T = policy.patch_spec, policy.system, policy.horizon
     grid, x0 = Grid.of(system), torch.zeros(len(system.periodic))
     policies = {"map_policy": policy, "blind_table": TablePolicy(blind)}

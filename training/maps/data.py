@@ -74,11 +74,13 @@ def dataset_digest(folder: str | os.PathLike) -> str:
     return hashlib.sha256((Path(folder) / "dataset.json").read_bytes()).hexdigest()
 
 
-def load_map_data(folders: Sequence[str | os.PathLike]) -> MapData:
-    """Read and pool the data sets in ``folders``; :class:`MapDataError` naming the folder and the problem."""
+def load_map_data(folders: Sequence[str | os.PathLike], deep_checks: bool = True) -> MapData:
+    """Read and pool the data sets in ``folders``; :class:`MapDataError` naming the folder and the problem.
+    ``deep_checks``: every table's propagation recomputed too (``verify_all`` of
+    :func:`~precompute.maps.dataset.read_map_dataset`: permuted action rows refused); False trusts the rows."""
     if not folders:
         raise MapDataError("no data set given")
-    parts = [_read_folder(Path(f)) for f in folders]
+    parts = [_read_folder(Path(f), deep_checks) for f in folders]
     head = parts[0]
     for part in parts[1:]:
         for key in ("system", "grid", "patch", "actions", "horizon"):
@@ -117,9 +119,9 @@ def load_map_data(folders: Sequence[str | os.PathLike]) -> MapData:
                    sum(pt["nbytes"] for pt in parts))
 
 
-def _read_folder(folder: Path) -> dict:
+def _read_folder(folder: Path, deep_checks: bool) -> dict:
     """One data set, read and validated (every shard, sha256 first) by :func:`precompute.maps.dataset.read_map_dataset`."""
-    ds = read_map_dataset(folder, load=True)
+    ds = read_map_dataset(folder, load=True, verify_all=deep_checks)
     index = folder / "dataset.json"
     raw = index.read_bytes()
     shards = [ds.shard(k).arrays for k in range(len(ds.shards))]

@@ -97,6 +97,9 @@ class MapDistillConfig:
     """no progress bar"""
     resume: bool = False
     """continue from <out>.train.pt (refused when the settings or the data sets differ)"""
+    skip_deep_checks: bool = False
+    """trust the data sets' action rows: skip recomputing every table's propagation (rows permuted within a level
+    then go unnoticed; the other checks still run)"""
 
 
 RESUME_KEYS = ("hidden", "layers", "embed", "channels", "epochs", "lr", "batch_size", "jitter", "val_fraction", "seed")
@@ -146,7 +149,7 @@ def _run(cfg: MapDistillConfig, out: Path, state_path: Path) -> int:
     device = torch.device(cfg.device)
     if cfg.threads:
         torch.set_num_threads(cfg.threads)
-    data = load_map_data(cfg.maps)
+    data = load_map_data(cfg.maps, deep_checks=not cfg.skip_deep_checks)
     fingerprint = {**{k: getattr(cfg, k) for k in RESUME_KEYS}, "maps_sha256": [s["sha256"] for s in data.sources]}
     if cfg.local_features:  # only when used, so a training state written before the option still resumes
         fingerprint["local_features"] = cfg.local_features
