@@ -42,7 +42,7 @@ import torch
 from cuniform_torch.common.digest import DIGEST_KEY, DigestError, check_digest, content_digest
 from cuniform_torch.common.fileio import write_npz
 from cuniform_torch.common.npz import NpzError, member_headers, read_npz
-from cuniform_torch.grid.cells import CellKeys, Grid
+from cuniform_torch.grid.cells import CellKeys, CellSet, Grid
 from cuniform_torch.systems import System, system_from_json, system_to_json
 from cuniform_torch.tables.file import Table
 from precompute.levels.safe_map import LocalMap, MapError, check_map_system
@@ -111,6 +111,7 @@ class MapDataset:
     verify_all: bool = False
     """check every ``maxflow`` entry's table against the farm's builder when a shard is read (module docstring)"""
     _loaded: dict[int, MapShard] = field(default_factory=dict)
+    _blind: list[CellSet] | None = None
 
     def __len__(self) -> int:
         return len(self.entries)
@@ -196,7 +197,7 @@ def read_map_dataset(root: str | Path, load: bool = False, verify_all: bool = Fa
         raise MapDatasetError(f"{path}: no dataset.json there (an unfinished or missing data set)")
     try:
         meta = json.loads(path.read_text())
-    except (OSError, UnicodeDecodeError, ValueError) as exc:
+    except (OSError, UnicodeDecodeError, ValueError, RecursionError) as exc:  # RecursionError: nested too deep
         raise MapDatasetError(f"{path}: not readable JSON ({type(exc).__name__}: {exc})") from None
     ds = _dataset_from_meta(meta, root, path)
     ds.verify_all = bool(verify_all)
@@ -452,21 +453,43 @@ def _check_tables(a: dict[str, np.ndarray], ds: MapDataset, k: int, fail) -> Non
             _check_coverage_reach(ds, cells[now], ent[now], cells[nxt], ent[nxt], t + 1, where)
             continue
         deep = ds.verify_all
+        if not deep:  # the cheap check: every cell is in the blind level set (what any map's table may hold)
+            miss = _blind_levels(ds)[t + 1].lookup(cells[nxt]) < 0
+            if bool(miss.any()):
+                e, mine, m = _first_entry(ent[nxt], miss)
+                where(e, t + 1, f"{int(mine.sum())} of its {m} cells (e.g. {cells[nxt][mine][0].tolist()}) are not "
+                                f"reached from the origin in {t + 1} step(s) of the system: the speed, the actions or "
+                                "the cells do not match")
+            continue
         target = _Level(cells[nxt], ent[nxt], M)
         succ, prop = [], np.zeros(len(nxt))
         w = cp[now.numpy(), None] * probs[now.numpy()]  # [n, A]: the mass each (cell, action) sends on
-        for i, j, reached in _stepped(ds, cells[now], lattice=deep):  # [c, P, A, d], point 0 the centre
+        for i, j, reached in _stepped(ds, cells[now], lattice=True):  # [c, P, A, d], point 0 the centre
             succ.append(reached[:, 0])
-            if deep:  # the builder's transitions: every lattice point, kept where it lands in level t+1
-                at = target.lookup(ent[now][i:j], reached)  # [c, P, A]
-                ok = at >= 0
-                kept = ok.sum(dim=1, keepdim=True).numpy()  # [c, 1, A] kept points per (cell, action)
-                share = np.where(kept > 0, w[i:j, None, :] / np.maximum(kept, 1), 0.0)  # [c, 1, A]
-                prop += np.bincount(at[ok].numpy(), np.broadcast_to(share, ok.shape)[ok.numpy()], len(nxt))
+            # the builder's transitions: every lattice point, kept where it lands in level t+1
+            at = target.lookup(ent[now][i:j], reached)  # [c, P, A]
+            ok = at >= 0
+            kept = ok.sum(dim=1, keepdim=True).numpy()  # [c, 1, A] kept points per (cell, action)
+            share = np.where(kept > 0, w[i:j, None, :] / np.maximum(kept, 1), 0.0)  # [c, 1, A]
+            prop += np.bincount(at[ok].numpy(), np.broadcast_to(share, ok.shape)[ok.numpy()], len(nxt))
         left = _check_builder_reach(ds, torch.cat(succ), ent[now], cells[nxt], ent[nxt], M, blocked, left, target,
                                     t + 1, t + 1 == T, where)
-        if deep:
-            _check_propagation(prop, cp[nxt.numpy()], entry[nxt.numpy()], M, t + 1, where)
+        _check_propagation(prop, cp[nxt.numpy()], entry[nxt.numpy()], M, t + 1, where)
+
+
+def _blind_levels(ds: MapDataset) -> list[CellSet]:
+    """The blind level sets from the origin cell (every cell a ``maxflow`` table may hold at each level, before any
+    map pruned it), computed once per data set."""
+    if ds._blind is None:
+        grid = Grid.of(ds.system)
+        cells = grid.cells(torch.zeros(1, grid.dim, dtype=torch.float64))
+        levels = [CellSet.build(cells)]
+        for _ in range(ds.horizon):
+            cells = torch.unique(torch.cat([pts.reshape(-1, grid.dim) for _, _, pts in _stepped(ds, cells, False)]),
+                                 dim=0)
+            levels.append(CellSet.build(cells))
+        ds._blind = levels
+    return ds._blind
 
 
 class _Level:
