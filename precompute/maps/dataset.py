@@ -19,7 +19,8 @@ level 0 is the origin cell; every level's cells are distinct and ascending; ever
 patch inflated by the data set's radius; the last level's rows are uniform; every cell of level t is in the blind
 level set of t steps from the origin (``maxflow``), or within one cell of a successor of the level before's
 lattice points (``coverage``). With ``verify_all`` every ``maxflow`` entry is also checked against the builder step
-by step (about a third of the build's time): each level's cells are successors of the level before's centres,
+by step (about a third of the build's time; vectorized over a shard's entries, one pass per level; the commands of
+:mod:`training.maps` run it by default, ``--skip-deep-checks`` trusts the files): each level's cells are successors of the level before's centres,
 every free successor left out is a dead end, and each level's ``cell_probs`` is the level before's propagated
 through its ``action_probs`` and the builder's transitions (recomputed). So rows permuted within a level, another
 speed, radius or patch resolution, a transposed patch are refused.
@@ -188,9 +189,9 @@ def write_shard(path: str | Path, patches: np.ndarray, poses: np.ndarray, entrie
 
 def read_map_dataset(root: str | Path, load: bool = False, verify_all: bool = False) -> MapDataset:
     """Read and validate ``root/dataset.json`` and check every shard's sha256 (``load``: also read and validate
-    every shard now; else each is read and validated on first use). ``verify_all``: recompute the propagation of
-    every ``maxflow`` entry (module docstring; about a third of the farm's build time), not only of the first.
-    One :class:`MapDatasetError` per problem."""
+    every shard now; else each is read and validated on first use). ``verify_all``: also check every ``maxflow``
+    entry against the builder step by step, its reach, pruning and propagation (module docstring; about a third of
+    the farm's build time). One :class:`MapDatasetError` per problem."""
     root = Path(root)
     path = root / "dataset.json"
     if not path.is_file():
