@@ -193,9 +193,11 @@ def _readers() -> dict[str, tuple[Callable[[Path], Any], tuple[type, ...]]]:
 
     def map_dataset(p: Path) -> str:
         ds = read_map_dataset(p, load=True)
-        meta = {k: v for k, v in ds.meta.items() if k not in ("entries",)}
+        meta = {k: v for k, v in ds.meta.items() if k not in ("entries", "shards")}  # sha256s: storage, not content
+        shards = [{k: v for k, v in ds.shard(i).arrays.items() if k != "content_sha256"}
+                  for i in range(len(ds.shards))]
         return fingerprint({"meta": meta, "poses": [e.get("pose") for e in ds.entries], "horizon": ds.horizon,
-                            "radius": ds.radius, "shards": [ds.shard(k).arrays for k in range(len(ds.shards))]})
+                            "radius": ds.radius, "shards": shards})
 
     def local_map(p: Path) -> str:
         m = read_map_file(p)
@@ -566,7 +568,8 @@ def header_variants(npy: bytes, quick: bool) -> list[tuple[str, bytes]]:
 
 
 def npz_mutations(src: Path, redigest: Callable[[dict], dict], marker: Path, quick: bool,
-                  keys: list[str] | None = None) -> list[tuple[str, Callable[[Path], None]]]:
+                  keys: list[str] | None = None, allowed: Callable[[str, Any], bool] | None = None,
+                  family: str = "") -> list[tuple[str, Callable[[Path], None]]]:
     """Every mutation of one ``.npz`` (raw bytes, crafted members and headers, wrong values / dtypes / shapes,
     missing, extra and duplicated keys, pickle payloads). ``redigest(arrays)`` returns the arrays with their
     digest(s) recomputed (a forger's copy, or a buggy writer's); each value change is made both with the old
@@ -595,6 +598,9 @@ def npz_mutations(src: Path, redigest: Callable[[dict], dict], marker: Path, qui
             continue
         for label, value in value_variants(arrays[key], quick):
             for mode in ("stale", "fresh"):
+                if mode == "fresh" and allowed is not None and allowed(key, value):
+                    SKIPPED[family] = SKIPPED.get(family, 0) + 1  # a valid file of other content
+                    continue
                 muts.append((f"{key}: {label} ({mode} digest)", arrays_to({**arrays, key: value}, mode)))
         for mode in ("stale", "fresh"):
             muts.append((f"{key}: missing ({mode} digest)",
@@ -661,24 +667,36 @@ def json_edit(obj: Any, path: tuple, value: Any = None, delete: bool = False) ->
     return obj
 
 
-def json_mutations(obj: Any, quick: bool, paths: list[tuple] | None = None) -> list[tuple[str, bytes]]:
-    """Wrong types and values at every path of a JSON document, and damaged texts: ``(label, file bytes)``."""
+MISSING = object()
+"""an oracle's value for a deleted key"""
+SKIPPED: dict[str, int] = {}
+"""per family: the edits its contract allows (a valid file of other content), not tried"""
+
+
+def json_mutations(obj: Any, quick: bool, allowed: Callable[[tuple, Any], bool] | None = None,
+                   family: str = "") -> list[tuple[str, bytes]]:
+    """Wrong types and values at every path of a JSON document, and damaged texts: ``(label, file bytes)``.
+    ``allowed(path, value)`` (value :data:`MISSING` for a deletion) is the family's contract (docs/formats.md):
+    an edit it allows makes a valid document of other content, which no reader can refuse: it is not tried."""
     text = json.dumps(obj, indent=2)
     out: list[tuple[str, bytes]] = []
     values = [(n, v) for n, v in JSON_VALUES if not quick or n in QUICK_JSON_VALUES]
-    for path in json_paths(obj) if paths is None else paths:
+    ok = allowed or (lambda path, value: False)
+    for path in json_paths(obj):
         where = "/".join(map(str, path))
         old = obj
         for k in path:
             old = old[k]
-        out.append((f"{where}: missing", json.dumps(json_edit(obj, path, delete=True)).encode()))
-        for label, value in values:
-            if value == old and type(value) is type(old):
-                continue
-            out.append((f"{where}: {label}", json.dumps(json_edit(obj, path, value)).encode()))
+        edits = [("missing", MISSING)] + [(label, v) for label, v in values
+                                          if not (v == old and type(v) is type(old))]
         if isinstance(old, list) and old:
-            out.append((f"{where}: first item duplicated",
-                        json.dumps(json_edit(obj, path, [old[0], *old])).encode()))
+            edits.append(("first item duplicated", [old[0], *old]))
+        for label, value in edits:
+            if ok(path, value):
+                SKIPPED[family] = SKIPPED.get(family, 0) + 1
+                continue
+            new = json_edit(obj, path, delete=True) if value is MISSING else json_edit(obj, path, value)
+            out.append((f"{where}: {label}", json.dumps(new).encode()))
     raw = text.encode()
     out += [("zero-length file", b""), ("truncated to half", raw[: len(raw) // 2]), ("not JSON", b"garbage{\n"),
             ("a JSON list, not an object", b"[1, 2, 3]"), ("a JSON string", b'"x"'),
@@ -689,6 +707,73 @@ def json_mutations(obj: Any, quick: bool, paths: list[tuple] | None = None) -> l
         out.append((f"{first!r} given twice (the second changed)", raw.rstrip()[:-1] + f', "{first}": "zz"}}'.encode()))
         out.append((f"{first!r} given twice (the first changed)", b'{"' + first.encode() + b'": "zz", ' + raw[1:]))
     return out
+
+
+def _is_int(v: Any) -> bool:
+    return isinstance(v, int) and not isinstance(v, bool)
+
+
+def _is_num(v: Any) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+
+
+def settings_allowed(path: tuple, v: Any) -> bool:
+    """What docs/formats.md allows in a benchmark folder's settings.json (the edits that stay valid)."""
+    head = path[0]
+    if head == "robot" and len(path) >= 2 and path[1] == "params":
+        return len(path) > 2  # the params object is free-form; params itself must stay an object
+    if head == "sources" and len(path) == 2:
+        return v is MISSING or v is None  # a null source matches anything; a value is a 16-hex-digit prefix
+    if head in ("gap_widths", "cost_to_go") and len(path) == 1 and v is MISSING:
+        return True
+    if head == "gap_widths" and len(path) == 2:
+        return v is MISSING or (_is_num(v) and v > 0)
+    if isinstance(v, list) or v is MISSING:
+        return False
+    if head == "seed" and len(path) == 1:
+        return _is_int(v)
+    if path in (("horizon",), ("robot", "horizon")):
+        return _is_int(v) and v >= 1
+    if path == ("robot", "system"):
+        return isinstance(v, str)
+    if path == ("robot", "radius"):
+        return _is_num(v) and v >= 0
+    if head in ("sensing_range", "lambda_", "collision_penalty", "cost_resolution", "time_limit") and len(path) == 1:
+        return _is_num(v) and v > 0
+    return False
+
+
+def record_allowed(path: tuple, v: Any) -> bool:
+    """What docs/formats.md allows in an episodes.jsonl record without breaking its key or its outcome."""
+    head = path[0]
+    if head == "path":
+        if len(path) == 1:
+            return v is MISSING or (isinstance(v, list) and all(
+                isinstance(q, list) and len(q) == 2 and all(map(_is_num, q)) for q in v))
+        if len(path) == 2:
+            return v is MISSING or (isinstance(v, list) and len(v) == 2 and all(map(_is_num, v)))
+        return _is_num(v)
+    if head == "cycle_hist" and len(path) == 2:
+        return v is MISSING or (_is_int(v) and v >= 0)
+    if isinstance(v, list) or v is MISSING or len(path) != 1:
+        return False
+    if head in ("time", "path_length", "wall_s"):
+        return _is_num(v) and v >= 0
+    if head in ("seed", "steps", "cycles"):
+        return _is_int(v) and v >= 0
+    return False
+
+
+def dataset_allowed(path: tuple, v: Any) -> bool:
+    """dataset.json: the seed and an entry's source label are free; everything else must match the shards."""
+    if path == ("seed",):
+        return _is_int(v)
+    return len(path) == 3 and path[0] == "entries" and path[2] == "source" and isinstance(v, str)
+
+
+def index_allowed(path: tuple, v: Any) -> bool:
+    """tables.json: a set with one table fewer is a valid (smaller) set."""
+    return len(path) == 2 and path[0] == "tables" and v is MISSING
 
 
 def system_json_variants(system_json: str, marker_module: str) -> list[tuple[str, str]]:
@@ -825,7 +910,18 @@ def local_map_family(work: Path, quick: bool) -> Family:
         core = {k: v for k, v in arrays.items() if k != DIGEST_KEY}
         return {**core, DIGEST_KEY: np.array(content_digest(core))}
 
-    muts = npz_mutations(original, redigest, folder / "marker", quick)
+    def allowed(key: str, a: Any) -> bool:  # docs/formats.md, local map file
+        a = np.asarray(a)
+        if key == "occupied":
+            return a.dtype == np.uint8 and a.ndim == 2 and all(1 <= n <= 4096 for n in a.shape) and \
+                bool(np.isin(a, (0, 1)).all())
+        if key == "origin":
+            return a.dtype == np.float64 and a.shape == (2,) and bool(np.isfinite(a).all())
+        if key == "resolution":
+            return a.dtype == np.float64 and a.shape == () and bool(np.isfinite(a)) and float(a) > 0
+        return False
+
+    muts = npz_mutations(original, redigest, folder / "marker", quick, allowed=allowed, family="local map (.npz)")
     return Family("local map (.npz)", ["local_map"], original,
                   _file_cases("local map (.npz)", folder, original, ["local_map"], muts))
 
@@ -906,6 +1002,23 @@ def _set(obj: Any, path: tuple, value: Any, delete: bool = False) -> Any:
     return out
 
 
+def tensor_allowed(path: tuple, old: Any, new: Any) -> bool:
+    """docs/formats.md: a weight (not ``actions`` nor ``inv_scale``, which must match the system) of the same
+    dtype and shape, finite and within MAX_ABS_WEIGHT, is another valid network."""
+    import numpy as np
+
+    return (len(path) == 2 and path[0] == "state_dict" and path[1] not in ("actions", "inv_scale")
+            and new.dtype == old.dtype and new.shape == old.shape and bool(np.isfinite(new).all())
+            and float(np.abs(new).max(initial=0)) <= 1e6)
+
+
+def plain_allowed(path: tuple, v: Any) -> bool:
+    """``source`` is free-form; ``metrics`` holds finite numbers or strings."""
+    if path[0] == "source" and len(path) == 2:
+        return True
+    return path[0] == "metrics" and len(path) == 2 and (isinstance(v, str) or _is_num(v))
+
+
 def checkpoint_family(name: str, work: Path, quick: bool) -> Family:
     import numpy as np
     import torch
@@ -942,6 +1055,9 @@ def checkpoint_family(name: str, work: Path, quick: bool) -> Family:
                 continue
             t = torch.from_numpy(np.ascontiguousarray(new))
             for mode in ("stale", "fresh"):
+                if mode == "fresh" and tensor_allowed(path, value, np.asarray(new)):
+                    SKIPPED[name] = SKIPPED.get(name, 0) + 1  # another valid network
+                    continue
                 muts.append((f"{where}: {label} ({mode} digest)", dict_to(_set(saved, path, t), mode)))
         for mode in ("stale", "fresh"):
             muts.append((f"{where}: missing ({mode} digest)", dict_to(_set(saved, path, None, delete=True), mode)))
@@ -955,6 +1071,9 @@ def checkpoint_family(name: str, work: Path, quick: bool) -> Family:
         where = "/".join(path)
         for label, value in values:
             for mode in ("stale", "fresh"):
+                if mode == "fresh" and plain_allowed(path, value):
+                    SKIPPED[name] = SKIPPED.get(name, 0) + 1
+                    continue
                 muts.append((f"{where}: {label} ({mode} digest)", dict_to(_set(saved, path, value), mode)))
         muts.append((f"{where}: missing (fresh digest)", dict_to(_set(saved, path, None, delete=True), "fresh")))
     for label, text in system_json_variants(saved["system"], module):
@@ -1017,7 +1136,7 @@ def map_dataset_family(work: Path, quick: bool) -> Family:
         (dst / "dataset.json").write_text(json.dumps(m))
 
     muts: list[tuple[str, Callable[[Path], None]]] = []
-    for label, data in json_mutations(meta, quick):
+    for label, data in json_mutations(meta, quick, dataset_allowed, "map data set (folder)"):
         muts.append((f"dataset.json {label}", (lambda d: lambda dst: (dst / "dataset.json").write_bytes(d))(data)))
     module = write_marker_module(folder, folder / "marker")
     for label, text in system_json_variants(meta["system"], module):
@@ -1099,7 +1218,8 @@ def table_set_family(work: Path, quick: bool) -> Family:
                                                                    *index["tables"][1:]]}).encode())
 
     muts: list[tuple[str, Callable[[Path], None]]] = [(f"tables.json {label}", put("tables.json", data))
-                                                      for label, data in json_mutations(index, quick)]
+                                                      for label, data in json_mutations(index, quick, index_allowed,
+                                                                                        "table set (folder)")]
     member = "start_0001.npz"
     for label, write in raw_mutations(original / member, True):
         muts.append((f"{member} {label}", (lambda w: lambda dst: w(dst / member))(write)))
@@ -1171,9 +1291,12 @@ def bench_family(work: Path, quick: bool) -> Family:
         return b"\n".join(new) + b"\n"
 
     muts: list[tuple[str, Callable[[Path], None]]] = [(f"settings.json {label}", put("settings.json", data))
-                                                      for label, data in json_mutations(settings, quick)]
-    for label, data in json_mutations(records[1], quick):
-        if label.startswith(("zero-length", "truncated", "not JSON", "invalid UTF-8", "a byte-order", "nested")):
+                                                      for label, data in json_mutations(settings, quick, settings_allowed,
+                                                                                        "benchmark folder")]
+    for label, data in json_mutations(records[1], quick, record_allowed, "benchmark folder"):
+        if label.startswith("zero-length"):
+            continue  # an empty line: the record deleted, a valid folder of fewer episodes
+        if label.startswith(("truncated", "not JSON", "invalid UTF-8", "a byte-order", "nested")):
             data = data.replace(b"\n", b" ")
         elif not label.startswith(("a JSON", "'")):
             data = json.dumps(json.loads(data), separators=(",", ":")).encode()
@@ -1375,6 +1498,9 @@ def main(argv: list[str] | None = None) -> int:
     rows = summarize(all_cases)
     print()
     print_table(rows)
+    if SKIPPED:
+        print("not tried, as the contract allows them (valid files of other content): " +
+              ", ".join(f"{k}: {v}" for k, v in SKIPPED.items()))
     bad = [c for c in all_cases if c.outcome in BAD]
     big = [c for c in all_cases if c.size < SMALL_FILE and c.peak_mb > PEAK_LIMIT_MB]
     unnamed = [c for c in all_cases if c.outcome == "clear error" and c.extra.get("names_file") is False]
@@ -1395,7 +1521,8 @@ def main(argv: list[str] | None = None) -> int:
         args.out.parent.mkdir(parents=True, exist_ok=True)
         args.out.write_text(json.dumps({"mode": "quick" if args.quick else "full", "seconds": round(seconds, 1),
                                         "baseline_mb": round(base, 1), "peak_limit_mb": PEAK_LIMIT_MB,
-                                        "summary": rows, "cases": [dataclasses.asdict(c) for c in all_cases]},
+                                        "summary": rows, "allowed_edits_not_tried": SKIPPED,
+                                        "cases": [dataclasses.asdict(c) for c in all_cases]},
                                        indent=1, default=str))
         print(f"wrote {args.out}")
     return 1 if bad or big else 0

@@ -46,6 +46,8 @@ def _open_member(zf: zipfile.ZipFile, info: zipfile.ZipInfo, where: str):
         return zf.open(info)
     except (NotImplementedError, RuntimeError) as exc:  # an unknown compression, an encrypted member
         raise NpzError(f"{where}: cannot be opened ({exc})") from None
+    except (OSError, EOFError, zipfile.BadZipFile, zlib.error) as exc:  # a damaged local header or directory
+        raise NpzError(f"{where}: not readable ({type(exc).__name__}: {exc})") from None
 
 
 def npy_header(fh, where: str) -> tuple[tuple[int, ...], bool, np.dtype, int]:
@@ -74,8 +76,12 @@ def member_headers(path: str | os.PathLike) -> dict[str, tuple[tuple[int, ...], 
     out = {}
     with _zip(path) as zf:
         for info in zf.infolist():
-            with _open_member(zf, info, f"{where}: member {info.filename}") as fh:
-                shape, _, dtype, _ = npy_header(fh, f"{where}: member {info.filename}")
+            try:
+                with _open_member(zf, info, f"{where}: member {info.filename}") as fh:
+                    shape, _, dtype, _ = npy_header(fh, f"{where}: member {info.filename}")
+            except (OSError, EOFError, zipfile.BadZipFile) as exc:  # a damaged stream under the header
+                raise NpzError(f"{where}: member {info.filename}: not readable ({type(exc).__name__}: {exc})") \
+                    from None
             out[info.filename.removesuffix(".npy")] = (shape, dtype)
     return out
 

@@ -95,6 +95,8 @@ def _checkpoint_arrays(checkpoint: dict[str, Any]) -> dict[str, Any]:
             name = f"{prefix}/{key}" if prefix else key
             if isinstance(item, dict):
                 walk(name, item)
+            elif isinstance(item, Tensor) and item.layout != torch.strided:  # sparse: no bytes to digest
+                raise ValueError(f"tensor {name!r} is {item.layout}, not a dense tensor")
             else:
                 (arrays if isinstance(item, Tensor) else plain)[name] = item
 

@@ -176,8 +176,12 @@ def check_record(record: Any) -> str | None:
     return None
 
 
-class _Twice(ValueError):
-    """A name given twice in one JSON object: whole, so never a line cut short."""
+class _Whole(ValueError):
+    """A line that parsed far enough to be whole, yet is not a record: never a line cut short."""
+
+
+class _Twice(_Whole):
+    """A name given twice in one JSON object."""
 
 
 def _unique_names(pairs: list[tuple[str, Any]]) -> dict:
@@ -190,7 +194,10 @@ def _unique_names(pairs: list[tuple[str, Any]]) -> dict:
 
 
 def _loads(text: str | bytes) -> Any:
-    return json.loads(text, object_pairs_hook=_unique_names)
+    try:
+        return json.loads(text, object_pairs_hook=_unique_names)
+    except RecursionError:  # the json module's own limit: arrays or objects nested thousands deep
+        raise _Whole("nested too deeply to be a record") from None
 
 
 def _merge_files(old: dict, new: dict) -> tuple[dict, list[str]]:
@@ -275,7 +282,18 @@ class EpisodeStore:
         return self.load()[1]
 
     def _has_records(self) -> bool:
-        return self.records_file.exists() and bool(self.records_file.read_bytes().strip())
+        data = self._records_bytes()
+        return data is not None and bool(data.strip())
+
+    def _records_bytes(self) -> bytes | None:
+        """``episodes.jsonl``'s bytes; None when there is none; a :class:`StoreError` when something is there but
+        cannot be read (a folder, a symlink loop or one to nothing: never taken for a folder without records)."""
+        if not (self.records_file.exists() or self.records_file.is_symlink()):
+            return None
+        try:
+            return self.records_file.read_bytes()
+        except OSError as err:
+            raise StoreError(f"{self.records_file}: unreadable ({err.strerror or err}); fix or delete it") from None
 
     def _read(self, suite: str) -> dict[str, dict]:
         records, good, cut = self._parse(suite)
@@ -293,9 +311,10 @@ class EpisodeStore:
     def _parse(self, suite: str) -> tuple[dict[str, dict], int, int]:
         """``(records by key, bytes of the complete lines, bytes of a cut-short last line or 0)``: every record
         checked (:func:`check_record`, of ``suite``), a key twice refused."""
-        if not self.records_file.exists():
+        data = self._records_bytes()
+        if data is None:
             return {}, 0, 0
-        lines = self.records_file.read_bytes().split(b"\n")
+        lines = data.split(b"\n")
         records: dict[str, dict] = {}
         first: dict[str, int] = {}  # the line of each key
         good = 0  # bytes of complete, parsed lines
@@ -306,7 +325,7 @@ class EpisodeStore:
             try:
                 rec = _loads(line)
             except ValueError as err:
-                if i == len(lines) - 1 and not isinstance(err, _Twice):
+                if i == len(lines) - 1 and not isinstance(err, _Whole):
                     return records, good, len(line)
                 raise StoreError(f"{self.records_file}: line {i + 1} is not a record ({err}); fix or delete the "
                                  "file") from None
