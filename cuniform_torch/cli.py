@@ -22,7 +22,7 @@ does not apply to the chosen mode is refused** (:func:`refuse_flags`), never sil
 (:func:`add_no_limit_arg`) is given.
 
 Ctrl-C while a command's modules are still importing (torch takes seconds) is one line and exit 130 as well: the
-command packages install :func:`training.startup.exit_on_ctrl_c` when run as ``python -m``; :func:`cli_main`
+command packages install :func:`precompute.startup.exit_on_ctrl_c` when run as ``python -m``; :func:`cli_main`
 swaps it for Python's ``KeyboardInterrupt`` while ``main`` runs (which may then say what survives) and back after.
 """
 

@@ -38,6 +38,7 @@ from cuniform_torch.cli import (
     add_system_module_arg,
     check_output_folder,
     cli_main,
+    device_arg,
     import_system_modules,
 )
 from cuniform_torch.common.fileio import write_bytes, write_json
@@ -161,7 +162,7 @@ def main(argv=None) -> int:
     p.add_argument("--quick", action="store_true", help="about a minute: fewer seeds and sizes")
     p.add_argument("--out", type=Path, default=DEFAULT.root, help="folder of tables, results, figures and the report")
     p.add_argument("--runs", type=Path, default=RUNS_EVAL, help="TensorBoard folder")
-    p.add_argument("--device", default="cpu")
+    p.add_argument("--device", type=device_arg, default="cpu", help="torch device of the experiments' rollouts")
     p.add_argument("--force", action="store_true", help="rebuild tables and rerun every stage")
     p.add_argument("--skip-closed-loop", action="store_true", help="only the open-loop experiments")
     p.add_argument("--no-mlp", action="store_true",

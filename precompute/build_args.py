@@ -18,8 +18,14 @@ from cuniform_torch.cli import (
     CLIError,
     add_dataclass_args,
     dataclass_from_args,
+    device_arg,
     field_docs,
     flag_name,
+    horizon_arg,
+    int_in,
+    non_negative_int,
+    positive_int,
+    threads_arg,
 )
 from cuniform_torch.systems import _REGISTRY, DEFAULT_HORIZON, System, known_systems, resolve_system, system_horizon
 from precompute.flow.builder import BuildConfig
@@ -83,9 +89,10 @@ def make_parser() -> argparse.ArgumentParser:
     parser.add_argument("--max-memory", type=float, default=None, metavar="GB",
                         help="memory budget of the size guidance (default: the available memory)")
     parser.add_argument("--out", type=Path, default=None, help=f"table file to write (default: {OUT}/<system>.npz)")
-    parser.add_argument("--horizon", type=int, default=None,
+    parser.add_argument("--horizon", type=horizon_arg, default=None,
                         help=f"number of steps T (default: the system's default_horizon, else {DEFAULT_HORIZON})")
-    add_dataclass_args(parser, BuildConfig, only=("points", "points_per_cell", "seed", "ties", "start"), help={
+    add_dataclass_args(parser, BuildConfig, only=("points", "points_per_cell", "seed", "ties", "start"),
+                       arg_types={"seed": non_negative_int, "points_per_cell": positive_int}, help={
         "start": "the state to build from, one number per state dimension (default: the zero state); an "
                  "SE(2)-invariant system's x, y, theta must be 0 (its table serves every pose), e.g. --system ks_speed "
                  "--start 0 0 0 0.5",
@@ -101,7 +108,7 @@ def make_parser() -> argparse.ArgumentParser:
                              "cells within --radius of its obstacles (SE(2)-invariant systems)")
     parser.add_argument("--radius", dest="map_radius", type=float, default=None, metavar="R",
                         help="with --map: the robot's radius (m) its obstacles are inflated by (default 0)")
-    parser.add_argument("--threads", type=int, default=1,
+    parser.add_argument("--threads", type=threads_arg, default=1,
                         help="torch CPU threads (0: torch's choice, one per core). 1 by default: the build's tensors "
                              "are small, and on a busy machine extra threads only wait for each other")
     parser.add_argument("--method", default="maxflow", choices=["maxflow", "coverage"],
@@ -114,13 +121,13 @@ def make_parser() -> argparse.ArgumentParser:
                         help="build a table set, one table per start, into the folder --out: a grid 'DIM=LO:HI:N ...' "
                              "or a seeded sample 'random:N DIM=LO:HI ...' over the non-pose dimensions "
                              "(precompute/table_set.py)")
-    parser.add_argument("--workers", type=int, default=1, help="with --starts: tables built in parallel processes")
+    parser.add_argument("--workers", type=int_in(1, 1024), default=1, help="with --starts: tables built in parallel processes")
     parser.add_argument("--ray", nargs="?", const="local", default=None, metavar="ADDRESS",
                         help="with --starts: tables as Ray tasks (a local runtime, or the cluster at ADDRESS)")
     parser.add_argument("--resume", action="store_true", help="continue an interrupted build from its checkpoints (maxflow)")
-    parser.add_argument("--rollouts", type=int, default=None, help="rollouts for the report (default: 10 x largest level)")
+    parser.add_argument("--rollouts", type=positive_int, default=None, help="rollouts for the report (default: 10 x largest level)")
     parser.add_argument("--no-report", action="store_true", help="skip the uniformity report")
-    parser.add_argument("--device", default="cpu", help="device for the report's rollouts (cpu, cuda)")
+    parser.add_argument("--device", type=device_arg, default="cpu", help="device for the report's rollouts (cpu, cuda)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
     group = parser.add_argument_group("system parameters (each applies to the systems that have it)")
     for name, f in _system_fields().items():
@@ -132,7 +139,7 @@ def make_parser() -> argparse.ArgumentParser:
         elif isinstance(default, bool):
             kwargs.update(type=lambda s: s.lower() in ("1", "true", "yes"))
         elif isinstance(default, int):
-            kwargs.update(type=int)
+            kwargs.update(type=positive_int)  # the systems' integer parameters are counts (actions, repeats)
         elif isinstance(default, str):
             kwargs.update(type=str)
         else:

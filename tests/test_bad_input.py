@@ -601,25 +601,33 @@ def _cli(tmp_path: Path, *args: str) -> tuple[list[str], Path]:
     return ["--out", str(out), "--quiet", "--no-report", *args], out
 
 
+def _exit_code(main, argv) -> int:
+    """``main(argv)``'s exit code: its return value, or argparse's exit for a flag value refused as it parses."""
+    try:
+        return main(argv)
+    except SystemExit as exc:
+        return exc.code
+
+
 @pytest.mark.parametrize("args, match", [
     (["--system", "nope"], r"unknown system 'nope'; known systems: .*dubins"),
-    (["--system", "dubins", "--horizon", "0"], r"horizon must be a positive integer \(steps\), got 0"),
-    (["--system", "dubins", "--horizon", "-2"], r"horizon must be a positive integer"),
+    (["--system", "dubins", "--horizon", "0"], r"argument --horizon: must be an integer in \[1, 1000\].*got 0"),
+    (["--system", "dubins", "--horizon", "-2"], r"argument --horizon: must be an integer in \[1, 1000\]"),
     (["--system", "dubins", "--horizon", "1", "--cell-size", "0", "0.05", "0.157"], r"dubins: cell_size must be positive"),
     (["--system", "dubins", "--horizon", "1", "--cell-size", "0.05", "0.05"], r"dubins: cell_size needs 3 value\(s\)"),
     (["--system", "dubins", "--horizon", "1", "--cell-size", "0.05", "0.05", "0.3"], r"angle cell size must divide 2\*pi"),
     (["--system", "random_walk_1d", "--speed", "2"], r"system 'random_walk_1d' has no parameter\(s\) speed"),
     (["--system", "random_walk_1d", "--max-omega", "1"], r"system 'random_walk_1d' has no parameter\(s\) max_omega"),
     (["--system", "dubins", "--max-speed", "1"], r"system 'dubins' has no parameter\(s\) max_speed"),
-    (["--system", "dubins", "--horizon", "1", "--num-actions", "0"], r"num_actions must be a positive integer"),
+    (["--system", "dubins", "--horizon", "1", "--num-actions", "0"], r"argument --num-actions: must be an integer in"),
     (["--system", "dubins", "--horizon", "1", "--dt", "0"], r"dubins: dt must be a positive number"),
     (["--system", "dubins", "--horizon", "1", "--cell-offset", "0", "0", "0.5"], r"\|offset\| < 0\.5"),
     (["--system", "random_walk_1d", "--horizon", "1", "--points", "random", "--points-per-cell", "0"],
-     r"points_per_cell must be >= 1"),
+     r"argument --points-per-cell: must be an integer in"),
 ])
 def test_cli_bad_input(tmp_path, capsys, args, match):
     argv, out = _cli(tmp_path, *args)
-    assert build_main(argv) == 2
+    assert _exit_code(build_main, argv) == 2
     err = capsys.readouterr().err
     assert err.startswith("error: "), err
     assert re.search(match, err), err
@@ -661,8 +669,8 @@ def test_cli_out_parent_is_a_file(tmp_path, capsys):
 
 def test_cli_bad_device(tmp_path, capsys):
     out = tmp_path / "t.npz"
-    rc = build_main(["--out", str(out), "--quiet", "--system", "random_walk_1d", "--horizon", "1",
-                     "--rollouts", "10", "--device", "nope"])
+    rc = _exit_code(build_main, ["--out", str(out), "--quiet", "--system", "random_walk_1d", "--horizon", "1",
+                                 "--rollouts", "10", "--device", "nope"])
     assert rc == 2
     assert re.search(r"error: .*device.*nope", capsys.readouterr().err)
 

@@ -197,11 +197,11 @@ class TestBadInput:
         return path
 
     @pytest.mark.parametrize("extra, message", [
-        (["--hidden", "0"], "--hidden must be a positive integer"),
-        (["--layers", "-1"], "--layers must be a positive integer"),
-        (["--lr", "nan"], "--lr must be a positive number"),
-        (["--jitter", "-2"], "--jitter must be >= 0"),
-        (["--threads", "-1"], "--threads must be >= 0"),
+        (["--hidden", "0"], "argument --hidden: must be an integer in [1, 65536]"),
+        (["--layers", "-1"], "argument --layers: must be an integer in [1, 65536]"),
+        (["--lr", "nan"], "argument --lr:"),
+        (["--jitter", "-2"], "argument --jitter:"),
+        (["--threads", "-1"], "argument --threads:"),
         (["--device", "tpu:x"], "--device"),
         (["--eval-samples", "0"], "--eval-samples"),
         (["--epochs", "two"], "invalid int value"),

@@ -12,6 +12,6 @@
   :mod:`training.tables.figures` (TensorBoard figures), :mod:`training.tables.support` (the cells a checkpoint records).
 """
 
-from training.startup import install_when_run_as_command
+from precompute.startup import install_when_run_as_command
 
 install_when_run_as_command()  # python -m ...: Ctrl-C during the imports is one line and exit 130

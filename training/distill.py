@@ -55,7 +55,13 @@ from cuniform_torch.cli import (
     check_output_folder,
     cli_main,
     dataclass_from_args,
+    device_arg,
     import_system_modules,
+    int_in,
+    non_negative_int,
+    positive_float,
+    positive_int,
+    threads_arg,
 )
 from cuniform_torch.common.fileio import exclusive_lock
 from cuniform_torch.grid.cells import Grid
@@ -91,7 +97,11 @@ def make_parser() -> ArgumentParser:
     """A flag per :class:`DistillConfig` field (:func:`cuniform_torch.cli.add_dataclass_args`: its type, its
     docstring and its default, which lives only in the dataclass)."""
     parser = _Parser(prog="python -m training.distill", description=__doc__.splitlines()[0])
-    add_dataclass_args(parser, DistillConfig, exclude=("system_module",), required=("tables",))
+    add_dataclass_args(parser, DistillConfig, exclude=("system_module",), required=("tables",), arg_types={
+        **{name: int_in(1, 65536) for name in ("hidden", "layers")}, "epochs": positive_int,
+        "batch_size": positive_int, "val_points": positive_int, "patience": positive_int, "eval_every": positive_int,
+        "seed": non_negative_int, "jitter": int_in(0, 1000), "threads": threads_arg, "device": device_arg,
+        "lr": positive_float})
     add_system_module_arg(parser)  # repeatable, as in every entry point
     return parser
 

@@ -36,6 +36,11 @@ from cuniform_torch.cli import (
     field_docs,
     flag_name,
     given_fields,
+    horizon_arg,
+    int_in,
+    non_negative_int,
+    positive_float,
+    positive_int,
 )
 from cuniform_torch.common.fileio import exclusive_lock, write_json
 from cuniform_torch.common.parallel import run_jobs
@@ -59,13 +64,13 @@ def make_parser() -> argparse.ArgumentParser:
     parser = ArgumentParser(prog="python -m precompute.maps.farm",
                             description="Build a data set of safe C-Uniform tables over local map patches.")
     parser.add_argument("--suite", required=True, choices=list(FARM_SUITES))
-    parser.add_argument("--count", type=int, required=True, help="maps (one shard each)")
-    parser.add_argument("--poses-per-map", type=int, default=1, help="start poses (entries) per map")
+    parser.add_argument("--count", type=positive_int, required=True, help="maps (one shard each)")
+    parser.add_argument("--poses-per-map", type=positive_int, default=1, help="start poses (entries) per map")
     parser.add_argument("--split", required=True, choices=list(SPLITS),
                         help="test: the maps whose key is divisible by 5; train: the others (precompute/maps/worlds.py)")
-    parser.add_argument("--seed", type=int, default=0, help="picks the maps of the split and the start poses")
+    parser.add_argument("--seed", type=non_negative_int, default=0, help="picks the maps of the split and the start poses")
     parser.add_argument("--out", type=Path, required=True, help="the data set folder")
-    parser.add_argument("--workers", type=int, default=1, help="shards built in parallel processes")
+    parser.add_argument("--workers", type=int_in(1, 1024), default=1, help="shards built in parallel processes")
     parser.add_argument("--ray", nargs="?", const="local", default=None, metavar="ADDRESS",
                         help="shards as Ray tasks (a local runtime, or the cluster at ADDRESS)")
     parser.add_argument("--method", default="maxflow", choices=["maxflow", "coverage"])
@@ -75,11 +80,11 @@ def make_parser() -> argparse.ArgumentParser:
     parser.add_argument("--system", default=NAV_ROBOT.system, help="default: the benchmark robot's")
     parser.add_argument("--param", action="append", default=[], metavar="KEY=VALUE",
                         help="a system parameter as JSON over the benchmark robot's (repeatable)")
-    parser.add_argument("--horizon", type=int, default=NAV_ROBOT.horizon)
+    parser.add_argument("--horizon", type=horizon_arg, default=NAV_ROBOT.horizon)
     parser.add_argument("--radius", type=float, default=NAV_ROBOT.radius, help="robot radius (m) to inflate by")
-    parser.add_argument("--patch", type=int, nargs=2, default=[72, 72], metavar=("H", "W"),
+    parser.add_argument("--patch", type=int_in(1, 4096), nargs=2, default=[72, 72], metavar=("H", "W"),
                         help="patch cells (centred on the robot)")
-    parser.add_argument("--resolution", type=float, default=0.05, help="patch cell side (m)")
+    parser.add_argument("--resolution", type=positive_float, default=0.05, help="patch cell side (m)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
     return parser
 
