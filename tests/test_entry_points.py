@@ -27,6 +27,7 @@ from pathlib import Path
 
 import pytest
 import torch
+from test_cli_errors import _one_error
 from test_docs import cli_modules, command_module
 
 from cuniform_torch import cli
@@ -129,14 +130,6 @@ def cases() -> list:
 
 
 CASES = cases()
-
-
-def _one_error(capsys, *needles: str) -> str:
-    err = capsys.readouterr().err
-    assert err.startswith("error: ") and err.count("\n") == 1 and "Traceback" not in err, err
-    for needle in needles:
-        assert needle in err, err
-    return err
 
 
 def _exit_code(main, argv: list[str]) -> int:

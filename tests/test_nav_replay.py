@@ -8,6 +8,7 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
+from test_cli_errors import _one_error
 from test_navigate import Straight  # a controller without plan(): it always drives straight
 
 from cuniform_torch.envs.worlds.robot import NAV_ROBOT
@@ -80,14 +81,6 @@ def test_a_changed_record_is_reported_as_not_reproduced(bench):
     assert compare_records(got["stored"], {**got["replayed"], "path_length": got["replayed"]["path_length"] + 1e-3})
 
 
-def _one_error(capsys, *needles: str) -> str:
-    err = capsys.readouterr().err
-    assert err.startswith("error: ") and err.count("\n") == 1 and "Traceback" not in err, err
-    for needle in needles:
-        assert needle in err, err
-    return err
-
-
 def test_an_unknown_key_or_a_wrong_source_file_is_one_clear_error(bench, tmp_path, capsys):
     out, cache, records = bench
     key = next(iter(records))
@@ -141,7 +134,7 @@ def test_a_map_policy_or_barn_file_other_than_the_runs_is_one_clear_error(bench,
     record = dict(records[next(iter(records))], method="cfu_mppi")
     with pytest.raises(ValueError, match=f"--map-policy {policy} is not the file the run used"):
         _checked_sources(settings, record, ROBOT, cache, {"table": table, "map_policy": policy})
-    with pytest.raises(ValueError, match="cfu_mppi needs --map-policy"):
+    with pytest.raises(ValueError, match="cfu_mppi needs a map policy for this robot"):
         _checked_sources(settings, record, ROBOT, cache, {"table": table})
     barn = dict(suite="barn", barn_file=None)  # the shipped file
     assert _barn_file(tmp_path, barn, None) is None

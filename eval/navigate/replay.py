@@ -85,17 +85,22 @@ def _checked_sources(settings: dict, record: dict, robot: RobotPreset, cache: Pa
                      given: dict[str, Path | None]) -> dict[str, str | None]:
     """eval.navigate.run's source files for the record's method, each checked against the run's digest."""
     cfg = NavConfig(suite=settings["suite"], methods=(record["method"],), horizon=settings["horizon"])
-    sources = _sources(cfg, robot, cache, given, quiet=True)
     used = settings.get("sources") or {}
-    for name, path in sources.items():
-        if path is None or used.get(name) is None:
-            continue  # a file the run's methods never read matches anything (eval.navigate.store)
-        have = _file_digest(Path(path))
-        if have != used[name]:
-            flag = f"--{name.replace('_', '-')}"
-            what = f"{flag} {path}" if given.get(name) else f"{path} (the default of {flag})"
-            raise ValueError(f"{what} is not the file the run used (digest {have}, the run's {used[name]}); give "
-                             f"the run's {flag}")
+
+    def check(sources: dict) -> None:
+        for name, path in sources.items():
+            if path is None or used.get(name) is None or not Path(path).exists():
+                continue  # a file the run's methods never read matches anything (eval.navigate.store)
+            have = _file_digest(Path(path))
+            if have != used[name]:
+                flag = f"--{name.replace('_', '-')}"
+                what = f"{flag} {path}" if given.get(name) else f"{path} (the default of {flag})"
+                raise ValueError(f"{what} is not the file the run used (digest {have}, the run's {used[name]}); "
+                                 f"give the run's {flag}")
+
+    check(given)  # a given file first: before it is read, so another file is named as such
+    sources = _sources(cfg, robot, cache, given, quiet=True)
+    check(sources)
     return sources
 
 

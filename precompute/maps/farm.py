@@ -103,17 +103,7 @@ def _system(args: argparse.Namespace):
 
 
 def _check(args: argparse.Namespace) -> None:
-    for flag, value, low in (("--count", args.count, 1), ("--poses-per-map", args.poses_per_map, 1),
-                             ("--workers", args.workers, 1), ("--horizon", args.horizon, 1),
-                             ("--patch", min(args.patch), 1)):
-        if value < low:
-            raise CLIError(f"{flag} must be >= {low}, got {value}")
-    if not (args.resolution > 0 and np.isfinite(args.resolution)):
-        raise CLIError(f"--resolution must be > 0 (m), got {args.resolution}")
-    if not (args.radius >= 0 and np.isfinite(args.radius)):
-        raise CLIError(f"--radius must be >= 0 (m), got {args.radius}")
-    if args.out.exists() and not args.out.is_dir():
-        raise CLIError(f"--out {args.out}: not a folder")
+    """The flags' own rule (the values are checked as they parse, and again by :func:`build_farm`)."""
     given = [flag_name(k) for k in _coverage_given(args)]
     if given and args.method != "coverage":
         raise CLIError(f"{', '.join(given)}: only for --method coverage")
