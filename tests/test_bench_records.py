@@ -18,7 +18,7 @@ def bench_settings(suite: str = "gaps", **kw) -> dict:
     gaps = dict(gap_widths=[0.6, 1.2]) if suite == "gaps" else {}
     return dict(suite=suite, seed=0, sensing_range=3.0, horizon=6, lambda_=0.5, collision_penalty=1e6,
                 cost_resolution=0.01, robot=robot, time_limit=30.0, barn_file=None,
-                sources=dict(table="aa", coverage_table=None, policy=None)) | gaps | kw
+                sources=dict(table="00000000000000aa", coverage_table=None, policy=None)) | gaps | kw
 
 
 def bench_record(task_id: int = 0, method: str = "mppi_1.0", budget: int = 16, repeat: int = 0,
@@ -136,7 +136,7 @@ def test_a_cut_short_last_line_is_dropped_and_a_whole_one_kept(tmp_path):
 
 @pytest.mark.parametrize("text, match", [
     ("[1, 2]", "not a JSON object but a list"),
-    (_settings(sources="abc"), "field 'sources' must be an object of digest strings or nulls, got 'abc'"),
+    (_settings(sources="abc"), r"field 'sources' must be an object of digests \(16 hex digits\) or nulls, got 'abc'"),
     (_settings(sources={"table": 3}), "field 'sources' must be"),
     (_settings(horizon="15"), "field 'horizon' must be an integer >= 1, got '15'"),
     (_settings(seed=1.5), "field 'seed' must be an integer"),

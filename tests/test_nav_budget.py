@@ -20,7 +20,7 @@ def _settings() -> dict:
     robot = dict(system="dubins", params=dict(speed=0.5, dt=0.2), radius=0.2, horizon=6)
     return dict(suite=SUITE, seed=0, sensing_range=3.0, horizon=6, lambda_=0.5, collision_penalty=1e6,
                 cost_resolution=0.01, robot=robot, time_limit=30.0, barn_file=None,
-                sources=dict(table="aa", coverage_table=None, policy=None))
+                sources=dict(table="00000000000000aa", coverage_table=None, policy=None))
 
 
 def _records(method: str, k: int, outcomes: str, ms: float, tail_ms: float | None = None, first_task: int = 0,

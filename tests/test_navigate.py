@@ -267,15 +267,16 @@ def test_store_merges_new_source_files_and_refuses_changed_ones(tmp_path):
 
     from eval.navigate.store import EpisodeStore, StoreError
 
-    base = bench_settings("barn", lambda_=0.5, sources=dict(table="aa", policy=None))
+    aa, bb, cc, dd = (f"{c * 2:0>16}" for c in "abcd")  # digests as the run writes them: 16 hex digits
+    base = bench_settings("barn", lambda_=0.5, sources=dict(table=aa, policy=None))
     EpisodeStore(tmp_path).open(base)
-    EpisodeStore(tmp_path).open({**base, "sources": dict(table="aa", policy="pp")})  # the MLP joins
-    assert json.loads((tmp_path / "settings.json").read_text())["sources"] == dict(table="aa", policy="pp")
+    EpisodeStore(tmp_path).open({**base, "sources": dict(table=aa, policy=bb)})  # the MLP joins
+    assert json.loads((tmp_path / "settings.json").read_text())["sources"] == dict(table=aa, policy=bb)
     EpisodeStore(tmp_path).open(base)  # a later run without the MLP still fits
     with pytest.raises(StoreError, match="sources.policy"):
-        EpisodeStore(tmp_path).open({**base, "sources": dict(table="aa", policy="other")})
+        EpisodeStore(tmp_path).open({**base, "sources": dict(table=aa, policy=cc)})
     with pytest.raises(StoreError, match="sources.table"):
-        EpisodeStore(tmp_path).open({**base, "sources": dict(table="bb", policy=None)})
+        EpisodeStore(tmp_path).open({**base, "sources": dict(table=dd, policy=None)})
 
 
 def _map_policy_file(path, system, horizon):

@@ -46,7 +46,12 @@ from cuniform_torch.sampling.rollout import OWN_ROBOT, StartMismatchWarning, che
 from cuniform_torch.systems import System
 from cuniform_torch.tables.lookup import MISS
 
-__all__ = ["StartRegion", "StartMLPPolicy", "start_dims_of"]
+__all__ = ["StartRegion", "StartMLPPolicy", "start_dims_of", "MAX_ABS_START"]
+
+MAX_ABS_START = 1e6
+"""the largest magnitude of a start value (state units: m, rad, m/s, ...): far beyond any robot's state, so a
+larger one is a damaged or forged region (as :data:`~cuniform_torch.policies.checkpoint.MAX_ABS_WEIGHT` for
+weights)"""
 
 
 def start_dims_of(system: System) -> list[int]:
@@ -65,7 +70,7 @@ class StartRegion:
 
     def check(self, system: System) -> None:
         """ValueError naming what is wrong: the dims must be :func:`start_dims_of` ``system``, the starts a
-        finite float64 ``[S, k]`` tensor with S >= 1."""
+        finite float64 ``[S, k]`` tensor with S >= 1 and values within :data:`MAX_ABS_START`."""
         expect = start_dims_of(system)
         if list(self.dims) != expect:
             raise ValueError(f"start_region dims must be {expect} for {system.name} (the dimensions the frame change "
@@ -77,6 +82,9 @@ class StartRegion:
                              f"{getattr(s, 'dtype', type(s).__name__)} {list(getattr(s, 'shape', []))}")
         if not bool(torch.isfinite(s).all()):
             raise ValueError("start_region starts hold NaN or infinite values")
+        if float(s.abs().max()) > MAX_ABS_START:
+            raise ValueError(f"start_region starts hold a value of magnitude {float(s.abs().max()):.3g}, beyond the "
+                             f"bound {MAX_ABS_START:g} of a robot's state")
 
     def bounds(self, grid: Grid) -> tuple[Tensor, Tensor]:
         """``(lo, hi)`` ``[k]`` float64: the starts' bounding box grown by half a spacing (module docstring)."""

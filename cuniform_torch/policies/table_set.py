@@ -349,6 +349,8 @@ def load_table_set(folder: str | os.PathLike, device: torch.device | str = "cpu"
         index = json.loads(index_path.read_text())
     except (OSError, ValueError) as exc:
         raise TableError(f"{index_path}: not a readable table-set index ({exc})") from None
+    except RecursionError:  # the json module's own limit: arrays or objects nested thousands deep
+        raise TableError(f"{index_path}: not a readable table-set index (JSON nested too deep)") from None
     if not isinstance(index, dict) or index.get("format") != SET_FORMAT or not isinstance(index.get("tables"), list) \
             or not index["tables"]:
         raise TableError(f"{index_path}: not a {SET_FORMAT!r} index with a non-empty list of tables")

@@ -12,6 +12,7 @@ import dataclasses
 import importlib
 import inspect
 import json
+import math
 from collections.abc import Callable
 from typing import Any
 
@@ -218,7 +219,9 @@ def system_from_json(text: str, *, trust_factory: str | Callable[..., Any] | Non
 
     Nothing the JSON names is imported or called: the system comes from the registry, or from ``trust_factory``
     (a ``"module:factory"`` path or the factory itself) that the caller names. The JSON's ``factory`` string is
-    only compared with it. A trusted factory is registered under the system's name once it has built a valid
+    only compared: with the trusted path, or (without one) with the registered factory's ``"module:qualname"``;
+    a built-in system's JSON names none. Its ``dt`` (redundant with ``params``), if present, must be the rebuilt
+    system's. A trusted factory is registered under the system's name once it has built a valid
     system from the JSON's parameters. :class:`UnknownSystemError` says what to pass when the name is unknown.
     """
     if not isinstance(text, str) or len(text) > _MAX_SYSTEM_JSON:
@@ -238,10 +241,20 @@ def system_from_json(text: str, *, trust_factory: str | Callable[..., Any] | Non
     named = spec.get("factory")
     if named is not None and not isinstance(named, str):
         raise ValueError(f"system JSON: factory must be a 'module:factory' string, got {named!r}")
+    dt = spec.get("dt")
+    if dt is not None and not (isinstance(dt, (int, float)) and not isinstance(dt, bool) and math.isfinite(dt)):
+        raise ValueError(f"system JSON: dt must be a finite number (s), got {dt!r}")
     if trust_factory is None:
         if name not in _REGISTRY:
             raise UnknownSystemError(_unknown_message(name, named))
-        return make_system(name, **params), horizon
+        registered = _REGISTRY[name]
+        if named is not None:  # never imported; but a file may only name the factory that rebuilds it
+            own = None if is_builtin(registered) else _definition_path(registered)
+            if named != own:
+                what = "a built-in system (its JSON names no factory)" if own is None else f"registered from {own!r}"
+                raise ValueError(f"system JSON: names factory {named!r}, but {name!r} is {what}; a file names "
+                                 "only the factory that rebuilds it")
+        return _checked_dt(make_system(name, **params), dt), horizon
     factory = load_factory(trust_factory) if isinstance(trust_factory, str) else trust_factory
     if not callable(factory):
         raise ValueError(f"trust_factory must be a 'module:factory' path or a callable, got {trust_factory!r}")
@@ -251,10 +264,18 @@ def system_from_json(text: str, *, trust_factory: str | Callable[..., Any] | Non
     registered = _REGISTRY.get(name)
     if registered is not None and registered is not factory and not _same_definition(registered, factory):
         raise ValueError(f"system {name!r} is registered with another factory than the trusted {trusted or factory!r}")
-    system = _build(name, factory, params)
+    system = _checked_dt(_build(name, factory, params), dt)
     if registered is None:
         register_system(name, factory)
     return system, horizon
+
+
+def _checked_dt(system: System, dt: float | None) -> System:
+    """``system`` if the JSON's ``dt`` (redundant with its params) is absent or the rebuilt system's own."""
+    if dt is not None and float(dt) != float(system.dt):
+        raise ValueError(f"system JSON dt does not match its params: {dt!r}, but the rebuilt {system.name!r} has "
+                         f"dt {float(system.dt)!r}")
+    return system
 
 
 def _definition_path(factory: Any) -> str | None:

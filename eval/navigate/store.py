@@ -7,7 +7,8 @@ whose key is not there yet (more tasks, methods, budgets or repeats extend a run
 is refused, naming the settings that differ, since its records would not be comparable. The digests of the
 files the methods read (:data:`MERGED`) merge: a method that reads a new file (the MLP, say) may join later,
 but a different file under the same name is refused. A line cut short by a
-crash (the last one) is dropped with a warning; a bad line elsewhere is an error.
+crash (the last one) is dropped with a warning by a run, left out with a one-line note on stderr by a read-only
+reader; a bad line elsewhere is an error.
 
 This is the one parser of the folder: the run, and the read-only readers (replay, compare, failures) through
 :meth:`EpisodeStore.load`. Records without settings are refused (what they were run with is unknown), and so is
@@ -20,6 +21,8 @@ from __future__ import annotations
 import json
 import math
 import os
+import re
+import sys
 import warnings
 from collections.abc import Callable
 from pathlib import Path
@@ -67,8 +70,19 @@ def _str(v: Any) -> bool:
     return isinstance(v, str)
 
 
+_DIGEST = re.compile(r"[0-9a-f]{16}")
+
+
 def _digest(v: Any) -> bool:
-    return v is None or isinstance(v, str)
+    """A file's digest as the run writes it (``eval.navigate.run._file_digest``): 16 hex digits of its sha256, or
+    None (no such file)."""
+    return v is None or (isinstance(v, str) and _DIGEST.fullmatch(v) is not None)
+
+
+def _widths(v: Any) -> bool:
+    """The gap sweep's widths as the run writes them: numbers > 0, sorted and distinct."""
+    return (isinstance(v, list) and bool(v) and all(_positive(w) for w in v)
+            and all(a < b for a, b in zip(v, v[1:])))
 
 
 def _robot(v: Any) -> bool:
@@ -92,11 +106,11 @@ SETTINGS: dict[str, Check] = {
     "robot": ("an object {system: str, params: object, radius: number >= 0, horizon: int >= 1[, starts: str]}",
               _robot, True),
     "time_limit": ("a number > 0", _positive, True),
-    "barn_file": ("a digest string or null", _digest, True),
-    MERGED: ("an object of digest strings or nulls",
+    "barn_file": ("a digest (16 hex digits) or null", _digest, True),
+    MERGED: ("an object of digests (16 hex digits) or nulls",
              lambda v: isinstance(v, dict) and all(_digest(d) for d in v.values()), True),
     "cost_to_go": ("a number > 0", _positive, False),
-    "gap_widths": ("a list of numbers > 0", lambda v: isinstance(v, list) and all(_positive(w) for w in v), False),
+    "gap_widths": ("a list of numbers > 0, non-empty, sorted and distinct", _widths, False),
 }
 """``settings.json``'s fields (``eval.navigate.run.settings_record`` writes them): another field is refused"""
 
@@ -159,7 +173,10 @@ def _problem(obj: Any, fields: dict[str, Check], strict: bool) -> str | None:
 
 def check_settings(settings: Any) -> str | None:
     """What is wrong with a ``settings.json`` object (:data:`SETTINGS`), or None."""
-    return _problem(settings, SETTINGS, strict=True)
+    problem = _problem(settings, SETTINGS, strict=True)
+    if problem is None and settings["suite"] != "barn" and settings["barn_file"] is not None:
+        problem = f"field 'barn_file' must be null outside the barn suite, got {settings['barn_file']!r}"
+    return problem
 
 
 def check_record(record: Any) -> str | None:
@@ -218,6 +235,7 @@ class EpisodeStore:
         self.folder = Path(folder)
         self.settings_file = self.folder / "settings.json"
         self.records_file = self.folder / "episodes.jsonl"
+        self._noted_cut = False  # a read-only load said once that it left a cut-short last line out
 
     def open(self, settings: dict[str, Any]) -> dict[str, dict]:
         """Check or write the settings; the records already there, by key."""
@@ -248,7 +266,7 @@ class EpisodeStore:
         :meth:`open` refuses whatever the settings: records without settings, settings or records of the wrong
         shape. A folder without either passes (a new run)."""
         if self.settings_file.exists() or self._has_records():
-            self.load()
+            self._load(note=False)  # the run's open() warns about a cut-short last line, and drops it
 
     def _no_settings(self) -> StoreError:
         return StoreError(f"{self.folder} holds episode records ({self.records_file.name}) but no settings.json, so "
@@ -273,12 +291,21 @@ class EpisodeStore:
 
     def load(self) -> tuple[dict[str, Any], dict[str, dict]]:
         """``(settings, records by key)``, read only (:meth:`read`)."""
+        return self._load(note=True)
+
+    def _load(self, note: bool) -> tuple[dict[str, Any], dict[str, dict]]:
         settings = self.read_settings()
-        return settings, self._parse(settings["suite"])[0]
+        records, _, cut, line = self._parse(settings["suite"])
+        if cut and note and not self._noted_cut:  # never silently: the reader's numbers lack that episode
+            self._noted_cut = True
+            print(f"note: {self.records_file}: line {line} is cut short ({cut} bytes, not a record; a run may "
+                  f"be writing it now): left out, the file left as it is", file=sys.stderr)
+        return settings, records
 
     def read(self) -> dict[str, dict]:
         """The records by key, read only: a last line cut short (a run may be writing it now) is left out and left
-        alone; a bad line elsewhere is a :class:`StoreError`. Needs the settings (:meth:`load`)."""
+        alone, said once on stderr (one line naming the file and the line); a bad line elsewhere is a
+        :class:`StoreError`. Needs the settings (:meth:`load`)."""
         return self.load()[1]
 
     def _has_records(self) -> bool:
@@ -296,7 +323,7 @@ class EpisodeStore:
             raise StoreError(f"{self.records_file}: unreadable ({err.strerror or err}); fix or delete it") from None
 
     def _read(self, suite: str) -> dict[str, dict]:
-        records, good, cut = self._parse(suite)
+        records, good, cut, _ = self._parse(suite)
         if cut:  # the last write, cut short: dropped so that appends start on a fresh line
             warnings.warn(f"{self.records_file}: dropping an incomplete last line ({cut} bytes)", stacklevel=2)
             with open(self.records_file, "r+b") as f:
@@ -308,12 +335,12 @@ class EpisodeStore:
                     f.write(b"\n")
         return records
 
-    def _parse(self, suite: str) -> tuple[dict[str, dict], int, int]:
-        """``(records by key, bytes of the complete lines, bytes of a cut-short last line or 0)``: every record
-        checked (:func:`check_record`, of ``suite``), a key twice refused."""
+    def _parse(self, suite: str) -> tuple[dict[str, dict], int, int, int]:
+        """``(records by key, bytes of the complete lines, bytes of a cut-short last line or 0, its line number or
+        0)``: every record checked (:func:`check_record`, of ``suite``), a key twice refused."""
         data = self._records_bytes()
         if data is None:
-            return {}, 0, 0
+            return {}, 0, 0, 0
         lines = data.split(b"\n")
         records: dict[str, dict] = {}
         first: dict[str, int] = {}  # the line of each key
@@ -326,7 +353,7 @@ class EpisodeStore:
                 rec = _loads(line)
             except ValueError as err:
                 if i == len(lines) - 1 and not isinstance(err, _Whole):
-                    return records, good, len(line)
+                    return records, good, len(line), i + 1
                 raise StoreError(f"{self.records_file}: line {i + 1} is not a record ({err}); fix or delete the "
                                  "file") from None
             problem = check_record(rec)
@@ -340,7 +367,7 @@ class EpisodeStore:
             records[rec["key"]] = rec
             first[rec["key"]] = i + 1
             good += len(line) + 1
-        return records, good, 0
+        return records, good, 0, 0
 
     def append(self, record: dict) -> None:
         """Append one record and flush it to disk."""

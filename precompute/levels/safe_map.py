@@ -137,6 +137,9 @@ def read_map_file(path: str | Path) -> LocalMap:
     except DigestError as exc:
         raise MapError(f"--map {exc}") from None
     check_map_arrays(z["occupied"], z["origin"], z["resolution"], where)
+    for key in ("origin", "resolution"):  # the file's contract: float64 (a float32 0.1 is another resolution)
+        if z[key].dtype != np.float64:
+            raise MapError(f"{where}: '{key}' must be float64, got {z[key].dtype}")
     if stored is None:
         check_digest(z, None, str(path))
     return LocalMap(z["occupied"], tuple(z["origin"].tolist()), float(z["resolution"]))

@@ -249,6 +249,10 @@ def _dataset_from_meta(meta: Any, root: Path, path: Path) -> MapDataset:
         fail(f"patch resolution must be > 0 (m), got {res!r}")
     if not (isinstance(origin, list) and len(origin) == 2 and all(_is_num(v) for v in origin)):
         fail(f"patch origin must be [x0, y0], got {origin!r}")
+    centred = [-shape[1] * res / 2, -shape[0] * res / 2]  # the farm's: the robot's start at the patch's centre
+    if not np.allclose(origin, centred, rtol=1e-9, atol=1e-12):
+        fail(f"patch origin {origin!r} must be the centred origin [-W * resolution / 2, -H * resolution / 2] = "
+             f"{centred!r} of shape {shape!r} and resolution {res!r}")
     if meta["split"] not in ("train", "test"):
         fail(f"split must be train or test, got {meta['split']!r}")
     if not _is_int(meta["seed"]):
