@@ -25,7 +25,10 @@ Outcomes (per case):
   original (the arrays / tables / records read, a policy's weights and its action probabilities at fixed probe
   states); a command exited 0 or kept running on a bad value;
 * ``harmless accepted``: the reader accepted the copy and returned exactly what it returns for the original
-  (e.g. an unknown extra key, a flipped byte in a member the reader never reads).
+  (e.g. an unknown extra key, a flipped byte in a member the reader never reads);
+* ``left out, said``: the reader returned less than for the original and said so: exactly one line on stderr
+  that names the file and says what it ``left out`` (a benchmark folder's cut-short last record, which a run
+  may be writing now: docs/formats.md). Anything else returned differently is ``silent wrong``.
 
 Memory: each child resets its peak RSS (``/proc/self/clear_refs``) when it starts; its peak over the RSS it
 started with is the reader's own cost ("peak MB"). The baseline (a fresh ``python`` that imports torch and the
@@ -56,7 +59,8 @@ from pathlib import Path
 from typing import Any
 
 REPO = Path(__file__).resolve().parents[1]
-OUTCOMES = ("clear error", "silent wrong", "traceback", "code ran", "crash/hang", "harmless accepted")
+OUTCOMES = ("clear error", "silent wrong", "traceback", "code ran", "crash/hang", "harmless accepted",
+            "left out, said")
 BAD = ("silent wrong", "traceback", "code ran", "crash/hang")
 PEAK_LIMIT_MB = 256
 SMALL_FILE = 10 << 20
@@ -330,7 +334,13 @@ def run_reader_case(case: Case, readers: dict, original: dict[str, str], workdir
                 case.extra["traceback"] = out["traceback"]
         else:
             case.extra["fp"] = out["fp"]
-            case.outcome = "harmless accepted" if out["fp"] == original.get(case.reader) else "silent wrong"
+            said = [ln for ln in stderr.splitlines() if ln.strip()]
+            if out["fp"] == original.get(case.reader):
+                case.outcome = "harmless accepted"
+            elif len(said) == 1 and case.target in said[0] and "left out" in said[0]:
+                case.outcome = "left out, said"
+            else:
+                case.outcome = "silent wrong"
             case.detail = "accepted" + (f"; stderr: {stderr.strip()[:200]}" if stderr.strip() else "")
     if ran:
         case.outcome = "code ran"
@@ -722,8 +732,9 @@ def _is_num(v: Any) -> bool:
     return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
 
 
-def settings_allowed(path: tuple, v: Any) -> bool:
-    """What docs/formats.md allows in a benchmark folder's settings.json (the edits that stay valid)."""
+def settings_allowed(path: tuple, v: Any, doc: dict | None = None) -> bool:
+    """What docs/formats.md allows in a benchmark folder's settings.json (the edits that stay valid); ``doc``: the
+    document edited (gap widths must stay sorted and distinct)."""
     head = path[0]
     if head == "robot" and len(path) >= 2 and path[1] == "params":
         return len(path) > 2  # the params object is free-form; params itself must stay an object
@@ -732,7 +743,13 @@ def settings_allowed(path: tuple, v: Any) -> bool:
     if head in ("gap_widths", "cost_to_go") and len(path) == 1 and v is MISSING:
         return True
     if head == "gap_widths" and len(path) == 2:
-        return v is MISSING or (_is_num(v) and v > 0)
+        widths = list((doc or {}).get("gap_widths", []))
+        if v is MISSING:
+            return len(widths) > 1  # one width fewer: a shorter sweep; none at all is not a sweep
+        if not (_is_num(v) and v > 0) or doc is None:
+            return False
+        widths[path[1]] = v
+        return all(a < b for a, b in zip(widths, widths[1:]))
     if isinstance(v, list) or v is MISSING:
         return False
     if head == "seed" and len(path) == 1:
@@ -1009,11 +1026,13 @@ def _set(obj: Any, path: tuple, value: Any, delete: bool = False) -> Any:
 
 def tensor_allowed(path: tuple, old: Any, new: Any) -> bool:
     """docs/formats.md: a weight (not ``actions`` nor ``inv_scale``, which must match the system) of the same
-    dtype and shape, finite and within MAX_ABS_WEIGHT, is another valid network."""
+    dtype and shape, finite and within MAX_ABS_WEIGHT, is another valid network; a start-MLP's starts of the same
+    dtype and shape, finite and within MAX_ABS_START, another valid start region."""
     import numpy as np
 
-    return (len(path) == 2 and path[0] == "state_dict" and path[1] not in ("actions", "inv_scale")
-            and new.dtype == old.dtype and new.shape == old.shape and bool(np.isfinite(new).all())
+    weight = len(path) == 2 and path[0] == "state_dict" and path[1] not in ("actions", "inv_scale")
+    start = path == ("start_region", "starts")  # another valid region: finite starts within MAX_ABS_START (1e6)
+    return ((weight or start) and new.dtype == old.dtype and new.shape == old.shape and bool(np.isfinite(new).all())
             and float(np.abs(new).max(initial=0)) <= 1e6)
 
 
@@ -1296,8 +1315,9 @@ def bench_family(work: Path, quick: bool) -> Family:
         return b"\n".join(new) + b"\n"
 
     muts: list[tuple[str, Callable[[Path], None]]] = [(f"settings.json {label}", put("settings.json", data))
-                                                      for label, data in json_mutations(settings, quick, settings_allowed,
-                                                                                        "benchmark folder")]
+                                                      for label, data in json_mutations(
+                                                          settings, quick, lambda p, v: settings_allowed(p, v, settings),
+                                                          "benchmark folder")]
     for label, data in json_mutations(records[1], quick, record_allowed, "benchmark folder"):
         if label.startswith("zero-length"):
             continue  # an empty line: the record deleted, a valid folder of fewer episodes
@@ -1422,9 +1442,9 @@ def summarize(cases: list[Case]) -> dict[str, dict[str, Any]]:
 
 def print_table(rows: dict[str, dict[str, Any]]) -> None:
     cols = ["tried", "clear error", "silent wrong", "traceback", "code ran", "crash/hang", "harmless accepted",
-            "max_peak_mb"]
+            "left out, said", "max_peak_mb"]
     heads = ["tried", "clear error", "silent wrong", "traceback", "code ran", "crash/hang", "harmless acc.",
-             "peak MB"]
+             "left out,said", "peak MB"]
     width = max(len(k) for k in rows) + 2
     print(f"{'family':<{width}}" + "".join(f"{h:>14}" for h in heads))
     for name, row in rows.items():
@@ -1512,7 +1532,9 @@ def main(argv: list[str] | None = None) -> int:
     big = [c for c in all_cases if c.argv is None and c.size < SMALL_FILE and c.peak_mb > PEAK_LIMIT_MB]
     unnamed = [c for c in all_cases if c.outcome == "clear error" and c.extra.get("names_file") is False]
     disagree = [c for c in all_cases if "forked_outcome" in c.extra and c.extra["forked_outcome"] != c.outcome]
+    said = [c for c in all_cases if c.outcome == "left out, said"]
     for title, group in (("silent wrong / traceback / code ran / crash or hang", bad),
+                         ("left out and said on stderr (not failures; listed to be seen)", said),
                          (f"peak over {PEAK_LIMIT_MB} MB for a file under 10 MB", big),
                          ("clear errors that do not name the file or folder", unnamed),
                          ("real python -m runs classified otherwise than their forked runs", disagree)):
