@@ -251,7 +251,15 @@ def test_data_sets_of_other_patches_are_not_pooled(dataset, table, tmp_path):
     meta = json.loads((dataset / "dataset.json").read_text())
     other = write_dataset(tmp_path / "other", table, MAPS[:1])
     changed = json.loads((other / "dataset.json").read_text())
-    changed["patch"]["origin"] = [-1.0, -1.2]
+    # another patch of the same world: one more free cell on every side, so every table still fits its patch
+    with np.load(other / "shard-00000.npz") as z:
+        shard = {k: z[k] for k in z.files}
+    shard["patches"] = np.pad(shard["patches"], ((0, 0), (1, 1), (1, 1)))
+    np.savez_compressed(other / "shard-00000.npz", **shard)
+    H, W = shard["patches"].shape[1:]
+    res = changed["patch"]["resolution"]
+    changed["patch"].update(shape=[H, W], origin=[-W * res / 2, -H * res / 2])
+    changed["shards"][0]["sha256"] = hashlib.sha256((other / "shard-00000.npz").read_bytes()).hexdigest()
     (other / "dataset.json").write_text(json.dumps(changed))
     assert meta["patch"] != changed["patch"]
     with pytest.raises(MapDataError, match="its patch differs"):

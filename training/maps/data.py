@@ -13,6 +13,7 @@ renormalised here).
 from __future__ import annotations
 
 import hashlib
+import json
 import os
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -80,13 +81,10 @@ def load_map_data(folders: Sequence[str | os.PathLike], deep_checks: bool = True
     :func:`~precompute.maps.dataset.read_map_dataset`: permuted action rows refused); False trusts the rows."""
     if not folders:
         raise MapDataError("no data set given")
+    _check_poolable([(Path(f), _raw_header(Path(f))) for f in folders])  # before any shard is read
     parts = [_read_folder(Path(f), deep_checks) for f in folders]
     head = parts[0]
-    for part in parts[1:]:
-        for key in ("system", "grid", "patch", "actions", "horizon"):
-            if part["meta"][key] != head["meta"][key]:
-                raise MapDataError(f"{part['path']}: its {key} differs from {head['path']}'s; data sets trained "
-                                   f"together must share system, grid, actions and patch")
+    _check_poolable([(part["path"], part["meta"]) for part in parts])
     meta = head["meta"]
     system, horizon = system_from_json(meta["system"])
     grid = Grid.of(system)
@@ -117,6 +115,33 @@ def load_map_data(folders: Sequence[str | os.PathLike], deep_checks: bool = True
                    torch.from_numpy(np.concatenate(entry)), torch.from_numpy(np.concatenate(level)),
                    [{"path": str(pt["path"]), "sha256": pt["sha256"], "entries": str(pt["entries"])} for pt in parts],
                    sum(pt["nbytes"] for pt in parts))
+
+
+_POOLED_KEYS = ("system", "grid", "patch", "actions", "horizon")
+
+
+def _raw_header(folder: Path) -> dict | None:
+    """``dataset.json`` as plain JSON, unchecked (None when it is not a readable object of a sane size: the reader
+    then says what is wrong with it)."""
+    path = folder / "dataset.json"
+    try:
+        if path.stat().st_size > 64 << 20:
+            return None
+        head = json.loads(path.read_text())
+    except (OSError, ValueError, RecursionError):
+        return None
+    return head if isinstance(head, dict) else None
+
+
+def _check_poolable(heads: Sequence[tuple[Path, dict | None]]) -> None:
+    """Data sets trained together share system, grid, actions, patch and horizon (a :class:`MapDataError` naming
+    the first that differs); unreadable headers are skipped here (their reader refuses them)."""
+    known = [(path, head) for path, head in heads if head is not None]
+    for path, head in known[1:]:
+        for key in _POOLED_KEYS:
+            if head.get(key) != known[0][1].get(key):
+                raise MapDataError(f"{path}: its {key} differs from {known[0][0]}'s; data sets trained together must "
+                                   "share system, grid, actions and patch")
 
 
 def _read_folder(folder: Path, deep_checks: bool) -> dict:
