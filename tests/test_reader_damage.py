@@ -8,8 +8,10 @@ what the run writes. A cut-short last record is left out by the read-only reader
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
+import resource
 from typing import ClassVar
 
 import numpy as np
@@ -198,6 +200,9 @@ def _patch(**over):
     (_patch(origin=[-1, -0.5]), r"patch origin \[-1, -0.5\] must be the centred origin"),
     (_patch(origin=[-0.5, 1e38]), r"patch origin \[-0.5, 1e\+38\] must be the centred origin"),
     (_patch(resolution=0.1, origin=[-1.0, -1.0]), None),  # consistent: the reach and inflation checks' to refuse
+    (lambda m: m["grid"]["periodic"].__setitem__(0, 0), r"grid .* does not match the system's"),  # 0 for false
+    (lambda m: m["shards"][0].update(entries=10**30), r"4 entries, but the shards hold 10000000000000000000000000000"
+                                                       r"02"),  # refused before a list of 10^30 pairs is made
 ])
 def test_a_dataset_json_the_farm_did_not_write_is_refused(tiny, tmp_path, meta, match):  # noqa: F811
     m = json.loads((tiny / "dataset.json").read_text())
@@ -206,8 +211,23 @@ def test_a_dataset_json_the_farm_did_not_write_is_refused(tiny, tmp_path, meta, 
     if match is None:
         read_map_dataset(folder)  # the metadata alone is consistent
         return
-    with pytest.raises(MapDatasetError, match=rf"dataset.json: .*{match}"):
+    with _memory_capped(1 << 30), pytest.raises(MapDatasetError, match=rf"dataset.json: .*{match}"):
         read_map_dataset(folder)
+
+
+@contextlib.contextmanager
+def _memory_capped(extra: int):
+    """The address space capped at what the process maps now + ``extra`` bytes (a reader that allocates what a
+    forged count asks for fails with MemoryError here, not by taking the machine's memory)."""
+    soft, hard = resource.getrlimit(resource.RLIMIT_AS)
+    with open("/proc/self/status") as f:
+        size = next(int(line.split()[1]) * 1024 for line in f if line.startswith("VmSize:"))
+    cap = size + extra if hard == resource.RLIM_INFINITY else min(hard, size + extra)
+    resource.setrlimit(resource.RLIMIT_AS, (cap, hard))
+    try:
+        yield
+    finally:
+        resource.setrlimit(resource.RLIMIT_AS, (soft, hard))
 
 
 # ------------------------------------------------------------------------------------------- local map
@@ -258,6 +278,20 @@ def test_a_start_beyond_any_robots_state_is_refused(tmp_path, value, ok):
 def test_settings_the_run_does_not_write_are_refused(tmp_path, settings, match):
     store = _store(tmp_path)
     store.settings_file.write_text(json.dumps(settings))
+    _refused(store, match)
+
+
+@pytest.mark.parametrize("hist, match", [
+    ({"120": 15}, r"line 2: cycle_hist counts 15 commands, but cycles is 16"),
+    ({}, r"line 2: cycle_hist counts 0 commands"),
+    ({"120": 16, "121": 0}, r"line 2: field 'cycle_hist' must map bins '0'..'279' to counts >= 1"),
+    ({"280": 16}, r"field 'cycle_hist' must map bins"),
+    ({"012": 16}, r"field 'cycle_hist' must map bins"),
+])
+def test_a_cycle_histogram_that_is_not_its_cycles_is_refused(tmp_path, hist, match):
+    store = _store(tmp_path)
+    with open(store.records_file, "a") as f:
+        f.write(json.dumps(bench_record(1, cycle_hist=hist)) + "\n")
     _refused(store, match)
 
 

@@ -190,7 +190,15 @@ def check_record(record: Any) -> str | None:
         return f"its key {r['key']!r} is not its fields' ({key!r})"
     if r["success"] != (r["outcome"] == "goal"):
         return f"success {r['success']} contradicts outcome {r['outcome']!r}"
+    hist = r["cycle_hist"]  # eval.navigate.cycle_hist.cycle_histogram: one count per command timed
+    if not all(_BIN.fullmatch(b) and int(b) <= 279 and c >= 1 for b, c in hist.items()):
+        return f"field 'cycle_hist' must map bins '0'..'279' to counts >= 1, got {hist!r}"
+    if sum(hist.values()) != r["cycles"]:
+        return f"cycle_hist counts {sum(hist.values())} commands, but cycles is {r['cycles']}"
     return None
+
+
+_BIN = re.compile(r"0|[1-9]\d{0,2}")
 
 
 class _Whole(ValueError):

@@ -233,7 +233,8 @@ def _dataset_from_meta(meta: Any, root: Path, path: Path) -> MapDataset:
         fail(f"method must be maxflow or coverage, got {meta['method']!r}")
     ref = dataset_header(system, horizon, meta["method"], 0.0, (1, 1), 1.0, (0, 0), "train", 0)
     grid = meta["grid"]
-    if not isinstance(grid, dict) or not all(_close(grid.get(k), ref["grid"][k]) for k in ref["grid"]):
+    if not isinstance(grid, dict) or not all(_close(grid.get(k), ref["grid"][k]) for k in ref["grid"]) \
+            or not all(isinstance(v, bool) for v in grid["periodic"]):  # 0 for false: not what the farm writes
         fail(f"grid {grid!r} does not match the system's {ref['grid']}")
     if not _close(meta["actions"], ref["actions"]):
         fail(f"actions do not match the system {system.name!r} ({len(ref['actions'])} actions expected)")
@@ -267,9 +268,10 @@ def _dataset_from_meta(meta: Any, root: Path, path: Path) -> MapDataset:
             fail(f"shard {k} must be {{file: shard-KKKKK.npz, sha256: 64 hex digits, entries: n >= 1}}, got {sh!r}")
     if len({sh["file"] for sh in shards}) != len(shards):
         fail("two shards name the same file")
+    held = sum(sh["entries"] for sh in shards)
+    if len(entries) != held:  # before the list below: a forged count (10^30) is refused, not allocated
+        fail(f"{len(entries)} entries, but the shards hold {held}")
     expect = [(k, i) for k, sh in enumerate(shards) for i in range(sh["entries"])]
-    if len(entries) != len(expect):
-        fail(f"{len(entries)} entries, but the shards hold {len(expect)}")
     for n, (e, (k, i)) in enumerate(zip(entries, expect)):
         if not (isinstance(e, dict) and isinstance(e.get("source"), str) and isinstance(e.get("pose"), list)
                 and len(e["pose"]) == 3 and all(_is_num(v) for v in e["pose"])):
