@@ -218,7 +218,8 @@ def map_policy_for(robot: RobotPreset, given: Path | str | None) -> Path:
                 return pretrained_path(name)
             differs[name] = diff
         shipped = "; ".join(f"the shipped {n!r} was trained for another robot ({', '.join(d)})"
-                            for n, d in differs.items()) or "no policy is shipped"
+                            for n, d in differs.items()) or ("no policy is shipped (python -m training.maps.pretrained "
+                                                              "--install builds the benchmark robot's)")
         raise ValueError(f"cfu_mppi needs a map policy for this robot: {shipped}; give --map-policy FILE "
                          "(python -m training.maps.distill trains one)")
     name = str(given)
