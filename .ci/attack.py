@@ -618,6 +618,9 @@ def npz_mutations(src: Path, redigest: Callable[[dict], dict], marker: Path, qui
                     continue
                 muts.append((f"{key}: {label} ({mode} digest)", arrays_to({**arrays, key: value}, mode)))
         for mode in ("stale", "fresh"):
+            if mode == "fresh" and allowed is not None and allowed(key, MISSING):
+                SKIPPED[family] = SKIPPED.get(family, 0) + 1  # an optional key left out: a valid file
+                continue
             muts.append((f"{key}: missing ({mode} digest)",
                          arrays_to({k: v for k, v in arrays.items() if k != key}, mode)))
         idx = next(i for i, (n, _) in enumerate(members) if n == f"{key}.npy")
@@ -703,7 +706,7 @@ def json_mutations(obj: Any, quick: bool, allowed: Callable[[tuple, Any], bool] 
         for k in path:
             old = old[k]
         edits = [("missing", MISSING)] + [(label, v) for label, v in values
-                                          if not (v == old and type(v) is type(old))]
+                                          if not (v == old and (type(v) is type(old) or _same_number(v, old)))]
         if isinstance(old, list) and old:
             edits.append(("first item duplicated", [old[0], *old]))
         for label, value in edits:
@@ -728,6 +731,11 @@ def _is_int(v: Any) -> bool:
     return isinstance(v, int) and not isinstance(v, bool)
 
 
+def _same_number(a: Any, b: Any) -> bool:
+    """JSON has one number type: 0 and 0.0 are the same number (an edit that changes nothing)."""
+    return all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in (a, b)) and a == b
+
+
 def _is_num(v: Any) -> bool:
     return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
 
@@ -737,9 +745,12 @@ def settings_allowed(path: tuple, v: Any, doc: dict | None = None) -> bool:
     document edited (gap widths must stay sorted and distinct)."""
     head = path[0]
     if head == "robot" and len(path) >= 2 and path[1] == "params":
-        return len(path) > 2  # the params object is free-form; params itself must stay an object
+        return len(path) > 2 or isinstance(v, dict)  # the params object is free-form; params must stay an object
     if head == "sources" and len(path) == 2:
         return v is MISSING or v is None  # a null source matches anything; a value is a 16-hex-digit prefix
+    if path == ("sources",):  # an object of 16-hex-digit digests or nulls (an empty one: every source null)
+        return isinstance(v, dict) and all(d is None or (isinstance(d, str) and len(d) == 16 and
+                                                         all(c in "0123456789abcdef" for c in d)) for d in v.values())
     if head in ("gap_widths", "cost_to_go") and len(path) == 1 and v is MISSING:
         return True
     if head == "gap_widths" and len(path) == 2:
@@ -775,8 +786,6 @@ def record_allowed(path: tuple, v: Any) -> bool:
         if len(path) == 2:
             return v is MISSING or (isinstance(v, list) and len(v) == 2 and all(map(_is_num, v)))
         return _is_num(v)
-    if head == "cycle_hist" and len(path) == 2:
-        return v is MISSING or (_is_int(v) and v >= 0)
     if isinstance(v, list) or v is MISSING or len(path) != 1:
         return False
     if head in ("time", "path_length", "wall_s"):
@@ -901,7 +910,14 @@ def table_family(work: Path, quick: bool) -> Family:
 
     keys = ["format", "system", "actions", "level_offsets", "cells", "action_probs", "cell_probs", "start"] \
         if quick else None
-    muts = npz_mutations(original, redigest, folder / "marker", quick, keys)
+    def allowed(key: str, a: Any) -> bool:  # docs/formats.md, table file: optional keys
+        if key == "method":
+            return a is MISSING  # optional; a present method must be a known one
+        if key == "build_info":  # optional, "not checked": any string
+            return a is MISSING or (np.asarray(a).dtype.kind == "U" and np.asarray(a).shape == ())
+        return False
+
+    muts = npz_mutations(original, redigest, folder / "marker", quick, keys, allowed, "table (.npz)")
     with np.load(original, allow_pickle=False) as z:
         arrays = {k: z[k] for k in z.files}
     from cuniform_torch.common.fileio import write_npz
