@@ -180,6 +180,7 @@ def _sources(cfg: NavConfig, robot: RobotPreset, cache: Path, given: dict[str, P
              quiet: bool) -> dict[str, str | None]:
     """The files the methods need: given on the command line, else the robot's cached ones (built when missing)."""
     methods = {m.source for m in parse_methods(cfg.methods, benchmark=NAVIGATE, closed_loop=True)}
+    _check_given(given, methods)  # before anything is built: a bad file is refused at once
     table = given.get("table") or ensure_table(robot, cache, quiet=quiet)
     coverage = given.get("coverage_table")
     if "coverage_table" in methods and coverage is None:
@@ -199,6 +200,33 @@ def _sources(cfg: NavConfig, robot: RobotPreset, cache: Path, given: dict[str, P
     if map_policy is not None:  # absent otherwise: the records of runs without it stay as they were
         out["map_policy"] = str(map_policy)
     return out
+
+
+_READER_OF = {"coverage_table": "cu_coverage", "policy": "cu_mlp", "map_policy": "cfu_mppi"}
+"""the method that reads each optional source file"""
+
+
+def _check_given(given: dict[str, Path | None], sources: set) -> None:
+    """Each source file given on the command line: one that no chosen method reads is refused (``--table`` is
+    always read: the system of every method), and each is read and checked now (a missing path, an empty file or
+    folder, a damaged file: one clear error before any table is built or any episode runs)."""
+    from cuniform_torch import load_policy, load_table
+
+    for name, path in given.items():
+        if path is None:
+            continue
+        flag = f"--{name.replace('_', '-')}"
+        if name != "table" and name not in sources:
+            raise ValueError(f"{flag} {path}: no chosen method reads it (it is for {_READER_OF[name]})")
+        if name == "map_policy":
+            continue  # checked against the robot by map_policy_for
+        p = Path(path)
+        if not (p.is_file() or (p / "tables.json").is_file()):
+            raise FileNotFoundError(f"{flag} {path} does not exist (a table file or a table set's folder)")
+        try:
+            (load_policy if name == "policy" else load_table)(p)
+        except ValueError as exc:
+            raise ValueError(f"{flag} {path}: {exc}") from None
 
 
 def map_policy_for(robot: RobotPreset, given: Path | str | None) -> Path:
