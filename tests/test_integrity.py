@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from test_trust import written_arrays
 
 from cuniform_torch.common.digest import DIGEST_KEY
 from cuniform_torch.common.fileio import write_npz
@@ -61,10 +62,7 @@ def table():
 
 @pytest.fixture(scope="module")
 def table_arrays(table, tmp_path_factory) -> dict[str, np.ndarray]:
-    path = tmp_path_factory.mktemp("t") / "good.npz"
-    write_table(path, table)
-    with np.load(path, allow_pickle=False) as z:
-        return {k: z[k] for k in z.files}
+    return written_arrays(table, tmp_path_factory.mktemp("t") / "good.npz")
 
 
 def test_a_written_table_carries_both_digests_and_reads_without_a_note(table, tmp_path, capsys):

@@ -37,8 +37,12 @@ def Car(**params):
 
 @pytest.fixture(scope="module")
 def walk_arrays(walk_table, tmp_path_factory) -> dict[str, np.ndarray]:
-    path = tmp_path_factory.mktemp("walk") / "walk.npz"
-    write_table(path, walk_table)
+    return written_arrays(walk_table, tmp_path_factory.mktemp("walk") / "walk.npz")
+
+
+def written_arrays(table, path) -> dict[str, np.ndarray]:
+    """The arrays of ``table`` as :func:`write_table` writes them to ``path`` (digests included)."""
+    write_table(path, table)
     with np.load(path, allow_pickle=False) as z:
         return {k: z[k] for k in z.files}
 

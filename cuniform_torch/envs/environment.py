@@ -88,7 +88,7 @@ class Environment:
         others = [o for o in obstacles if type(o) not in (Circle, Rect)]  # a subclass keeps its own contains
         batched = (torch.tensor(circles, dtype=torch.float64).reshape(-1, 3),
                    torch.tensor(rects, dtype=torch.float64).reshape(-1, 4), others)
-        object.__setattr__(self, "_batch_cache", (tuple(obstacles), batched))
+        self._batch_cache = (tuple(obstacles), batched)
         return batched
 
 

@@ -210,7 +210,7 @@ def _check_given(given: dict[str, Path | None], sources: set) -> None:
     """Each source file given on the command line: one that no chosen method reads is refused (``--table`` is
     always read: the system of every method), and each is read and checked now (a missing path, an empty file or
     folder, a damaged file: one clear error before any table is built or any episode runs)."""
-    from cuniform_torch import load_policy, load_table
+    from cuniform_torch import load_policy, load_table, read_table
 
     for name, path in given.items():
         if path is None:
@@ -223,8 +223,13 @@ def _check_given(given: dict[str, Path | None], sources: set) -> None:
         p = Path(path)
         if not (p.is_file() or (p / "tables.json").is_file()):
             raise FileNotFoundError(f"{flag} {path} does not exist (a table file or a table set's folder)")
-        try:
-            (load_policy if name == "policy" else load_table)(p)
+        try:  # read and checked only: the episodes build their policies themselves
+            if name == "policy":
+                load_policy(p)
+            elif p.is_dir():
+                load_table(p)  # a set opens lazily: its index and first member
+            else:
+                read_table(p, graph=False)
         except ValueError as exc:
             raise ValueError(f"{flag} {path}: {exc}") from None
 
