@@ -34,11 +34,13 @@ import torch
 from torch import Tensor, nn
 
 from cuniform_torch.grid.cells import Grid
+from cuniform_torch.maps import kernels
 from cuniform_torch.maps.encoder import MapEncoder, PatchSpec
 from cuniform_torch.maps.local_features import PROBES, LocalFeatures
 from cuniform_torch.policies.mlp_ops import check_query, inverse_cdf_draw, state_features
 from cuniform_torch.sampling.rollout import StartWatch
 from cuniform_torch.systems import MAX_ACTIONS, MAX_HORIZON, System
+from cuniform_torch.systems.models import Dubins
 
 __all__ = ["MapPolicyConfig", "MapPolicy", "MAX_MAP_HIDDEN", "MAX_MAP_LAYERS", "MAX_MAP_CHANNELS",
            "MAX_MAP_PARAMETERS", "MAX_MAP_ACTIVATIONS"]
@@ -310,6 +312,27 @@ class MapPolicy(nn.Module):
     def sample(self, x: Tensor, t: int, generator: torch.Generator | None) -> Tensor:
         """``x [N, d]`` at level ``t`` -> actions ``[N, q]`` drawn from :meth:`action_probs` (inverse CDF)."""
         return inverse_cdf_draw(self.action_probs(x, t).cumsum(dim=1), self.actions, generator)
+
+    def fused_rollout(self, system: System, x0: Tensor, num_samples: int, horizon: int,
+                      generator: torch.Generator | None) -> tuple[Tensor, Tensor] | None:
+        """The rollout's own loop, when it has one for this start (:func:`~cuniform_torch.sampling.rollout.rollout`
+        asks): on a CPU, float32, with numba, for this policy's own :class:`~cuniform_torch.systems.models.Dubins`
+        system, the start-frame states ``[T+1, 3, N]`` (time-major) and actions ``[N, T, q]`` of
+        :mod:`~cuniform_torch.maps.kernels` (the step-by-step path's draws, to float rounding); else None."""
+        if (self._map_bias is None or x0.ndim != 1 or type(system) is not Dubins or not kernels.usable(x0, self.dtype) or (generator is not None and generator.device.type != "cpu")):
+            return None
+        local = self.local
+        geometry = dict(dt=system.dt, speed=system.speed, origin_x=self.patch_spec.origin[0],
+                        origin_y=self.patch_spec.origin[1], resolution=self.patch_spec.resolution,
+                        half_x=float(self._box_half[0]), half_y=float(self._box_half[1]),
+                        cell_x=float(self._box_cell[0]), cell_y=float(self._box_cell[1]))
+        states, actions, near, miss = kernels.rollout_start_frame(
+            self._map_bias, self._w_state, self._layers, self.actions, self._local_map if local is not None else None,
+            local.probes if local is not None else torch.zeros((0, 2)), geometry, num_samples, horizon, generator)
+        self._queries += num_samples * horizon
+        self._near += near
+        self._miss += miss
+        return states, actions
 
     def _count(self, x: Tensor) -> Tensor:
         """Count the lookups of ``x [N, d]`` (near the box: nearest hits; beyond it or not finite: misses);

@@ -209,19 +209,11 @@ class RolloutPlan:
         if not bool(torch.isfinite(x0).all()):
             raise ValueError("x0 contains NaN or infinite values")
 
-    def run(self, system: System, policy: Policy | ActionSampler, x0: Tensor, num_samples: int, horizon: int,
-            generator: torch.Generator | None) -> tuple[Tensor, Tensor]:
-        """The rollout itself, for checked input (``x0 [d]`` or ``[N, d]``, detached, finite, on the policy's
-        device; a generator on it): ``states [N, T+1, d]``, ``actions [N, T, q]``."""
-        select = getattr(policy, "for_start", None)
-        if callable(select):  # a table set: the table nearest to this start, and its start check
-            policy = select(x0)
-            watch = getattr(policy, "watch_start", None)
-        else:
-            watch = self.watch_start
-        report = watch(x0, self.relative) if watch is not None else None
+    def _steps(self, system: System, policy: Policy | ActionSampler, x0: Tensor, start: Tensor, num_samples: int,
+               horizon: int, generator: torch.Generator | None) -> tuple[Tensor | None, list[Tensor], Tensor]:
+        """The step-by-step loop of :meth:`run`: the time-major buffer ``[T+1, d, N]`` (None without one), the
+        column-major states ``[N, d]`` of each step, and the actions ``[N, T, q]``."""
         d = x0.shape[-1]
-        start = x0.unsqueeze(0).expand(num_samples, d) if x0.ndim == 1 else x0  # [N, d]
         # column-major [N, d] states: every column a policy or a step reads is contiguous (faster). With step_out all
         # T+1 of them are rows of one time-major buffer, each step writing the next in place
         buffer = x0.new_empty((horizon + 1, d, num_samples)) if self.step_out else None  # [T+1, d, N]
@@ -254,6 +246,35 @@ class RolloutPlan:
                     buffer = None
             states.append(x)
             taken.append(u)
+        if taken:
+            # stacked time-major, then one transposing copy: cheaper on a CPU than stacking [N, q] along dim 1
+            actions_t = torch.stack(taken).transpose(0, 1).contiguous()  # [N, T, q]
+        else:
+            q = (policy.actions.shape[1] if hasattr(policy, "actions")
+                 else system.action_set(dtype=x0.dtype, device=x0.device).shape[1])
+            actions_t = x0.new_zeros((num_samples, 0, q))
+        return buffer, states, actions_t
+
+    def run(self, system: System, policy: Policy | ActionSampler, x0: Tensor, num_samples: int, horizon: int,
+            generator: torch.Generator | None) -> tuple[Tensor, Tensor]:
+        """The rollout itself, for checked input (``x0 [d]`` or ``[N, d]``, detached, finite, on the policy's
+        device; a generator on it): ``states [N, T+1, d]``, ``actions [N, T, q]``."""
+        select = getattr(policy, "for_start", None)
+        if callable(select):  # a table set: the table nearest to this start, and its start check
+            policy = select(x0)
+            watch = getattr(policy, "watch_start", None)
+        else:
+            watch = self.watch_start
+        report = watch(x0, self.relative) if watch is not None else None
+        d = x0.shape[-1]
+        start = x0.unsqueeze(0).expand(num_samples, d) if x0.ndim == 1 else x0  # [N, d]
+        fused = getattr(policy, "fused_rollout", None)  # a policy that rolls itself out in the start frame
+        own = fused(system, x0, num_samples, horizon, generator) if self.relative and callable(fused) else None
+        if own is not None:
+            buffer, actions_t = own  # [T+1, d, N] start-frame states, [N, T, q]
+            states: list[Tensor] = []
+        else:
+            buffer, states, actions_t = self._steps(system, policy, x0, start, num_samples, horizon, generator)
         # the origin pose needs no change of frame (a host sync to know it: only on a CPU, where it is free)
         if self.relative and (x0.ndim == 2 or x0.device.type != "cpu" or bool(x0[:3].any())):
             # the column-major states time-major ([T+1, d, N], contiguous rows: the buffer, else one stack); the
@@ -271,13 +292,6 @@ class RolloutPlan:
             states_t = buffer.permute(2, 0, 1)  # [N, T+1, d], a view of the time-major buffer
         else:
             states_t = torch.stack(states, dim=1)  # [N, T+1, d]
-        if taken:
-            # stacked time-major, then one transposing copy: cheaper on a CPU than stacking [N, q] along dim 1
-            actions_t = torch.stack(taken).transpose(0, 1).contiguous()  # [N, T, q]
-        else:
-            q = (policy.actions.shape[1] if hasattr(policy, "actions")
-                 else system.action_set(dtype=x0.dtype, device=x0.device).shape[1])
-            actions_t = x0.new_zeros((num_samples, 0, q))
         if report is not None:
             report()
         return states_t, actions_t
