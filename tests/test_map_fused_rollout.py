@@ -47,11 +47,9 @@ def _both(policy: MapPolicy, pose: torch.Tensor, n: int = 3000):
     out = []
     for fused in (True, False):
         policy.reset_counters()
-        if not fused:
-            policy.fused_rollout = lambda *args: None  # the step-by-step path
+        policy.compiled = fused  # False: the step-by-step path
         states, actions = rollout(SYSTEM, policy, pose, n, T, torch.Generator().manual_seed(7))
         out.append((states, actions, policy.queries, int(policy.nearest_hits), int(policy.misses)))
-    del policy.fused_rollout
     return out
 
 
@@ -85,5 +83,8 @@ def test_other_systems_and_devices_take_the_step_by_step_path():
     assert policy.fused_rollout(SYSTEM, torch.zeros(3, dtype=torch.float64), 4, T, gen) is None
     assert policy.fused_rollout(SYSTEM, torch.zeros(2, 3), 4, T, gen) is None
     assert policy.fused_rollout(SYSTEM, torch.zeros(3), 4, T, None) is not None  # torch's default generator
+    policy.compiled = False
+    assert policy.fused_rollout(SYSTEM, torch.zeros(3), 4, T, gen) is None
+    policy.compiled = True
     policy.clear_map()
     assert policy.fused_rollout(SYSTEM, torch.zeros(3), 4, T, gen) is None

@@ -202,6 +202,8 @@ class MapPolicy(nn.Module):
         self._local_map: Tensor | None = None  # [1, C, H, W] for the map last set (local features only)
         self._layers: list[tuple[Tensor, Tensor]] = []  # the body's (weight^T, bias)
         self.encodes = 0
+        self.compiled = True
+        """roll out through :meth:`fused_rollout` where it applies (False: always step by step)"""
         self.reset_counters()
 
     # -------------------------------------------------------------------------------- traits
@@ -319,7 +321,7 @@ class MapPolicy(nn.Module):
         asks): on a CPU, float32, with numba, for this policy's own :class:`~cuniform_torch.systems.models.Dubins`
         system, the start-frame states ``[T+1, 3, N]`` (time-major) and actions ``[N, T, q]`` of
         :mod:`~cuniform_torch.maps.kernels` (the step-by-step path's draws, to float rounding); else None."""
-        if (self._map_bias is None or x0.ndim != 1 or type(system) is not Dubins or not kernels.usable(x0, self.dtype) or (generator is not None and generator.device.type != "cpu")):
+        if (not self.compiled or self._map_bias is None or x0.ndim != 1 or type(system) is not Dubins or not kernels.usable(x0, self.dtype) or (generator is not None and generator.device.type != "cpu")):
             return None
         local = self.local
         geometry = dict(dt=system.dt, speed=system.speed, origin_x=self.patch_spec.origin[0],

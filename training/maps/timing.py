@@ -1,13 +1,14 @@
-"""Per-command time of CFU-MPPI on this machine:  python -m training.maps.timing [--checkpoint FILE]
+"""Per-command time of CFU-MPPI against MPPI, side by side:  python -m training.maps.timing [--checkpoint FILE]
 
 The benchmark robot (``cuniform_torch.envs.worlds.robot.NAV_ROBOT``: Dubins at 0.5 m/s, dt 0.2 s, 7 turn rates in [-1.5, 1.5]
 rad/s, horizon 15) drives through a seeded random forest (a 20 m x 20 m OccupancyGrid of 0.05 m cells) towards
-a goal; each command senses the 72 x 72 patch of 0.05 m (the map farm's default) around the pose, encodes it
-once, rolls out the map policy for half of K and runs the local Gaussian pass with the other half. Without
-``--checkpoint`` the policy is untrained (the same arithmetic: a timing, not a plan). Printed per K: the median
-and 90th percentile of the command time (map encoding included) and, separately, of sensing + encoding alone
-and of one ``action_probs`` call on the first stage's batch (K / 2 states);
-the policy's parameter count; torch's thread count and the load average.
+a goal. Per K three controllers take turns, one command each, so that they share the machine's load: MPPI, and
+CFU-MPPI twice (each command senses the 72 x 72 patch of 0.05 m around the pose, encodes it once, rolls out the
+map policy for half of K and runs the local Gaussian pass with the other half), once with the map policy's
+compiled rollout (:mod:`cuniform_torch.maps.kernels`, what a CPU runs) and once step by step (the rollout's
+generic loop, what it ran before). Without ``--checkpoint`` the policy is untrained, of the shipped policy's sizes
+(the same arithmetic: a timing, not a plan). Printed: sensing + encoding alone, then per K the median command
+time of each and the ratios to MPPI; the policy's parameter count, torch's thread count and the load average.
 """
 
 from __future__ import annotations
@@ -32,6 +33,7 @@ from cuniform_torch.cli import (
     threads_arg,
 )
 from cuniform_torch.controllers.cfu import CFUMPPI
+from cuniform_torch.controllers.mppi import MPPI
 from cuniform_torch.envs import OccupancyGrid
 from cuniform_torch.maps.checkpoint import load_map_policy
 from cuniform_torch.maps.encoder import PatchSpec
@@ -66,27 +68,36 @@ def make_cost(world: OccupancyGrid, goal: tuple[float, float]):
     return cost
 
 
-def untrained_policy(system, spec: PatchSpec, hidden: int, layers: int, embed: int, channels: int) -> MapPolicy:
+def untrained_policy(system, spec: PatchSpec, hidden: int, layers: int, embed: int, channels: int,
+                     local_features: int = 0) -> MapPolicy:
     torch.manual_seed(0)
     reach = ROBOT["speed"] * ROBOT["dt"] * HORIZON
     config = MapPolicyConfig(state_dim=3, num_actions=ROBOT["num_actions"], horizon=HORIZON,
                              periodic=[False, False, True], feature_scale=[reach, reach, 1.0], patch=spec.to_dict(),
-                             hidden=hidden, layers=layers, embed=embed, channels=channels)
+                             hidden=hidden, layers=layers, embed=embed, channels=channels,
+                             local_features=local_features)
     return MapPolicy(config, system, system.action_set()).eval()
 
 
-def time_commands(controller: CFUMPPI, system, commands: int, warmup: int) -> list[float]:
-    x = torch.zeros(3)
-    times = []
+def time_side_by_side(controllers: dict[str, tuple[object, object]], system, commands: int,
+                      warmup: int) -> dict[str, list[float]]:
+    """Command times (ms) of each named ``(controller, before)`` pair, taking turns one command at a time
+    (``before()``, when not None, runs untimed before each command: the policy's path switch)."""
+    poses = {name: torch.zeros(3) for name in controllers}
+    times: dict[str, list[float]] = {name: [] for name in controllers}
     for k in range(warmup + commands):
-        start = time.perf_counter()
-        u = controller.command(x)
-        elapsed = time.perf_counter() - start
-        if not bool(torch.isfinite(u).all()):
-            raise ValueError(f"command {k} is not finite: {u.tolist()}")
-        if k >= warmup:
-            times.append(elapsed * 1e3)
-        x = system.step(x.unsqueeze(0), u.unsqueeze(0))[0]
+        for name, (controller, before) in controllers.items():
+            if before is not None:
+                before()
+            x = poses[name]
+            start = time.perf_counter()
+            u = controller.command(x)
+            elapsed = time.perf_counter() - start
+            if not bool(torch.isfinite(u).all()):
+                raise ValueError(f"{name}: command {k} is not finite: {u.tolist()}")
+            if k >= warmup:
+                times[name].append(elapsed * 1e3)
+            poses[name] = system.step(x.unsqueeze(0), u.unsqueeze(0))[0]
     return times
 
 
@@ -95,19 +106,20 @@ def _stats(ms: list[float]) -> str:
     return f"median {statistics.median(ms):6.2f} ms, p90 {ordered[int(0.9 * (len(ms) - 1))]:6.2f} ms"
 
 
-SIZES = ("hidden", "layers", "embed", "channels")
+SIZES = ("hidden", "layers", "embed", "channels", "local_features")
 """the untrained policy's sizes: flags that a --checkpoint (which has its own) refuses"""
 
 
 def make_parser() -> ArgumentParser:
     parser = ArgumentParser(prog="python -m training.maps.timing", description=__doc__.splitlines()[0])
-    parser.add_argument("--samples", type=int_in(2, MAX_COUNT), nargs="+", default=[256, 1024],
+    parser.add_argument("--samples", type=int_in(2, MAX_COUNT), nargs="+", default=[16, 64, 256, 1024],
                         help="budgets K to time (each >= 2)")
     parser.add_argument("--commands", type=positive_int, default=60, help="timed commands per K (after the warm-up)")
     parser.add_argument("--warmup", type=non_negative_int, default=5)
     parser.add_argument("--checkpoint", default=None, help="a trained map policy (default: an untrained one)")
-    for name, default in zip(SIZES, (128, 2, 32, 8)):
-        parser.add_argument(f"--{name}", type=int_in(1, 65536), default=default,
+    for name, default in zip(SIZES, (64, 2, 32, 8, 4)):  # the shipped policy's (training.maps.pretrained)
+        parser.add_argument(f"--{name.replace('_', '-')}", type=int_in(0 if name == "local_features" else 1, 65536),
+                            default=default,
                             help=f"of the untrained policy (default {default}; not with --checkpoint)")
     parser.add_argument("--threads", type=threads_arg, default=1, help="torch CPU threads (0: torch's choice)")
     parser.add_argument("--seed", type=int_in(0, 2**31 - 1), default=0, help="seed of the forest")
@@ -126,7 +138,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     system = make_system("dubins", **ROBOT)
     spec = PatchSpec((72, 72), 0.05, (-1.8, -1.8))
     policy = (load_map_policy(args.checkpoint) if args.checkpoint else
-              untrained_policy(system, spec, args.hidden, args.layers, args.embed, args.channels))
+              untrained_policy(system, spec, args.hidden, args.layers, args.embed, args.channels,
+                               args.local_features))
     world = forest(args.seed)
     cost = make_cost(world, (8.0, 0.0))
     print(f"map policy: {policy.num_parameters:,} parameters (encoder {sum(p.numel() for p in policy.encoder.parameters()):,}),"
@@ -153,11 +166,21 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"action_probs on {n} states: {_stats(per)}")
     results = {"parameters": policy.num_parameters, "encode_ms": statistics.median(encode),
                "action_probs_ms": dict(zip((128, 512), lookup)), "commands": {}}
+    print(f"{'K':>6} {'MPPI':>9} {'CFU-MPPI':>9} {'ratio':>6} {'CFU step-by-step':>17} {'ratio':>6}  (median ms "
+          f"per command, horizon {HORIZON})")
     for k in args.samples:
-        controller = CFUMPPI(policy, world, cost, num_samples=k, seed=0)
-        ms = time_commands(controller, system, args.commands, args.warmup)
-        results["commands"][k] = {"median_ms": statistics.median(ms), "all_ms": ms}
-        print(f"CFU-MPPI K = {k:5d} (horizon {HORIZON}): {_stats(ms)} per command, encoding included")
+        mppi = MPPI(system, cost, num_samples=k, horizon=HORIZON, seed=0)
+        cfu = CFUMPPI(policy, world, cost, num_samples=k, seed=0)
+        stepwise = CFUMPPI(policy, world, cost, num_samples=k, seed=0)
+        times = time_side_by_side({"mppi": (mppi, None), "cfu": (cfu, lambda: setattr(policy, "compiled", True)),
+                                   "stepwise": (stepwise, lambda: setattr(policy, "compiled", False))},
+                                  system, args.commands, args.warmup)
+        policy.compiled = True
+        med = {name: statistics.median(ms) for name, ms in times.items()}
+        results["commands"][k] = {"median_ms": med["cfu"], "all_ms": times["cfu"], "mppi_median_ms": med["mppi"],
+                                  "step_by_step_median_ms": med["stepwise"]}
+        print(f"{k:6d} {med['mppi']:9.2f} {med['cfu']:9.2f} {med['cfu'] / med['mppi']:5.1f}x "
+              f"{med['stepwise']:17.2f} {med['stepwise'] / med['mppi']:5.1f}x")
     print(f"load after: {os.getloadavg()[0]:.2f}")
     if args.json:
         from cuniform_torch.common.fileio import write_json
