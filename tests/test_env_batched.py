@@ -68,3 +68,29 @@ def test_a_changed_obstacle_list_is_seen():
     env.obstacles.append(Rect(1.5, 1.5, 2.5, 2.5))  # the cache follows the list
     assert env.in_collision(p).item()
     assert env.in_collision(p, time=0.0).item()
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_obstacles_away_from_the_points_are_dropped_without_changing_an_answer(monkeypatch, dtype):
+    """A patch of points on a wide world (how a map policy senses): only obstacles meeting the points' box are
+    tested, and every answer is still each obstacle's own, boundaries included."""
+    monkeypatch.setattr(environment, "_PREFILTER_PAIRS", 0)
+    kept = []
+    real = environment._near_box
+    monkeypatch.setattr(environment, "_near_box", lambda *a: kept.append(real(*a)) or kept[-1])
+    for seed in range(12):
+        obstacles = _world(seed)
+        gen = torch.Generator().manual_seed(seed)
+        xy = (torch.rand(600, 2, generator=gen, dtype=dtype) - 0.5) * 1.5 + torch.tensor([0.4, -0.2], dtype=dtype)
+        edges = []  # boundary points of obstacles that reach into the patch: the closed shapes' edges count
+        for obs in obstacles:
+            if isinstance(obs, Rect):
+                edges.append((obs.xmin, obs.ymin))
+            else:
+                edges.append((obs.center[0] - obs.radius, obs.center[1]))
+        edges = [e for e in edges if -0.35 <= e[0] <= 1.15 and -0.95 <= e[1] <= 0.55]
+        if edges:
+            xy[: len(edges)] = torch.tensor(edges, dtype=dtype)
+        xy[-1] = float("nan")
+        assert torch.equal(Environment(obstacles).in_collision(xy), _one_by_one(obstacles, xy))
+    assert sum(len(c) + len(r) for c, r in kept) < sum(len(_world(s)) for s in range(12))  # some were dropped

@@ -22,6 +22,7 @@ from torch import Tensor
 from cuniform_torch.controllers.mppi import CUMPPI, CostFn
 from cuniform_torch.envs.environment import Environment
 from cuniform_torch.envs.occupancy import OccupancyGrid
+from cuniform_torch.maps import kernels
 from cuniform_torch.maps.checkpoint import load_map_policy
 from cuniform_torch.maps.policy import MapPolicy
 from cuniform_torch.maps.sensing import local_map
@@ -115,6 +116,8 @@ class CFUMPPI(CUMPPI):
                              f"for; move it with policy.to(device)")
         if system is not None:
             check_policy_robot(policy, system)
+        if policy.dtype == torch.float32 and kernels.usable(torch.zeros(3, device=policy.device), policy.dtype):
+            kernels.warm_up()  # the compiled rollout's loops, now rather than in the first command
         self.sensed = SensedMapPolicy(policy, world, max_range)
         super().__init__(self.sensed, cost_fn, num_samples, cuniform_fraction, lambda_, noise_std, local, horizon,
                          terminal_cost=terminal_cost, device=policy.device, seed=seed, **local_kwargs)

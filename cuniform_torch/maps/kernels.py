@@ -35,97 +35,14 @@ from torch import Tensor
 
 from cuniform_torch.tables import cpu_kernels
 
-__all__ = ["usable", "rollout_start_frame"]
+__all__ = ["usable", "warm_up", "rollout_start_frame"]
 
 
 @functools.cache
 def _kernels():
-    import numba
+    from cuniform_torch.maps import rollout_loops  # imports numba: only when a loop is used
 
-    @numba.njit(cache=True, nogil=True, inline="always")
-    def read(fmap, c, ix, iy):
-        """Bilinear read of channel ``c`` at pixel coordinates ``(ix, iy)`` (column, row); zero off the map."""
-        H, W = fmap.shape[1], fmap.shape[2]
-        x0f, y0f = math.floor(ix), math.floor(iy)
-        wx, wy = ix - x0f, iy - y0f
-        x0, y0 = int(x0f), int(y0f)
-        v = np.float32(0.0)
-        for dy in range(2):
-            yy = y0 + dy
-            if yy < 0 or yy >= H:
-                continue
-            fy = wy if dy else np.float32(1.0) - wy
-            for dx in range(2):
-                xx = x0 + dx
-                if 0 <= xx < W:
-                    v += (wx if dx else np.float32(1.0) - wx) * fy * fmap[c, yy, xx]
-        return v
-
-    @numba.njit(cache=True, nogil=True, boundscheck=False)
-    def features(t, states, feat, ok, counts, fmap, probes, geo):
-        """The first layer's inputs of the states at step ``t`` (``states [T+1, 3, N]``) into ``feat [N, F]``,
-        ``ok [N]`` (inside the support box and finite) and the near / miss counters ``counts [2]``."""
-        n_states = states.shape[2]
-        channels = fmap.shape[0]
-        ox, oy, res, half_x, half_y, cell_x, cell_y = geo[2], geo[3], geo[4], geo[5], geo[6], geo[7], geo[8]
-        for i in range(n_states):
-            x, y, th = states[t, 0, i], states[t, 1, i], states[t, 2, i]
-            c, s = np.float32(math.cos(th)), np.float32(math.sin(th))
-            feat[i, 0], feat[i, 1], feat[i, 2], feat[i, 3] = x, y, c, s
-            excess = max((abs(x) - half_x) / cell_x, (abs(y) - half_y) / cell_y)
-            finite = math.isfinite(x) and math.isfinite(y) and math.isfinite(th)
-            miss = not finite or not excess <= 1.0
-            ok[i] = not miss
-            if miss:
-                counts[1] += 1
-            elif excess > 0.0:
-                counts[0] += 1
-            k = 4
-            for p in range(probes.shape[0]):
-                ahead, left = probes[p, 0], probes[p, 1]
-                px = (x + c * ahead) - s * left
-                py = (y + s * ahead) + c * left
-                ix = (px - ox) / res - np.float32(0.5)
-                iy = (py - oy) / res - np.float32(0.5)
-                for ch in range(channels):
-                    feat[i, k] = read(fmap, ch, ix, iy) if finite else np.float32(0.0)
-                    k += 1
-
-    @numba.njit(cache=True, nogil=True, boundscheck=False)
-    def draw_and_step(t, logits, uniforms, states, picks, actions, ok, geo, pi, two_pi):
-        """Step ``t``'s draw from ``logits [N, A]`` (uniform where not ``ok``) with ``uniforms[t]``, into
-        ``picks [T, N]``, and the Dubins step of ``states[t]`` into ``states[t + 1]``."""
-        n_actions = logits.shape[1]
-        dt, speed = geo[0], geo[1]
-        for i in range(logits.shape[0]):
-            if ok[i]:
-                top = logits[i, 0]
-                for a in range(1, n_actions):
-                    top = max(top, logits[i, a])
-                total = np.float32(0.0)
-                for a in range(n_actions):
-                    total += np.float32(math.exp(logits[i, a] - top))
-                target = uniforms[t, i] * total
-                cdf = np.float32(0.0)
-                pick = n_actions - 1
-                for a in range(n_actions):
-                    cdf += np.float32(math.exp(logits[i, a] - top))
-                    if cdf > target:
-                        pick = a
-                        break
-            else:
-                pick = min(int(uniforms[t, i] * n_actions), n_actions - 1)
-            picks[t, i] = pick
-            a_val = actions[pick] * dt + states[t, 2, i] + pi
-            m = np.fmod(a_val, two_pi)
-            if m < 0:
-                m += two_pi
-            th = m - pi
-            states[t + 1, 2, i] = th
-            states[t + 1, 0, i] = states[t, 0, i] + (np.float32(math.cos(th)) * speed) * dt
-            states[t + 1, 1, i] = states[t, 1, i] + (np.float32(math.sin(th)) * speed) * dt
-
-    return features, draw_and_step
+    return rollout_loops.features, rollout_loops.draw_and_step
 
 
 def usable(x0: Tensor, dtype: torch.dtype) -> bool:
@@ -133,6 +50,20 @@ def usable(x0: Tensor, dtype: torch.dtype) -> bool:
     policy, numba installed)."""
     return (x0.device.type == "cpu" and x0.dtype == torch.float32 and dtype == torch.float32
             and cpu_kernels.available())
+
+
+@functools.cache
+def warm_up() -> None:
+    """Compile (or load from numba's disk cache) the loops now, with a 2-state rollout: a controller calls this when
+    it is made, so that no control cycle pays for the compilation (seconds)."""
+    from cuniform_torch.sampling import kernels as frame_kernels
+
+    layers = [(torch.zeros((2, 2)), torch.zeros(2)), (torch.zeros((2, 3)), torch.zeros(3))]
+    geometry = dict(dt=0.1, speed=1.0, origin_x=-1.0, origin_y=-1.0, resolution=0.5, half_x=1.0, half_y=1.0,
+                    cell_x=0.1, cell_y=0.1)
+    states, _, _, _ = rollout_start_frame(torch.zeros((2, 2)), torch.zeros((5, 2)), layers, torch.zeros((3, 1)),
+                                          torch.zeros((1, 1, 4, 4)), torch.zeros((1, 2)), geometry, 2, 1, None)
+    frame_kernels.to_world_time_major(states, torch.tensor([0.5, 0.5, 0.1]))
 
 
 def rollout_start_frame(map_bias: Tensor, w_state: Tensor, layers: list[tuple[Tensor, Tensor]], actions: Tensor,
