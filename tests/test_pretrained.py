@@ -88,3 +88,22 @@ def test_cfu_mppi_refuses_a_policy_of_another_system(shelf):
     with pytest.raises(ValueError, match="num_actions: trained 7, given 5; speed: trained 0.5, given 0.3"):
         CFUMPPI("toy-1", world, cost, num_samples=16, system=slower)
 
+
+
+def test_the_shipped_policy_matches_its_card_and_its_robot():
+    """The file in the package: its card is readable, its sha256 is the card's, it is small, it was trained for the
+    benchmark robot, and it loads (weights only) into a CFU-MPPI that commands that robot."""
+    card = pretrained.pretrained_card(SHIPPED)
+    path = pretrained_path(SHIPPED)
+    raw = path.read_bytes()
+    assert hashlib.sha256(raw).hexdigest() == card["file_sha256"] and len(raw) == card["bytes"] < 1 << 20
+    assert card["robot"] == json.loads(json.dumps(preset_dict(NAV_ROBOT)))
+    assert {d["suite"] for d in card["data"]} == {"barn", "forest", "clutter"}
+    assert all(d["split"] == "train" for d in card["data"])
+    policy = load_map_policy(SHIPPED)
+    system = NAV_ROBOT.make_system()
+    assert policy.horizon == NAV_ROBOT.horizon and policy.system == system
+    world = OccupancyGrid(torch.zeros(100, 100, dtype=torch.bool), (-2.5, -2.5), 0.05)
+    controller = CFUMPPI(policy, world, lambda s, a: s[:, 1:, 0].neg().sum(dim=1), num_samples=16, seed=0,
+                         system=system)
+    assert bool(torch.isfinite(controller.command(torch.zeros(3))).all())

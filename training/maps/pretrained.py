@@ -65,7 +65,7 @@ RECIPES: dict[str, Recipe] = {r.name: r for r in [
         robot=NAV_ROBOT,  # 0.5 m/s, 7 turn rates in [-1.5, 1.5] rad/s, dt 0.2 s, r = 0.2 m, horizon 15
         farms=(Farm("barn", 10, 3, seed=0), Farm("forest", 10, 3, seed=1), Farm("clutter", 6, 3, seed=0)),
         coverage=dict(tol=1e-3, state_budget=400_000, merge_resolution=16),
-        distill=dict(local_features=4, epochs=3, jitter=1, val_fraction=0.1, seed=0),
+        distill=dict(local_features=4, hidden=64, epochs=3, jitter=1, val_fraction=0.1, seed=0),
     ),
 ]}
 """the shipped policies' recipes, by name"""
@@ -129,7 +129,7 @@ def model_card(recipe: Recipe, checkpoint: Path, folders: Sequence[Path], farm_s
         "format": CARD_FORMAT, "name": recipe.name, "robot": preset_dict(recipe.robot),
         "file": checkpoint.name, "file_sha256": hashlib.sha256(raw).hexdigest(), "bytes": len(raw),
         "data": data, "split_rule": "train maps only: BARN map ids, forest and clutter seeds not divisible by 5",
-        "coverage": recipe.coverage, "training": {**recipe.distill, **metrics}, "farm_seconds": round(farm_seconds, 1),
+        "coverage": recipe.coverage, "training": {**recipe.distill, **metrics}, "farm_seconds_this_run": round(farm_seconds, 1),
     }
 
 
