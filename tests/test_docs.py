@@ -23,7 +23,7 @@ ROOT = Path(__file__).resolve().parents[1]
 README = ROOT / "README.md"
 GUIDES = sorted((ROOT / "docs" / "guides").glob("*.md"))
 LAYERS = ("precompute", "training", "eval")  # the packages whose modules are command-line entry points
-SKIP = {"pytest"}  # not ours
+SKIP = {"pytest", "cProfile"}  # not ours
 
 
 def readme_commands(text: str) -> list[str]:
