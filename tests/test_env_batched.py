@@ -43,8 +43,12 @@ class _Ring(Circle):
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 @pytest.mark.parametrize("chunk", [1 << 22, 5])
-def test_batched_collisions_equal_each_obstacles_own(monkeypatch, dtype, chunk):
+@pytest.mark.parametrize("compiled", [False, True])
+def test_batched_collisions_equal_each_obstacles_own(monkeypatch, dtype, chunk, compiled):
     monkeypatch.setattr(environment, "_CONTAINS_CHUNK", chunk)
+    monkeypatch.setattr(environment, "_COMPILED_PAIRS", 0 if compiled else 1 << 62)
+    if compiled and environment._compiled() is None:
+        pytest.skip("needs numba")
     for seed in range(8):
         obstacles = _world(seed) + [_Ring(center=(0.0, 0.0), radius=1.0)]
         xy = torch.rand(400, 3, 2, generator=torch.Generator().manual_seed(seed), dtype=dtype) * 8 - 4  # [400, 3, 2]
@@ -75,6 +79,7 @@ def test_obstacles_away_from_the_points_are_dropped_without_changing_an_answer(m
     """A patch of points on a wide world (how a map policy senses): only obstacles meeting the points' box are
     tested, and every answer is still each obstacle's own, boundaries included."""
     monkeypatch.setattr(environment, "_PREFILTER_PAIRS", 0)
+    monkeypatch.setattr(environment, "_COMPILED_PAIRS", 0)
     kept = []
     real = environment._near_box
     monkeypatch.setattr(environment, "_near_box", lambda *a: kept.append(real(*a)) or kept[-1])

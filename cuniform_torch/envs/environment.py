@@ -6,6 +6,7 @@ knows then (an obstacle is sensed from its ``appear_time`` on).
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass, field
 
@@ -100,16 +101,33 @@ _PREFILTER_PAIRS = 1 << 14
 """above this many point-obstacle pairs, obstacles that cannot touch the points' bounding box are dropped first"""
 
 
+_COMPILED_PAIRS = 1 << 12
+"""above this many point-obstacle pairs on a CPU, the compiled loop (:mod:`cuniform_torch.envs.contains_loops`)
+tests them: one pass over the points, stopping at the first obstacle that contains each"""
+
+
+@functools.cache
+def _compiled():
+    """The compiled loop, or None without numba."""
+    try:
+        from cuniform_torch.envs.contains_loops import any_contains
+    except Exception:  # numba missing or broken against this numpy: the torch path
+        return None
+    return any_contains
+
+
 def _near_box(pts: Tensor, circles: Tensor, rects: Tensor) -> tuple[Tensor, Tensor]:
     """The ``circles [C, 3]`` and ``rects [R, 4]`` that meet the bounding box of the finite points ``pts [P, 2]``:
     a point inside an obstacle is inside that box, so the rest cannot contain one (a sensed patch of 5184 points on
     a BARN map keeps the few dozen cylinders around the robot). A disc is kept when the box point nearest its
     centre is within its radius, with a relative margin of 1e-4 for the points' rounding; all are kept when no
     point is finite."""
-    finite = pts[torch.isfinite(pts).all(dim=1)]
-    if finite.shape[0] == 0:
-        return circles, rects
-    lo, hi = finite.amin(dim=0), finite.amax(dim=0)  # [2] the box
+    lo, hi = torch.aminmax(pts, dim=0)  # [2] the box (NaN when a point is NaN)
+    if not bool(torch.isfinite(torch.cat((lo, hi))).all()):
+        finite = pts[torch.isfinite(pts).all(dim=1)]
+        if finite.shape[0] == 0:
+            return circles, rects
+        lo, hi = finite.amin(dim=0), finite.amax(dim=0)
     if len(circles):
         centre = circles[:, :2]
         gap = centre - torch.minimum(torch.maximum(centre, lo), hi)  # [C, 2] centre to the nearest box point
@@ -129,6 +147,10 @@ def _any_contains(xy: Tensor, circles: Tensor, rects: Tensor) -> Tensor:
     r = rects.to(device=xy.device, dtype=xy.dtype)  # [R, 4]
     if pts.shape[0] * (len(c) + len(r)) > _PREFILTER_PAIRS:
         c, r = _near_box(pts.reshape(-1, 2), c, r)
+    if pts.shape[0] * (len(c) + len(r)) > _COMPILED_PAIRS and xy.device.type == "cpu" and _compiled() is not None:
+        flat = pts.reshape(-1, 2).contiguous()
+        _compiled()(flat.numpy(), c.contiguous().numpy(), r.contiguous().numpy(), hit.numpy())
+        return hit.reshape(xy.shape[:-1])
     step = max(1, _CONTAINS_CHUNK // max(1, len(c) + len(r)))
     for lo in range(0, pts.shape[0], step):
         p = pts[lo:lo + step]  # [p, 1, 2]

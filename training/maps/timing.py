@@ -7,8 +7,9 @@ CFU-MPPI twice (each command senses the 72 x 72 patch of 0.05 m around the pose,
 map policy for half of K and runs the local Gaussian pass with the other half), once with the map policy's
 compiled rollout (:mod:`cuniform_torch.maps.kernels`, what a CPU runs) and once step by step (the rollout's
 generic loop, what it ran before). Without ``--checkpoint`` the policy is untrained, of the shipped policy's sizes
-(the same arithmetic: a timing, not a plan). Printed: sensing + encoding alone, then per K the median command
-time of each and the ratios to MPPI; the policy's parameter count, torch's thread count and the load average.
+(the same arithmetic: a timing, not a plan). Printed: sensing and encoding alone, then per K the median command
+time of each, the ratios to MPPI, and the map policy's rollout of K / 2 alone (compiled and step by step); the
+policy's parameter count, torch's thread count and the load average.
 """
 
 from __future__ import annotations
@@ -39,6 +40,7 @@ from cuniform_torch.maps.checkpoint import load_map_policy
 from cuniform_torch.maps.encoder import PatchSpec
 from cuniform_torch.maps.policy import MapPolicy, MapPolicyConfig
 from cuniform_torch.maps.sensing import local_map
+from cuniform_torch.sampling.rollout import rollout
 from cuniform_torch.systems import make_system
 
 ROBOT = dict(speed=0.5, dt=0.2, max_omega=1.5, num_actions=7, cell_size=[0.05, 0.05, 2 * math.pi / 36])
@@ -101,6 +103,17 @@ def time_side_by_side(controllers: dict[str, tuple[object, object]], system, com
     return times
 
 
+def _repeat(fn, warmup: int, commands: int) -> list[float]:
+    """Times (ms) of ``commands`` calls of ``fn`` after ``warmup`` untimed ones."""
+    out = []
+    for k in range(warmup + commands):
+        start = time.perf_counter()
+        fn()
+        if k >= warmup:
+            out.append((time.perf_counter() - start) * 1e3)
+    return out
+
+
 def _stats(ms: list[float]) -> str:
     ordered = sorted(ms)
     return f"median {statistics.median(ms):6.2f} ms, p90 {ordered[int(0.9 * (len(ms) - 1))]:6.2f} ms"
@@ -146,28 +159,15 @@ def main(argv: Sequence[str] | None = None) -> int:
           f" patch {list(policy.patch_spec.shape)} at {policy.patch_spec.resolution} m; torch threads "
           f"{torch.get_num_threads()}; load {os.getloadavg()[0]:.2f}")
     pose = torch.tensor([0.3, 0.1, 0.2])
-    encode = []
-    for k in range(args.warmup + args.commands):
-        start = time.perf_counter()
-        policy.set_map(local_map(world, pose, policy.patch_spec))
-        if k >= args.warmup:
-            encode.append((time.perf_counter() - start) * 1e3)
-    print(f"sensing + encoding the patch: {_stats(encode)}")
-    lookup = []
-    for n in (128, 512):  # the map-policy stage's batch at K = 256 and 1024
-        x = torch.zeros(n, 3)
-        per = []
-        for k in range(args.warmup + args.commands):
-            start = time.perf_counter()
-            policy.action_probs(x, 3)
-            if k >= args.warmup:
-                per.append((time.perf_counter() - start) * 1e3)
-        lookup.append(statistics.median(per))
-        print(f"action_probs on {n} states: {_stats(per)}")
-    results = {"parameters": policy.num_parameters, "encode_ms": statistics.median(encode),
-               "action_probs_ms": dict(zip((128, 512), lookup)), "commands": {}}
-    print(f"{'K':>6} {'MPPI':>9} {'CFU-MPPI':>9} {'ratio':>6} {'CFU step-by-step':>17} {'ratio':>6}  (median ms "
-          f"per command, horizon {HORIZON})")
+    patch = local_map(world, pose, policy.patch_spec)
+    sense = _repeat(lambda: local_map(world, pose, policy.patch_spec), args.warmup, args.commands)
+    encode = _repeat(lambda: policy.set_map(patch), args.warmup, args.commands)
+    print(f"sensing the patch: {_stats(sense)}; encoding it (set_map): {_stats(encode)}")
+    results = {"parameters": policy.num_parameters, "sense_ms": statistics.median(sense),
+               "encode_ms": statistics.median(encode), "commands": {}}
+    print(f"{'K':>6} {'MPPI':>9} {'CFU-MPPI':>9} {'ratio':>6} {'CFU step-by-step':>17} {'ratio':>6} "
+          f"{'its rollout':>12} {'step-by-step':>13}  (median ms per command; rollout: the map policy's K/2, "
+          f"horizon {HORIZON})")
     for k in args.samples:
         mppi = MPPI(system, cost, num_samples=k, horizon=HORIZON, seed=0)
         cfu = CFUMPPI(policy, world, cost, num_samples=k, seed=0)
@@ -177,10 +177,19 @@ def main(argv: Sequence[str] | None = None) -> int:
                                   system, args.commands, args.warmup)
         policy.compiled = True
         med = {name: statistics.median(ms) for name, ms in times.items()}
+        roll = {}
+        for compiled in (True, False):  # the first stage alone, from the patch set above
+            policy.compiled = compiled
+            policy.set_map(patch)
+            gen = torch.Generator().manual_seed(0)
+            roll[compiled] = statistics.median(_repeat(lambda n=max(1, k // 2), g=gen: rollout(
+                system, policy, pose, n, HORIZON, g), args.warmup, args.commands))
+        policy.compiled = True
         results["commands"][k] = {"median_ms": med["cfu"], "all_ms": times["cfu"], "mppi_median_ms": med["mppi"],
-                                  "step_by_step_median_ms": med["stepwise"]}
+                                  "step_by_step_median_ms": med["stepwise"], "rollout_ms": roll[True],
+                                  "rollout_step_by_step_ms": roll[False]}
         print(f"{k:6d} {med['mppi']:9.2f} {med['cfu']:9.2f} {med['cfu'] / med['mppi']:5.1f}x "
-              f"{med['stepwise']:17.2f} {med['stepwise'] / med['mppi']:5.1f}x")
+              f"{med['stepwise']:17.2f} {med['stepwise'] / med['mppi']:5.1f}x {roll[True]:12.2f} {roll[False]:13.2f}")
     print(f"load after: {os.getloadavg()[0]:.2f}")
     if args.json:
         from cuniform_torch.common.fileio import write_json
