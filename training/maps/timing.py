@@ -177,12 +177,12 @@ def main(argv: Sequence[str] | None = None) -> int:
                                   system, args.commands, args.warmup)
         policy.compiled = True
         med = {name: statistics.median(ms) for name, ms in times.items()}
-        roll = {}
+        roll, half = {}, max(1, k // 2)
         for compiled in (True, False):  # the first stage alone, from the patch set above
             policy.compiled = compiled
             policy.set_map(patch)
             gen = torch.Generator().manual_seed(0)
-            roll[compiled] = statistics.median(_repeat(lambda n=max(1, k // 2), g=gen: rollout(
+            roll[compiled] = statistics.median(_repeat(lambda n=half, g=gen: rollout(
                 system, policy, pose, n, HORIZON, g), args.warmup, args.commands))
         policy.compiled = True
         results["commands"][k] = {"median_ms": med["cfu"], "all_ms": times["cfu"], "mppi_median_ms": med["mppi"],
