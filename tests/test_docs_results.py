@@ -111,6 +111,9 @@ def test_docs_command_parses(where, command, monkeypatch, tmp_path, capsys):
     module, argv = words[2], words[3:]
     if module == "pytest":
         return  # not ours
+    if module == "cProfile":  # python -m cProfile -o FILE -m MODULE ARGS: the profiled command must parse
+        inner = words.index("-m", 3)
+        module, argv = words[inner + 1], words[inner + 2:]
     kind = _entry_point(module)
     if not argv:
         return  # a bare mention of the command (a heading, a table cell): the module and its main exist
