@@ -891,6 +891,16 @@ def _replace_by_folder(path: Path) -> None:
     path.mkdir()
 
 
+def _broken(name: str, label: str | None = None, missing: bool = True) -> list[tuple[str, Callable[[Path], None]]]:
+    """The file ``name`` of a folder missing (when ``missing``), a folder, a symlink loop: three damaged-folder cases
+    (labelled ``label``, default the name)."""
+    label = label or name
+    cases: list[tuple[str, Callable[[Path], None]]] = [(f"{label} missing", lambda dst: (dst / name).unlink())]
+    return (cases if missing else []) + [
+        (f"{label} is a folder", lambda dst: _replace_by_folder(dst / name)),
+        (f"{label} is a symlink loop", lambda dst: _symlink_loop(dst / name))]
+
+
 def table_family(work: Path, quick: bool) -> Family:
     import numpy as np
 
@@ -1216,12 +1226,7 @@ def map_dataset_family(work: Path, quick: bool) -> Family:
     muts += [("the two shards swapped (index sha256s updated)", swap_shards),
              ("a shard listed twice (entries duplicated)", entries_twice),
              ("a table file in place of a shard (sha256 updated)", foreign_shard),
-             ("a shard missing", lambda dst: (dst / shard).unlink()),
-             ("a shard is a folder", lambda dst: _replace_by_folder(dst / shard)),
-             ("a shard is a symlink loop", lambda dst: _symlink_loop(dst / shard)),
-             ("dataset.json missing", lambda dst: (dst / "dataset.json").unlink()),
-             ("dataset.json is a folder", lambda dst: _replace_by_folder(dst / "dataset.json")),
-             ("dataset.json is a symlink loop", lambda dst: _symlink_loop(dst / "dataset.json")),
+             *_broken(shard, "a shard"), *_broken("dataset.json"),
              ("an unknown file in the folder", lambda dst: (dst / "notes.txt").write_text("hello")),
              ("the folder is a symlink loop", lambda dst: _symlink_loop(dst))]
     return Family("map data set (folder)", ["map_dataset"], original,
@@ -1284,12 +1289,7 @@ def table_set_family(work: Path, quick: bool) -> Family:
         ("member 0 replaced by member 1's file", lambda dst: shutil.copy(dst / member, dst / "start_0000.npz")),
         ("member 1 replaced by a table of another system (dt 0.2)",
          lambda dst: shutil.copy(other / "start_0000.npz", dst / member)),
-        ("member 1 is a folder", lambda dst: _replace_by_folder(dst / member)),
-        ("member 1 is a symlink loop", lambda dst: _symlink_loop(dst / member)),
-        ("member 1 missing", lambda dst: (dst / member).unlink()),
-        ("tables.json missing", lambda dst: (dst / "tables.json").unlink()),
-        ("tables.json is a folder", lambda dst: _replace_by_folder(dst / "tables.json")),
-        ("tables.json is a symlink loop", lambda dst: _symlink_loop(dst / "tables.json")),
+        *_broken(member, "member 1"), *_broken("tables.json"),
         ("the folder is a symlink loop", lambda dst: _symlink_loop(dst)),
         ("an unknown file in the folder", lambda dst: (dst / "notes.txt").write_text("hello")),
     ]
@@ -1356,11 +1356,9 @@ def bench_family(work: Path, quick: bool) -> Family:
                                                                             lines[1][20:]))),
         ("episodes.jsonl time 1e999", put("episodes.jsonl", with_line(lines[1].replace(b'"time":3.2',
                                                                                        b'"time":1e999')))),
-        ("episodes.jsonl is a folder", lambda dst: _replace_by_folder(dst / "episodes.jsonl")),
-        ("episodes.jsonl is a symlink loop", lambda dst: _symlink_loop(dst / "episodes.jsonl")),
+        *_broken("episodes.jsonl", missing=False),
         ("settings.json missing (records left)", lambda dst: (dst / "settings.json").unlink()),
-        ("settings.json is a folder", lambda dst: _replace_by_folder(dst / "settings.json")),
-        ("settings.json is a symlink loop", lambda dst: _symlink_loop(dst / "settings.json")),
+        *_broken("settings.json", missing=False),
         ("the folder is a symlink loop", lambda dst: _symlink_loop(dst)),
         ("an unknown file in the folder", lambda dst: (dst / "notes.txt").write_text("hello")),
     ]
