@@ -25,7 +25,7 @@ SYSTEM = make_system("dubins", speed=1.0, dt=0.2, num_actions=5, max_omega=math.
                      cell_size=[0.1, 0.1, 2 * math.pi / 16])
 SPEC = PatchSpec((24, 24), 0.1, (-1.2, -1.2))
 
-pytestmark = pytest.mark.skipif(not kernels.usable(torch.zeros(3), torch.float32), reason="needs numba")
+pytestmark = pytest.mark.skipif(not kernels.usable(torch.device("cpu"), torch.float32), reason="needs numba")
 
 
 def _policy(scale: float, local: int) -> MapPolicy:

@@ -116,7 +116,7 @@ class CFUMPPI(CUMPPI):
                              f"for; move it with policy.to(device)")
         if system is not None:
             check_policy_robot(policy, system)
-        if policy.dtype == torch.float32 and kernels.usable(torch.zeros(3, device=policy.device), policy.dtype):
+        if kernels.usable(policy.device, policy.dtype):
             kernels.warm_up()  # the compiled rollout's loops, now rather than in the first command
         self.sensed = SensedMapPolicy(policy, world, max_range)
         super().__init__(self.sensed, cost_fn, num_samples, cuniform_fraction, lambda_, noise_std, local, horizon,

@@ -141,15 +141,16 @@ def _any_contains(xy: Tensor, circles: Tensor, rects: Tensor) -> Tensor:
     """``xy [..., 2]`` -> ``bool [...]``: inside any closed disc (``circles [C, 3]``: x, y, r^2) or closed
     rectangle (``rects [R, 4]``), with the arithmetic of :meth:`Circle.contains` / :meth:`Rect.contains` in the
     points' dtype (so the same answer to the last bit)."""
-    pts = xy.reshape(-1, 1, 2)  # [P, 1, 2]
+    flat = xy.reshape(-1, 2)  # [P, 2]
+    pts = flat.unsqueeze(1)  # [P, 1, 2]
     hit = torch.zeros(pts.shape[0], dtype=torch.bool, device=xy.device)  # [P]
     c = circles.to(device=xy.device, dtype=xy.dtype)  # [C, 3]
     r = rects.to(device=xy.device, dtype=xy.dtype)  # [R, 4]
     if pts.shape[0] * (len(c) + len(r)) > _PREFILTER_PAIRS:
-        c, r = _near_box(pts.reshape(-1, 2), c, r)
-    if pts.shape[0] * (len(c) + len(r)) > _COMPILED_PAIRS and xy.device.type == "cpu" and _compiled() is not None:
-        flat = pts.reshape(-1, 2).contiguous()
-        _compiled()(flat.numpy(), c.contiguous().numpy(), r.contiguous().numpy(), hit.numpy())
+        c, r = _near_box(flat, c, r)
+    loop = _compiled() if xy.device.type == "cpu" and pts.shape[0] * (len(c) + len(r)) > _COMPILED_PAIRS else None
+    if loop is not None:
+        loop(flat.contiguous().numpy(), c.contiguous().numpy(), r.contiguous().numpy(), hit.numpy())
         return hit.reshape(xy.shape[:-1])
     step = max(1, _CONTAINS_CHUNK // max(1, len(c) + len(r)))
     for lo in range(0, pts.shape[0], step):

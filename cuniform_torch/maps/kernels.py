@@ -45,11 +45,10 @@ def _kernels():
     return rollout_loops.features, rollout_loops.draw_and_step
 
 
-def usable(x0: Tensor, dtype: torch.dtype) -> bool:
-    """Whether the compiled rollout serves a start like ``x0`` for a policy of ``dtype`` (a CPU float32 start and
-    policy, numba installed)."""
-    return (x0.device.type == "cpu" and x0.dtype == torch.float32 and dtype == torch.float32
-            and cpu_kernels.available())
+def usable(device: torch.device, dtype: torch.dtype) -> bool:
+    """Whether the compiled rollout serves a policy (and its starts) on ``device`` in ``dtype``: a CPU, float32,
+    numba installed."""
+    return torch.device(device).type == "cpu" and dtype == torch.float32 and cpu_kernels.available()
 
 
 @functools.cache

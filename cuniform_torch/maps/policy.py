@@ -318,10 +318,12 @@ class MapPolicy(nn.Module):
     def fused_rollout(self, system: System, x0: Tensor, num_samples: int, horizon: int,
                       generator: torch.Generator | None) -> tuple[Tensor, Tensor] | None:
         """The rollout's own loop, when it has one for this start (:func:`~cuniform_torch.sampling.rollout.rollout`
-        asks): on a CPU, float32, with numba, for this policy's own :class:`~cuniform_torch.systems.models.Dubins`
-        system, the start-frame states ``[T+1, 3, N]`` (time-major) and actions ``[N, T, q]`` of
+        asks): on a CPU, float32, with numba, for a :class:`~cuniform_torch.systems.models.Dubins` system (its own
+        speed and time step), the start-frame states ``[T+1, 3, N]`` (time-major) and actions ``[N, T, q]`` of
         :mod:`~cuniform_torch.maps.kernels` (the step-by-step path's draws, to float rounding); else None."""
-        if (not self.compiled or self._map_bias is None or x0.ndim != 1 or type(system) is not Dubins or not kernels.usable(x0, self.dtype) or (generator is not None and generator.device.type != "cpu")):
+        on_cpu = generator is None or generator.device.type == "cpu"
+        if not (self.compiled and self._map_bias is not None and x0.ndim == 1 and type(system) is Dubins and on_cpu
+                and x0.dtype == self.dtype and kernels.usable(x0.device, self.dtype)):
             return None
         local = self.local
         geometry = dict(dt=system.dt, speed=system.speed, origin_x=self.patch_spec.origin[0],

@@ -49,7 +49,7 @@ def split(profile: str | Path) -> dict[str, float]:
         raise CLIError(f"{profile}: no controller command in this profile (profile an eval.navigate run)")
     n = sum(stats[k][0] for k in commands)  # primitive calls: one per command
     command_s = sum(stats[k][3] for k in commands)
-    outer = {k for k in plans}
+    outer = set(plans)
 
     def called_from_plan(name: str, files: Sequence[str] | None = None) -> float:
         total = 0.0

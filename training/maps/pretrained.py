@@ -129,7 +129,8 @@ def model_card(recipe: Recipe, checkpoint: Path, folders: Sequence[Path], farm_s
         "format": CARD_FORMAT, "name": recipe.name, "robot": preset_dict(recipe.robot),
         "file": checkpoint.name, "file_sha256": hashlib.sha256(raw).hexdigest(), "bytes": len(raw),
         "data": data, "split_rule": "train maps only: BARN map ids, forest and clutter seeds not divisible by 5",
-        "coverage": recipe.coverage, "training": {**recipe.distill, **metrics}, "farm_seconds_this_run": round(farm_seconds, 1),
+        "coverage": recipe.coverage, "training": {**recipe.distill, **metrics},
+        "farm_seconds_this_run": round(farm_seconds, 1),
     }
 
 
