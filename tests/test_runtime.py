@@ -681,10 +681,11 @@ class TestControllers:
     @pytest.mark.parametrize("kind", KINDS)
     def test_bad_states_are_value_errors(self, dubins_policy, kind):
         ctrl = _controller(kind, dubins_policy, NavigationCost(Environment([]), (2.0, 1.0)))
-        for bad in (torch.zeros(2), torch.zeros(1, 3), torch.zeros(4), torch.tensor([0.0, float("nan"), 0.0]),
+        for bad in (torch.zeros(2), torch.zeros(2, 3), torch.zeros(4), torch.tensor([0.0, float("nan"), 0.0]),
                     torch.tensor([float("inf"), 0.0, 0.0])):
             with pytest.raises(ValueError):
                 ctrl.command(bad)
+        assert ctrl.command(torch.zeros(1, 3)).shape == (1, 1)  # a batch of one robot keeps its robot dimension
 
     @pytest.mark.parametrize("kind", KINDS)
     @pytest.mark.parametrize("lambda_", [-1.0, float("nan"), float("inf")])

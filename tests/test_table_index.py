@@ -204,7 +204,7 @@ def test_the_numba_kernel_reads_the_index_in_place(dubins_table, lookup):
     for view, tensor in zip(kernel.keys, (k.scale, k.shift, k.low, k.high, k.span, k.period, k.inv_period, k.half)):
         assert np.shares_memory(view, tensor.numpy())
     assert np.shares_memory(kernel.level_base, index.level_base.numpy())
-    for view, tensor in zip(kernel.draw, (index.alias.threshold, index.alias.outcome, index.entry_code)):
+    for view, tensor in zip(kernel.alias, (index.alias.threshold, index.alias.outcome, index.entry_code)):
         assert np.shares_memory(view, tensor.numpy())
     found = index.dense if lookup == "dense" else index.slot_entry
     assert np.shares_memory(kernel.find[-1], found.numpy())

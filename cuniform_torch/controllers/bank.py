@@ -17,8 +17,9 @@ from torch import Tensor
 
 from cuniform_torch.common.frames import se2_to_world
 from cuniform_torch.controllers.checks import check_positive_int, seeded_generator
-from cuniform_torch.controllers.proposals import PolicyProposal
+from cuniform_torch.controllers.proposals import OneRobotCall, PolicyProposal
 from cuniform_torch.controllers.result import MPPIResult
+from cuniform_torch.controllers.streams import RobotStreams
 from cuniform_torch.sampling import kernels as rollout_kernels
 from cuniform_torch.sampling.rollout import check_generator, rollout_actions
 
@@ -32,7 +33,7 @@ class BankRefreshWarning(RuntimeWarning):
     """A background bank refresh of :class:`BankProposal` raised; the controller goes on with its current bank."""
 
 
-class BankProposal:
+class BankProposal(OneRobotCall):
     """C-Uniform MPPI's bank: ``bank_size`` (M) rollouts of ``source``'s policy pre-sampled at the origin; each
     command proposes a fresh random subset of K = ``source.num_samples`` of them, moved to the pose by a rigid
     transform. SE(2)-invariant systems with the state (x, y, theta) only.
@@ -59,7 +60,7 @@ class BankProposal:
         self.bank_size = check_positive_int("bank_size", bank_size)
         self.source = source
         self.system, self.horizon, self.device, self.dtype = source.system, source.horizon, source.device, source.dtype
-        self.num_samples = source.num_samples
+        self.num_samples, self.num_robots = source.num_samples, source.num_robots
         self.state_dim = len(self.system.periodic)
         if not self.system.se2_invariant:
             raise ValueError(f"a proposal bank needs an SE(2)-invariant system; {self.system.name} is not")
@@ -111,16 +112,26 @@ class BankProposal:
         """Draw a new bank now and use it (from ``generator``, default the refresh stream)."""
         self.bank_states, self.bank_actions = self.draw_bank(generator or self.refresh_generator)
 
-    def propose(self, state: Tensor, generator: torch.Generator) -> tuple[Tensor, Tensor]:
-        idx = torch.randperm(self.bank_size, generator=generator, device=self.device)[: self.num_samples]  # [K]
+    def propose_batch(self, states: Tensor, streams: RobotStreams) -> tuple[Tensor, Tensor]:
+        """Each robot's random subset of K bank rollouts (its own stream's permutation), moved to its pose:
+        ``states [B, d]`` -> ``[B, K, T+1, d]``, ``[B, K, T, q]``."""
+        idx = torch.stack([torch.randperm(self.bank_size, generator=g, device=self.device)[: self.num_samples]
+                           for g in streams.generators])  # [B, K]: a permutation per robot, from its stream
         if self.member_starts is not None:  # the nearest member's actions, rolled out from the state itself
-            member = self.source.policy.member_index(state)  # stateless: a background draw may run for_start
-            actions = self.bank_actions[member][idx]  # [K, T, q]
-            return rollout_actions(self.system, state, actions), actions
-        local = self.bank_states[idx]  # [K, T+1, d]
-        if rollout_kernels.usable(local):  # the compiled frame change, reading the subset in its own order
-            return rollout_kernels.to_world(local.permute(1, 2, 0), state), self.bank_actions[idx]
-        return se2_to_world(local, state), self.bank_actions[idx]  # [K, T+1, d], [K, T, q]
+            members = self.source.policy.nearest(states)[0].tolist()  # stateless: a background draw may run for_start
+            actions = torch.stack([self.bank_actions[m][i] for m, i in zip(members, idx)])  # [B, K, T, q]
+            b, k, t, q = actions.shape
+            return (rollout_actions(self.system, states.repeat_interleave(k, dim=0), actions.view(b * k, t, q))
+                    .view(b, k, t + 1, -1), actions)
+        if states.shape[0] == 1:
+            state, local = states[0], self.bank_states[idx[0]]  # [K, T+1, d]
+            if rollout_kernels.usable(local):  # the compiled frame change, reading the subset in its own order
+                world = rollout_kernels.to_world(local.permute(1, 2, 0), state)
+            else:
+                world = se2_to_world(local, state)
+            return world.unsqueeze(0), self.bank_actions[idx[0]].unsqueeze(0)
+        local = self.bank_states[idx]  # [B, K, T+1, d]
+        return se2_to_world(local, states[:, None, None, :]), self.bank_actions[idx]
 
     def update(self, result: MPPIResult) -> None:
         """Count the command; every ``refresh`` commands, draw a new bank (or, in the background, put a finished
@@ -136,8 +147,8 @@ class BankProposal:
         elif due:
             self.resample()
 
-    def reset(self) -> None:
-        """Restart the refresh count (the bank itself is kept)."""
+    def reset(self, robots: Tensor | None = None) -> None:
+        """Restart the refresh count (the bank itself is kept; shared by the robots)."""
         self.commands = 0
 
     def _swap_if_ready(self, wait: bool = False) -> bool:

@@ -13,7 +13,7 @@ proposal and the split are CUMPPI's, unchanged.
 from __future__ import annotations
 
 import os
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from typing import Any
 
 import torch
@@ -107,8 +107,8 @@ class CFUMPPI(CUMPPI):
                  num_samples: int = 1000, cuniform_fraction: float = 0.5, lambda_: float = 0.567,
                  noise_std: float | Tensor = 0.1, local: str = "mppi", horizon: int | None = None,
                  max_range: float | None = None, terminal_cost: Callable[[Tensor], Tensor] | None = None,
-                 device: torch.device | str | None = None, seed: int | None = None, system: Any = None,
-                 **local_kwargs: Any):
+                 device: torch.device | str | None = None, seed: int | Sequence[int] | None = None,
+                 system: Any = None, num_robots: int = 1, debug: bool | None = None, **local_kwargs: Any):
         if not isinstance(policy, MapPolicy):
             policy = load_map_policy(policy, device=device if device is not None else "cpu")
         elif device is not None and not same_device(policy.device, device):
@@ -120,7 +120,8 @@ class CFUMPPI(CUMPPI):
             kernels.warm_up()  # the compiled rollout's loops, now rather than in the first command
         self.sensed = SensedMapPolicy(policy, world, max_range)
         super().__init__(self.sensed, cost_fn, num_samples, cuniform_fraction, lambda_, noise_std, local, horizon,
-                         terminal_cost=terminal_cost, device=policy.device, seed=seed, **local_kwargs)
+                         terminal_cost=terminal_cost, device=policy.device, seed=seed, num_robots=num_robots,
+                         debug=debug, **local_kwargs)
 
     @property
     def map_policy(self) -> MapPolicy:

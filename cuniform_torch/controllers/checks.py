@@ -83,14 +83,23 @@ def _callable_name(fn: object) -> str:
     return text if len(text) <= 80 else f"{type(fn).__qualname__} object"
 
 
-def _check_costs(costs: object, who: str, fn: object, k: int, dtype: torch.dtype, device: torch.device) -> Tensor:
-    """``costs`` as returned by the user's ``fn``, checked to be a ``[k]`` tensor of ``dtype`` on ``device``."""
-    expected = f"expected a [{k}] tensor of {dtype} on {device} (one cost per proposal, the controller's dtype and device)"
+def _check_costs(costs: object, who: str, fn: object, shape: tuple[int, ...], dtype: torch.dtype,
+                 device: torch.device) -> Tensor:
+    """``costs`` as returned by the user's ``fn``, checked to be a tensor of ``shape`` (``(K,)``, ``(B*K,)`` or
+    ``(B, K)``), ``dtype`` and ``device`` (shape, dtype and device only: no host sync)."""
+    want = "[" + ", ".join(map(str, shape)) + "]"
+    per = ("one cost per rollout of every robot" if len(shape) == 1
+           else "one cost per rollout, per robot: this cost says batched = True")
+    expected = f"expected a {want} tensor of {dtype} on {device} ({per}; the controller's dtype and device)"
     if not isinstance(costs, Tensor):
         raise ValueError(f"{who} {_callable_name(fn)} returned {type(costs).__name__} {costs!r:.60}; {expected}")
-    if costs.shape != (k,) or costs.dtype != dtype or not same_device(costs.device, device):
+    if costs.shape != shape or costs.dtype != dtype or not same_device(costs.device, device):
+        hint = ""
+        if costs.ndim == 2 and len(shape) == 1:
+            hint = (" (a [K, T] tensor is a cost per step: sum it over the steps, dim=1)" if costs.shape[0] == shape[0]
+                    else "")
         raise ValueError(f"{who} {_callable_name(fn)} returned a {list(costs.shape)} tensor of {costs.dtype} on "
-                         f"{costs.device}; {expected}")
+                         f"{costs.device}; {expected}{hint}")
     return costs.detach()
 
 
@@ -100,27 +109,44 @@ def _describe(x: object) -> str:
 
 def check_state(state: Tensor, state_dim: int, dtype: torch.dtype, device: torch.device) -> Tensor:
     """``state [d]`` of the controller's dtype and device, finite; detached (a state is an observation)."""
-    if not isinstance(state, Tensor) or state.shape != (state_dim,):
-        raise ValueError(f"state must be a tensor of shape [{state_dim}], got {getattr(state, 'shape', state)!r}")
+    return check_state_batch(state, 1, state_dim, dtype, device, True)[0][0]
+
+
+def check_state_batch(state: Tensor, num_robots: int, state_dim: int, dtype: torch.dtype, device: torch.device,
+                      values: bool) -> tuple[Tensor, bool]:
+    """``state [B, d]`` (B = ``num_robots``) or, for one robot, ``[d]``, of the controller's dtype and device;
+    finite when ``values`` (a host read). Returns it detached as ``[B, d]`` and whether a ``[d]`` state was given."""
+    shapes = f"[{num_robots}, {state_dim}]" + (f" or [{state_dim}]" if num_robots == 1 else "")
+    if not isinstance(state, Tensor):
+        raise ValueError(f"state must be a tensor of shape {shapes}, got {type(state).__name__}")
+    single = state.ndim == 1 and num_robots == 1
+    if state.shape != (num_robots, state_dim) and not (single and state.shape == (state_dim,)):
+        more = (f" (this controller has {num_robots} robots: num_robots sets it)"
+                if state.ndim == 2 and state.shape[1] == state_dim else "")
+        raise ValueError(f"state must be a tensor of shape {shapes}, got {list(state.shape)}{more}")
     if not same_device(state.device, device):
         raise ValueError(f"state is on {state.device} but the controller is on {device}")
     if state.dtype != dtype:
         raise ValueError(f"state is {state.dtype} but the controller is {dtype}; pass state.to({dtype})")
     state = state.detach()
-    if not bool(torch.isfinite(state).all()):
-        raise ValueError(f"state contains NaN or infinite values: {state.tolist()}")
-    return state
+    if single:
+        state = state.unsqueeze(0)
+    if values and not bool(torch.isfinite(state).all()):
+        bad = torch.nonzero(~torch.isfinite(state).all(dim=1)).flatten().tolist()
+        raise ValueError(f"state contains NaN or infinite values (robots {bad[:8]}): {state[bad[0]].tolist()}")
+    return state, single
 
 
-def check_proposals(who: str, states: object, actions: object, shape: tuple[int, int, int, int], dtype: torch.dtype,
+def check_proposals(who: str, states: object, actions: object, shape: tuple[int, ...], dtype: torch.dtype,
                     device: torch.device) -> None:
-    """What ``who.propose`` returned: ``[K, T+1, d]`` states and ``[K, T, q]`` actions (``shape`` is
-    ``(K, T, d, q)``) of ``dtype`` on ``device``."""
-    k, t, d, q = shape
-    ok = (isinstance(states, Tensor) and isinstance(actions, Tensor) and states.shape == (k, t + 1, d)
-          and actions.shape == (k, t, q) and states.dtype == actions.dtype == dtype
+    """What ``who.propose`` returned: ``[(B,) K, T+1, d]`` states and ``[(B,) K, T, q]`` actions (``shape`` is
+    ``(B, K, T, d, q)``, or ``(K, T, d, q)`` for a proposal of one robot) of ``dtype`` on ``device``."""
+    *lead, t, d, q = shape
+    want_states, want_actions = (*lead, t + 1, d), (*lead, t, q)
+    ok = (isinstance(states, Tensor) and isinstance(actions, Tensor) and states.shape == want_states
+          and actions.shape == want_actions and states.dtype == actions.dtype == dtype
           and same_device(states.device, device) and same_device(actions.device, device))
     if not ok:
         raise ValueError(f"{who}.propose returned states {_describe(states)} and actions "
-                         f"{_describe(actions)}; expected [{k}, {t + 1}, {d}] and [{k}, {t}, {q}] of {dtype} "
-                         f"on {device}")
+                         f"{_describe(actions)}; expected {list(want_states)} and {list(want_actions)} of "
+                         f"{dtype} on {device}")

@@ -1,28 +1,34 @@
 """The one MPPI core: :class:`MPPICore` takes a :class:`~cuniform_torch.controllers.proposals.Proposal`.
 
-Shapes: K samples (proposals), T horizon, d state dimensions, q action dimensions.
+Shapes: B robots, K samples (proposals) per robot, T horizon, d state dimensions, q action dimensions.
 
-:meth:`MPPICore.plan` is the one MPPI iteration of every controller (:mod:`cuniform_torch.controllers.mppi`):
+:meth:`MPPICore.plan` is the one MPPI iteration of every controller (:mod:`cuniform_torch.controllers.mppi`), for
+B robots at once (``state [B, d]``; a ``[d]`` state is one robot and gets results without the robot dimension):
 
-1. ``states [K, T+1, d], actions [K, T, q] = proposal.propose(state, generator)``;
-2. cost each one, ``cost_fn(states, actions) -> [K]`` (+ ``terminal_cost(states[:, -1]) -> [K]``); NaN and
+1. ``states [B, K, T+1, d], actions [B, K, T, q] = proposal.propose_batch(state, streams)``: every robot's K
+   proposals in one tensor program, each robot drawing from its own random stream
+   (:class:`~cuniform_torch.controllers.streams.RobotStreams`);
+2. cost each one: ``cost_fn(states, actions)`` gets all B x K rollouts flattened, ``[B*K, T+1, d]`` -> ``[B*K]``
+   (the same cost for every robot), or, when the cost declares ``batched = True``, ``[B, K, T+1, d]`` ->
+   ``[B, K]`` (a cost per robot: goals per robot); likewise ``terminal_cost(states[..., -1, :])``. NaN and
    +-inf (e.g. the paper's infinite collision cost) become a large finite penalty, so weights never go NaN;
-3. weight them, ``w = softmax(-(cost - min cost) / lambda)`` (``lambda = 0``: all weight on the best one), and
-   return the weighted average of the proposals' action sequences (its first action is the command).
+3. weight them per robot, ``w = softmax(-(cost - min cost) / lambda)`` (``lambda = 0``: all weight on the best
+   one), and return the weighted average of each robot's action sequences (its first action is the command).
 
-:meth:`MPPICore.command` is ``plan``, then ``proposal.update(result)`` (the warm start), then the command.
+:meth:`MPPICore.command` is ``plan``, then ``proposal.update(result)`` (the warm starts), then the commands.
+:meth:`MPPICore.reset` forgets the warm start of every robot, or of the robots named (their episodes ended).
 
-Bad input is refused with one ValueError or TypeError naming it, all checked here: a ``lambda_`` that the
-controller's dtype cannot hold (or whose inverse overflows it), a ``seed`` that is not an integer, a state of the
-wrong shape, dtype or device or with NaN, a proposal that lacks a member of the protocol or returns trajectories
-of the wrong shape, dtype or device, and a cost (or terminal cost) that is not a ``[K]`` tensor of the
-controller's dtype and device, or is NaN for every proposal. A state that requires grad is detached (a
-controller never differentiates through its input).
+Checks: the constructor refuses bad arguments with one ValueError or TypeError naming them (a ``lambda_`` that the
+controller's dtype cannot hold, a ``seed`` that is not an integer or one per robot, a proposal that lacks a member
+of the protocol). Per command the state's shape, dtype and device are checked (no host sync); its values (NaN),
+the proposals' shapes and the costs' (all NaN for a robot) are checked when ``debug`` is on: by default on a CPU,
+where reading a value is free, and off on CUDA, where it would wait for the device (``debug=True`` turns them on
+there). A state that requires grad is detached (a controller never differentiates through its input).
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from typing import Protocol
 
 import torch
@@ -37,25 +43,35 @@ from cuniform_torch.controllers.checks import (
     _finite_costs,
     check_positive_int,
     check_proposals,
-    check_state,
-    make_generator,
+    check_state_batch,
 )
-from cuniform_torch.controllers.proposals import PROPOSAL_MEMBERS, Closeable, Proposal
+from cuniform_torch.controllers.proposals import (
+    PROPOSAL_MEMBERS,
+    SINGLE_ROBOT_MEMBERS,
+    Closeable,
+    Proposal,
+    SingleRobotProposal,
+    as_batched,
+)
 from cuniform_torch.controllers.result import MPPIResult
+from cuniform_torch.controllers.streams import RobotStreams, robot_seeds
 from cuniform_torch.systems import System
 
 __all__ = ["CostFn", "MPPIResult", "mppi_weights", "MPPICore", "COST_CAP"]
 
 
 class CostFn(Protocol):
-    """Trajectory cost: ``states [K, T+1, d]``, ``actions [K, T, q]`` -> ``[K]`` (may be inf for collisions), a
-    tensor of the controller's dtype on its device (``cuniform_torch.envs.NavigationCost`` is one)."""
+    """Trajectory cost: ``states [N, T+1, d]``, ``actions [N, T, q]`` -> ``[N]`` (may be inf for collisions), a
+    tensor of the controller's dtype on its device (``cuniform_torch.envs.NavigationCost`` is one). A batched
+    controller hands it all B x K rollouts at once (N = B*K). A cost that differs per robot says
+    ``batched = True`` (an attribute) and gets ``[B, K, T+1, d]``, ``[B, K, T, q]`` -> ``[B, K]``."""
 
     def __call__(self, states: Tensor, actions: Tensor) -> Tensor: ...
 
 
 def mppi_weights(costs: Tensor, lambda_: float) -> Tensor:
-    """``softmax(-(cost - min) / lambda)`` over ``costs [K]``; ``lambda_ = 0`` puts all weight on the argmin.
+    """``softmax(-(cost - min) / lambda)`` over the last dimension of ``costs [K]`` (or ``[B, K]``); ``lambda_ = 0``
+    puts all weight on the argmin.
 
     ValueError when ``lambda_`` is not 0 nor a normal number of ``costs.dtype`` with a finite inverse.
     """
@@ -63,40 +79,50 @@ def mppi_weights(costs: Tensor, lambda_: float) -> Tensor:
 
 
 def _weights(costs: Tensor, lambda_: float) -> Tensor:
-    """:func:`mppi_weights` of finite ``costs`` for a ``lambda_`` checked already (at a controller's construction)."""
+    """:func:`mppi_weights` of finite ``costs [..., K]`` for a ``lambda_`` checked already."""
     if lambda_ == 0:
-        return torch.nn.functional.one_hot(torch.argmin(costs), costs.shape[0]).to(costs.dtype)
-    return torch.softmax((costs - costs.min()).div_(-lambda_), dim=0)
+        return torch.nn.functional.one_hot(torch.argmin(costs, dim=-1), costs.shape[-1]).to(costs.dtype)
+    return torch.softmax((costs - costs.amin(dim=-1, keepdim=True)).div_(-lambda_), dim=-1)
 
 
 class MPPICore:
-    """One MPPI controller around any :class:`~cuniform_torch.controllers.proposals.Proposal`.
+    """One MPPI controller of ``num_robots`` robots around any :class:`~cuniform_torch.controllers.proposals.Proposal`.
 
-    ``plan(state [d]) -> MPPIResult`` proposes, costs, weights (``lambda_``; 0 puts all the weight on the best
-    proposal) and averages; ``command(state) -> [q]`` plans, lets the proposal warm-start from the result and
-    returns its first action. The controller's ``generator`` (seeded by ``seed``, or passed in) is the one
-    stream of random numbers the proposal draws from. ``close()`` (or ``with``) releases what the proposal holds
-    (a bank's worker thread).
+    ``plan(state) -> MPPIResult`` proposes, costs, weights (``lambda_``; 0 puts all the weight on the best
+    proposal) and averages, per robot; ``command(state)`` plans, lets the proposal warm-start from the result and
+    returns the first actions: ``state [B, d]`` -> ``[B, q]``, or one robot's ``state [d]`` -> ``[q]``. The
+    number of robots is the proposal's (``num_robots``, set where the proposal is made: every controller takes
+    it). Each robot draws from its own ``torch.Generator`` (``seed``: an int, one int per robot, or None; see
+    :func:`~cuniform_torch.controllers.streams.robot_seeds`), so robot ``b`` of a batch commands exactly what a
+    controller of that robot alone, seeded the same, commands. ``generator`` (one per robot) passes the streams in.
+    ``close()`` (or ``with``) releases what the proposal holds (a bank's worker thread). ``debug``: see the module.
     """
 
-    def __init__(self, proposal: Proposal, cost_fn: CostFn, lambda_: float = 0.567,
-                 terminal_cost: Callable[[Tensor], Tensor] | None = None, seed: int | None = None, *,
-                 generator: torch.Generator | None = None):
-        if not isinstance(proposal, Proposal):
-            missing = [m for m in PROPOSAL_MEMBERS if not hasattr(proposal, m)]
+    def __init__(self, proposal: Proposal | SingleRobotProposal, cost_fn: CostFn, lambda_: float = 0.567,
+                 terminal_cost: Callable[[Tensor], Tensor] | None = None,
+                 seed: int | Sequence[int] | None = None, *,
+                 generator: torch.Generator | Sequence[torch.Generator] | None = None, debug: bool | None = None):
+        if not isinstance(proposal, (Proposal, SingleRobotProposal)):
+            members = SINGLE_ROBOT_MEMBERS if hasattr(proposal, "propose") else PROPOSAL_MEMBERS
+            missing = [m for m in members if not hasattr(proposal, m)]
             raise TypeError(f"{type(proposal).__name__} is not a Proposal: it lacks {', '.join(missing)} (a proposal "
-                            f"has {', '.join(PROPOSAL_MEMBERS)})")
+                            f"has {', '.join(PROPOSAL_MEMBERS)}; one of one robot has {', '.join(SINGLE_ROBOT_MEMBERS)})")
         for name, fn in (("cost_fn", cost_fn), ("terminal_cost", terminal_cost)):
             if fn is not None and not callable(fn):
                 raise TypeError(f"{name} must be callable (states, actions) -> [K], got {type(fn).__name__}")
         if cost_fn is None:
             raise TypeError("cost_fn must be callable (states, actions) -> [K], got None")
         self.proposal = proposal
+        self._batch = as_batched(proposal)
+        """the proposal as the batched protocol (a one-robot proposal is adapted)"""
         self.system: System = proposal.system
         self.cost_fn = cost_fn
         self.terminal_cost = terminal_cost
+        self._cost_batched = getattr(cost_fn, "batched", False) is True
+        self._terminal_batched = getattr(terminal_cost, "batched", False) is True
         self.num_samples = check_positive_int("num_samples", proposal.num_samples)
         self.horizon = check_positive_int("horizon", proposal.horizon)
+        self.num_robots = check_positive_int("num_robots", self._batch.num_robots)
         self.device = torch.device(proposal.device)
         dtype = proposal.dtype
         if not (isinstance(dtype, torch.dtype) and dtype.is_floating_point):
@@ -105,36 +131,58 @@ class MPPICore:
         self.lambda_ = _check_lambda(lambda_, dtype)
         self.state_dim = len(self.system.periodic)
         self.action_dim = self.system.action_set(dtype=dtype, device=self.device).shape[1]
-        if generator is None:
-            generator = make_generator(seed, self.device)
-        elif seed is not None:
-            raise ValueError("pass a seed or a generator, not both")
+        self.debug = (self.device.type == "cpu") if debug is None else bool(debug)
+        """check values per command (NaN states, the proposals' shapes, all-NaN costs): needs a host read"""
+        if generator is not None:
+            if seed is not None:
+                raise ValueError("pass a seed or a generator, not both")
+            generators = [generator] if isinstance(generator, torch.Generator) else list(generator)
+            if len(generators) != self.num_robots:
+                raise ValueError(f"generator: this controller has {self.num_robots} robots and needs one stream each, "
+                                 f"got {len(generators)}; or pass seed (an int, or one per robot)")
+            for g in generators:
+                check_generator(g, self.device)
+            self.streams = RobotStreams(generators)
         else:
-            check_generator(generator, self.device)
-        self.generator = generator
-        """the stream of random numbers of every proposal drawn by this controller"""
+            self.streams = RobotStreams.seeded(robot_seeds(seed, self.num_robots), self.device)
+        self.generator = self.streams.generators[0]
+        """robot 0's stream of random numbers (the only one of a one-robot controller)"""
 
     # -------------------------------------------------------------------------------- the one MPPI iteration
 
     def plan(self, state: Tensor) -> MPPIResult:
-        """One MPPI iteration from ``state [d]``; the proposal's warm start is left as it was."""
-        state = self._check_state(state)
-        states, actions = self.proposal.propose(state, self.generator)
-        self._check_proposals(states, actions)
+        """One MPPI iteration from ``state [B, d]`` (or one robot's ``[d]``); the warm starts are left as they were."""
+        states, single = self._check_state(state)
+        result = self._plan(states)
+        return result.robot(0) if single else result
+
+    def _plan(self, state: Tensor) -> MPPIResult:
+        """The iteration for checked ``state [B, d]``: a batched result."""
+        states, actions = self._batch.propose_batch(state, self.streams)
+        if self.debug:
+            self._check_proposals(states, actions)
         costs, weights = self._evaluate(states, actions)
-        k, t, q = actions.shape
-        nominal = (weights @ actions.reshape(k, t * q)).reshape(t, q)  # [T, q] weighted sequences
-        return MPPIResult(nominal[0], nominal, states, actions, costs, weights)
+        b, k, t, q = actions.shape
+        nominal = torch.bmm(weights.unsqueeze(1), actions.reshape(b, k, t * q)).view(b, t, q)  # [B, T, q]
+        return MPPIResult(nominal[:, 0], nominal, states, actions, costs, weights, self.lambda_)
 
     def command(self, state: Tensor) -> Tensor:
-        """The control ``[q]`` to apply at ``state [d]``; the proposal warm-starts the next command from this one."""
-        result = self.plan(state)
-        self.proposal.update(result)
-        return result.command
+        """The controls to apply at ``state [B, d]``: ``[B, q]`` (one robot's ``[d]`` -> ``[q]``); the proposal
+        warm-starts the next command from this one."""
+        states, single = self._check_state(state)
+        result = self._plan(states)
+        self._batch.update(result)
+        return result.command[0] if single else result.command
 
-    def reset(self) -> None:
-        """The start of an episode (the proposal forgets its warm start)."""
-        self.proposal.reset()
+    def reset(self, robots: Sequence[int] | Tensor | None = None) -> None:
+        """The start of an episode for ``robots`` (indices; None: all): the proposal forgets their warm starts."""
+        if robots is not None:
+            ids = torch.as_tensor(robots).reshape(-1)
+            if ids.dtype.is_floating_point or ids.dtype == torch.bool or bool(
+                    ((ids < 0) | (ids >= self.num_robots)).any()):
+                raise ValueError(f"robots must be indices in 0..{self.num_robots - 1}, got {robots!r:.80}")
+            robots = ids.to(torch.long)
+        self._batch.reset(robots)
 
     def close(self) -> None:
         """Release what the proposal holds (a background worker); calling it again does nothing."""
@@ -149,25 +197,41 @@ class MPPICore:
 
     # -------------------------------------------------------------------------------- checks
 
-    def _check_state(self, state: Tensor) -> Tensor:
-        """``state [d]`` of the controller's dtype and device, finite; detached (a state is an observation)."""
-        return check_state(state, self.state_dim, self.dtype, self.device)
+    def _check_state(self, state: Tensor) -> tuple[Tensor, bool]:
+        """``state [B, d]`` (or ``[d]``: one robot) of the controller's dtype and device, detached; finite when
+        ``debug``. Returns ``[B, d]`` and whether one ``[d]`` state was given."""
+        return check_state_batch(state, self.num_robots, self.state_dim, self.dtype, self.device, self.debug)
 
-    def _check_proposals(self, states: object, actions: object) -> None:
-        """What ``propose`` returned: ``[K, T+1, d]`` states and ``[K, T, q]`` actions of the dtype and device."""
-        check_proposals(type(self.proposal).__name__, states, actions,
-                        (self.num_samples, self.horizon, self.state_dim, self.action_dim), self.dtype, self.device)
+    def _check_proposals(self, states: Tensor, actions: Tensor) -> None:
+        """What ``propose_batch`` returned: ``[B, K, T+1, d]`` states and ``[B, K, T, q]`` actions (a proposal of
+        one robot: its ``[K, T+1, d]`` and ``[K, T, q]``)."""
+        shape = (self.num_samples, self.horizon, self.state_dim, self.action_dim)
+        if self._batch is self.proposal:
+            check_proposals(type(self.proposal).__name__, states, actions, (self.num_robots, *shape), self.dtype,
+                            self.device)
+        else:
+            check_proposals(type(self.proposal).__name__, states[0], actions[0], shape, self.dtype, self.device)
+
+    def _cost(self, fn: Callable, batched: bool, who: str, states: Tensor, actions: Tensor | None) -> Tensor:
+        """``fn``'s costs ``[B, K]`` of ``states [B, K, T+1, d]`` (``actions`` None: a terminal cost of the last
+        states), called batched or on the flattened ``B*K`` rollouts."""
+        b, k = states.shape[:2]
+        if batched:
+            out = fn(states, actions) if actions is not None else fn(states[:, :, -1])
+            return _check_costs(out, who, fn, (b, k), self.dtype, self.device)
+        flat = states.reshape(b * k, *states.shape[2:])
+        out = fn(flat, actions.reshape(b * k, *actions.shape[2:])) if actions is not None else fn(flat[:, -1])
+        return _check_costs(out, who, fn, (b * k,), self.dtype, self.device).view(b, k)
 
     def _evaluate(self, states: Tensor, actions: Tensor) -> tuple[Tensor, Tensor]:
-        """Finite costs ``[K]`` of the proposals and their weights ``[K]``; the user's costs are checked first."""
-        k = states.shape[0]
-        costs = _check_costs(self.cost_fn(states, actions), "cost_fn", self.cost_fn, k, self.dtype, self.device)
+        """Finite costs ``[B, K]`` of the proposals and their weights ``[B, K]``; the user's costs are checked."""
+        costs = self._cost(self.cost_fn, self._cost_batched, "cost_fn", states, actions)
         if self.terminal_cost is not None:
-            costs = costs + _check_costs(self.terminal_cost(states[:, -1]), "terminal_cost", self.terminal_cost, k,
-                                         self.dtype, self.device)
-        if bool(torch.isnan(costs).all()):  # some NaN is a penalty; NaN everywhere is a broken cost, not a choice
+            costs = costs + self._cost(self.terminal_cost, self._terminal_batched, "terminal_cost", states, None)
+        if self.debug and bool(torch.isnan(costs).all(dim=-1).any()):  # NaN everywhere: a broken cost, not a choice
+            k = costs.shape[-1]
             raise ValueError(f"cost_fn {_callable_name(self.cost_fn)}"
                              f"{'' if self.terminal_cost is None else ' + terminal_cost ' + _callable_name(self.terminal_cost)}"
-                             f" returned NaN for all {k} proposals; expected a [{k}] tensor of costs")
+                             f" returned NaN for all {k} proposals of a robot; expected a [{k}] tensor of costs")
         costs = _finite_costs(costs)
         return costs, _weights(costs, self.lambda_)

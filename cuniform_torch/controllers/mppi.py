@@ -18,14 +18,14 @@ importable from here too.
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from typing import Any
 
 import torch
 from torch import Tensor
 
 from cuniform_torch.controllers.bank import BankProposal, BankRefreshWarning
-from cuniform_torch.controllers.checks import _check_seed, check_positive_int, make_generator
+from cuniform_torch.controllers.checks import check_positive_int
 from cuniform_torch.controllers.core import COST_CAP, CostFn, MPPICore, MPPIResult, mppi_weights
 from cuniform_torch.controllers.proposals import (
     CompositeProposal,
@@ -33,6 +33,7 @@ from cuniform_torch.controllers.proposals import (
     NormalLogNormalProposal,
     PolicyProposal,
 )
+from cuniform_torch.controllers.streams import RobotStreams, robot_seeds, shifted
 from cuniform_torch.sampling.rollout import Policy
 from cuniform_torch.systems import System
 
@@ -49,14 +50,15 @@ class MPPI(MPPICore):
     def __init__(self, system: System, cost_fn: CostFn, num_samples: int = 1000, horizon: int = 15,
                  lambda_: float = 0.567, noise_std: float | Tensor = 0.3,
                  terminal_cost: Callable[[Tensor], Tensor] | None = None, device: torch.device | str = "cpu",
-                 dtype: torch.dtype = torch.float32, seed: int | None = None):
-        proposal = self._proposal(system, num_samples, horizon, noise_std, device, dtype)
-        super().__init__(proposal, cost_fn, lambda_, terminal_cost, seed)
+                 dtype: torch.dtype = torch.float32, seed: int | Sequence[int] | None = None, num_robots: int = 1,
+                 debug: bool | None = None):
+        proposal = self._proposal(system, num_samples, horizon, noise_std, device, dtype, num_robots)
+        super().__init__(proposal, cost_fn, lambda_, terminal_cost, seed, debug=debug)
         self.noise_std = noise_std
 
     @staticmethod
-    def _proposal(system, num_samples, horizon, noise_std, device, dtype) -> GaussianProposal:
-        return GaussianProposal(system, num_samples, horizon, noise_std, device, dtype)
+    def _proposal(system, num_samples, horizon, noise_std, device, dtype, num_robots) -> GaussianProposal:
+        return GaussianProposal(system, num_samples, horizon, noise_std, device, dtype, num_robots)
 
     @property
     def nominal(self) -> Tensor:
@@ -88,9 +90,9 @@ class LogMPPI(MPPI):
         self.lognormal_mean, self.lognormal_var = lognormal_mean, lognormal_var
         super().__init__(system, cost_fn, num_samples, horizon, lambda_, noise_std, **kwargs)
 
-    def _proposal(self, system, num_samples, horizon, noise_std, device, dtype) -> NormalLogNormalProposal:
+    def _proposal(self, system, num_samples, horizon, noise_std, device, dtype, num_robots) -> NormalLogNormalProposal:
         return NormalLogNormalProposal(system, num_samples, horizon, noise_std, self.lognormal_mean,
-                                       self.lognormal_var, device, dtype)
+                                       self.lognormal_var, device, dtype, num_robots)
 
 
 class CUniformMPPI(MPPICore):
@@ -112,22 +114,23 @@ class CUniformMPPI(MPPICore):
                  lambda_: float = 0.567, horizon: int | None = None, bank_size: int | None = None,
                  bank_refresh: int | None = None,
                  bank_background: bool = False, terminal_cost: Callable[[Tensor], Tensor] | None = None,
-                 device: torch.device | str | None = None, seed: int | None = None):
-        seed = _check_seed(seed)
+                 device: torch.device | str | None = None, seed: int | Sequence[int] | None = None,
+                 num_robots: int = 1, debug: bool | None = None):
         if bank_refresh is not None:
             check_positive_int("bank_refresh", bank_refresh)
             if bank_size is None:
                 raise ValueError("bank_refresh needs a proposal bank: set bank_size too")
         if bank_background and bank_refresh is None:
             raise ValueError("bank_background refreshes the bank every bank_refresh commands: set bank_refresh too")
-        source = PolicyProposal(policy, num_samples, horizon, device)
+        source = PolicyProposal(policy, num_samples, horizon, device, num_robots)
         self.policy = source.policy
-        generator = make_generator(seed, source.device)
+        seeds = robot_seeds(seed, source.num_robots)
+        streams = RobotStreams.seeded(seeds, source.device)
         proposal: PolicyProposal | BankProposal = source
-        if bank_size is not None:  # the first bank comes from the controller's stream, refreshes from seed + 1
-            proposal = BankProposal(source, bank_size, generator, bank_refresh, bank_background,
-                                    seed=None if seed is None else seed + 1)
-        super().__init__(proposal, cost_fn, lambda_, terminal_cost, generator=generator)
+        if bank_size is not None:  # the first bank comes from robot 0's stream, refreshes from its seed + 1
+            proposal = BankProposal(source, bank_size, streams.generators[0], bank_refresh, bank_background,
+                                    seed=None if seeds[0] is None else seeds[0] + 1)
+        super().__init__(proposal, cost_fn, lambda_, terminal_cost, generator=streams.generators, debug=debug)
         self.bank_size = bank_size
         self.bank_refresh = bank_refresh
 
@@ -190,8 +193,11 @@ class CUniformMPPI(MPPICore):
         return self.bank is not None and self.bank.wait_for_bank()
 
     def propose(self, state: Tensor) -> tuple[Tensor, Tensor]:
-        """``num_samples`` C-Uniform proposals from ``state [d]``: ``[K, T+1, d]``, ``[K, T, q]``."""
-        return self.proposal.propose(self._check_state(state), self.generator)
+        """``num_samples`` C-Uniform proposals from ``state [d]``: ``[K, T+1, d]``, ``[K, T, q]`` (from ``[B, d]``:
+        ``[B, K, T+1, d]``, ``[B, K, T, q]``)."""
+        states, single = self._check_state(state)
+        out_states, out_actions = self._batch.propose_batch(states, self.streams)
+        return (out_states[0], out_actions[0]) if single else (out_states, out_actions)
 
 
 class CUMPPI(MPPICore):
@@ -209,7 +215,8 @@ class CUMPPI(MPPICore):
                  cuniform_fraction: float = 0.5, lambda_: float = 0.567, noise_std: float | Tensor = 0.1,
                  local: str = "mppi", horizon: int | None = None, bank_size: int | None = None,
                  terminal_cost: Callable[[Tensor], Tensor] | None = None, device: torch.device | str | None = None,
-                 seed: int | None = None, **local_kwargs: Any):
+                 seed: int | Sequence[int] | None = None, num_robots: int = 1, debug: bool | None = None,
+                 **local_kwargs: Any):
         check_positive_int("num_samples", num_samples)
         if not 0 < cuniform_fraction < 1:
             raise ValueError(f"cuniform_fraction must be in (0, 1), got {cuniform_fraction!r}")
@@ -218,11 +225,13 @@ class CUMPPI(MPPICore):
         local_cls = {"mppi": GaussianProposal, "log_mppi": NormalLogNormalProposal}.get(local)
         if local_cls is None:
             raise ValueError(f"unknown local pass {local!r}; choose mppi or log_mppi")
-        seed = _check_seed(seed)
+        robot_seeds(seed, check_positive_int("num_robots", num_robots))  # checked here, before any work
         k_cu = max(1, min(num_samples - 1, round(cuniform_fraction * num_samples)))
         self.cuniform = CUniformMPPI(policy, cost_fn, k_cu, lambda_=0.0, horizon=horizon, bank_size=bank_size,
-                                     terminal_cost=terminal_cost, device=device, seed=seed)
+                                     terminal_cost=terminal_cost, device=device, seed=seed, num_robots=num_robots,
+                                     debug=debug)
         self.local = local_cls(self.cuniform.system, num_samples - k_cu, self.cuniform.horizon, noise_std=noise_std,
-                               device=self.cuniform.device, dtype=self.cuniform.dtype, **local_kwargs)
+                               device=self.cuniform.device, dtype=self.cuniform.dtype, num_robots=num_robots,
+                               **local_kwargs)
         super().__init__(CompositeProposal(self.cuniform, self.local), cost_fn, lambda_, terminal_cost,
-                         seed=None if seed is None else seed + 1)
+                         seed=shifted(seed, 1), debug=debug)

@@ -1,16 +1,19 @@
 """Proposals: the plug-in of the MPPI core (:class:`~cuniform_torch.controllers.mppi.MPPICore`).
 
-Shapes: K proposals, T horizon, d state dimensions, q action dimensions, M rollouts in a bank.
+Shapes: B robots, K proposals per robot, T horizon, d state dimensions, q action dimensions, M rollouts in a bank.
 
-A proposal draws the K trajectories a command weighs. Per command the core calls
+A proposal draws the K trajectories per robot that a command weighs, for B robots at once. Per command the core
+calls
 
-* ``states [K, T+1, d], actions [K, T, q] = proposal.propose(state [d], generator)``, then costs and weights
-  them into an :class:`~cuniform_torch.controllers.result.MPPIResult`;
-* ``proposal.update(result)`` (only from ``command``; ``plan`` leaves the proposal as it was): the warm start;
+* ``states [B, K, T+1, d], actions [B, K, T, q] = proposal.propose_batch(states [B, d], streams)`` (robot ``b``
+  draws from ``streams.generators[b]``), then costs and weights them into an
+  :class:`~cuniform_torch.controllers.result.MPPIResult`;
+* ``proposal.update(result)`` (only from ``command``; ``plan`` leaves the proposal as it was): the warm starts;
 
-and ``proposal.reset()`` at the start of an episode. :class:`Proposal` declares that, and the attributes the core
-reads (``system``, ``num_samples`` K, ``horizon`` T, ``device``, ``dtype``). Any object with them drops into the
-core; the ones here:
+and ``proposal.reset(robots)`` at the start of an episode. :class:`Proposal` declares that, and the attributes the
+core reads (``system``, ``num_samples`` K, ``horizon`` T, ``num_robots`` B, ``device``, ``dtype``). Any object
+with them drops into the core; a proposal of one robot (:class:`SingleRobotProposal`: ``propose(state [d],
+generator)``) still does, for one robot. The ones here:
 
 * :class:`GaussianProposal` (MPPI): Gaussian noise around a nominal sequence, clipped to the action bounds; the
   warm start is the command's weighted sequence shifted one step (its last action repeated).
@@ -26,54 +29,134 @@ core; the ones here:
 
 from __future__ import annotations
 
-from typing import Protocol, runtime_checkable
+from typing import Any, Protocol, cast, runtime_checkable
 
 import torch
 from torch import Tensor
 
 from cuniform_torch.controllers.checks import _check_dtype, check_positive_int
 from cuniform_torch.controllers.result import MPPIResult
+from cuniform_torch.controllers.streams import RobotStreams
 from cuniform_torch.policies.checkpoint import load_policy
 from cuniform_torch.sampling.noise import GaussianSampler, NormalLogNormalSampler
 from cuniform_torch.sampling.rollout import Policy, PolicyTraits, RolloutPlan, open_loop, same_device
 from cuniform_torch.sampling.start_watch import new_episode
 from cuniform_torch.systems import System
 
-__all__ = ["Proposal", "GaussianProposal", "NormalLogNormalProposal", "PolicyProposal", "CompositeProposal",
-           "PROPOSAL_MEMBERS"]
+__all__ = ["Proposal", "SingleRobotProposal", "as_batched", "GaussianProposal", "NormalLogNormalProposal", "PolicyProposal", "CompositeProposal",
+           "PROPOSAL_MEMBERS", "SINGLE_ROBOT_MEMBERS", "OneRobotCall"]
 
 
 @runtime_checkable
 class Proposal(Protocol):
-    """What the MPPI core needs from a proposal: K trajectories per command, and the hooks around a command."""
+    """What the MPPI core needs from a proposal: K trajectories per robot and command, for B robots at once, and
+    the hooks around a command. Settled when the core is made (no probing per command)."""
 
     system: System
     """the dynamics the trajectories follow (the core reads its state dimension and action set)"""
     num_samples: int
-    """K: trajectories per :meth:`propose`"""
+    """K: trajectories per robot and :meth:`propose_batch`"""
     horizon: int
     """T: steps per trajectory"""
+    num_robots: int
+    """B: robots per call (each with its own warm start)"""
     device: torch.device
-    """where the trajectories are (the state handed to :meth:`propose` is there too)"""
+    """where the trajectories are (the states handed to :meth:`propose_batch` are there too)"""
     dtype: torch.dtype
-    """their floating-point dtype (the state's too)"""
+    """their floating-point dtype (the states' too)"""
 
-    def propose(self, state: Tensor, generator: torch.Generator) -> tuple[Tensor, Tensor]:
-        """``state [d]`` (checked: finite, of ``dtype`` on ``device``) -> ``states [K, T+1, d]`` (``states[:, 0]`` the
-        state) and ``actions [K, T, q]``. Draw random numbers from ``generator`` only (seeded controllers repeat)."""
+    def propose_batch(self, states: Tensor, streams: RobotStreams) -> tuple[Tensor, Tensor]:
+        """``states [B, d]`` (checked: of ``dtype`` on ``device``) -> ``[B, K, T+1, d]`` (``[:, :, 0]`` the
+        states) and ``[B, K, T, q]``. Robot ``b`` draws from ``streams.generators[b]`` only (all robots' draws in
+        one :meth:`~cuniform_torch.controllers.streams.RobotStreams.rand` / ``randn`` call), so a batch repeats
+        what its robots would draw alone."""
         ...
 
     def update(self, result: MPPIResult) -> None:
-        """After a command: warm-start the next one from ``result`` (or do nothing)."""
+        """After a command: warm-start the next one from the batched ``result`` (or do nothing)."""
+        ...
+
+    def reset(self, robots: Tensor | None = None) -> None:
+        """The start of an episode for ``robots`` (``[n]`` int64 indices; None: all): forget their warm starts."""
+        ...
+
+
+@runtime_checkable
+class SingleRobotProposal(Protocol):
+    """A proposal of one robot (the protocol before batching, still accepted for one robot):
+    ``propose(state [d], generator) -> [K, T+1, d], [K, T, q]``, ``update(result)`` of that robot,
+    ``reset()``."""
+
+    system: System
+    num_samples: int
+    horizon: int
+    device: torch.device
+    dtype: torch.dtype
+
+    def propose(self, state: Tensor, generator: torch.Generator) -> tuple[Tensor, Tensor]:
+        ...
+
+    def update(self, result: MPPIResult) -> None:
         ...
 
     def reset(self) -> None:
-        """The start of an episode: forget any warm start."""
         ...
 
 
-PROPOSAL_MEMBERS = ("system", "num_samples", "horizon", "device", "dtype", "propose", "update", "reset")
+PROPOSAL_MEMBERS = ("system", "num_samples", "horizon", "num_robots", "device", "dtype", "propose_batch", "update",
+                    "reset")
 """the members of :class:`Proposal`, for error messages"""
+SINGLE_ROBOT_MEMBERS = ("system", "num_samples", "horizon", "device", "dtype", "propose", "update", "reset")
+"""the members of :class:`SingleRobotProposal`"""
+
+
+class OneRobotCall:
+    """``propose(state [d], generator)``: one robot's proposals from a batched proposal of one robot (robot 0 of a
+    batch of one; a convenience for tests and tools)."""
+
+    num_robots: int
+
+    def propose_batch(self, states: Tensor, streams: RobotStreams) -> tuple[Tensor, Tensor]:
+        raise NotImplementedError
+
+    def propose(self, state: Tensor, generator: torch.Generator) -> tuple[Tensor, Tensor]:
+        """``state [d]`` -> ``[K, T+1, d]``, ``[K, T, q]``."""
+        if self.num_robots != 1:
+            raise ValueError(f"propose(state, generator) is one robot's; this proposal has {self.num_robots}: "
+                             f"use propose_batch(states, streams)")
+        states, actions = self.propose_batch(state.unsqueeze(0), RobotStreams([generator]))
+        return states[0], actions[0]
+
+
+class _OneRobot:
+    """A :class:`SingleRobotProposal` seen through the batched protocol, for one robot."""
+
+    num_robots = 1
+
+    def __init__(self, proposal: SingleRobotProposal):
+        self.inner = proposal
+        self.system, self.num_samples, self.horizon = proposal.system, proposal.num_samples, proposal.horizon
+        self.device, self.dtype = proposal.device, proposal.dtype
+
+    def propose_batch(self, states: Tensor, streams: RobotStreams) -> tuple[Tensor, Tensor]:
+        out_states, out_actions = self.inner.propose(states[0], streams.generators[0])
+        if not (isinstance(out_states, Tensor) and isinstance(out_actions, Tensor)):
+            raise ValueError(f"{type(self.inner).__name__}.propose returned {type(out_states).__name__} and "
+                             f"{type(out_actions).__name__}; expected [K, T+1, d] and [K, T, q] tensors")
+        return out_states.unsqueeze(0), out_actions.unsqueeze(0)
+
+    def update(self, result: MPPIResult) -> None:
+        self.inner.update(result.robot(0))
+
+    def reset(self, robots: Tensor | None = None) -> None:
+        self.inner.reset()
+
+
+def as_batched(proposal: Proposal | SingleRobotProposal) -> Proposal:
+    """``proposal`` as the batched protocol (a :class:`SingleRobotProposal` serves one robot)."""
+    if isinstance(proposal, Proposal):
+        return proposal
+    return _OneRobot(proposal)
 
 
 @runtime_checkable
@@ -85,67 +168,94 @@ class Closeable(Protocol):
 
 
 class Planner(Protocol):
-    """A controller's planning step (what :class:`CompositeProposal` seeds from): ``plan(state) -> MPPIResult``."""
+    """A controller's planning step (what :class:`CompositeProposal` seeds from): ``_plan(states [B, d])`` -> a
+    batched :class:`MPPIResult`."""
 
-    def plan(self, state: Tensor) -> MPPIResult:
+    def _plan(self, state: Tensor) -> MPPIResult:
         ...
 
-    def reset(self) -> None:
+    def reset(self, robots: Tensor | None = None) -> None:
         ...
 
+
+def _start_rows(states: Tensor, k: int) -> Tensor:
+    """Each robot's state once per sample: ``[B, d]`` -> ``[B*K, d]`` (one robot: the ``[d]`` state itself, which
+    the rollouts expand for free)."""
+    return states[0] if states.shape[0] == 1 else states.repeat_interleave(k, dim=0)
 
 
 # ------------------------------------------------------------------------------------------ Gaussian, log-normal
 
-class GaussianProposal:
+class GaussianProposal(OneRobotCall):
     """MPPI's proposal: ``actions = clip(nominal + eps)``, ``eps ~ N(0, noise_std^2)`` (scalar or ``[q]`` std),
-    rolled out open-loop from the state; the warm start shifts the command's weighted sequence one step.
+    rolled out open-loop from each robot's state; the warm start shifts each robot's weighted sequence one step.
 
-    ``nominal [T, q]`` starts at zero (``reset()``); set it to seed the next proposals (CU-MPPI does).
+    ``nominal`` (``[T, q]`` for one robot, ``[B, T, q]`` for ``num_robots`` B) starts at zero (``reset()``); set it
+    to seed the next proposals.
     """
 
     def __init__(self, system: System, num_samples: int, horizon: int, noise_std: float | Tensor = 0.3,
-                 device: torch.device | str = "cpu", dtype: torch.dtype = torch.float32):
+                 device: torch.device | str = "cpu", dtype: torch.dtype = torch.float32, num_robots: int = 1):
         self.system = system
         self.num_samples = check_positive_int("num_samples", num_samples)
         self.horizon = check_positive_int("horizon", horizon)
+        self.num_robots = check_positive_int("num_robots", num_robots)
         self.device = torch.device(device)
         self.dtype = _check_dtype(dtype)
         actions = system.action_set(dtype=dtype, device=self.device)  # [A, q]
         self.low, self.high = actions.min(dim=0).values, actions.max(dim=0).values  # [q] action bounds
         self.noise_std = noise_std
-        self.reset()
+        self._nominal = torch.zeros((self.num_robots, self.horizon, self.low.shape[0]), dtype=self.dtype,
+                                    device=self.device)  # [B, T, q]
         self.law = self._law(noise_std)  # the noise law, built (and its std checked) once
+        self.std = self.law.std  # [q]
 
     def _law(self, noise_std: float | Tensor) -> GaussianSampler:
-        return GaussianSampler(self._nominal, noise_std, self.low, self.high)
+        return GaussianSampler(self._nominal[0], noise_std, self.low, self.high)
 
     @property
     def nominal(self) -> Tensor:
-        """``[T, q]`` the sequence the next proposals are drawn around"""
-        return self._nominal
+        """The sequences the next proposals are drawn around: ``[T, q]`` for one robot, else ``[B, T, q]``."""
+        return self._nominal[0] if self.num_robots == 1 else self._nominal
 
     @nominal.setter
     def nominal(self, value: Tensor) -> None:
-        expected = (self.horizon, self.low.shape[0])
-        if not isinstance(value, Tensor) or value.shape != expected or value.dtype != self.dtype \
-                or not same_device(value.device, self.device):
-            raise ValueError(f"nominal must be a {list(expected)} tensor of {self.dtype} on {self.device}, got "
+        t, q = self.horizon, self.low.shape[0]
+        ok = (isinstance(value, Tensor) and value.shape in ((t, q), (self.num_robots, t, q))
+              and value.dtype == self.dtype and same_device(value.device, self.device))
+        if not ok:
+            want = f"[{t}, {q}]" + (f" or [{self.num_robots}, {t}, {q}]" if self.num_robots > 1 else "")
+            raise ValueError(f"nominal must be a {want} tensor of {self.dtype} on {self.device}, got "
                              + (f"{list(value.shape)} of {value.dtype} on {value.device}" if isinstance(value, Tensor)
                                 else type(value).__name__))
-        self._nominal = value.detach()
+        self._nominal = value.detach().expand(self.num_robots, t, q).clone()
 
-    def propose(self, state: Tensor, generator: torch.Generator) -> tuple[Tensor, Tensor]:
-        actions = self.law.perturb(self._nominal, self.num_samples, generator)  # [K, T, q]
-        return open_loop(self.system, state, actions), actions  # [K, T+1, d], [K, T, q]
+    def seed(self, nominal: Tensor) -> None:
+        """Draw the next proposals around ``nominal [B, T, q]`` (checked by the caller; CU-MPPI's first stage)."""
+        self._nominal = nominal
+
+    def _noise(self, streams: RobotStreams, n: int) -> Tensor:
+        """``[B, n, q]`` zero-mean noise, robot ``b``'s from its own stream."""
+        return streams.randn((n, self.low.shape[0]), self.dtype).mul_(self.std)
+
+    def propose_batch(self, states: Tensor, streams: RobotStreams) -> tuple[Tensor, Tensor]:
+        b, k, t, q = states.shape[0], self.num_samples, self.horizon, self.low.shape[0]
+        actions = self._noise(streams, k * t).view(b, k, t, q)  # a fresh tensor: updated in place
+        actions.add_(self._nominal.unsqueeze(1)).clamp_(self.low, self.high)  # [B, K, T, q]
+        trajectories = open_loop(self.system, _start_rows(states, k), actions.view(b * k, t, q))  # [B*K, T+1, d]
+        return trajectories.view(b, k, t + 1, -1), actions
 
     def update(self, result: MPPIResult) -> None:
-        """Warm start: the weighted sequence shifted one step, its last action repeated."""
-        self._nominal = torch.cat((result.nominal[1:], result.nominal[-1:]))  # [T, q]
+        """Warm start: each robot's weighted sequence shifted one step, its last action repeated."""
+        nominal = result.nominal if result.nominal.ndim == 3 else result.nominal.unsqueeze(0)  # [B, T, q]
+        self._nominal = torch.cat((nominal[:, 1:], nominal[:, -1:]), dim=1)
 
-    def reset(self) -> None:
-        """Zero nominal (the start of an episode)."""
-        self._nominal = torch.zeros((self.horizon, self.low.shape[0]), dtype=self.dtype, device=self.device)
+    def reset(self, robots: Tensor | None = None) -> None:
+        """Zero nominal (the start of an episode) for ``robots`` (None: all)."""
+        if robots is None:
+            self._nominal = torch.zeros_like(self._nominal)
+        else:
+            self._nominal = self._nominal.index_fill(0, robots.to(self.device), 0.0)
 
 
 class NormalLogNormalProposal(GaussianProposal):
@@ -155,13 +265,19 @@ class NormalLogNormalProposal(GaussianProposal):
 
     def __init__(self, system: System, num_samples: int, horizon: int, noise_std: float | Tensor = 0.3,
                  lognormal_mean: float = 1.0, lognormal_var: float = 1.0, device: torch.device | str = "cpu",
-                 dtype: torch.dtype = torch.float32):
+                 dtype: torch.dtype = torch.float32, num_robots: int = 1):
         self.lognormal_mean, self.lognormal_var = lognormal_mean, lognormal_var
-        super().__init__(system, num_samples, horizon, noise_std, device, dtype)
+        super().__init__(system, num_samples, horizon, noise_std, device, dtype, num_robots)
 
     def _law(self, noise_std: float | Tensor) -> NormalLogNormalSampler:
-        return NormalLogNormalSampler(self._nominal, noise_std, self.low, self.high,
+        return NormalLogNormalSampler(self._nominal[0], noise_std, self.low, self.high,
                                       lognormal_mean=self.lognormal_mean, lognormal_var=self.lognormal_var)
+
+    def _noise(self, streams: RobotStreams, n: int) -> Tensor:
+        """``[B, n, q]``: normal x log-normal; each robot's two factors from one draw of its stream."""
+        law = cast(NormalLogNormalSampler, self.law)
+        z = streams.randn((2, n, self.low.shape[0]), self.dtype)  # [B, 2, n, q]
+        return (z[:, 0] * self.std).mul_(z[:, 1].mul_(law.sigma).add_(law.mu).exp_())  # [B, n, q] contiguous
 
 
 # ------------------------------------------------------------------------------------------ policy
@@ -176,16 +292,21 @@ def _as_policy(policy: object, device: torch.device | None) -> Policy:
     return policy
 
 
-class PolicyProposal:
+class PolicyProposal(OneRobotCall):
     """C-Uniform MPPI's proposal: K rollouts of ``policy`` (a table, an MLP, any
-    :class:`~cuniform_torch.sampling.rollout.Policy` with a ``system``, or a checkpoint dict) from the pose. No warm start.
+    :class:`~cuniform_torch.sampling.rollout.Policy` with a ``system``, or a checkpoint dict) from each robot's
+    pose. No warm start.
 
     ``horizon`` defaults to the policy's own (a table's T; required for a policy without one); ``device`` to the
-    policy's (else the CPU); the dtype is the policy's (else float32).
+    policy's (else the CPU); the dtype is the policy's (else float32). Each command draws every robot's uniforms up
+    front (``[B, T, K]``, one call per robot) and rolls all B x K out together: one rollout for a policy that serves
+    every start (a table, an MLP: on an SE(2)-invariant system in each robot's frame), one per member used for a
+    table set (each robot's member is the one nearest its start), one per robot for a policy that is set per start
+    (``for_start``: a start-conditioned MLP, a map policy sensing around each robot).
     """
 
     def __init__(self, policy: object, num_samples: int, horizon: int | None = None,
-                 device: torch.device | str | None = None):
+                 device: torch.device | str | None = None, num_robots: int = 1):
         traits = PolicyTraits.of(policy) if not isinstance(policy, dict) else PolicyTraits()
         self.device = torch.device(device) if device is not None else (traits.device or torch.device("cpu"))
         self.policy = _as_policy(policy, self.device)
@@ -202,13 +323,51 @@ class PolicyProposal:
         if traits.horizon is not None and self.horizon > traits.horizon:
             raise ValueError(f"horizon {self.horizon} is longer than the policy's table ({traits.horizon} steps)")
         self.num_samples = check_positive_int("num_samples", num_samples)
+        self.num_robots = check_positive_int("num_robots", num_robots)
         self.dtype = traits.dtype or torch.float32
         self.plan = RolloutPlan.of(self.system, self.policy)
         """how the policy is rolled out, settled here: a command runs it without the per-call checks"""
+        self._members = callable(getattr(self.policy, "nearest", None)) and hasattr(self.policy, "members")
+        """a table set: robots are grouped by the member nearest their start"""
+        self._per_start = not self._members and callable(getattr(self.policy, "for_start", None))
+        """a policy set per start (``for_start``): each robot is rolled out on its own"""
         new_episode(self.policy)  # a controller's first episode: its off-start rollouts warn afresh
 
-    def propose(self, state: Tensor, generator: torch.Generator) -> tuple[Tensor, Tensor]:
-        return self.rollout(state, self.num_samples, generator)
+    def _groups(self, states: Tensor) -> list[list[int]] | None:
+        """Robots rolled out together (each group in one rollout); None: all of them at once."""
+        b = states.shape[0]
+        if b == 1 or not (self._members or self._per_start):
+            return None
+        if self._per_start:
+            return [[i] for i in range(b)]
+        index = cast(Any, self.policy).nearest(states)[0].tolist()  # [B] the member of each robot (host ints)
+        groups: dict[int, list[int]] = {}
+        for robot, member in enumerate(index):
+            groups.setdefault(member, []).append(robot)
+        return None if len(groups) == 1 else list(groups.values())
+
+    def propose_batch(self, states: Tensor, streams: RobotStreams) -> tuple[Tensor, Tensor]:
+        b, k, t = states.shape[0], self.num_samples, self.horizon
+        uniforms = streams.rand((t, k), self.dtype)  # [B, T, K]: robot b's from its own stream
+        groups = self._groups(states)
+        if groups is None:
+            flat = uniforms[0] if b == 1 else uniforms.transpose(0, 1).reshape(t, b * k)  # [T, B*K] robot-major
+            x, u = self.plan.run(self.system, self.policy, _start_rows(states, k), b * k, t, None, flat)
+            return x.view(b, k, t + 1, -1), u.view(b, k, t, -1)
+        out_x = out_u = None
+        for robots in groups:  # members of a table set, or robots of a per-start policy
+            rows = torch.tensor(robots, device=states.device)
+            n = len(robots)
+            flat = uniforms.index_select(0, rows).transpose(0, 1).reshape(t, n * k)
+            x, u = self.plan.run(self.system, self.policy, _start_rows(states.index_select(0, rows), k), n * k, t,
+                                 None, flat)
+            if out_x is None or out_u is None:
+                out_x = x.new_empty((b, k, t + 1, x.shape[-1]))
+                out_u = u.new_empty((b, k, t, u.shape[-1]))
+            out_x[rows] = x.view(n, k, t + 1, -1)
+            out_u[rows] = u.view(n, k, t, -1)
+        assert out_x is not None and out_u is not None
+        return out_x, out_u
 
     def rollout(self, start: Tensor, num_samples: int, generator: torch.Generator) -> tuple[Tensor, Tensor]:
         """``num_samples`` rollouts of ``horizon`` steps from a checked ``start [d]`` (finite, of the proposal's
@@ -218,7 +377,7 @@ class PolicyProposal:
     def update(self, result: MPPIResult) -> None:
         """Nothing to warm-start: every command rolls out afresh."""
 
-    def reset(self) -> None:
+    def reset(self, robots: Tensor | None = None) -> None:
         """The start of an episode: the policy's start check warns afresh and counts anew
         (:func:`~cuniform_torch.sampling.start_watch.new_episode`)."""
         new_episode(self.policy)
@@ -226,28 +385,27 @@ class PolicyProposal:
 
 # ------------------------------------------------------------------------------------------ composite
 
-class CompositeProposal:
-    """CU-MPPI's two stages: ``first.plan(state)`` (C-Uniform MPPI, with its own generator, so that it can be
-    planned alone and repeat), its lowest-cost trajectory becomes the nominal of ``local`` (a Gaussian or
-    log-normal proposal), whose K proposals are this proposal's. The local nominal is re-seeded every command,
-    so there is no warm start."""
+class CompositeProposal(OneRobotCall):
+    """CU-MPPI's two stages: ``first`` plans (C-Uniform MPPI, with its own streams, so that it can be planned alone
+    and repeat), each robot's lowest-cost trajectory becomes the nominal of ``local`` (a Gaussian or log-normal
+    proposal), whose K proposals are this proposal's. The local nominal is re-seeded every command, so there is no
+    warm start."""
 
     def __init__(self, first: Planner, local: GaussianProposal):
         self.first, self.local = first, local
         self.system, self.num_samples, self.horizon = local.system, local.num_samples, local.horizon
-        self.device, self.dtype = local.device, local.dtype
+        self.num_robots, self.device, self.dtype = local.num_robots, local.device, local.dtype
 
-    def propose(self, state: Tensor, generator: torch.Generator) -> tuple[Tensor, Tensor]:
-        seed = self.first.plan(state)
-        self.local.nominal = seed.actions.index_select(0, seed.best.reshape(1))[0]  # [T, q], no host sync
-        return self.local.propose(state, generator)
+    def propose_batch(self, states: Tensor, streams: RobotStreams) -> tuple[Tensor, Tensor]:
+        self.local.seed(self.first._plan(states).best_actions())  # [B, T, q], no host sync
+        return self.local.propose_batch(states, streams)
 
     def update(self, result: MPPIResult) -> None:
         """Nothing to warm-start: the next command seeds the local pass afresh."""
 
-    def reset(self) -> None:
-        self.first.reset()
-        self.local.reset()
+    def reset(self, robots: Tensor | None = None) -> None:
+        self.first.reset(robots)
+        self.local.reset(robots)
 
     def close(self) -> None:
         if isinstance(self.first, Closeable):

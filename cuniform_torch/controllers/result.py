@@ -18,10 +18,14 @@ __all__ = ["MPPIResult"]
 
 @dataclass
 class MPPIResult:
-    """One command's work (returned, not kept as controller state)."""
+    """One command's work (returned, not kept as controller state).
+
+    For a batch of B robots every field has a leading robot dimension (``command [B, q]``, ``states
+    [B, K, T+1, d]``, ...); :meth:`robot` takes one robot's. A controller given one state ``[d]`` returns the
+    fields below without it."""
 
     command: Tensor
-    """``[q]`` the control to apply now"""
+    """``[q]`` the control to apply now (``[B, q]`` for a batch)"""
     nominal: Tensor
     """``[T, q]`` the weighted action sequence (before the warm-start shift)"""
     states: Tensor
@@ -32,8 +36,29 @@ class MPPIResult:
     """``[K]`` finite costs"""
     weights: Tensor
     """``[K]`` sum to 1"""
+    lambda_: float | Tensor | None = None
+    """the temperature the weights were computed with"""
 
     @property
     def best(self) -> Tensor:
-        """Index of the lowest-cost proposal (a 0-d tensor; no host sync)."""
-        return torch.argmin(self.costs)
+        """Index of the lowest-cost proposal (a 0-d tensor, ``[B]`` for a batch; no host sync)."""
+        return torch.argmin(self.costs, dim=-1)
+
+    @property
+    def batched(self) -> bool:
+        """Whether the fields have a leading robot dimension."""
+        return self.costs.ndim == 2
+
+    def robot(self, b: int) -> MPPIResult:
+        """Robot ``b``'s result of a batched one (views, no copies)."""
+        if not self.batched:
+            raise ValueError("robot(b) takes one robot of a batched result; this one has no robot dimension")
+        return MPPIResult(self.command[b], self.nominal[b], self.states[b], self.actions[b], self.costs[b],
+                          self.weights[b], self.lambda_)
+
+    def best_actions(self) -> Tensor:
+        """The lowest-cost proposal's action sequence: ``[T, q]`` (``[B, T, q]`` for a batch), no host sync."""
+        if not self.batched:
+            return self.actions.index_select(0, self.best.reshape(1))[0]
+        index = self.best.view(-1, 1, 1, 1).expand(-1, 1, *self.actions.shape[2:])  # [B, 1, T, q]
+        return self.actions.gather(1, index)[:, 0]

@@ -67,7 +67,8 @@ def warm_up() -> None:
 
 def rollout_start_frame(map_bias: Tensor, w_state: Tensor, layers: list[tuple[Tensor, Tensor]], actions: Tensor,
                         local_map: Tensor | None, probes: Tensor, geometry: dict[str, float], num_samples: int,
-                        horizon: int, generator: torch.Generator | None) -> tuple[Tensor, Tensor, int, int]:
+                        horizon: int, generator: torch.Generator | None,
+                        uniforms: Tensor | None = None) -> tuple[Tensor, Tensor, int, int]:
     """``num_samples`` rollouts of ``horizon`` steps from the origin of the start frame (a Dubins car, see the
     module docstring): states ``[T+1, 3, N]`` (time-major), actions ``[N, T, q]``, and the near and miss counts.
 
@@ -77,7 +78,9 @@ def rollout_start_frame(map_bias: Tensor, w_state: Tensor, layers: list[tuple[Te
     ``cell_x``, ``cell_y``."""
     features, draw_and_step = _kernels()
     n, hd, n_actions = num_samples, w_state.shape[1], actions.shape[0]
-    uniforms = torch.rand((horizon, n), generator=generator, dtype=torch.float32)  # [T, N]
+    if uniforms is None:
+        uniforms = torch.rand((horizon, n), generator=generator, dtype=torch.float32)  # [T, N]
+    uniforms = uniforms.contiguous()
     states = torch.zeros((horizon + 1, 3, n), dtype=torch.float32)
     picks = torch.empty((horizon, n), dtype=torch.int64)
     feat = torch.empty((n, w_state.shape[0]), dtype=torch.float32)

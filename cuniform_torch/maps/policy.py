@@ -37,7 +37,7 @@ from cuniform_torch.grid.cells import Grid
 from cuniform_torch.maps import kernels
 from cuniform_torch.maps.encoder import MapEncoder, PatchSpec
 from cuniform_torch.maps.local_features import PROBES, LocalFeatures
-from cuniform_torch.policies.mlp_ops import check_query, inverse_cdf_draw, state_features
+from cuniform_torch.policies.mlp_ops import check_query, inverse_cdf_draw, inverse_cdf_pick, state_features
 from cuniform_torch.sampling.rollout import StartWatch
 from cuniform_torch.systems import MAX_ACTIONS, MAX_HORIZON, System
 from cuniform_torch.systems.models import Dubins
@@ -315,12 +315,18 @@ class MapPolicy(nn.Module):
         """``x [N, d]`` at level ``t`` -> actions ``[N, q]`` drawn from :meth:`action_probs` (inverse CDF)."""
         return inverse_cdf_draw(self.action_probs(x, t).cumsum(dim=1), self.actions, generator)
 
+    def draw(self, x: Tensor, t: int, r: Tensor) -> Tensor:
+        """:meth:`sample` with the uniforms ``r [N]`` in ``[0, 1)`` given."""
+        return inverse_cdf_pick(self.action_probs(x, t).cumsum(dim=1), self.actions, r)
+
     def fused_rollout(self, system: System, x0: Tensor, num_samples: int, horizon: int,
-                      generator: torch.Generator | None) -> tuple[Tensor, Tensor] | None:
+                      generator: torch.Generator | None,
+                      uniforms: Tensor | None = None) -> tuple[Tensor, Tensor] | None:
         """The rollout's own loop, when it has one for this start (:func:`~cuniform_torch.sampling.rollout.rollout`
         asks): on a CPU, float32, with numba, for a :class:`~cuniform_torch.systems.models.Dubins` system (its own
         speed and time step), the start-frame states ``[T+1, 3, N]`` (time-major) and actions ``[N, T, q]`` of
-        :mod:`~cuniform_torch.maps.kernels` (the step-by-step path's draws, to float rounding); else None."""
+        :mod:`~cuniform_torch.maps.kernels` (the step-by-step path's draws, to float rounding); else None.
+        ``uniforms [T, N]`` in ``[0, 1)``, when given, are the draws (else they come from ``generator``)."""
         on_cpu = generator is None or generator.device.type == "cpu"
         if not (self.compiled and self._map_bias is not None and x0.ndim == 1 and type(system) is Dubins and on_cpu
                 and x0.dtype == self.dtype and kernels.usable(x0.device, self.dtype)):
@@ -332,7 +338,8 @@ class MapPolicy(nn.Module):
                         cell_x=float(self._box_cell[0]), cell_y=float(self._box_cell[1]))
         states, actions, near, miss = kernels.rollout_start_frame(
             self._map_bias, self._w_state, self._layers, self.actions, self._local_map if local is not None else None,
-            local.probes if local is not None else torch.zeros((0, 2)), geometry, num_samples, horizon, generator)
+            local.probes if local is not None else torch.zeros((0, 2)), geometry, num_samples, horizon, generator,
+            uniforms)
         self._queries += num_samples * horizon
         self._near += near
         self._miss += miss

@@ -9,6 +9,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from cuniform_torch.sampling.draws import inverse_cdf_pick
 from cuniform_torch.sampling.rollout import check_states
 
 __all__ = ["state_features", "check_query", "inverse_cdf_draw"]
@@ -39,7 +40,5 @@ def check_query(x: Tensor, t: int, horizon: int, state_dim: int, dtype: torch.dt
 def inverse_cdf_draw(cdf: Tensor, actions: Tensor, generator: torch.Generator | None) -> Tensor:
     """One action ``[N, q]`` per row of ``cdf [N, A]`` (cumulative, unnormalised weights; consumed in place):
     a uniform per row scaled to the row's total, then the first action whose cdf exceeds it."""
-    u = torch.rand((cdf.shape[0], 1), generator=generator, dtype=cdf.dtype, device=cdf.device).mul_(cdf[:, -1:])
-    pick = torch.searchsorted(cdf, u, right=True).squeeze(1).clamp_max_(cdf.shape[1] - 1)
-    actions = actions if actions.dtype == cdf.dtype else actions.to(cdf.dtype)
-    return actions.index_select(0, pick)
+    r = torch.rand(cdf.shape[0], generator=generator, dtype=cdf.dtype, device=cdf.device)
+    return inverse_cdf_pick(cdf, actions, r)

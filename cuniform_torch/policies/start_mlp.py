@@ -40,7 +40,7 @@ from torch import Tensor
 
 from cuniform_torch.grid.cells import Grid
 from cuniform_torch.policies.mlp import MLPConfig, MLPPolicy, MLPSupport
-from cuniform_torch.policies.mlp_ops import check_query, inverse_cdf_draw
+from cuniform_torch.policies.mlp_ops import check_query, inverse_cdf_draw, inverse_cdf_pick
 from cuniform_torch.policies.table import Fallback
 from cuniform_torch.sampling.rollout import OWN_ROBOT, StartMismatchWarning, check_states
 from cuniform_torch.systems import System
@@ -220,6 +220,10 @@ class StartMLPPolicy(MLPPolicy):
         """Actions ``[N, q]`` drawn from :meth:`action_probs` (inverse CDF, one uniform per state: cheaper than
         ``torch.multinomial``); what a rollout draws through."""
         return inverse_cdf_draw(self._weights(x, t).cumsum_(dim=1), self.actions, generator)
+
+    def draw(self, x: Tensor, t: int, r: Tensor) -> Tensor:
+        """:meth:`sample` with the uniforms ``r [N]`` in ``[0, 1)`` given."""
+        return inverse_cdf_pick(self._weights(x, t).cumsum_(dim=1), self.actions, r)
 
     def for_start(self, x0: Tensor) -> StartMLPPolicy:
         """Serve rollouts from ``x0 [d]`` (or the first row of ``[N, d]``) from now on; returns ``self``."""

@@ -183,13 +183,23 @@ class TablePolicy:
         self._check(x, t)
         if generator is not None and not isinstance(generator, torch.Generator):
             check_generator(generator, self.device)  # the clear TypeError
+        r = torch.empty(x.shape[0], device=self.device, dtype=self.dtype).uniform_(0, self.num_actions,
+                                                                                    generator=generator)  # [N]
+        return self._draw_scaled(x, t, r)
+
+    def draw(self, x: Tensor, t: int, r: Tensor) -> Tensor:
+        """:meth:`sample` with the uniforms given: ``x [N, d]``, ``r [N]`` in ``[0, 1)`` (the policy's dtype and
+        device) -> ``[N, q]``. ``sample`` draws ``r`` from its generator and does this, so the two agree."""
+        self._check(x, t)
+        return self._draw_scaled(x, t, r * self.num_actions)
+
+    def _draw_scaled(self, x: Tensor, t: int, r: Tensor) -> Tensor:
+        """The alias draw of ``x [N, d]`` with ``r [N]`` in ``[0, A)``."""
         n = x.shape[0]
         if self._numba is not None:
-            u, total = self._numba.sample(x, t, generator)  # [N, q], a host int
+            u, total = self._numba.draw(x, t, r)  # [N, q], a host int
             self._count(n, total)
             return u
-        r = torch.empty(n, device=self.device, dtype=self.dtype).uniform_(0, self.num_actions,
-                                                                           generator=generator)  # [N]
         u, code = self._torch_step(self.index, x, self._levels[t], r)
         self._count(n, code.sum())
         return u  # [N, q]
@@ -293,5 +303,14 @@ class UniformPolicy:
             check_generator(generator, self.device)  # the clear TypeError
         A = self.actions.shape[0]
         r = torch.empty(x.shape[0], device=self.device, dtype=self.dtype).uniform_(0, A, generator=generator)  # [N]
+        return self._pick(x, r)
+
+    def draw(self, x: Tensor, t: int, r: Tensor) -> Tensor:
+        """:meth:`sample` with the uniforms ``r [N]`` in ``[0, 1)`` given."""
+        check_states(x, len(self.system.periodic), self.device)
+        return self._pick(x, r * self.actions.shape[0])
+
+    def _pick(self, x: Tensor, r: Tensor) -> Tensor:
+        A = self.actions.shape[0]
         actions = self.actions if x.dtype == self.dtype else self.actions.to(x.dtype)  # [A, q]
         return actions.index_select(0, r.to(torch.int32).clamp_(max=A - 1))  # [N, q]

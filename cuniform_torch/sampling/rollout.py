@@ -30,6 +30,7 @@ from torch import Tensor
 from cuniform_torch.common.frames import se2_to_world
 from cuniform_torch.common.tensors import check_generator, check_states, same_device
 from cuniform_torch.sampling import kernels as rollout_kernels
+from cuniform_torch.sampling.draws import inverse_cdf_pick
 from cuniform_torch.sampling.start_watch import OWN_ROBOT, StartMismatchWarning, StartWatch
 from cuniform_torch.systems import System
 
@@ -184,6 +185,9 @@ class RolloutPlan:
     """the system's ``step`` may get column-major states (:func:`steps_column_major`); else contiguous ones"""
     watch_start: Callable[[Tensor, bool], Callable[[], None] | None] | None = None
     """the policy's ``watch_start(x0, relative)`` (a :class:`StartWatch`'s ``begin``), when it has one"""
+    draws: bool = False
+    """the policy has ``draw(x, t, r)`` (:class:`UniformDraws`): it draws with given uniforms; else, given
+    uniforms, the rollout draws from ``action_probs`` by inverse CDF"""
 
     @classmethod
     def of(cls, system: System, policy: object) -> RolloutPlan:
@@ -197,7 +201,7 @@ class RolloutPlan:
         watch = getattr(policy, "watch_start", None)
         return cls(sampler=sampler, relative=traits.start_relative and bool(system.se2_invariant), traits=traits,
                    step_out=_steps_into(system), column_major_ok=steps_column_major(system),
-                   watch_start=watch if callable(watch) else None)
+                   watch_start=watch if callable(watch) else None, draws=callable(getattr(policy, "draw", None)))
 
     def check(self, x0: Tensor, horizon: int) -> None:
         """ValueError unless the policy serves ``horizon`` steps from ``x0`` (its device, finite)."""
@@ -210,7 +214,8 @@ class RolloutPlan:
             raise ValueError("x0 contains NaN or infinite values")
 
     def _steps(self, system: System, policy: Policy | ActionSampler, x0: Tensor, start: Tensor, num_samples: int,
-               horizon: int, generator: torch.Generator | None) -> tuple[Tensor | None, list[Tensor], Tensor]:
+               horizon: int, generator: torch.Generator | None,
+               uniforms: Tensor | None = None) -> tuple[Tensor | None, list[Tensor], Tensor]:
         """The step-by-step loop of :meth:`run`: the time-major buffer ``[T+1, d, N]`` (None without one), the
         column-major states ``[N, d]`` of each step, and the actions ``[N, T, q]``."""
         d = x0.shape[-1]
@@ -223,18 +228,19 @@ class RolloutPlan:
             x[:, 3:] = start[:, 3:]
         else:
             x.copy_(start)
-        actions = cast(Tensor, None if self.sampler else cast(Policy, policy).actions.to(dtype=x0.dtype))  # [A, q]
+        by_probs = not self.sampler or (uniforms is not None and not self.draws)
+        actions = cast(Tensor, cast(Policy, policy).actions.to(dtype=x0.dtype) if by_probs else None)  # [A, q]
         states, taken = [x], []
         for t in range(horizon):
-            if self.sampler:
+            if uniforms is not None and self.draws:
+                u = cast(Any, policy).draw(x, t, uniforms[t])  # [N, q]
+            elif uniforms is not None:
+                u = inverse_cdf_pick(self._probs(policy, x, t, num_samples, actions).cumsum(dim=1), actions,
+                                     uniforms[t])  # [N, q]
+            elif self.sampler:
                 u = cast(ActionSampler, policy).sample(x, t, generator)  # [N, q]
             else:
-                probs = cast(Policy, policy).action_probs(x, t)  # [N, A]
-                if not isinstance(probs, Tensor) or probs.shape != (num_samples, actions.shape[0]):
-                    raise ValueError(f"{type(policy).__name__}.action_probs returned "
-                                     f"{list(probs.shape) if isinstance(probs, Tensor) else type(probs).__name__} at "
-                                     f"step {t}; expected [{num_samples}, {actions.shape[0]}] probabilities (states x "
-                                     f"actions)")
+                probs = self._probs(policy, x, t, num_samples, actions)
                 u = actions[torch.multinomial(probs, 1, generator=generator).squeeze(1)]  # [N, q]
             if buffer is not None and u.dtype == x.dtype and u.device == x.device:
                 x = cast(Any, system).step(x, u, out=buffer[t + 1].T)  # [N, d] into the buffer (step_out: takes out=)
@@ -255,10 +261,23 @@ class RolloutPlan:
             actions_t = x0.new_zeros((num_samples, 0, q))
         return buffer, states, actions_t
 
+    @staticmethod
+    def _probs(policy: object, x: Tensor, t: int, num_samples: int, actions: Tensor) -> Tensor:
+        """``policy.action_probs(x, t)`` checked to be ``[N, A]``."""
+        probs = cast(Policy, policy).action_probs(x, t)  # [N, A]
+        if not isinstance(probs, Tensor) or probs.shape != (num_samples, actions.shape[0]):
+            raise ValueError(f"{type(policy).__name__}.action_probs returned "
+                             f"{list(probs.shape) if isinstance(probs, Tensor) else type(probs).__name__} at "
+                             f"step {t}; expected [{num_samples}, {actions.shape[0]}] probabilities (states x "
+                             f"actions)")
+        return probs
+
     def run(self, system: System, policy: Policy | ActionSampler, x0: Tensor, num_samples: int, horizon: int,
-            generator: torch.Generator | None) -> tuple[Tensor, Tensor]:
+            generator: torch.Generator | None, uniforms: Tensor | None = None) -> tuple[Tensor, Tensor]:
         """The rollout itself, for checked input (``x0 [d]`` or ``[N, d]``, detached, finite, on the policy's
-        device; a generator on it): ``states [N, T+1, d]``, ``actions [N, T, q]``."""
+        device; a generator on it): ``states [N, T+1, d]``, ``actions [N, T, q]``. With ``uniforms [T, N]`` in
+        ``[0, 1)`` (the policy's dtype and device), step ``t`` draws with ``uniforms[t]`` (one per sample: what a
+        batched controller draws up front, per robot) and ``generator`` is not used."""
         select = getattr(policy, "for_start", None)
         if callable(select):  # a table set: the table nearest to this start, and its start check
             policy = select(x0)
@@ -269,14 +288,18 @@ class RolloutPlan:
         d = x0.shape[-1]
         start = x0.unsqueeze(0).expand(num_samples, d) if x0.ndim == 1 else x0  # [N, d]
         fused = getattr(policy, "fused_rollout", None)  # a policy that rolls itself out in the start frame
-        own = fused(system, x0, num_samples, horizon, generator) if self.relative and callable(fused) else None
+        own = (fused(system, x0, num_samples, horizon, generator, uniforms) if self.relative and callable(fused)
+               else None)
         if own is not None:
             buffer, actions_t = own  # [T+1, d, N] start-frame states, [N, T, q]
             states: list[Tensor] = []
         else:
-            buffer, states, actions_t = self._steps(system, policy, x0, start, num_samples, horizon, generator)
-        # the origin pose needs no change of frame (a host sync to know it: only on a CPU, where it is free)
-        if self.relative and (x0.ndim == 2 or x0.device.type != "cpu" or bool(x0[:3].any())):
+            buffer, states, actions_t = self._steps(system, policy, x0, start, num_samples, horizon, generator,
+                                                    uniforms)
+        # the origin pose needs no change of frame (a host read to know it: only on a CPU, where it is free, and not
+        # for a controller's rollouts, given their uniforms: a command reads nothing back)
+        if self.relative and (uniforms is not None or x0.ndim == 2 or x0.device.type != "cpu"
+                              or bool(x0[:3].any())):
             # the column-major states time-major ([T+1, d, N], contiguous rows: the buffer, else one stack); the
             # frame change reads that once and writes the [N, T+1, d] result once (a compiled loop on a CPU, else
             # torch ops)

@@ -20,7 +20,6 @@ that call when it is made, so that no control cycle pays for it.
 from __future__ import annotations
 
 import functools
-import threading
 
 import numpy as np
 import torch
@@ -64,7 +63,7 @@ class NumbaKernel:
         k, a = index.keys, index.alias
         self.keys = tuple(v.numpy() for v in (k.scale, k.shift, k.low, k.high, k.span, k.period, k.inv_period, k.half))
         self.level_base = index.level_base.numpy()
-        self.draw = (a.threshold.numpy(), a.outcome.numpy(), index.entry_code.numpy())
+        self.alias = (a.threshold.numpy(), a.outcome.numpy(), index.entry_code.numpy())
         if index.lookup is Lookup.DENSE:
             self.find = (index.dense.numpy(),)
         else:
@@ -73,7 +72,6 @@ class NumbaKernel:
                          h.slot_hash.numpy(), index.slot_entry.numpy())
         self.step = _kernels()[0 if index.lookup is Lookup.DENSE else 1]
         self.actions, self.outcome_is_value = index.actions, a.outcome_is_value
-        self._scratch = threading.local()  # per thread: the uniforms of its last batch size, reused
         d = k.scale.shape[0]
         for n in (1, 2):  # numba's two layouts of x: C (one state, or d = 1) and F (what __call__ passes otherwise)
             self(np.zeros((n, d), dtype=np.float32), 0, np.zeros(n, dtype=np.float32),
@@ -85,24 +83,25 @@ class NumbaKernel:
         codes (nearest hits + 2^32 misses)."""
         if not x.flags.f_contiguous:  # columns first (the key loop vectorizes on them), one compiled layout
             x = np.asfortranarray(x)
-        return int(self.step(x, self.level_base[t], *self.keys, *self.find, *self.draw, r, out))
+        return int(self.step(x, self.level_base[t], *self.keys, *self.find, *self.alias, r, out))
 
     def sample(self, x: torch.Tensor, t: int, generator: torch.Generator | None) -> tuple[torch.Tensor, int]:
         """What the torch path of :meth:`~cuniform_torch.policies.table.TablePolicy.sample` does, on a CPU: the same
-        uniforms (``uniform_(0, A)`` from ``generator``, one per state), then :meth:`__call__`. ``x [N, d]`` ->
+        uniforms (``uniform_(0, A)`` from ``generator``, one per state), then :meth:`draw`. ``x [N, d]`` ->
         actions ``[N, q]`` and the summed fallback codes (a host int)."""
+        r = torch.empty(x.shape[0], dtype=torch.float32).uniform_(0, self.actions.shape[0], generator=generator)
+        return self.draw(x, t, r)
+
+    def draw(self, x: torch.Tensor, t: int, r: torch.Tensor) -> tuple[torch.Tensor, int]:
+        """:meth:`sample` for given uniforms ``r [N]`` float32 in ``[0, A)``."""
         n = x.shape[0]
-        r = getattr(self._scratch, "r", None)
-        if r is None or r.shape[0] != n:  # numba reads them before returning, so a thread can reuse its own
-            r = self._scratch.r = torch.empty(n, dtype=torch.float32)
-            self._scratch.r_np = r.numpy()
-        r.uniform_(0, self.actions.shape[0], generator=generator)  # [N]
+        r_np = r.detach().contiguous().numpy()
         if self.outcome_is_value:  # q == 1: the outcomes are the actions
             u = np.empty((n, 1), dtype=np.float32)
-            total = self(x.detach().numpy(), t, self._scratch.r_np, u[:, 0])
+            total = self(x.detach().numpy(), t, r_np, u[:, 0])
             return torch.from_numpy(u), total  # [N, 1]
         out = np.empty(n, dtype=np.int32)
-        total = self(x.detach().numpy(), t, self._scratch.r_np, out)
+        total = self(x.detach().numpy(), t, r_np, out)
         return self.actions.index_select(0, torch.from_numpy(out)), total  # [N, q]
 
 

@@ -3,7 +3,7 @@
 Make the profile with ``python -m cProfile -o PROFILE -m eval.navigate ... --methods M --budgets K --workers 1``
 (one method and one K per profile: the split is per command of the whole run). Printed, in ms per command:
 
-* ``sampling``: the proposal's ``propose`` called by the controller's ``plan`` (noise and rollouts);
+* ``sampling``: the proposal's ``propose_batch`` called by the controller's ``_plan`` (noise and rollouts);
 * ``cost``: ``plan``'s ``_evaluate`` (the cost function over the K rollouts);
 * ``the rest of plan``: weights, the weighted average, the warm start;
 * ``command``: all of ``command`` (``plan`` plus its input checks);
@@ -12,8 +12,9 @@ Make the profile with ``python -m cProfile -o PROFILE -m eval.navigate ... --met
 A two-stage controller (CU-MPPI, CFU-MPPI) plans inside its proposal, and cProfile merges the two levels of
 ``plan``: its sampling, cost and rest are not split (nan), only ``command`` and the harness.
 
-It reads only function names that every version of the controller core has (``command``, ``plan``,
-``_evaluate``, ``propose``, ``simulate``), so the profile of an older checkout (a git worktree) splits the same way.
+It reads only function names of the controller core (``command``, ``_plan`` or before batching ``plan``,
+``_evaluate``, ``propose_batch`` or ``propose``, ``simulate``), so the profile of an older checkout (a git worktree)
+splits the same way.
 cProfile's own overhead inflates code of many small calls: compare splits of profiles, not with unprofiled
 times.
 """
@@ -44,7 +45,8 @@ def split(profile: str | Path) -> dict[str, float]:
     except (OSError, EOFError, ValueError, TypeError) as exc:
         raise CLIError(f"{profile}: not a readable cProfile output ({type(exc).__name__}: {exc})") from None
     commands = _find(stats, "command", _CORE_FILES)
-    plans = _find(stats, "plan", _CORE_FILES)
+    # the batched core plans in ``_plan`` (``plan`` and ``command`` call it); an older core plans in ``plan``
+    plans = _find(stats, "_plan", _CORE_FILES) or _find(stats, "plan", _CORE_FILES)
     if not commands or not plans:
         raise CLIError(f"{profile}: no controller command in this profile (profile an eval.navigate run)")
     n = sum(stats[k][0] for k in commands)  # primitive calls: one per command
@@ -66,7 +68,7 @@ def split(profile: str | Path) -> dict[str, float]:
     nan = float("nan")
     # a two-stage controller (CU-MPPI, CFU-MPPI) runs a plan inside its proposal: cProfile merges the two levels,
     # so only the whole command is split off
-    sampling = nan if recursive else called_from_plan("propose")
+    sampling = nan if recursive else called_from_plan("propose_batch") + called_from_plan("propose")
     cost = nan if recursive else called_from_plan("_evaluate", _CORE_FILES)
     sims = [k for k in stats if k[2] == "simulate"]
     harness = sum(stats[k][3] for k in sims) - command_s if sims else float("nan")

@@ -1,0 +1,190 @@
+"""Per-command time of the whole MPPI family on the navigation robot, side by side, for one robot or a batch.
+
+    python -m eval.bench.family                                  # K = 64, 256, 1024; T = 15; one robot
+    python -m eval.bench.family --robots 64 --samples 256        # a batch of 64 robots per command
+    python -m eval.bench.family --device cuda --samples 1024 8192 --horizon 15 100
+
+Every controller drives the navigation benchmark's robot (Dubins, 0.5 m/s, 7 turn rates, dt 0.2 s) on BARN map 0
+(the shipped half) under the navigation cost, from the map's start (robot ``b`` a little further along x): MPPI
+(std 1.0), log-MPPI (std 0.3), C-Uniform MPPI on the robot's max-flow table, CU-MPPI on it, CFU-MPPI with the
+shipped map policy, and pytorch_mppi (the ``[bench]`` extra; ``MPPI_Batched`` for a batch) on the same dynamics
+with a per-step goal-and-collision cost. Commands are timed round-robin (one command of each controller in turn,
+``--repeats`` rounds after ``--warmup``), so a varying load on a shared machine hits all alike; each figure is a
+median (on CUDA, synchronized). Ratios are to MPPI at the same K.
+
+The script uses only the one-robot API when ``--robots 1``, so the same file times an older checkout too:
+``cd OLD && PYTHONPATH=. python /path/to/eval/bench/family.py ...`` (before / after in one table).
+Writes JSON to ``--json`` (default out/bench_family.json).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+import sys
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import torch
+
+METHODS = ("mppi", "log_mppi", "cuniform", "cumppi", "cfu_mppi", "pytorch_mppi")
+
+
+def _parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="python -m eval.bench.family", description=__doc__.split("\n\n")[0])
+    p.add_argument("--samples", type=int, nargs="+", default=[64, 256, 1024], help="K per robot")
+    p.add_argument("--horizon", type=int, nargs="+", default=[15], help="T (the table and the map policy serve 15)")
+    p.add_argument("--robots", type=int, default=1, help="B robots per command (default 1)")
+    p.add_argument("--methods", nargs="+", default=list(METHODS), choices=METHODS)
+    p.add_argument("--repeats", type=int, default=30)
+    p.add_argument("--warmup", type=int, default=5)
+    p.add_argument("--threads", type=int, default=1, help="torch threads (default 1: steadier on a shared CPU)")
+    p.add_argument("--device", default="cpu")
+    p.add_argument("--cache", default="out/nav-cache", help="where the robot's table is built once and cached")
+    p.add_argument("--json", default="out/bench_family.json")
+    return p
+
+
+def _positive(args: argparse.Namespace) -> None:
+    for name in ("samples", "horizon"):
+        if any(v < 1 for v in getattr(args, name)):
+            sys.exit(f"--{name}: every value must be a positive integer")
+    for name in ("robots", "repeats", "threads"):
+        if getattr(args, name) < 1:
+            sys.exit(f"--{name} must be a positive integer")
+
+
+def _batch_kw(robots: int) -> dict:
+    """``num_robots`` only when batching (an older checkout has no such argument)."""
+    return {} if robots == 1 else {"num_robots": robots}
+
+
+def build(args: argparse.Namespace) -> tuple[dict[tuple[str, int, int], Callable[[], object]], dict]:
+    """One ``command`` closure per (method, K, T), all on the same map, cost and states."""
+    from cuniform_torch import CFUMPPI, CUMPPI, MPPI, CUniformMPPI, LogMPPI, TablePolicy, read_table
+    from cuniform_torch.envs import NavigationCost
+    from cuniform_torch.envs.worlds.barn import load_barn
+    from cuniform_torch.envs.worlds.robot import NAV_ROBOT
+    from eval.navigate.robot_files import ensure_table
+
+    device = torch.device(args.device)
+    system = NAV_ROBOT.make_system()
+    world = load_barn()[0]
+    env = world.environment(NAV_ROBOT.radius)
+    cost = NavigationCost(env.to(device) if hasattr(env, "to") else env, world.goal)
+    b = args.robots
+    start = torch.tensor(world.start, dtype=torch.float32, device=device)
+    states = start.repeat(b, 1)
+    states[:, 0] += 0.05 * torch.arange(b, device=device)
+    state = states[0] if b == 1 else states
+    needs_table = {"cuniform", "cumppi"} & set(args.methods)
+    table = None
+    if needs_table and min(args.horizon) <= NAV_ROBOT.horizon:
+        table = TablePolicy(read_table(ensure_table(NAV_ROBOT, Path(args.cache))), device=device)
+    kw = _batch_kw(b)
+    fns: dict[tuple[str, int, int], Callable[[], object]] = {}
+    def make(name: str, k: int, t: int):
+        """The controller ``name`` at K = ``k``, T = ``t`` (None where it cannot serve that horizon)."""
+        if name == "mppi":
+            return MPPI(system, cost, k, t, noise_std=1.0, device=device, seed=0, **kw)
+        if name == "log_mppi":
+            return LogMPPI(system, cost, k, t, noise_std=0.3, device=device, seed=0, **kw)
+        if t > NAV_ROBOT.horizon:
+            return None
+        if name == "cuniform" and table is not None:
+            return CUniformMPPI(table, cost, k, horizon=t, seed=0, **kw)
+        if name == "cumppi" and table is not None:
+            return CUMPPI(table, cost, k, horizon=t, seed=0, **kw)
+        if name == "cfu_mppi":
+            return CFUMPPI("unicycle-0.5", env, cost, k, horizon=t, device=device, seed=0, **kw)
+        return None
+
+    for t in args.horizon:
+        for k in args.samples:
+            for name in args.methods:
+                ctrl = (_peer(system, env, world.goal, k, t, b, device) if name == "pytorch_mppi"
+                        else make(name, k, t))
+                if ctrl is not None:
+                    fns[(name, k, t)] = lambda ctrl=ctrl: ctrl.command(state)
+    info = {"map": int(world.map_id), "robots": b, "device": str(device), "threads": torch.get_num_threads()}
+    return fns, info
+
+
+def _peer(system, env, goal, k: int, t: int, robots: int, device: torch.device):
+    """pytorch_mppi on the same dynamics (None when it is not installed): ``MPPI``, or ``MPPI_Batched`` for a batch."""
+    try:
+        import pytorch_mppi
+    except ImportError:
+        return None
+    goal_t = torch.tensor(goal, dtype=torch.float32, device=device)
+
+    def running_cost(x, u, *_):  # [N, d] -> [N]: goal distance and a collision penalty per state
+        hit = env.in_collision(x[:, None, :2], None)[:, 0]
+        return (x[:, :2] - goal_t).square().sum(dim=1) + 1e3 * hit.to(x.dtype)
+
+    common = dict(noise_sigma=torch.eye(1, device=device), num_samples=k, horizon=t, device=device, lambda_=0.567,
+                  u_min=torch.tensor([-1.5], device=device), u_max=torch.tensor([1.5], device=device))
+    if robots == 1:
+        return pytorch_mppi.MPPI(system.step, running_cost, 3, **common)
+    return pytorch_mppi.MPPI_Batched(system.step, running_cost, 3, num_envs=robots, **common)
+
+
+def time_round_robin(fns: dict, repeats: int, warmup: int, device: torch.device) -> dict:
+    """Median seconds of each closure, one call of each in turn per round."""
+    sync = torch.cuda.synchronize if device.type == "cuda" else (lambda: None)
+    for _ in range(warmup):
+        for fn in fns.values():
+            fn()
+    sync()
+    times: dict = {key: [] for key in fns}
+    for _ in range(repeats):
+        for key, fn in fns.items():
+            t0 = time.perf_counter()
+            fn()
+            sync()
+            times[key].append(time.perf_counter() - t0)
+    return {key: statistics.median(v) for key, v in times.items()}
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = _parser().parse_args(argv)
+    _positive(args)
+    torch.set_num_threads(args.threads)
+    if args.device.startswith("cuda") and not torch.cuda.is_available():
+        sys.exit("--device cuda: no CUDA device here")
+    fns, info = build(args)
+    medians = time_round_robin(fns, args.repeats, args.warmup, torch.device(args.device))
+    load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
+    print(f"# per-command ms, median of {args.repeats} round-robin rounds; {info['robots']} robot(s) per command, "
+          f"{args.device}, {info['threads']} thread(s), BARN map {info['map']}, load {load:.2f}")
+    names = [m for m in args.methods if any(key[0] == m for key in medians)]
+    print(f"{'T':>4} {'K':>6} " + " ".join(f"{m:>13}" for m in names))
+    rows = []
+    for t in args.horizon:
+        for k in args.samples:
+            base = medians.get(("mppi", k, t))
+            cells = []
+            for m in names:
+                s = medians.get((m, k, t))
+                if s is None:
+                    cells.append(f"{'-':>13}")
+                    continue
+                ratio = f"({s / base:.2f}x)" if base else ""
+                cells.append(f"{1e3 * s:>6.3f}{ratio:>7}")
+                rows.append({"method": m, "samples": k, "horizon": t, "ms": 1e3 * s,
+                             "ratio_to_mppi": s / base if base else None})
+            print(f"{t:>4} {k:>6} " + " ".join(cells))
+    out = Path(args.json)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = out.with_suffix(out.suffix + ".tmp")
+    tmp.write_text(json.dumps({**info, "load": load, "repeats": args.repeats, "rows": rows}, indent=1))
+    os.replace(tmp, out)
+    print(f"wrote {out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
