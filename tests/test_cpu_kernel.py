@@ -140,11 +140,29 @@ def test_threads_sampling_one_policy_draw_what_each_would_draw_alone(dubins_tabl
 
 def test_rollouts_are_the_same_with_either_kernel(dubins_table):
     eager, fast = TablePolicy(dubins_table, kernel="torch"), TablePolicy(dubins_table, kernel="numba")
+    fast.compiled = False  # step by step here; the whole-rollout loop is tested below
     for x0 in (torch.zeros(3), torch.tensor([1.0, -2.0, 0.7])):
         s_eager, a_eager = rollout(eager.system, eager, x0, 3000, 10, torch.Generator().manual_seed(5))
         s_fast, a_fast = rollout(fast.system, fast, x0, 3000, 10, torch.Generator().manual_seed(5))
         assert torch.equal(s_fast, s_eager) and torch.equal(a_fast, a_eager)
     assert fast.miss_rate == eager.miss_rate and fast.nearest_rate == eager.nearest_rate
+
+
+@pytest.mark.parametrize("lookup", ["dense", "hash"])
+def test_the_whole_rollout_loop_draws_the_step_by_step_actions(dubins_table, lookup):
+    """The compiled Dubins rollout (one numba call for all T steps) takes the step-by-step path's actions from the
+    same stream, its states equal to float rounding, and counts the same lookups; batched starts too."""
+    step, fused = TablePolicy(dubins_table, lookup=lookup), TablePolicy(dubins_table, lookup=lookup)
+    step.compiled = False
+    starts = (torch.zeros(3), torch.tensor([1.0, -2.0, 0.7]), torch.randn(500, 3, generator=torch.Generator().manual_seed(2)))
+    for x0 in starts:
+        n = 500
+        s_step, a_step = rollout(step.system, step, x0, n, 10, torch.Generator().manual_seed(5))
+        s_fused, a_fused = rollout(fused.system, fused, x0, n, 10, torch.Generator().manual_seed(5))
+        assert torch.equal(a_fused, a_step)
+        torch.testing.assert_close(s_fused, s_step, atol=1e-5, rtol=0)
+    assert fused.queries == step.queries and int(fused.misses) == int(step.misses)
+    assert int(fused.nearest_hits) == int(step.nearest_hits)
 
 
 @pytest.mark.parametrize("kwargs, reason", [

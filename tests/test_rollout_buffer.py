@@ -20,6 +20,7 @@ class PlainDubins(Dubins):
 @pytest.mark.parametrize("horizon", [0, 1, 7])
 def test_buffered_rollout_is_plain_stepping_bit_for_bit(dubins_table, start, horizon):
     policy = TablePolicy(dubins_table)
+    policy.compiled = False  # the step-by-step path (the whole-rollout loop: tests/test_cpu_kernel.py)
     assert RolloutPlan.of(Dubins(), policy).step_out and not RolloutPlan.of(PlainDubins(), policy).step_out
     n = 64
     x0 = {"origin": torch.zeros(3), "pose": torch.tensor([1.0, -2.0, 0.7]),

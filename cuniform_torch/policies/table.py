@@ -40,6 +40,7 @@ from cuniform_torch.common.options import Option, option_label
 from cuniform_torch.grid.cells import Grid
 from cuniform_torch.sampling.rollout import StartWatch, check_generator, check_states
 from cuniform_torch.systems import System
+from cuniform_torch.systems.models import Dubins
 from cuniform_torch.tables import cpu_kernels
 from cuniform_torch.tables.file import Table, read_table
 from cuniform_torch.tables.lookup import Lookup, TableIndex, build_index
@@ -116,6 +117,8 @@ class TablePolicy:
         # the numba kernel compiles (or loads from numba's disk cache) now, not in the first control cycle
         self._numba = cpu_kernels.NumbaKernel(self.index) if self.kernel is Kernel.NUMBA else None
         self._torch_step = torch.compile(lookup_and_draw, dynamic=False) if compile else lookup_and_draw
+        self.compiled = True
+        """roll out a Dubins system in one compiled call (:meth:`fused_rollout`) when the numba kernel runs"""
         # compiled, the level goes in as a 0-d tensor: one graph serves every level
         self._levels = [torch.tensor(t, device=self.device) if compile else t for t in range(self.horizon + 1)]
         self.reset_counters()
@@ -192,6 +195,25 @@ class TablePolicy:
         device) -> ``[N, q]``. ``sample`` draws ``r`` from its generator and does this, so the two agree."""
         self._check(x, t)
         return self._draw_scaled(x, t, r * self.num_actions)
+
+    def fused_rollout(self, system: System, x0: Tensor, num_samples: int, horizon: int,
+                      generator: torch.Generator | None,
+                      uniforms: Tensor | None = None) -> tuple[Tensor, Tensor] | None:
+        """The rollout's own loop, when it has one (:func:`~cuniform_torch.sampling.rollout.rollout` asks): with the
+        numba kernel (a CPU, float32) on a :class:`~cuniform_torch.systems.models.Dubins` system (its own speed and
+        time step; states ``(x, y, heading)`` only, so every start's rollouts in its own frame start at the origin),
+        the start-frame states ``[T+1, 3, N]`` (time-major) and actions ``[N, T, q]`` of one compiled call: the
+        step-by-step path's lookups and draws, to float rounding of the step. ``uniforms [T, N]`` in ``[0, 1)``
+        are the draws (else ``torch.rand((T, N))`` from ``generator``: the step-by-step path's stream). Else None.
+        ``compiled = False`` turns it off."""
+        if not (self.compiled and self._numba is not None and type(system) is Dubins and self._dim == 3
+                and (generator is None or generator.device.type == "cpu")):
+            return None
+        if uniforms is None:
+            uniforms = torch.rand((horizon, num_samples), generator=generator, dtype=torch.float32)
+        states, actions, total = self._numba.dubins_rollout(uniforms, system.dt, system.speed)
+        self._count(num_samples * horizon, total)
+        return states, actions
 
     def _draw_scaled(self, x: Tensor, t: int, r: Tensor) -> Tensor:
         """The alias draw of ``x [N, d]`` with ``r [N]`` in ``[0, A)``."""

@@ -20,6 +20,7 @@ that call when it is made, so that no control cycle pays for it.
 from __future__ import annotations
 
 import functools
+import math
 
 import numpy as np
 import torch
@@ -64,7 +65,8 @@ class NumbaKernel:
         self.keys = tuple(v.numpy() for v in (k.scale, k.shift, k.low, k.high, k.span, k.period, k.inv_period, k.half))
         self.level_base = index.level_base.numpy()
         self.alias = (a.threshold.numpy(), a.outcome.numpy(), index.entry_code.numpy())
-        if index.lookup is Lookup.DENSE:
+        self.find_is_dense = index.lookup is Lookup.DENSE
+        if self.find_is_dense:
             self.find = (index.dense.numpy(),)
         else:
             h = index.hash
@@ -105,8 +107,29 @@ class NumbaKernel:
         return self.actions.index_select(0, torch.from_numpy(out)), total  # [N, q]
 
 
+    def dubins_rollout(self, uniforms: torch.Tensor, dt: float, speed: float) -> tuple[torch.Tensor, torch.Tensor, int]:
+        """A whole Dubins rollout from the origin of the start frame in one compiled call: per step the lookup and
+        draw of :meth:`draw` (uniforms ``uniforms[t] * A``) and the Dubins step (the map kernel's arithmetic, equal
+        to the torch step to float rounding). ``uniforms [T, N]`` float32 -> start-frame states ``[T+1, 3, N]``
+        (time-major), actions ``[N, T, q]`` and the summed fallback codes (a host int)."""
+        horizon, n = uniforms.shape
+        states = torch.zeros((horizon + 1, 3, n), dtype=torch.float32)
+        picks = np.empty((horizon, n), dtype=self.alias[1].dtype)
+        actions_np = self.actions[:, 0].to(torch.float32).contiguous().numpy()
+        rollout = _kernels()[2 if self.find_is_dense else 3]
+        total = rollout(states.numpy(), uniforms.detach().contiguous().numpy(), picks, self.level_base, *self.keys,
+                        *self.find, *self.alias, self.outcome_is_value, actions_np, np.float32(dt),
+                        np.float32(speed), np.float32(math.pi), np.float32(2.0 * math.pi))
+        picked = torch.from_numpy(picks)  # [T, N]
+        if self.outcome_is_value:
+            taken = picked.T.unsqueeze(2).contiguous()  # [N, T, 1]
+        else:
+            taken = self.actions.index_select(0, picked.T.reshape(-1).long()).view(n, horizon, -1)
+        return states, taken, int(total)
+
+
 @functools.cache
 def _kernels():
     from cuniform_torch.tables import lookup_loops  # imports numba: only when a loop is used
 
-    return lookup_loops.step_dense, lookup_loops.step_hash
+    return lookup_loops.step_dense, lookup_loops.step_hash, lookup_loops.rollout_dense, lookup_loops.rollout_hash

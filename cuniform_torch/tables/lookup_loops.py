@@ -8,7 +8,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-__all__ = ["step_dense", "step_hash"]
+__all__ = ["step_dense", "step_hash", "rollout_dense", "rollout_hash", "dubins_step"]
 
 jit = numba.njit(cache=True, nogil=True, boundscheck=False)
 
@@ -80,3 +80,57 @@ def step_hash(x, base, scale, shift, low, high, span, period, inv_period, half, 
         slot = (low_bits + disp[(h >> bucket_shift) & bucket_mask]) & (num_slots - 1)
         entry[i] = slot_entry[slot if slot_hash[slot] == h else num_slots]
     return draw(entry, r, threshold, outcome, code, out)
+
+
+@jit
+def dubins_step(t, picked, outcome_is_value, actions, states, dt, speed, pi, two_pi):
+    """The Dubins step of ``states[t]`` into ``states[t + 1]`` (``[T+1, 3, N]``) with the turn rates ``picked``
+    (action values, or indices into ``actions`` when not ``outcome_is_value``); the map kernel's arithmetic."""
+    for i in range(picked.shape[0]):
+        rate = picked[i] if outcome_is_value else actions[np.int64(picked[i])]
+        a_val = rate * dt + states[t, 2, i] + pi
+        m = np.fmod(a_val, two_pi)
+        if m < 0:
+            m += two_pi
+        th = m - pi
+        states[t + 1, 2, i] = th
+        states[t + 1, 0, i] = states[t, 0, i] + (np.float32(np.cos(th)) * speed) * dt
+        states[t + 1, 1, i] = states[t, 1, i] + (np.float32(np.sin(th)) * speed) * dt
+
+
+@jit
+def rollout_dense(states, uniforms, picks, levels, scale, shift, low, high, span, period, inv_period, half, dense,
+                  threshold, outcome, code, outcome_is_value, actions, dt, speed, pi, two_pi):
+    """A whole Dubins rollout through a dense table: per step :func:`step_dense` on ``states[t]`` (``[T+1, 3, N]``,
+    start frame) with ``uniforms[t] * A``, the picks into ``picks [T, N]``, then :func:`dubins_step`. Returns the
+    summed fallback codes."""
+    horizon, n = uniforms.shape
+    num_actions = threshold.shape[0] // code.shape[0]
+    r = np.empty(n, dtype=np.float32)
+    total = 0
+    for t in range(horizon):
+        for i in range(n):
+            r[i] = uniforms[t, i] * np.float32(num_actions)
+        total += step_dense(states[t].T, levels[t], scale, shift, low, high, span, period, inv_period, half, dense,
+                            threshold, outcome, code, r, picks[t])
+        dubins_step(t, picks[t], outcome_is_value, actions, states, dt, speed, pi, two_pi)
+    return total
+
+
+@jit
+def rollout_hash(states, uniforms, picks, levels, scale, shift, low, high, span, period, inv_period, half, multiplier,
+                 bucket_shift, bucket_mask, slot_shift, disp, slot_hash, slot_entry, threshold, outcome, code,
+                 outcome_is_value, actions, dt, speed, pi, two_pi):
+    """:func:`rollout_dense` through a hashed table (:func:`step_hash`)."""
+    horizon, n = uniforms.shape
+    num_actions = threshold.shape[0] // code.shape[0]
+    r = np.empty(n, dtype=np.float32)
+    total = 0
+    for t in range(horizon):
+        for i in range(n):
+            r[i] = uniforms[t, i] * np.float32(num_actions)
+        total += step_hash(states[t].T, levels[t], scale, shift, low, high, span, period, inv_period, half,
+                           multiplier, bucket_shift, bucket_mask, slot_shift, disp, slot_hash, slot_entry, threshold,
+                           outcome, code, r, picks[t])
+        dubins_step(t, picks[t], outcome_is_value, actions, states, dt, speed, pi, two_pi)
+    return total
