@@ -189,7 +189,7 @@ def test_cfu_mppi_batched_senses_a_map_per_robot_and_equals_alone():
     encodes = policy.encodes
     _same_as_alone(lambda seed, n: CFUMPPI(policy, world, cost, num_samples=32, seed=seed, num_robots=n), starts,
                    steps=2)
-    assert policy.encodes - encodes == 2 * 3 * 2  # batched and alone: one encoding per robot and command
+    assert policy.encodes - encodes == 2 + 3 * 2  # one encoding per command: of all 3 patches, or of its own
 
 
 # ------------------------------------------------------------------------------------------ host syncs

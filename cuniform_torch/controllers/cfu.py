@@ -3,7 +3,8 @@
 Shapes: K samples, T horizon, d state dimensions, q action dimensions, H x W patch cells.
 
 Per command: the robot-frame patch at the pose is cropped from the world grid and encoded once
-(:class:`SensedMapPolicy`, through the rollout's ``for_start`` hook), half the budget are rollouts of the
+(:class:`SensedMapPolicy`, through the rollout's ``for_start`` hook; for B robots, ``for_starts`` senses the B
+patches and encodes them as one batch), half the budget are rollouts of the
 :class:`~cuniform_torch.maps.policy.MapPolicy` for that map, the lowest-cost one becomes the nominal of one
 Gaussian (or log-normal) MPPI pass with the other half, and that pass's first control is applied. It is
 :class:`~cuniform_torch.controllers.mppi.CUMPPI` with the map policy in place of the table: the MPPI core, the composite
@@ -25,7 +26,7 @@ from cuniform_torch.envs.occupancy import OccupancyGrid
 from cuniform_torch.maps import kernels
 from cuniform_torch.maps.checkpoint import load_map_policy
 from cuniform_torch.maps.policy import MapPolicy
-from cuniform_torch.maps.sensing import local_map
+from cuniform_torch.maps.sensing import local_map, sense_patch
 from cuniform_torch.sampling.rollout import same_device
 
 __all__ = ["SensedMapPolicy", "CFUMPPI", "check_policy_robot"]
@@ -65,6 +66,12 @@ class SensedMapPolicy:
         if x0.ndim != 1:
             raise ValueError(f"a map policy rolls out from one start [d], got {list(x0.shape)}")
         self.policy.set_map(local_map(self.world, x0[:3], self.policy.patch_spec, self.max_range, self.time))
+        return self.policy
+
+    def for_starts(self, starts: Tensor) -> MapPolicy:
+        """Sense the patches at the poses ``starts[:, :3]`` (``[B, d]``, one per robot) in one call, set them (one
+        encoding of the B patches) and return the policy: its lookups are then B robot-major groups of rows."""
+        self.policy.set_maps(sense_patch(self.world, starts[:, :3], self.policy.patch_spec, self.max_range, self.time))
         return self.policy
 
     def action_probs(self, x: Tensor, t: int) -> Tensor:

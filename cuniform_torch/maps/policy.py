@@ -197,9 +197,9 @@ class MapPolicy(nn.Module):
         self.register_buffer("_box_cell", torch.tensor(grid.cell_size)[self._linear], persistent=False)
         self._start_watch = StartWatch(f"map policy ({system.name})", system)
         self.register_buffer("_uniform", torch.full((1, config.num_actions), 1.0 / config.num_actions), persistent=False)
-        self._map_bias: Tensor | None = None  # [T+1, Hd] per level, for the map last set (set_map)
+        self._map_bias: Tensor | None = None  # [B, T+1, Hd] per map and level, for the maps last set (set_maps)
         self._w_state: Tensor | None = None  # [F-1 (+ P * C), Hd]
-        self._local_map: Tensor | None = None  # [1, C, H, W] for the map last set (local features only)
+        self._local_map: Tensor | None = None  # [B, C, H, W] for the maps last set (local features only)
         self._layers: list[tuple[Tensor, Tensor]] = []  # the body's (weight^T, bias)
         self.encodes = 0
         self.compiled = True
@@ -270,21 +270,36 @@ class MapPolicy(nn.Module):
         occupied = self.patch_spec.check(patch)
         if occupied.device != self.device:
             raise ValueError(f"the patch is on {occupied.device} but the policy is on {self.device}")
+        self.set_maps(occupied.unsqueeze(0))
+
+    def set_maps(self, occupied: Tensor) -> None:
+        """Encode B robot-frame patches at once (``occupied [B, H, W]``, bool or 0 / 1, this policy's patch shape,
+        on its device: what :func:`~cuniform_torch.maps.sensing.sense_patch` gives for B poses); until the next
+        call, the N looked-up states are B equal groups of rows, robot-major, group ``b`` reading map ``b``."""
+        if occupied.ndim != 3 or tuple(occupied.shape[1:]) != tuple(self.patch_spec.shape):
+            raise ValueError(f"set_maps takes [B, {', '.join(map(str, self.patch_spec.shape))}] patches, got "
+                             f"{list(occupied.shape)}")
         with torch.no_grad():
-            embedding = self.encode(occupied.unsqueeze(0))  # [1, E]
+            embedding = self.encode(occupied)  # [B, E]
             w = self.inp_x.weight  # [Hd, F]: columns x_lin, cos, sin, t
             n_lin = len(self._linear)
             levels = torch.arange(self.horizon + 1, dtype=w.dtype, device=w.device) / self.horizon  # [T+1]
-            # W_e e + b + w_t t / T per level, and W_x with the feature scales folded in: a lookup is one addmm
-            self._map_bias = (self.inp_x.bias + self.inp_e(embedding)[0] + levels[:, None] * w[:, -1]).detach()
+            # W_e e + b + w_t t / T per map and level, and W_x with the feature scales folded in: a lookup is one addmm
+            self._map_bias = (self.inp_x.bias + self.inp_e(embedding)[:, None, :]
+                              + levels[:, None] * w[:, -1]).detach()  # [B, T+1, Hd]
             w_state = torch.cat((w[:, :n_lin] * self.inv_scale[self._linear], w[:, n_lin:-1]), dim=1)
             if self.local is not None:  # the sampled features are more columns of the same addmm
-                self._local_map = self.encode_local(occupied.unsqueeze(0)).detach()  # [1, C, H, W]
+                self._local_map = self.encode_local(occupied).detach()  # [B, C, H, W]
                 w_state = torch.cat((w_state, self.inp_l.weight), dim=1)
             self._w_state = w_state.T.contiguous().detach()  # [F-1, Hd]
             self._layers = [(m.weight.detach().T.contiguous(), m.bias.detach()) for m in self.body
                             if isinstance(m, nn.Linear)]
         self.encodes += 1
+
+    @property
+    def maps_set(self) -> int:
+        """How many maps the last :meth:`set_map` / :meth:`set_maps` set (0: none)."""
+        return 0 if self._map_bias is None else self._map_bias.shape[0]
 
     def clear_map(self) -> None:
         """Forget the map: lookups are refused until :meth:`set_map`."""
@@ -292,10 +307,14 @@ class MapPolicy(nn.Module):
 
     def action_probs(self, x: Tensor, t: int) -> Tensor:
         """Softmax of the logits for the map last set: ``x [N, d]`` (policy dtype and device) at level ``t`` ->
-        ``[N, A]``; states outside the box get the uniform row (module docstring)."""
+        ``[N, A]``; states outside the box get the uniform row (module docstring). After :meth:`set_maps` of B
+        maps, N must be a multiple of B (robot-major groups)."""
         if self._map_bias is None:
             raise ValueError("no map set: call set_map(patch) before looking up actions")
         check_query(x, t, self.horizon, self.config.state_dim, self.dtype, self.device)
+        maps, n = self._map_bias.shape[0], x.shape[0]
+        if n % maps:
+            raise ValueError(f"{maps} maps are set: the {n} states must be {maps} equal groups (one per map)")
         with torch.no_grad():
             parts = [x[:, self._linear]]
             if self._angle:
@@ -303,13 +322,24 @@ class MapPolicy(nn.Module):
                 parts += [torch.cos(ang), torch.sin(ang)]
             if self.local is not None:  # dims 0, 1, 2 are x, y, heading (config check): cos / sin just made
                 g = self.local.grid(x[:, :2], parts[-2][:, 0], parts[-1][:, 0])  # [N, P, 2]
-                parts.append(self.local.read(self._local_map, g))  # [N, P * C]
-            h = torch.addmm(self._map_bias[t], torch.cat(parts, dim=1), self._w_state)  # [N, Hd]
-            for weight, bias in self._layers:
-                h = torch.addmm(bias, torch.nn.functional.silu(h), weight)
+                parts.append(self._read_local(g, maps))  # [N, P * C]
+            bias = self._map_bias[0, t] if maps == 1 else self._map_bias[:, t].repeat_interleave(n // maps, dim=0)
+            h = torch.addmm(bias, torch.cat(parts, dim=1), self._w_state)  # [N, Hd]
+            for weight, layer_bias in self._layers:
+                h = torch.addmm(layer_bias, torch.nn.functional.silu(h), weight)
             probs = torch.softmax(h, dim=1)  # [N, A]
             miss = self._count(x)  # [N]
             return torch.where(miss.unsqueeze(1), self._uniform, probs)
+
+    def _read_local(self, g: Tensor, maps: int) -> Tensor:
+        """The local features at probes ``g [N, P, 2]``, group ``b`` of the N rows reading map ``b``."""
+        assert self.local is not None and self._local_map is not None
+        if maps == 1:
+            return self.local.read(self._local_map, g)
+        n, probes = g.shape[0], g.shape[1]
+        out = torch.nn.functional.grid_sample(self._local_map, g.view(maps, n // maps, probes, 2), mode="bilinear",
+                                              padding_mode="zeros", align_corners=False)  # [B, C, n/B, P]
+        return out.permute(0, 2, 3, 1).reshape(n, probes * self.local.channels)  # probe-major [N, P * C]
 
     def sample(self, x: Tensor, t: int, generator: torch.Generator | None) -> Tensor:
         """``x [N, d]`` at level ``t`` -> actions ``[N, q]`` drawn from :meth:`action_probs` (inverse CDF)."""
@@ -328,7 +358,7 @@ class MapPolicy(nn.Module):
         :mod:`~cuniform_torch.maps.kernels` (the step-by-step path's draws, to float rounding); else None.
         ``uniforms [T, N]`` in ``[0, 1)``, when given, are the draws (else they come from ``generator``)."""
         on_cpu = generator is None or generator.device.type == "cpu"
-        if not (self.compiled and self._map_bias is not None and x0.ndim == 1 and type(system) is Dubins and on_cpu
+        if not (self.compiled and self.maps_set == 1 and x0.ndim == 1 and type(system) is Dubins and on_cpu
                 and x0.dtype == self.dtype and kernels.usable(x0.device, self.dtype)):
             return None
         local = self.local
@@ -337,7 +367,8 @@ class MapPolicy(nn.Module):
                         half_x=float(self._box_half[0]), half_y=float(self._box_half[1]),
                         cell_x=float(self._box_cell[0]), cell_y=float(self._box_cell[1]))
         states, actions, near, miss = kernels.rollout_start_frame(
-            self._map_bias, self._w_state, self._layers, self.actions, self._local_map if local is not None else None,
+            self._map_bias[0], self._w_state, self._layers, self.actions,
+            self._local_map if local is not None else None,
             local.probes if local is not None else torch.zeros((0, 2)), geometry, num_samples, horizon, generator,
             uniforms)
         self._queries += num_samples * horizon
