@@ -281,3 +281,41 @@ GOAL_CUDA = GOAL.cuda() if CUDA else GOAL
 
 def goal_cost_cuda(states: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
     return (states[..., 1:, :2] - GOAL_CUDA).square().sum(dim=-1).sum(dim=-1)  # no copy to the device per call
+
+
+def test_cuda_graph_needs_a_cuda_device_and_no_bank(table):
+    with pytest.raises(ValueError, match="cuda_graph=True needs a CUDA device"):
+        MPPI(DUBINS, goal_cost, num_samples=16, horizon=4, cuda_graph=True)
+    with pytest.raises(ValueError, match="cuda_graph: a proposal bank"):
+        CUniformMPPI(table, goal_cost, num_samples=16, bank_size=32, cuda_graph=True)
+
+
+@pytest.mark.gpu
+@pytest.mark.skipif(not CUDA, reason="needs a CUDA device")
+@pytest.mark.parametrize("kind", ["mppi", "log_mppi", "cuniform", "cumppi", "mppi_navigation"])
+def test_on_cuda_a_graphed_command_is_the_eager_command(dubins_table, kind):
+    """``cuda_graph=True``: the first command is captured and every later one replayed; seeded alike, the replays
+    command what eager commands do (the registered streams advance as eager draws do), for 1 and for 8 robots."""
+    from cuniform_torch.envs import Circle, Environment, NavigationCost
+
+    table = TablePolicy(dubins_table, device="cuda")
+    nav = NavigationCost(Environment([Circle((1.0, 0.5), 0.3), Circle((0.5, -0.5), 0.2)]), (2.0, 1.0))
+    make = {
+        "mppi": lambda seed, n, g: MPPI(DUBINS, goal_cost_cuda, num_samples=256, horizon=10, device="cuda",
+                                        seed=seed, num_robots=n, cuda_graph=g),
+        "log_mppi": lambda seed, n, g: LogMPPI(DUBINS, goal_cost_cuda, num_samples=256, horizon=10, device="cuda",
+                                               seed=seed, num_robots=n, cuda_graph=g),
+        "cuniform": lambda seed, n, g: CUniformMPPI(table, goal_cost_cuda, num_samples=256, seed=seed, num_robots=n,
+                                                    cuda_graph=g),
+        "cumppi": lambda seed, n, g: CUMPPI(table, goal_cost_cuda, num_samples=256, seed=seed, num_robots=n,
+                                            cuda_graph=g),
+        "mppi_navigation": lambda seed, n, g: MPPI(DUBINS, nav, num_samples=256, horizon=10, device="cuda",
+                                                   seed=seed, num_robots=n, cuda_graph=g),
+    }[kind]
+    starts = STARTS.cuda()
+    for n, states in ((1, starts[0]), (8, starts[torch.arange(8) % 3])):
+        seed = 0 if n == 1 else list(range(n))
+        eager = _drive(make(seed, n, False), states, 5)
+        graphed = _drive(make(seed, n, True), states, 5)
+        for e, g in zip(eager, graphed):
+            torch.testing.assert_close(g, e, atol=1e-4, rtol=0)

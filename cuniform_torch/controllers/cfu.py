@@ -115,7 +115,8 @@ class CFUMPPI(CUMPPI):
                  noise_std: float | Tensor = 0.1, local: str = "mppi", horizon: int | None = None,
                  max_range: float | None = None, terminal_cost: Callable[[Tensor], Tensor] | None = None,
                  device: torch.device | str | None = None, seed: int | Sequence[int] | None = None,
-                 system: Any = None, num_robots: int = 1, debug: bool | None = None, **local_kwargs: Any):
+                 system: Any = None, num_robots: int = 1, debug: bool | None = None, cuda_graph: bool = False,
+                 **local_kwargs: Any):
         if not isinstance(policy, MapPolicy):
             policy = load_map_policy(policy, device=device if device is not None else "cpu")
         elif device is not None and not same_device(policy.device, device):
@@ -128,7 +129,7 @@ class CFUMPPI(CUMPPI):
         self.sensed = SensedMapPolicy(policy, world, max_range)
         super().__init__(self.sensed, cost_fn, num_samples, cuniform_fraction, lambda_, noise_std, local, horizon,
                          terminal_cost=terminal_cost, device=policy.device, seed=seed, num_robots=num_robots,
-                         debug=debug, **local_kwargs)
+                         debug=debug, cuda_graph=cuda_graph, **local_kwargs)
 
     @property
     def map_policy(self) -> MapPolicy:

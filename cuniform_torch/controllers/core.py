@@ -24,6 +24,12 @@ of the protocol). Per command the state's shape, dtype and device are checked (n
 the proposals' shapes and the costs' (all NaN for a robot) are checked when ``debug`` is on: by default on a CPU,
 where reading a value is free, and off on CUDA, where it would wait for the device (``debug=True`` turns them on
 there). A state that requires grad is detached (a controller never differentiates through its input).
+
+``cuda_graph=True`` (a CUDA device): the first command is captured in one CUDA graph (plan and warm-start update,
+for that batch shape) and every later command is one replay, so a command costs a few microseconds of launch
+instead of one launch per small op. The proposal, cost and dynamics must be capturable: no value read back to
+the host, no shape that depends on values (a table set, which picks members on the host, is not). Host-side
+counters (a table's ``queries``) count the captured command only; device-side counts count every replay.
 """
 
 from __future__ import annotations
@@ -101,7 +107,8 @@ class MPPICore:
     def __init__(self, proposal: Proposal | SingleRobotProposal, cost_fn: CostFn, lambda_: float = 0.567,
                  terminal_cost: Callable[[Tensor], Tensor] | None = None,
                  seed: int | Sequence[int] | None = None, *,
-                 generator: torch.Generator | Sequence[torch.Generator] | None = None, debug: bool | None = None):
+                 generator: torch.Generator | Sequence[torch.Generator] | None = None, debug: bool | None = None,
+                 cuda_graph: bool = False):
         if not isinstance(proposal, (Proposal, SingleRobotProposal)):
             members = SINGLE_ROBOT_MEMBERS if hasattr(proposal, "propose") else PROPOSAL_MEMBERS
             missing = [m for m in members if not hasattr(proposal, m)]
@@ -147,6 +154,14 @@ class MPPICore:
             self.streams = RobotStreams.seeded(robot_seeds(seed, self.num_robots), self.device)
         self.generator = self.streams.generators[0]
         """robot 0's stream of random numbers (the only one of a one-robot controller)"""
+        self.cuda_graph = bool(cuda_graph)
+        """``command`` replays one CUDA graph of the whole command (captured at the first one)"""
+        if self.cuda_graph and (self.device.type != "cuda" or self.debug):
+            raise ValueError("cuda_graph=True needs a CUDA device and debug off (a per-command value check reads the "
+                             f"device); this controller is on {self.device} with debug={self.debug}")
+        self._graph: torch.cuda.CUDAGraph | None = None
+        self._static_state: Tensor | None = None
+        self._static_command: Tensor | None = None
 
     # -------------------------------------------------------------------------------- the one MPPI iteration
 
@@ -170,12 +185,61 @@ class MPPICore:
         """The controls to apply at ``state [B, d]``: ``[B, q]`` (one robot's ``[d]`` -> ``[q]``); the proposal
         warm-starts the next command from this one."""
         states, single = self._check_state(state)
-        result = self._plan(states)
-        self._batch.update(result)
-        return result.command[0] if single else result.command
+        if self.cuda_graph:
+            command = self._replay(states)
+        else:
+            result = self._plan(states)
+            self._batch.update(result)
+            command = result.command
+        return command[0] if single else command
+
+    # -------------------------------------------------------------------------------- one CUDA graph per command
+
+    def _generators(self) -> list[torch.Generator]:
+        """Every stream a command draws from (a two-stage controller's first stage has its own)."""
+        first = getattr(self.proposal, "first", None)
+        return list(self.streams.generators) + (first._generators() if isinstance(first, MPPICore) else [])
+
+    def _replay(self, states: Tensor) -> Tensor:
+        """The command of ``states [B, d]`` by one replay of the captured graph: ``[B, q]``."""
+        if self._graph is None:
+            self._capture(states)
+        assert self._graph is not None and self._static_state is not None and self._static_command is not None
+        self._static_state.copy_(states)
+        self._graph.replay()
+        return self._static_command.clone()
+
+    def _capture(self, states: Tensor) -> None:
+        """Capture plan + warm-start update for states of this shape in one CUDA graph (after two warm-up plans on a
+        side stream, whose draws are given back to the streams, so the first command draws what an eager one
+        would). Every stream is registered with the graph: each replay draws fresh numbers."""
+        gens = self._generators()
+        saved = [g.get_state() for g in gens]
+        self._static_state = states.clone()
+        side = torch.cuda.Stream(device=self.device)
+        side.wait_stream(torch.cuda.current_stream(self.device))
+        with torch.cuda.stream(side):
+            for _ in range(2):  # lazy initialisations (cuBLAS workspaces, caches) happen outside the capture
+                self._plan(self._static_state)
+        torch.cuda.current_stream(self.device).wait_stream(side)
+        for g, state in zip(gens, saved):
+            g.set_state(state)
+        graph = torch.cuda.CUDAGraph()
+        for g in gens:
+            graph.register_generator_state(g)
+        try:
+            with torch.cuda.graph(graph):
+                result = self._plan(self._static_state)
+                self._batch.update(result)
+        except RuntimeError as exc:
+            raise RuntimeError(f"cuda_graph: the command could not be captured ({exc}); a cost, dynamics or proposal "
+                               f"that reads a value back to the host, or whose shapes depend on values, cannot run "
+                               f"in a CUDA graph: use cuda_graph=False") from None
+        self._graph, self._static_command = graph, result.command
 
     def reset(self, robots: Sequence[int] | Tensor | None = None) -> None:
-        """The start of an episode for ``robots`` (indices; None: all): the proposal forgets their warm starts."""
+        """The start of an episode for ``robots`` (indices; None: all): the proposal forgets their warm starts (in
+        place: a captured CUDA graph goes on reading them)."""
         if robots is not None:
             ids = torch.as_tensor(robots).reshape(-1)
             if ids.dtype.is_floating_point or ids.dtype == torch.bool or bool(

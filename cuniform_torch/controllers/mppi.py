@@ -51,9 +51,9 @@ class MPPI(MPPICore):
                  lambda_: float = 0.567, noise_std: float | Tensor = 0.3,
                  terminal_cost: Callable[[Tensor], Tensor] | None = None, device: torch.device | str = "cpu",
                  dtype: torch.dtype = torch.float32, seed: int | Sequence[int] | None = None, num_robots: int = 1,
-                 debug: bool | None = None):
+                 debug: bool | None = None, cuda_graph: bool = False):
         proposal = self._proposal(system, num_samples, horizon, noise_std, device, dtype, num_robots)
-        super().__init__(proposal, cost_fn, lambda_, terminal_cost, seed, debug=debug)
+        super().__init__(proposal, cost_fn, lambda_, terminal_cost, seed, debug=debug, cuda_graph=cuda_graph)
         self.noise_std = noise_std
 
     @staticmethod
@@ -115,13 +115,15 @@ class CUniformMPPI(MPPICore):
                  bank_refresh: int | None = None,
                  bank_background: bool = False, terminal_cost: Callable[[Tensor], Tensor] | None = None,
                  device: torch.device | str | None = None, seed: int | Sequence[int] | None = None,
-                 num_robots: int = 1, debug: bool | None = None):
+                 num_robots: int = 1, debug: bool | None = None, cuda_graph: bool = False):
         if bank_refresh is not None:
             check_positive_int("bank_refresh", bank_refresh)
             if bank_size is None:
                 raise ValueError("bank_refresh needs a proposal bank: set bank_size too")
         if bank_background and bank_refresh is None:
             raise ValueError("bank_background refreshes the bank every bank_refresh commands: set bank_refresh too")
+        if cuda_graph and bank_size is not None:
+            raise ValueError("cuda_graph: a proposal bank swaps its tensors when refreshed; use it without a bank")
         source = PolicyProposal(policy, num_samples, horizon, device, num_robots)
         self.policy = source.policy
         seeds = robot_seeds(seed, source.num_robots)
@@ -130,7 +132,8 @@ class CUniformMPPI(MPPICore):
         if bank_size is not None:  # the first bank comes from robot 0's stream, refreshes from its seed + 1
             proposal = BankProposal(source, bank_size, streams.generators[0], bank_refresh, bank_background,
                                     seed=None if seeds[0] is None else seeds[0] + 1)
-        super().__init__(proposal, cost_fn, lambda_, terminal_cost, generator=streams.generators, debug=debug)
+        super().__init__(proposal, cost_fn, lambda_, terminal_cost, generator=streams.generators, debug=debug,
+                         cuda_graph=cuda_graph)
         self.bank_size = bank_size
         self.bank_refresh = bank_refresh
 
@@ -216,7 +219,7 @@ class CUMPPI(MPPICore):
                  local: str = "mppi", horizon: int | None = None, bank_size: int | None = None,
                  terminal_cost: Callable[[Tensor], Tensor] | None = None, device: torch.device | str | None = None,
                  seed: int | Sequence[int] | None = None, num_robots: int = 1, debug: bool | None = None,
-                 **local_kwargs: Any):
+                 cuda_graph: bool = False, **local_kwargs: Any):
         check_positive_int("num_samples", num_samples)
         if not 0 < cuniform_fraction < 1:
             raise ValueError(f"cuniform_fraction must be in (0, 1), got {cuniform_fraction!r}")
@@ -234,4 +237,4 @@ class CUMPPI(MPPICore):
                                device=self.cuniform.device, dtype=self.cuniform.dtype, num_robots=num_robots,
                                **local_kwargs)
         super().__init__(CompositeProposal(self.cuniform, self.local), cost_fn, lambda_, terminal_cost,
-                         seed=shifted(seed, 1), debug=debug)
+                         seed=shifted(seed, 1), debug=debug, cuda_graph=cuda_graph)

@@ -216,7 +216,7 @@ class GaussianProposal(OneRobotCall):
     @property
     def nominal(self) -> Tensor:
         """The sequences the next proposals are drawn around: ``[T, q]`` for one robot, else ``[B, T, q]``."""
-        return self._nominal[0] if self.num_robots == 1 else self._nominal
+        return (self._nominal[0] if self.num_robots == 1 else self._nominal).clone()  # a snapshot: updated in place
 
     @nominal.setter
     def nominal(self, value: Tensor) -> None:
@@ -228,11 +228,12 @@ class GaussianProposal(OneRobotCall):
             raise ValueError(f"nominal must be a {want} tensor of {self.dtype} on {self.device}, got "
                              + (f"{list(value.shape)} of {value.dtype} on {value.device}" if isinstance(value, Tensor)
                                 else type(value).__name__))
-        self._nominal = value.detach().expand(self.num_robots, t, q).clone()
+        self._nominal.copy_(value.detach().expand(self.num_robots, t, q))
 
+    # the warm start is updated in place: a command captured in a CUDA graph reads and writes this one tensor
     def seed(self, nominal: Tensor) -> None:
         """Draw the next proposals around ``nominal [B, T, q]`` (checked by the caller; CU-MPPI's first stage)."""
-        self._nominal = nominal
+        self._nominal.copy_(nominal)
 
     def _noise(self, streams: RobotStreams, n: int) -> Tensor:
         """``[B, n, q]`` zero-mean noise, robot ``b``'s from its own stream."""
@@ -248,14 +249,14 @@ class GaussianProposal(OneRobotCall):
     def update(self, result: MPPIResult) -> None:
         """Warm start: each robot's weighted sequence shifted one step, its last action repeated."""
         nominal = result.nominal if result.nominal.ndim == 3 else result.nominal.unsqueeze(0)  # [B, T, q]
-        self._nominal = torch.cat((nominal[:, 1:], nominal[:, -1:]), dim=1)
+        self._nominal.copy_(torch.cat((nominal[:, 1:], nominal[:, -1:]), dim=1))
 
     def reset(self, robots: Tensor | None = None) -> None:
         """Zero nominal (the start of an episode) for ``robots`` (None: all)."""
         if robots is None:
-            self._nominal = torch.zeros_like(self._nominal)
+            self._nominal.zero_()
         else:
-            self._nominal = self._nominal.index_fill(0, robots.to(self.device), 0.0)
+            self._nominal.index_fill_(0, robots.to(self.device), 0.0)
 
 
 class NormalLogNormalProposal(GaussianProposal):

@@ -73,10 +73,23 @@ class Environment:
             hit |= (x < xmin) | (x > xmax) | (y < ymin) | (y > ymax)
         circles, rects, others = self._batched(obstacles)
         if len(circles) or len(rects):
+            if xy.device.type != "cpu":  # the tables on that device, in the points' dtype: copied once, not per call
+                circles, rects = self._on_device(circles, rects, xy)
             hit |= _any_contains(xy, circles, rects)
         for obs in others:
             hit |= obs.contains(xy)
         return hit
+
+    def _on_device(self, circles: Tensor, rects: Tensor, xy: Tensor) -> tuple[Tensor, Tensor]:
+        """``circles``, ``rects`` (the CPU tables of :meth:`_batched`) on ``xy``'s device in its dtype, cached per
+        table, device and dtype (a copy to a GPU per call would wait for it)."""
+        key = (id(circles), id(rects), xy.device, xy.dtype)
+        cache = self.__dict__.setdefault("_device_tables", {})
+        hit = cache.get(key)
+        if hit is None or hit[0] is not circles or hit[1] is not rects:
+            hit = cache[key] = (circles, rects, circles.to(device=xy.device, dtype=xy.dtype),
+                                rects.to(device=xy.device, dtype=xy.dtype))
+        return hit[2], hit[3]
 
     def _batched(self, obstacles: list) -> tuple[Tensor, Tensor, list]:
         """The Circles ``[C, 3]`` (x, y, r^2) and Rects ``[R, 4]`` of ``obstacles`` as float64 tables, and the
@@ -146,7 +159,8 @@ def _any_contains(xy: Tensor, circles: Tensor, rects: Tensor) -> Tensor:
     hit = torch.zeros(pts.shape[0], dtype=torch.bool, device=xy.device)  # [P]
     c = circles.to(device=xy.device, dtype=xy.dtype)  # [C, 3]
     r = rects.to(device=xy.device, dtype=xy.dtype)  # [R, 4]
-    if pts.shape[0] * (len(c) + len(r)) > _PREFILTER_PAIRS:
+    # the prefilter's tables have data-dependent sizes (a host read): on a CPU only, where that read is free
+    if xy.device.type == "cpu" and pts.shape[0] * (len(c) + len(r)) > _PREFILTER_PAIRS:
         c, r = _near_box(flat, c, r)
     loop = _compiled() if xy.device.type == "cpu" and pts.shape[0] * (len(c) + len(r)) > _COMPILED_PAIRS else None
     if loop is not None:

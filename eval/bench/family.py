@@ -43,6 +43,8 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--warmup", type=int, default=5)
     p.add_argument("--threads", type=int, default=1, help="torch threads (default 1: steadier on a shared CPU)")
     p.add_argument("--device", default="cpu")
+    p.add_argument("--cuda-graph", action="store_true",
+                   help="also time each controller with cuda_graph=True (a command is one graph replay)")
     p.add_argument("--cache", default="out/nav-cache", help="where the robot's table is built once and cached")
     p.add_argument("--json", default="out/bench_family.json")
     return p
@@ -87,7 +89,13 @@ def build(args: argparse.Namespace) -> tuple[dict[tuple[str, int, int], Callable
     kw = _batch_kw(b)
     fns: dict[tuple[str, int, int], Callable[[], object]] = {}
     def make(name: str, k: int, t: int):
-        """The controller ``name`` at K = ``k``, T = ``t`` (None where it cannot serve that horizon)."""
+        """The controller ``name`` at K = ``k``, T = ``t`` (None where it cannot serve that horizon); a name
+        ending in ``+graph`` is the controller with ``cuda_graph=True``."""
+        if name.endswith("+graph"):
+            return make_with(name[:-len("+graph")], k, t, dict(kw, cuda_graph=True))
+        return make_with(name, k, t, kw)
+
+    def make_with(name: str, k: int, t: int, kw: dict):
         if name == "mppi":
             return MPPI(system, cost, k, t, noise_std=1.0, device=device, seed=0, **kw)
         if name == "log_mppi":
@@ -102,9 +110,11 @@ def build(args: argparse.Namespace) -> tuple[dict[tuple[str, int, int], Callable
             return CFUMPPI("unicycle-0.5", env, cost, k, horizon=t, device=device, seed=0, **kw)
         return None
 
+    names = list(args.methods) + ([f"{m}+graph" for m in args.methods if m != "pytorch_mppi"]
+                                  if args.cuda_graph else [])
     for t in args.horizon:
         for k in args.samples:
-            for name in args.methods:
+            for name in names:
                 try:
                     ctrl = (_peer(system, env, world.goal, k, t, b, device) if name == "pytorch_mppi"
                             else make(name, k, t))
@@ -166,7 +176,7 @@ def main(argv: list[str] | None = None) -> int:
     load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
     print(f"# per-command ms, median of {args.repeats} round-robin rounds; {info['robots']} robot(s) per command, "
           f"{args.device}, {info['threads']} thread(s), BARN map {info['map']}, load {load:.2f}")
-    names = [m for m in args.methods if any(key[0] == m for key in medians)]
+    names = list(dict.fromkeys(key[0] for key in medians))
     print(f"{'T':>4} {'K':>6} " + " ".join(f"{m:>13}" for m in names))
     rows = []
     for t in args.horizon:
