@@ -177,6 +177,7 @@ class TestPolicySlots:
         torch.set_num_threads(1)
         try:
             eager = TablePolicy(dubins_table, lookup=lookup)
+            eager.compiled = False  # its steps one by one, as the compiled kernel's (the whole-rollout loop rounds apart)
             compiled = TablePolicy(dubins_table, lookup=lookup, compile=True)
             x0 = torch.tensor([0.3, -0.2, 0.5])
             runs = [rollout(p.system, p, x0, 500, dubins_table.horizon, torch.Generator().manual_seed(3)) for p in

@@ -19,8 +19,6 @@ Writes JSON to ``--json`` (default out/bench_family.json).
 
 from __future__ import annotations
 
-import argparse
-import json
 import os
 import statistics
 import sys
@@ -30,33 +28,39 @@ from pathlib import Path
 
 import torch
 
+from cuniform_torch.cli import (
+    ArgumentParser,
+    check_output_file,
+    cli_main,
+    device_arg,
+    horizon_arg,
+    non_negative_int,
+    positive_int,
+    threads_arg,
+)
+from cuniform_torch.common.fileio import write_json
+
 METHODS = ("mppi", "log_mppi", "cuniform", "cumppi", "cfu_mppi", "pytorch_mppi")
 
 
-def _parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="python -m eval.bench.family", description=__doc__.split("\n\n")[0])
-    p.add_argument("--samples", type=int, nargs="+", default=[64, 256, 1024], help="K per robot")
-    p.add_argument("--horizon", type=int, nargs="+", default=[15], help="T (the table and the map policy serve 15)")
-    p.add_argument("--robots", type=int, default=1, help="B robots per command (default 1)")
+def make_parser() -> ArgumentParser:
+    p = ArgumentParser(prog="python -m eval.bench.family", description=(__doc__ or "").split("\n\n")[0])
+    p.add_argument("--samples", type=positive_int, nargs="+", default=[64, 256, 1024], help="K per robot")
+    p.add_argument("--horizon", type=horizon_arg, nargs="+", default=[15],
+                   help="T (the table and the map policy serve up to 15)")
+    p.add_argument("--robots", type=positive_int, default=1, help="B robots per command (default 1)")
     p.add_argument("--methods", nargs="+", default=list(METHODS), choices=METHODS)
-    p.add_argument("--repeats", type=int, default=30)
-    p.add_argument("--warmup", type=int, default=5)
-    p.add_argument("--threads", type=int, default=1, help="torch threads (default 1: steadier on a shared CPU)")
-    p.add_argument("--device", default="cpu")
+    p.add_argument("--repeats", type=positive_int, default=30)
+    p.add_argument("--warmup", type=non_negative_int, default=5)
+    p.add_argument("--threads", type=threads_arg, default=1, help="torch CPU threads (default 1: steadier on a "
+                                                                   "shared machine; 0: torch's choice)")
+    p.add_argument("--device", type=device_arg, default="cpu")
     p.add_argument("--cuda-graph", action="store_true",
                    help="also time each controller with cuda_graph=True (a command is one graph replay)")
-    p.add_argument("--cache", default="out/nav-cache", help="where the robot's table is built once and cached")
-    p.add_argument("--json", default="out/bench_family.json")
+    p.add_argument("--cache", type=Path, default=Path("out/nav-cache"),
+                   help="where the robot's table is built once and cached")
+    p.add_argument("--json", type=Path, default=Path("out/bench_family.json"))
     return p
-
-
-def _positive(args: argparse.Namespace) -> None:
-    for name in ("samples", "horizon"):
-        if any(v < 1 for v in getattr(args, name)):
-            sys.exit(f"--{name}: every value must be a positive integer")
-    for name in ("robots", "repeats", "threads"):
-        if getattr(args, name) < 1:
-            sys.exit(f"--{name} must be a positive integer")
 
 
 def _batch_kw(robots: int) -> dict:
@@ -64,7 +68,7 @@ def _batch_kw(robots: int) -> dict:
     return {} if robots == 1 else {"num_robots": robots}
 
 
-def build(args: argparse.Namespace) -> tuple[dict[tuple[str, int, int], Callable[[], object]], dict]:
+def build(args) -> tuple[dict[tuple[str, int, int], Callable[[], object]], dict]:
     """One ``command`` closure per (method, K, T), all on the same map, cost and states."""
     from cuniform_torch import CFUMPPI, CUMPPI, MPPI, CUniformMPPI, LogMPPI, TablePolicy, read_table
     from cuniform_torch.envs import NavigationCost
@@ -165,12 +169,12 @@ def time_round_robin(fns: dict, repeats: int, warmup: int, device: torch.device)
     return {key: statistics.median(v) for key, v in times.items()}
 
 
+@cli_main()
 def main(argv: list[str] | None = None) -> int:
-    args = _parser().parse_args(argv)
-    _positive(args)
-    torch.set_num_threads(args.threads)
-    if args.device.startswith("cuda") and not torch.cuda.is_available():
-        sys.exit("--device cuda: no CUDA device here")
+    args = make_parser().parse_args(argv)
+    check_output_file(args.json, "--json", example="bench_family.json")
+    if args.threads:
+        torch.set_num_threads(args.threads)
     fns, info = build(args)
     medians = time_round_robin(fns, args.repeats, args.warmup, torch.device(args.device))
     load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
@@ -193,12 +197,8 @@ def main(argv: list[str] | None = None) -> int:
                 rows.append({"method": m, "samples": k, "horizon": t, "ms": 1e3 * s,
                              "ratio_to_mppi": s / base if base else None})
             print(f"{t:>4} {k:>6} " + " ".join(cells))
-    out = Path(args.json)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out.with_suffix(out.suffix + ".tmp")
-    tmp.write_text(json.dumps({**info, "load": load, "repeats": args.repeats, "rows": rows}, indent=1))
-    os.replace(tmp, out)
-    print(f"wrote {out}")
+    write_json(args.json, {**info, "load": load, "repeats": args.repeats, "rows": rows})
+    print(f"wrote {args.json}")
     return 0
 
 
