@@ -28,9 +28,22 @@ from cuniform_torch.maps.encoder import PatchSpec
 __all__ = ["patch_centres", "sense_patch", "local_map"]
 
 
+_CENTRES: dict[tuple, Tensor] = {}
+"""patch centres per (patch, dtype, device): made once (a copy to a GPU per command would wait for it, and could not
+run inside a CUDA graph)"""
+
+
 def patch_centres(spec: PatchSpec, dtype: torch.dtype = torch.float32,
                   device: torch.device | str | None = None) -> Tensor:
-    """The robot-frame (x, y) of every patch cell's centre: ``[H, W, 2]``."""
+    """The robot-frame (x, y) of every patch cell's centre: ``[H, W, 2]`` (cached: do not write into it)."""
+    key = (tuple(spec.shape), spec.resolution, tuple(spec.origin), dtype, torch.device(device or "cpu"))
+    centres = _CENTRES.get(key)
+    if centres is None:
+        centres = _CENTRES[key] = _patch_centres(spec, dtype, device)
+    return centres
+
+
+def _patch_centres(spec: PatchSpec, dtype: torch.dtype, device: torch.device | str | None) -> Tensor:
     H, W = spec.shape
     r = spec.resolution
     xs = spec.origin[0] + (torch.arange(W, dtype=torch.float64) + 0.5) * r  # [W]

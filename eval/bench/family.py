@@ -57,6 +57,9 @@ def make_parser() -> ArgumentParser:
     p.add_argument("--device", type=device_arg, default="cpu")
     p.add_argument("--cuda-graph", action="store_true",
                    help="also time each controller with cuda_graph=True (a command is one graph replay)")
+    p.add_argument("--cost", choices=("navigation", "goal"), default="navigation",
+                   help="navigation: goal distance and collisions with the map's cylinders (default); goal: the "
+                        "squared goal distance only (the simple cost of GPU bars such as MPPI-Generic's)")
     p.add_argument("--cache", type=Path, default=Path("out/nav-cache"),
                    help="where the robot's table is built once and cached")
     p.add_argument("--json", type=Path, default=Path("out/bench_family.json"))
@@ -80,7 +83,12 @@ def build(args) -> tuple[dict[tuple[str, int, int], Callable[[], object]], dict]
     system = NAV_ROBOT.make_system()
     world = load_barn()[0]
     env = world.environment(NAV_ROBOT.radius)
-    cost = NavigationCost(env.to(device) if hasattr(env, "to") else env, world.goal)
+    cost = NavigationCost(env, world.goal)
+    if args.cost == "goal":
+        goal_xy = torch.tensor(world.goal, dtype=torch.float32, device=device)
+
+        def cost(states: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:  # [N, T+1, d] -> [N]
+            return (states[:, 1:, :2] - goal_xy).square().sum(dim=(1, 2))
     b = args.robots
     start = torch.tensor(world.start, dtype=torch.float32, device=device)
     states = start.repeat(b, 1)
@@ -129,7 +137,8 @@ def build(args) -> tuple[dict[tuple[str, int, int], Callable[[], object]], dict]
                     continue
                 if ctrl is not None:
                     fns[(name, k, t)] = lambda ctrl=ctrl: ctrl.command(state)
-    info = {"map": int(world.map_id), "robots": b, "device": str(device), "threads": torch.get_num_threads()}
+    info = {"map": int(world.map_id), "robots": b, "device": str(device), "threads": torch.get_num_threads(),
+            "cost": args.cost}
     return fns, info
 
 
@@ -179,7 +188,7 @@ def main(argv: list[str] | None = None) -> int:
     medians = time_round_robin(fns, args.repeats, args.warmup, torch.device(args.device))
     load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
     print(f"# per-command ms, median of {args.repeats} round-robin rounds; {info['robots']} robot(s) per command, "
-          f"{args.device}, {info['threads']} thread(s), BARN map {info['map']}, load {load:.2f}")
+          f"{args.device}, {info['threads']} thread(s), BARN map {info['map']}, {args.cost} cost, load {load:.2f}")
     names = list(dict.fromkeys(key[0] for key in medians))
     print(f"{'T':>4} {'K':>6} " + " ".join(f"{m:>13}" for m in names))
     rows = []

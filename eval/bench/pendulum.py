@@ -26,6 +26,7 @@ from cuniform_torch.cli import (
     ArgumentParser,
     check_output_file,
     cli_main,
+    horizon_arg,
     non_negative_int,
     positive_int,
     threads_arg,
@@ -121,7 +122,7 @@ def make_parser() -> ArgumentParser:
     p = ArgumentParser(prog="python -m eval.bench.pendulum", description=(__doc__ or "").split("\n\n")[0])
     p.add_argument("--robots", type=positive_int, default=32)
     p.add_argument("--samples", type=positive_int, default=100, help="K per robot")
-    p.add_argument("--horizon", type=positive_int, default=15)
+    p.add_argument("--horizon", type=horizon_arg, default=15)
     p.add_argument("--steps", type=positive_int, default=200)
     p.add_argument("--seed", type=non_negative_int, default=0, help="of the starts")
     p.add_argument("--threads", type=threads_arg, default=1, help="torch CPU threads (0: torch's choice)")
