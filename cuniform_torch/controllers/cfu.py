@@ -2,9 +2,9 @@
 
 Shapes: K samples, T horizon, d state dimensions, q action dimensions, H x W patch cells.
 
-Per command: the robot-frame patch at the pose is cropped from the world grid and encoded once
-(:class:`SensedMapPolicy`, through the rollout's ``for_start`` hook; for B robots, ``for_starts`` senses the B
-patches and encodes them as one batch), half the budget are rollouts of the
+Per command: the robot-frame patch at each robot's pose is cropped from the world grid and the B patches encoded
+as one batch (:class:`SensedMapPolicy`'s ``for_starts``, called by the proposal before the rollout: the rollout
+itself senses nothing), half the budget are rollouts of the
 :class:`~cuniform_torch.maps.policy.MapPolicy` for that map, the lowest-cost one becomes the nominal of one
 Gaussian (or log-normal) MPPI pass with the other half, and that pass's first control is applied. It is
 :class:`~cuniform_torch.controllers.mppi.CUMPPI` with the map policy in place of the table: the MPPI core, the composite

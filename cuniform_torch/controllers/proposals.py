@@ -332,8 +332,8 @@ class PolicyProposal(OneRobotCall):
         """a table set: robots are grouped by the member nearest their start"""
         sensed = getattr(self.policy, "for_starts", None)
         self._for_starts = sensed if callable(sensed) else None
-        """a policy set for B starts at once (``for_starts``: a map policy sensing around each robot): one rollout
-        of its answer"""
+        """a policy set for B starts at once (``for_starts``: a map policy sensing around each robot), called here,
+        before the rollout (the rollout itself senses nothing): one rollout of its answer"""
         self._inner_plan = (RolloutPlan.of(self.system, self.policy.policy)
                             if self._for_starts is not None else None)  # type: ignore[attr-defined]
         self._per_start = (not self._members and self._for_starts is None
@@ -357,9 +357,9 @@ class PolicyProposal(OneRobotCall):
     def propose_batch(self, states: Tensor, streams: RobotStreams) -> tuple[Tensor, Tensor]:
         b, k, t = states.shape[0], self.num_samples, self.horizon
         uniforms = streams.rand((t, k), self.dtype)  # [B, T, K]: robot b's from its own stream
-        if b > 1 and self._for_starts is not None and self._inner_plan is not None:  # B maps, set in one call
+        if self._for_starts is not None and self._inner_plan is not None:  # B maps, sensed and set here, at once
             inner = self._for_starts(states)
-            flat = uniforms.transpose(0, 1).reshape(t, b * k)  # [T, B*K] robot-major
+            flat = uniforms[0] if b == 1 else uniforms.transpose(0, 1).reshape(t, b * k)  # [T, B*K] robot-major
             x, u = self._inner_plan.run(self.system, inner, _start_rows(states, k), b * k, t, None, flat)
             return x.view(b, k, t + 1, -1), u.view(b, k, t, -1)
         groups = self._groups(states)

@@ -186,8 +186,11 @@ class RolloutPlan:
     watch_start: Callable[[Tensor, bool], Callable[[], None] | None] | None = None
     """the policy's ``watch_start(x0, relative)`` (a :class:`StartWatch`'s ``begin``), when it has one"""
     draws: bool = False
-    """the policy has ``draw(x, t, r)`` (:class:`UniformDraws`): it draws with given uniforms; else, given
-    uniforms, the rollout draws from ``action_probs`` by inverse CDF"""
+    """the policy has ``draw(x, t, r)``: it draws with given uniforms; else, given uniforms, the rollout draws from
+    ``action_probs`` by inverse CDF"""
+    for_start: Callable[[Tensor], Any] | None = None
+    """the policy's ``for_start(x0)`` (a table set: the member nearest the start, with its own start check and
+    compiled rollout), when it has one"""
 
     @classmethod
     def of(cls, system: System, policy: object) -> RolloutPlan:
@@ -199,9 +202,11 @@ class RolloutPlan:
                              f"ActionSampler (sample)")
         traits = PolicyTraits.of(policy)
         watch = getattr(policy, "watch_start", None)
+        select = getattr(policy, "for_start", None)
         return cls(sampler=sampler, relative=traits.start_relative and bool(system.se2_invariant), traits=traits,
                    step_out=_steps_into(system), column_major_ok=steps_column_major(system),
-                   watch_start=watch if callable(watch) else None, draws=callable(getattr(policy, "draw", None)))
+                   watch_start=watch if callable(watch) else None, draws=callable(getattr(policy, "draw", None)),
+                   for_start=select if callable(select) else None)
 
     def check(self, x0: Tensor, horizon: int) -> None:
         """ValueError unless the policy serves ``horizon`` steps from ``x0`` (its device, finite)."""
@@ -278,9 +283,8 @@ class RolloutPlan:
         device; a generator on it): ``states [N, T+1, d]``, ``actions [N, T, q]``. With ``uniforms [T, N]`` in
         ``[0, 1)`` (the policy's dtype and device), step ``t`` draws with ``uniforms[t]`` (one per sample: what a
         batched controller draws up front, per robot) and ``generator`` is not used."""
-        select = getattr(policy, "for_start", None)
-        if callable(select):  # a table set: the table nearest to this start, and its start check
-            policy = select(x0)
+        if self.for_start is not None:  # a table set: the table nearest to this start, and its start check
+            policy = self.for_start(x0)
             watch = getattr(policy, "watch_start", None)
         else:
             watch = self.watch_start
