@@ -68,6 +68,8 @@ class Pendulum:
     periodic = (True, False)
     se2_invariant = False
     cell_size: tuple = (2 * math.pi / 64, 0.25)
+    dt: float = DT
+    cell_offset: tuple = (0.0, 0.0)
 
     def action_set(self, dtype: torch.dtype = torch.float32, device: torch.device | str | None = None) -> torch.Tensor:
         return torch.linspace(-MAX_TORQUE, MAX_TORQUE, 9, dtype=dtype, device=device).unsqueeze(1)  # [A, 1]
@@ -85,14 +87,39 @@ def reward(state: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
     return -(angle_normalize(state[:, 0]) ** 2 + 0.1 * state[:, 1] ** 2 + 0.001 * u**2)
 
 
-def run(method: str, starts: torch.Tensor, args) -> tuple[float, float]:
+def table_set(horizon: int, angles: int, speeds: int):
+    """A C-Uniform table set for the pendulum, built in memory: one max-flow table per start on an
+    ``angles x speeds`` grid (angle over a turn, speed in [-4, 4]); each robot's member is the nearest start."""
+    from cuniform_torch import TablePolicy, register_system
+    from cuniform_torch.policies.table_set import TableSetPolicy
+    from precompute.flow.builder import BuildConfig, build_table
+
+    register_system("pendulum", Pendulum)  # a table names its system; this one is made here
+
+    grid = [(2 * math.pi * i / angles - math.pi, -4.0 + 8.0 * j / max(speeds - 1, 1))
+            for i in range(angles) for j in range(speeds)]
+    members = [TablePolicy(build_table(Pendulum(), BuildConfig(horizon=horizon, start=start))[0]) for start in grid]
+    return TableSetPolicy(members, torch.tensor(grid, dtype=torch.float64))
+
+
+def run(method: str, starts: torch.Tensor, args, tables=None) -> tuple[float, float]:
     """Seconds of the closed loop and the mean return of ``method`` from ``starts [B, 2]``."""
-    from cuniform_torch import MPPI
+    from cuniform_torch import MPPI, CUniformMPPI
 
     b = starts.shape[0]
     std = math.sqrt(10.0)
     kw = dict(num_samples=args.samples, horizon=args.horizon, lambda_=1.0, noise_std=std)
-    if method == "batched":
+    if method == "cuniform_batched":
+        ctrl = CUniformMPPI(tables, trajectory_cost, num_samples=args.samples, lambda_=1.0, seed=list(range(b)),
+                            num_robots=b)
+        policy = ctrl.command
+    elif method == "cuniform_loop":
+        cus = [CUniformMPPI(tables, trajectory_cost, num_samples=args.samples, lambda_=1.0, seed=i)
+               for i in range(b)]
+
+        def policy(x: torch.Tensor) -> torch.Tensor:
+            return torch.stack([c.command(x[i]) for i, c in enumerate(cus)])
+    elif method == "batched":
         ctrl = MPPI(Pendulum(), trajectory_cost, seed=list(range(b)), num_robots=b, **kw)
         policy = ctrl.command
     elif method == "loop":
@@ -126,6 +153,9 @@ def make_parser() -> ArgumentParser:
     p.add_argument("--steps", type=positive_int, default=200)
     p.add_argument("--seed", type=non_negative_int, default=0, help="of the starts")
     p.add_argument("--threads", type=threads_arg, default=1, help="torch CPU threads (0: torch's choice)")
+    p.add_argument("--cuniform", type=positive_int, nargs=2, metavar=("ANGLES", "SPEEDS"), default=None,
+                   help="also C-Uniform MPPI, batched and in a loop, on a table set of ANGLES x SPEEDS starts "
+                        "(built in memory first: about half a second a table)")
     p.add_argument("--json", type=Path, default=Path("out/bench_pendulum.json"))
     return p
 
@@ -148,15 +178,25 @@ def main(argv: list[str] | None = None) -> int:
     rows = {}
     print(f"{args.robots} pendulums, K = {args.samples}, T = {args.horizon}, {args.steps} steps, "
           f"{torch.get_num_threads()} thread(s), load {os.getloadavg()[0]:.2f}")
-    print(f"{'method':<28} {'wall s':>8} {'mean return':>12}")
+    print(f"{'method':<34} {'wall s':>8} {'mean return':>12}")
     labels = {"batched": "MPPI, one batched controller", "loop": f"MPPI, {args.robots} controllers in a loop",
-              "pytorch_mppi": "pytorch_mppi MPPI_Batched"}
+              "pytorch_mppi": "pytorch_mppi MPPI_Batched", "cuniform_batched": "C-Uniform MPPI, batched",
+              "cuniform_loop": f"C-Uniform MPPI, {args.robots} in a loop"}
+    tables = None
+    if args.cuniform is not None:
+        t0 = time.perf_counter()
+        tables = table_set(args.horizon, *args.cuniform)
+        print(f"(a table set of {len(tables.members)} members built in {time.perf_counter() - t0:.1f} s)")
+        methods += ["cuniform_batched", "cuniform_loop"]
     for m in methods:
-        seconds, ret = run(m, starts, args)
+        seconds, ret = run(m, starts, args, tables)
         rows[m] = {"seconds": seconds, "mean_return": ret}
-        print(f"{labels[m]:<28} {seconds:>8.2f} {ret:>12.1f}")
+        print(f"{labels[m]:<34} {seconds:>8.2f} {ret:>12.1f}")
     if "loop" in rows:
         print(f"batched vs loop: {rows['loop']['seconds'] / rows['batched']['seconds']:.1f}x faster")
+    if "cuniform_loop" in rows:
+        print(f"C-Uniform batched vs loop: "
+              f"{rows['cuniform_loop']['seconds'] / rows['cuniform_batched']['seconds']:.1f}x faster")
     if "pytorch_mppi" in rows:
         print(f"batched vs MPPI_Batched: {rows['pytorch_mppi']['seconds'] / rows['batched']['seconds']:.1f}x faster")
     write_json(args.json, {"robots": args.robots, "samples": args.samples, "horizon": args.horizon,
