@@ -193,6 +193,10 @@ class MapPolicy(nn.Module):
                       else None)
         grid = Grid.of(system)
         half = torch.tensor([s + c / 2 for s, c in zip(config.feature_scale, grid.cell_size)])
+        # the dimensions as index tensors on the policy's device: a list index would copy from the host every lookup
+        # (a wait on a GPU, and no CUDA graph could hold the command)
+        self.register_buffer("_linear_index", torch.tensor(self._linear, dtype=torch.long), persistent=False)
+        self.register_buffer("_angle_index", torch.tensor(self._angle, dtype=torch.long), persistent=False)
         self.register_buffer("_box_half", half[self._linear], persistent=False)  # [d_lin]
         self.register_buffer("_box_cell", torch.tensor(grid.cell_size)[self._linear], persistent=False)
         self._start_watch = StartWatch(f"map policy ({system.name})", system)
@@ -287,7 +291,8 @@ class MapPolicy(nn.Module):
             # W_e e + b + w_t t / T per map and level, and W_x with the feature scales folded in: a lookup is one addmm
             self._map_bias = (self.inp_x.bias + self.inp_e(embedding)[:, None, :]
                               + levels[:, None] * w[:, -1]).detach()  # [B, T+1, Hd]
-            w_state = torch.cat((w[:, :n_lin] * self.inv_scale[self._linear], w[:, n_lin:-1]), dim=1)
+            w_state = torch.cat((w[:, :n_lin] * self.inv_scale.index_select(0, self._linear_index), w[:, n_lin:-1]),
+                                dim=1)
             if self.local is not None:  # the sampled features are more columns of the same addmm
                 self._local_map = self.encode_local(occupied).detach()  # [B, C, H, W]
                 w_state = torch.cat((w_state, self.inp_l.weight), dim=1)
@@ -316,9 +321,9 @@ class MapPolicy(nn.Module):
         if n % maps:
             raise ValueError(f"{maps} maps are set: the {n} states must be {maps} equal groups (one per map)")
         with torch.no_grad():
-            parts = [x[:, self._linear]]
+            parts = [x.index_select(1, self._linear_index)]
             if self._angle:
-                ang = x[:, self._angle]
+                ang = x.index_select(1, self._angle_index)
                 parts += [torch.cos(ang), torch.sin(ang)]
             if self.local is not None:  # dims 0, 1, 2 are x, y, heading (config check): cos / sin just made
                 g = self.local.grid(x[:, :2], parts[-2][:, 0], parts[-1][:, 0])  # [N, P, 2]
@@ -380,7 +385,7 @@ class MapPolicy(nn.Module):
         """Count the lookups of ``x [N, d]`` (near the box: nearest hits; beyond it or not finite: misses);
         the misses ``bool [N]``."""
         if self._linear:
-            excess = ((x[:, self._linear].abs() - self._box_half) / self._box_cell).amax(dim=1)  # [N] cells out
+            excess = ((x.index_select(1, self._linear_index).abs() - self._box_half) / self._box_cell).amax(dim=1)
             near, miss = excess > 0, excess > 1
         else:
             near = miss = torch.zeros(x.shape[0], dtype=torch.bool, device=x.device)
