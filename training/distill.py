@@ -66,7 +66,7 @@ from cuniform_torch.cli import (
 from cuniform_torch.common.fileio import exclusive_lock
 from cuniform_torch.grid.cells import Grid
 from cuniform_torch.policies.checkpoint import file_sha256, policy_checkpoint, save_policy
-from cuniform_torch.policies.mlp import MLPConfig, MLPPolicy, default_feature_scale
+from cuniform_torch.policies.mlp import MAX_FREQUENCIES, MLPConfig, MLPPolicy, default_feature_scale
 from cuniform_torch.policies.table import TablePolicy
 from cuniform_torch.tables.file import Table, read_table
 from training.sets.distill import distill_set
@@ -98,7 +98,8 @@ def make_parser() -> ArgumentParser:
     docstring and its default, which lives only in the dataclass)."""
     parser = _Parser(prog="python -m training.distill", description=__doc__.splitlines()[0])
     add_dataclass_args(parser, DistillConfig, exclude=("system_module",), required=("tables",), arg_types={
-        **{name: int_in(1, 65536) for name in ("hidden", "layers")}, "epochs": positive_int,
+        **{name: int_in(1, 65536) for name in ("hidden", "layers")}, "frequencies": int_in(0, MAX_FREQUENCIES),
+        "epochs": positive_int,
         "batch_size": positive_int, "val_points": positive_int, "patience": positive_int, "eval_every": positive_int,
         "seed": non_negative_int, "jitter": int_in(0, 1000), "threads": threads_arg, "device": device_arg,
         "lr": positive_float})
@@ -118,6 +119,8 @@ def check_config(cfg: DistillConfig) -> DistillConfig:
             raise UsageError(f"--{name.replace('_', '-')} must be a positive integer, got {getattr(cfg, name)}")
     if cfg.threads < 0:
         raise UsageError(f"--threads must be >= 0, got {cfg.threads}")
+    if not 0 <= cfg.frequencies <= MAX_FREQUENCIES:
+        raise UsageError(f"--frequencies must be in 0..{MAX_FREQUENCIES}, got {cfg.frequencies}")
     if cfg.jitter < 0:
         raise UsageError(f"--jitter must be >= 0, got {cfg.jitter}")
     if not (math.isfinite(cfg.lr) and cfg.lr > 0):
@@ -205,7 +208,7 @@ def _distill(cfg: DistillConfig) -> int:
     # ---- model and optimiser
     mlp_config = MLPConfig(state_dim=grid.dim, num_actions=table.actions.shape[0], horizon=T,
                            periodic=list(grid.periodic), feature_scale=default_feature_scale(cells.centres, grid),
-                           hidden=cfg.hidden, layers=cfg.layers)
+                           hidden=cfg.hidden, layers=cfg.layers, frequencies=cfg.frequencies)
     model = MLPPolicy(mlp_config, system, torch.from_numpy(table.actions),
                       support=pooled_support(tables, T)).to(device)  # the cells it may answer confidently
     optimizer, scheduler = adam_cosine(model, cfg)
