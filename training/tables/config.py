@@ -41,9 +41,9 @@ class DistillConfig:
     device: str = "cpu"
     """torch device to train and evaluate on (cpu, cuda, cuda:1, ...)"""
     threads: int = 1
-    """torch CPU threads (0: torch's choice, one per core). 1 by default: on 2 idle cores a second thread makes
-    a 4096-sample step of the default network about 1.6x faster, but when other processes keep the cores busy it
-    makes it about 10x slower (OpenMP hand-offs between oversubscribed threads)"""
+    """torch CPU threads (0: torch's choice, one per core). 1 by default: on 2 idle cores a second thread made
+    a 4096-sample step of a 3 x 256 network (the default before the encoding) about 1.6x faster, but when other
+    processes keep the cores busy it makes it about 10x slower (OpenMP hand-offs between oversubscribed threads)"""
     out: str | None = None
     """checkpoint to write (default: out/<first table stem>.policy.pt)"""
     jitter: int = 4
