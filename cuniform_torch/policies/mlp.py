@@ -12,8 +12,9 @@ Input features of a state ``x`` at step ``t`` (documented scales, settled from t
   for k = 0..K-1 (all the sines, then all the cosines, feature-major): detail as fine as a cell is then a few
   hundred optimiser steps away rather than thousands.
 
-For Dubins that is ``(x / sx, y / sy, cos theta, sin theta, t / T)`` (and with K = 6 the 60 sines and cosines). The network is ``layers`` hidden layers of
-``hidden`` units with SiLU activations, then a linear layer to A logits; ``action_probs`` is their softmax.
+For Dubins that is ``(x / sx, y / sy, cos theta, sin theta, t / T)`` (and with K = 6 their 60 sines and
+cosines). The network is ``layers`` hidden layers of ``hidden`` units with SiLU activations, then a linear layer
+to A logits; ``action_probs`` is their softmax.
 
 Its checkpoint file (format ``cuniform-policy/1``) is :mod:`cuniform_torch.policies.checkpoint`'s.
 
@@ -91,7 +92,8 @@ class MLPConfig:
                 raise ValueError(f"MLPConfig.{name} must be a positive integer, got {value!r}")
         if isinstance(self.frequencies, bool) or not isinstance(self.frequencies, int) \
                 or not 0 <= self.frequencies <= MAX_FREQUENCIES:
-            raise ValueError(f"MLPConfig.frequencies must be an integer in 0..{MAX_FREQUENCIES}, got {self.frequencies!r}")
+            raise ValueError(f"MLPConfig.frequencies must be an integer in 0..{MAX_FREQUENCIES}, "
+                             f"got {self.frequencies!r}")
         if self.hidden > MAX_HIDDEN or self.layers > MAX_LAYERS:
             raise ValueError(f"MLPConfig: at most {MAX_LAYERS} layers of {MAX_HIDDEN} units, got {self.layers} x {self.hidden}")
         for name, limit in (("state_dim", MAX_STATE_DIM), ("num_actions", MAX_ACTIONS), ("horizon", MAX_HORIZON)):

@@ -27,8 +27,9 @@ class DistillConfig:
     frequencies: int = 6
     """octaves K of the sin / cos encoding of the input features (sin(2^k pi f), cos(2^k pi f), k < K): what lets
     a small network fit a table's cell-to-cell detail in a hundred epochs; 0: the plain features (those of the
-    networks distilled before the encoding, which took about 15x more epochs for the same KL). One table (or
-    pooled tables) only: a table set's start-conditioned MLP reads the plain features and ignores it"""
+    networks distilled before the encoding: on out/dubins.npz 1500 epochs of 3 x 256 reached KL 0.052, 100 epochs
+    with the encoding 0.022). One table (or pooled tables) only: a table set's start-conditioned MLP reads the
+    plain features and ignores it"""
     epochs: int = 100
     """passes over the data, each with fresh jitter (on out/dubins.npz: see docs/results/distillation.md for the
     time and the KL of the default and of longer runs)"""
