@@ -73,6 +73,28 @@ class TestQuality:
         assert _max_centre_error(load_policy(tmp_path / "walk.policy.pt"), read_table(walk_path)) > TOLERANCE
 
 
+# The README's bound on the default table (mean KL at the cell centres); the default reaches about 0.03 here
+DEFAULT_KL_BOUND = 0.08
+
+
+@pytest.fixture(scope="module")
+def dubins6_path(tmp_path_factory) -> Path:
+    """The Dubins table of 6 steps (353 cells): small enough for a default distillation in a few seconds, with
+    the cell-to-cell detail of the default table's last levels."""
+    table, _ = build_table(make_system("dubins"), BuildConfig(horizon=6))
+    path = tmp_path_factory.mktemp("tables") / "dubins6.npz"
+    write_table(path, table)
+    return path
+
+
+def test_the_default_reaches_the_kl_bound(dubins6_path, tmp_path):
+    """No training flag: the defaults of DistillConfig (a quality test, not a timed one)."""
+    assert distill.main(_argv(dubins6_path, tmp_path, name="d6.policy.pt")) == 0
+    comparison = json.loads((tmp_path / "d6.policy.comparison.json").read_text())
+    kl = comparison["kl_centres"]["mean"]
+    assert kl <= DEFAULT_KL_BOUND, f"mean KL at the cell centres {kl:.4f} with the default settings"
+
+
 class TestCheckpoint:
     def test_loads_with_weights_only_and_names_its_table(self, trained, walk_path):
         ckpt = torch.load(trained["out"], weights_only=True)
@@ -201,6 +223,7 @@ class TestBadInput:
         (["--layers", "-1"], "argument --layers: must be an integer in [1, 65536]"),
         (["--lr", "nan"], "argument --lr:"),
         (["--jitter", "-2"], "argument --jitter:"),
+        (["--frequencies", "13"], "argument --frequencies:"),
         (["--threads", "-1"], "argument --threads:"),
         (["--device", "tpu:x"], "--device"),
         (["--eval-samples", "0"], "--eval-samples"),
@@ -253,3 +276,21 @@ def test_checkpoint_records_the_tables_cells_as_support(trained, walk_path):
     far = torch.tensor([[float(table.cells.max()) * 0.1 + 5.0]])  # beyond level 1's cells and their halo
     probs = policy.action_probs(far, 1)
     assert torch.allclose(probs, torch.full_like(probs, 1 / probs.shape[1])) and int(policy.misses) == 1
+
+
+def test_checkpoint_records_the_encoding(trained):
+    """The default network reads the sin / cos encoding (config ``frequencies``); a network without it writes the
+    config keys of the checkpoints written before the encoding, and one with it refuses a start-conditioned use."""
+    from cuniform_torch.policies import MLPConfig, StartMLPPolicy, StartRegion
+
+    ckpt = torch.load(trained["out"], weights_only=True)
+    assert ckpt["config"]["frequencies"] == distill.DistillConfig.frequencies == 6
+    module = trained["module"]
+    assert module.net[0].in_features == module.config.num_state_features * 13
+    plain = MLPConfig(**{**ckpt["config"], "frequencies": 0})
+    assert "frequencies" not in plain.to_dict() and plain.num_features == plain.num_state_features
+    with pytest.raises(ValueError, match="frequencies must be an integer in 0..12"):
+        MLPConfig(**{**ckpt["config"], "frequencies": 13})
+    cfg = MLPConfig(**{**ckpt["config"], "start_dims": [0]})
+    with pytest.raises(ValueError, match="plain features"):
+        StartMLPPolicy(cfg, module.system, module.actions, StartRegion(torch.zeros(1, 1, dtype=torch.float64), [0]))

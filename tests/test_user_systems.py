@@ -42,8 +42,10 @@ README = Path(__file__).resolve().parents[1] / "README.md"
 # small presets: seconds, not minutes
 KS_SMALL = dict(cell_size=(0.1, 0.1, 2 * math.pi / 30), num_actions=7)
 KS_SPEED_SMALL = dict(cell_size=(0.2, 0.2, 2 * math.pi / 18, 0.2), num_steer=3)
+# plain features (--frequencies 0), as this plumbing test was written: with the encoding, 3 or 10 epochs of this
+# network reached the goal of the ks closed loop below 2 times in 4 (the table itself: 6 in 8, seeds 0-7)
 TINY = ["--hidden", "32", "--layers", "2", "--jitter", "1", "--batch-size", "512", "--lr", "1e-2", "--epochs", "3",
-        "--eval-samples", "64", "--eval-every", "1000", "--quiet"]
+        "--frequencies", "0", "--eval-samples", "64", "--eval-every", "1000", "--quiet"]
 
 
 @pytest.fixture(autouse=True)

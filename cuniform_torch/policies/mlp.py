@@ -7,10 +7,14 @@ Input features of a state ``x`` at step ``t`` (documented scales, settled from t
 * every non-periodic dimension i: ``x_i / scale_i`` (``scale_i`` = the largest |cell centre| of the table in
   that dimension, so features lie in about [-1, 1]);
 * every angle dimension: ``cos x_i`` and ``sin x_i``;
-* the time ``t / T``.
+* the time ``t / T``;
+* with ``frequencies`` K > 0 (the config's), each of those features f also as ``sin(2^k pi f)``, ``cos(2^k pi f)``
+  for k = 0..K-1 (all the sines, then all the cosines, feature-major): detail as fine as a cell is then a few
+  hundred optimiser steps away rather than thousands.
 
-For Dubins that is ``(x / sx, y / sy, cos theta, sin theta, t / T)``. The network is ``layers`` hidden layers of
-``hidden`` units with SiLU activations, then a linear layer to A logits; ``action_probs`` is their softmax.
+For Dubins that is ``(x / sx, y / sy, cos theta, sin theta, t / T)`` (and with K = 6 their 60 sines and
+cosines). The network is ``layers`` hidden layers of ``hidden`` units with SiLU activations, then a linear layer
+to A logits; ``action_probs`` is their softmax.
 
 Its checkpoint file (format ``cuniform-policy/1``) is :mod:`cuniform_torch.policies.checkpoint`'s.
 
@@ -37,7 +41,7 @@ import torch
 from torch import Tensor, nn
 
 from cuniform_torch.grid.cells import Grid
-from cuniform_torch.policies.mlp_ops import check_query, state_features
+from cuniform_torch.policies.mlp_ops import check_query, encode_features, state_features
 from cuniform_torch.policies.table import Fallback
 from cuniform_torch.sampling.rollout import StartWatch, check_states
 from cuniform_torch.systems import MAX_ACTIONS, MAX_HORIZON, System
@@ -46,7 +50,7 @@ from cuniform_torch.tables.lookup import MISS, NEAREST, Lookup, TableIndex, buil
 from cuniform_torch.tables.torch_kernel import lookup_entries
 
 __all__ = ["MLPConfig", "MLPPolicy", "MLPSupport", "default_feature_scale", "MAX_HIDDEN", "MAX_LAYERS",
-           "MAX_WEIGHTS", "MAX_STATE_DIM"]
+           "MAX_WEIGHTS", "MAX_STATE_DIM", "MAX_FREQUENCIES"]
 
 # Limits of a config, checked when it is made (MLPConfig.__post_init__): before any network is built, so a
 # checkpoint's config cannot make the reader allocate more than these describe (see docs/formats.md).
@@ -58,6 +62,9 @@ MAX_WEIGHTS = 1 << 26
 """the most weights and biases in all (``num_weights``; 67M, 256 MiB of float32)"""
 MAX_STATE_DIM = 64
 """the most state dimensions (as a table file's)"""
+MAX_FREQUENCIES = 12
+"""the most octaves of the sin / cos feature encoding (``2^11 pi`` is still resolved by float32 on features
+of about [-1, 1])"""
 
 
 @dataclass
@@ -74,12 +81,19 @@ class MLPConfig:
     layers: int = 3
     start_dims: list[int] = field(default_factory=list)
     """state dimensions of the start x0 the network also reads (:mod:`cuniform_torch.policies.start_mlp`); empty: pi(u | x, t)"""
+    frequencies: int = 0
+    """octaves K of the sin / cos encoding of the state and time features (module docstring); 0: the plain
+    features (every checkpoint written before the encoding)"""
 
     def __post_init__(self) -> None:
         for name in ("state_dim", "num_actions", "horizon", "hidden", "layers"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
                 raise ValueError(f"MLPConfig.{name} must be a positive integer, got {value!r}")
+        if isinstance(self.frequencies, bool) or not isinstance(self.frequencies, int) \
+                or not 0 <= self.frequencies <= MAX_FREQUENCIES:
+            raise ValueError(f"MLPConfig.frequencies must be an integer in 0..{MAX_FREQUENCIES}, "
+                             f"got {self.frequencies!r}")
         if self.hidden > MAX_HIDDEN or self.layers > MAX_LAYERS:
             raise ValueError(f"MLPConfig: at most {MAX_LAYERS} layers of {MAX_HIDDEN} units, got {self.layers} x {self.hidden}")
         for name, limit in (("state_dim", MAX_STATE_DIM), ("num_actions", MAX_ACTIONS), ("horizon", MAX_HORIZON)):
@@ -104,12 +118,14 @@ class MLPConfig:
 
     @property
     def num_state_features(self) -> int:
-        """Features of the state and the time (the start's come after them)."""
+        """Features of the state and the time (the start's come after them), before the encoding."""
         return sum(2 if p else 1 for p in self.periodic) + 1
 
     @property
     def num_features(self) -> int:
-        return self.num_state_features + sum(2 if self.periodic[i] else 1 for i in self.start_dims)
+        """Inputs of the network: the state and time features with their encoding, then the start's."""
+        return self.num_state_features * (1 + 2 * self.frequencies) + sum(
+            2 if self.periodic[i] else 1 for i in self.start_dims)
 
     @property
     def num_weights(self) -> int:
@@ -121,10 +137,13 @@ class MLPConfig:
         return total + (width + 1) * self.num_actions
 
     def to_dict(self) -> dict[str, Any]:
-        """A plain dict; ``start_dims`` only when there are some (a pi(u | x, t) checkpoint keeps its old keys)."""
+        """A plain dict; ``start_dims`` only when there are some (a pi(u | x, t) checkpoint keeps its old keys), and
+        ``frequencies`` only when it is not 0 (so a network without the encoding writes the keys it always did)."""
         out = dataclasses.asdict(self)
         if not out["start_dims"]:
             del out["start_dims"]
+        if not out["frequencies"]:
+            del out["frequencies"]
         return out
 
 
@@ -250,7 +269,8 @@ class MLPPolicy(nn.Module):
     def features(self, x: Tensor, t: int | Tensor) -> Tensor:
         """``x [N, d]``, ``t`` (int or ``[N]``) -> ``[N, F]`` network inputs (see the module docstring)."""
         check_states(x, self.config.state_dim, self.device)
-        return state_features(x.to(self.dtype), t, self._linear, self._angle, self.inv_scale, self.config.horizon)
+        f = state_features(x.to(self.dtype), t, self._linear, self._angle, self.inv_scale, self.config.horizon)
+        return encode_features(f, self.config.frequencies)
 
     def forward(self, x: Tensor, t: int | Tensor) -> Tensor:
         """Logits ``[N, A]``."""

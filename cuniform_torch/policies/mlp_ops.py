@@ -12,7 +12,7 @@ from torch import Tensor
 from cuniform_torch.sampling.draws import inverse_cdf_pick
 from cuniform_torch.sampling.rollout import check_states
 
-__all__ = ["state_features", "check_query", "inverse_cdf_draw"]
+__all__ = ["state_features", "encode_features", "check_query", "inverse_cdf_draw"]
 
 
 def state_features(x: Tensor, t: int | Tensor, linear: list[int], angle: list[int], inv_scale: Tensor,
@@ -26,6 +26,16 @@ def state_features(x: Tensor, t: int | Tensor, linear: list[int], angle: list[in
     tt = torch.as_tensor(t, dtype=x.dtype, device=x.device) / horizon
     parts.append(tt.expand(x.shape[0]).unsqueeze(1) if tt.ndim == 0 else tt.unsqueeze(1))
     return torch.cat(parts, dim=1)
+
+
+def encode_features(f: Tensor, frequencies: int) -> Tensor:
+    """``f [N, F]`` -> ``[N, F (1 + 2K)]``: ``f``, then ``sin(2^k pi f)`` of every feature and k = 0..K-1
+    (feature-major: feature 0's K octaves first), then the cosines likewise; ``f`` itself when K = 0."""
+    if not frequencies:
+        return f
+    octaves = torch.pi * torch.pow(2.0, torch.arange(frequencies, dtype=f.dtype, device=f.device))  # [K]
+    z = (f.unsqueeze(2) * octaves).flatten(1)  # [N, F K]
+    return torch.cat((f, torch.sin(z), torch.cos(z)), dim=1)
 
 
 def check_query(x: Tensor, t: int, horizon: int, state_dim: int, dtype: torch.dtype, device: torch.device) -> None:

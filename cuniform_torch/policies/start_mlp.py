@@ -107,6 +107,9 @@ class StartMLPPolicy(MLPPolicy):
 
     def __init__(self, config: MLPConfig, system: System, actions: Tensor, region: StartRegion,
                  support: MLPSupport | None = None, fallback: str | Fallback = Fallback.NEAREST):
+        if config.frequencies:
+            raise ValueError("a start-conditioned policy reads the plain features: config.frequencies must be 0, "
+                             f"got {config.frequencies}")
         if list(config.start_dims) != list(region.dims):
             raise ValueError(f"config.start_dims {config.start_dims} differ from the start region's dims {region.dims}")
         region.check(system)

@@ -21,8 +21,8 @@ from cuniform_torch.envs.worlds.robot import RobotPreset
 __all__ = ["table_file", "policy_file", "ensure_table", "ensure_policy", "DISTILL_EPOCHS"]
 
 DISTILL_EPOCHS = 300
-"""epochs of the MLP distilled on first use (``training.distill``'s default is 1500; this keeps the first
-``cu_mlp`` run to a few minutes on a CPU)"""
+"""epochs of the MLP distilled on first use (``training.distill``'s default is 100 since its input encoding;
+this value dates from a default of 1500 without it)"""
 
 
 def table_file(robot: RobotPreset, cache: Path, method: str = "maxflow") -> Path:

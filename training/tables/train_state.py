@@ -14,7 +14,8 @@ __all__ = ["TRAIN_STATE_FORMAT", "RESUME_KEYS", "UsageError", "save_train_state"
 
 TRAIN_STATE_FORMAT = "cuniform-distill-state/1"
 # the settings a training state must share with the run that resumes it (the others change no weight)
-RESUME_KEYS = ("hidden", "layers", "epochs", "lr", "batch_size", "seed", "jitter", "val_points", "patience")
+RESUME_KEYS = ("hidden", "layers", "frequencies", "epochs", "lr", "batch_size", "seed", "jitter", "val_points",
+               "patience")
 
 
 class UsageError(ValueError):
