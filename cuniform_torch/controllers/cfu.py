@@ -108,6 +108,15 @@ class CFUMPPI(CUMPPI):
     rates, time step, grid) is refused naming what differs. The arguments after ``world`` are :class:`~cuniform_torch.controllers.mppi.CUMPPI`'s (``cuniform_fraction`` of the
     budget are map-policy rollouts); ``max_range`` (m) limits the sensed patch like a costmap. The device is the
     policy's (a checkpoint is loaded onto ``device``, default the CPU). :meth:`set_world` swaps the world map.
+
+    :param policy: a :class:`MapPolicy`, the name of a shipped one (``"unicycle-0.5"``), a checkpoint path or dict
+    :param world: an OccupancyGrid or an Environment, sensed around each robot every command
+    :param cost_fn: as :class:`~cuniform_torch.controllers.mppi.CUMPPI`'s, and so are ``num_samples``,
+        ``cuniform_fraction``, ``lambda_``, ``noise_std``, ``local``, ``horizon``, ``terminal_cost``, ``seed``,
+        ``num_robots``, ``debug`` and ``cuda_graph``
+    :param max_range: how far the sensed patch sees (m; None: the whole patch)
+    :param device: where a checkpoint is loaded
+    :param system: the robot being controlled, checked against the one the policy was trained for
     """
 
     def __init__(self, policy: MapPolicy | dict | str | os.PathLike, world: OccupancyGrid | Environment, cost_fn: CostFn,

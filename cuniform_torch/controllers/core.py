@@ -102,6 +102,16 @@ class MPPICore:
     :func:`~cuniform_torch.controllers.streams.robot_seeds`), so robot ``b`` of a batch commands exactly what a
     controller of that robot alone, seeded the same, commands. ``generator`` (one per robot) passes the streams in.
     ``close()`` (or ``with``) releases what the proposal holds (a bank's worker thread). ``debug``: see the module.
+
+    :param proposal: a :class:`~cuniform_torch.controllers.proposals.Proposal` (or a one-robot proposal)
+    :param cost_fn: ``states [N, T+1, d]``, ``actions [N, T, q]`` -> ``[N]`` over all robots' rollouts (or, with
+        ``batched = True``, ``[B, K, T+1, d]`` -> ``[B, K]``)
+    :param lambda_: the softmax temperature (0: all weight on the best rollout)
+    :param terminal_cost: optional cost of the last states, ``[N, d]`` -> ``[N]``
+    :param seed: an int, one int per robot, or None
+    :param generator: the streams themselves, one ``torch.Generator`` per robot (instead of ``seed``)
+    :param debug: per-command value checks (default: on a CPU, off on CUDA)
+    :param cuda_graph: one CUDA graph per command (CUDA only)
     """
 
     def __init__(self, proposal: Proposal | SingleRobotProposal, cost_fn: CostFn, lambda_: float = 0.567,

@@ -45,7 +45,25 @@ __all__ = ["CostFn", "MPPIResult", "mppi_weights", "MPPICore", "MPPI", "LogMPPI"
 
 class MPPI(MPPICore):
     """MPPI: the core with a :class:`~cuniform_torch.controllers.proposals.GaussianProposal` (std ``noise_std``, scalar or
-    ``[q]``, around a nominal sequence that the command's weighted sequence, shifted one step, warm-starts)."""
+    ``[q]``, around a nominal sequence that the command's weighted sequence, shifted one step, warm-starts).
+
+    :param system: the dynamics (any :class:`~cuniform_torch.systems.protocol.System`); its action set's range
+        bounds the actions
+    :param cost_fn: trajectory cost, ``states [N, T+1, d]``, ``actions [N, T, q]`` -> ``[N]`` (all robots' rollouts
+        at once, N = B*K; with ``cost_fn.batched = True``: ``[B, K, T+1, d]`` -> ``[B, K]``), may be inf
+    :param num_samples: K, rollouts per robot and command
+    :param lambda_: the temperature of ``softmax(-(cost - min) / lambda_)``; 0 puts all weight on the best rollout
+    :param terminal_cost: optional, ``states [N, d]`` (the last states) -> ``[N]``, added to ``cost_fn``
+    :param seed: an int, one int per robot, or None (fresh entropy); robot ``b`` of an int seed ``s`` uses
+        ``s + b * 1_000_003``
+    :param num_robots: B, robots per call: ``command(states [B, d]) -> [B, q]``
+    :param debug: per-command checks that read values (a NaN state, all-NaN costs); default on a CPU, off on CUDA
+    :param cuda_graph: capture the first command in one CUDA graph and replay it (CUDA only)
+    :param horizon: T, steps per rollout
+    :param noise_std: the Gaussian noise's standard deviation, a scalar or one per action dimension ``[q]``
+    :param device: where the controller runs
+    :param dtype: its floating-point dtype (states must be of it)
+    """
 
     def __init__(self, system: System, cost_fn: CostFn, num_samples: int = 1000, horizon: int = 15,
                  lambda_: float = 0.567, noise_std: float | Tensor = 0.3,
@@ -82,7 +100,13 @@ class MPPI(MPPICore):
 
 class LogMPPI(MPPI):
     """log-MPPI: the core with a :class:`~cuniform_torch.controllers.proposals.NormalLogNormalProposal`; ``lognormal_mean``
-    / ``lognormal_var`` set the log-normal factor."""
+    / ``lognormal_var`` set the log-normal factor.
+
+    :param lognormal_mean: the log-normal factor's mean
+    :param lognormal_var: its variance
+    :param kwargs: the rest, as :class:`MPPI`'s (``device``, ``dtype``, ``terminal_cost``, ``seed``, ``num_robots``,
+        ``debug``, ``cuda_graph``)
+    """
 
     def __init__(self, system: System, cost_fn: CostFn, num_samples: int = 1000, horizon: int = 15,
                  lambda_: float = 0.567, noise_std: float | Tensor = 0.3, lognormal_mean: float = 1.0,
@@ -108,6 +132,24 @@ class CUniformMPPI(MPPICore):
     when set, from a stream seeded by ``seed + 1``). With ``bank_background=True`` that refresh runs in a worker
     thread while commands go on with the current bank; see the bank's docstring for when it is swapped in and
     what a failed refresh does. Call ``close()`` to stop the worker (or use the controller as a context manager).
+
+    :param policy: a table (``load_table``), a table set, an MLP, any Policy with a ``system``, or a distilled
+        checkpoint dict
+    :param cost_fn: trajectory cost, ``states [N, T+1, d]``, ``actions [N, T, q]`` -> ``[N]`` (all robots' rollouts
+        at once, N = B*K; with ``cost_fn.batched = True``: ``[B, K, T+1, d]`` -> ``[B, K]``), may be inf
+    :param num_samples: K, rollouts per robot and command
+    :param lambda_: the temperature of ``softmax(-(cost - min) / lambda_)``; 0 puts all weight on the best rollout
+    :param terminal_cost: optional, ``states [N, d]`` (the last states) -> ``[N]``, added to ``cost_fn``
+    :param seed: an int, one int per robot, or None (fresh entropy); robot ``b`` of an int seed ``s`` uses
+        ``s + b * 1_000_003``
+    :param num_robots: B, robots per call: ``command(states [B, d]) -> [B, q]``
+    :param debug: per-command checks that read values (a NaN state, all-NaN costs); default on a CPU, off on CUDA
+    :param cuda_graph: capture the first command in one CUDA graph and replay it (CUDA only)
+    :param horizon: T, steps per rollout (default: the policy's)
+    :param bank_size: M rollouts pre-sampled at the origin (None: fresh rollouts every command)
+    :param bank_refresh: draw a new bank every this many commands (None: never)
+    :param bank_background: draw refreshed banks in a worker thread
+    :param device: the policy's device when a checkpoint dict is given
     """
 
     def __init__(self, policy: Policy | dict[str, Any], cost_fn: CostFn, num_samples: int = 1000,
@@ -212,6 +254,24 @@ class CUMPPI(MPPICore):
     normal x log-normal with ``local="log_mppi"``; drawn from the controller's generator, seeded by ``seed + 1``).
     The core weighs the local pass with ``lambda_``; ``plan`` returns its result. ``local_kwargs`` go to the local
     proposal (``lognormal_mean``, ``lognormal_var``).
+
+    :param policy: as :class:`CUniformMPPI`'s
+    :param cost_fn: trajectory cost, ``states [N, T+1, d]``, ``actions [N, T, q]`` -> ``[N]`` (all robots' rollouts
+        at once, N = B*K; with ``cost_fn.batched = True``: ``[B, K, T+1, d]`` -> ``[B, K]``), may be inf
+    :param num_samples: K, rollouts per robot and command, both stages together
+    :param lambda_: the temperature of ``softmax(-(cost - min) / lambda_)``; 0 puts all weight on the best rollout
+    :param terminal_cost: optional, ``states [N, d]`` (the last states) -> ``[N]``, added to ``cost_fn``
+    :param seed: an int, one int per robot, or None (fresh entropy); robot ``b`` of an int seed ``s`` uses
+        ``s + b * 1_000_003``
+    :param num_robots: B, robots per call: ``command(states [B, d]) -> [B, q]``
+    :param debug: per-command checks that read values (a NaN state, all-NaN costs); default on a CPU, off on CUDA
+    :param cuda_graph: capture the first command in one CUDA graph and replay it (CUDA only)
+    :param cuniform_fraction: the share of ``num_samples`` that the C-Uniform first stage draws
+    :param noise_std: the local pass's noise standard deviation (scalar or ``[q]``)
+    :param local: ``"mppi"`` (Gaussian) or ``"log_mppi"`` (normal x log-normal) local pass
+    :param horizon: T (default: the policy's)
+    :param bank_size: a proposal bank for the first stage (see :class:`CUniformMPPI`)
+    :param device: the policy's device when a checkpoint dict is given
     """
 
     def __init__(self, policy: Policy | dict[str, Any], cost_fn: CostFn, num_samples: int = 1000,
