@@ -135,16 +135,8 @@ class CUniformMPPI(MPPICore):
 
     :param policy: a table (``load_table``), a table set, an MLP, any Policy with a ``system``, or a distilled
         checkpoint dict
-    :param cost_fn: trajectory cost, ``states [N, T+1, d]``, ``actions [N, T, q]`` -> ``[N]`` (all robots' rollouts
-        at once, N = B*K; with ``cost_fn.batched = True``: ``[B, K, T+1, d]`` -> ``[B, K]``), may be inf
-    :param num_samples: K, rollouts per robot and command
-    :param lambda_: the temperature of ``softmax(-(cost - min) / lambda_)``; 0 puts all weight on the best rollout
-    :param terminal_cost: optional, ``states [N, d]`` (the last states) -> ``[N]``, added to ``cost_fn``
-    :param seed: an int, one int per robot, or None (fresh entropy); robot ``b`` of an int seed ``s`` uses
-        ``s + b * 1_000_003``
-    :param num_robots: B, robots per call: ``command(states [B, d]) -> [B, q]``
-    :param debug: per-command checks that read values (a NaN state, all-NaN costs); default on a CPU, off on CUDA
-    :param cuda_graph: capture the first command in one CUDA graph and replay it (CUDA only)
+    :param cost_fn: as :class:`MPPI`'s, and so are ``num_samples`` (K per robot), ``lambda_``, ``terminal_cost``,
+        ``seed``, ``num_robots``, ``debug`` and ``cuda_graph``
     :param horizon: T, steps per rollout (default: the policy's)
     :param bank_size: M rollouts pre-sampled at the origin (None: fresh rollouts every command)
     :param bank_refresh: draw a new bank every this many commands (None: never)
@@ -256,17 +248,9 @@ class CUMPPI(MPPICore):
     proposal (``lognormal_mean``, ``lognormal_var``).
 
     :param policy: as :class:`CUniformMPPI`'s
-    :param cost_fn: trajectory cost, ``states [N, T+1, d]``, ``actions [N, T, q]`` -> ``[N]`` (all robots' rollouts
-        at once, N = B*K; with ``cost_fn.batched = True``: ``[B, K, T+1, d]`` -> ``[B, K]``), may be inf
-    :param num_samples: K, rollouts per robot and command, both stages together
-    :param lambda_: the temperature of ``softmax(-(cost - min) / lambda_)``; 0 puts all weight on the best rollout
-    :param terminal_cost: optional, ``states [N, d]`` (the last states) -> ``[N]``, added to ``cost_fn``
-    :param seed: an int, one int per robot, or None (fresh entropy); robot ``b`` of an int seed ``s`` uses
-        ``s + b * 1_000_003``
-    :param num_robots: B, robots per call: ``command(states [B, d]) -> [B, q]``
-    :param debug: per-command checks that read values (a NaN state, all-NaN costs); default on a CPU, off on CUDA
-    :param cuda_graph: capture the first command in one CUDA graph and replay it (CUDA only)
-    :param cuniform_fraction: the share of ``num_samples`` that the C-Uniform first stage draws
+    :param cost_fn: as :class:`MPPI`'s, and so are ``num_samples`` (K per robot), ``lambda_``, ``terminal_cost``,
+        ``seed``, ``num_robots``, ``debug`` and ``cuda_graph``
+    :param cuniform_fraction: the share of ``num_samples`` (both stages together) that the C-Uniform first stage draws
     :param noise_std: the local pass's noise standard deviation (scalar or ``[q]``)
     :param local: ``"mppi"`` (Gaussian) or ``"log_mppi"`` (normal x log-normal) local pass
     :param horizon: T (default: the policy's)

@@ -10,6 +10,8 @@ import math
 import numba
 import numpy as np
 
+from cuniform_torch.systems.dubins_loops import dubins_advance
+
 __all__ = ["features", "draw_and_step"]
 
 @numba.njit(cache=True, nogil=True, inline="always")
@@ -86,11 +88,4 @@ def draw_and_step(t, logits, uniforms, states, picks, actions, ok, geo, pi, two_
         else:
             pick = min(int(uniforms[t, i] * n_actions), n_actions - 1)
         picks[t, i] = pick
-        a_val = actions[pick] * dt + states[t, 2, i] + pi
-        m = np.fmod(a_val, two_pi)
-        if m < 0:
-            m += two_pi
-        th = m - pi
-        states[t + 1, 2, i] = th
-        states[t + 1, 0, i] = states[t, 0, i] + (np.float32(math.cos(th)) * speed) * dt
-        states[t + 1, 1, i] = states[t, 1, i] + (np.float32(math.sin(th)) * speed) * dt
+        dubins_advance(states, t, i, actions[pick], dt, speed, pi, two_pi)

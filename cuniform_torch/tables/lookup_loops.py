@@ -8,6 +8,8 @@ from __future__ import annotations
 import numba
 import numpy as np
 
+from cuniform_torch.systems.dubins_loops import dubins_advance
+
 __all__ = ["step_dense", "step_hash", "rollout_dense", "rollout_hash", "dubins_step"]
 
 jit = numba.njit(cache=True, nogil=True, boundscheck=False)
@@ -88,14 +90,7 @@ def dubins_step(t, picked, outcome_is_value, actions, states, dt, speed, pi, two
     (action values, or indices into ``actions`` when not ``outcome_is_value``); the map kernel's arithmetic."""
     for i in range(picked.shape[0]):
         rate = picked[i] if outcome_is_value else actions[np.int64(picked[i])]
-        a_val = rate * dt + states[t, 2, i] + pi
-        m = np.fmod(a_val, two_pi)
-        if m < 0:
-            m += two_pi
-        th = m - pi
-        states[t + 1, 2, i] = th
-        states[t + 1, 0, i] = states[t, 0, i] + (np.float32(np.cos(th)) * speed) * dt
-        states[t + 1, 1, i] = states[t, 1, i] + (np.float32(np.sin(th)) * speed) * dt
+        dubins_advance(states, t, i, rate, dt, speed, pi, two_pi)
 
 
 @jit
