@@ -362,6 +362,10 @@ class PolicyProposal(OneRobotCall):
             flat = uniforms[0] if b == 1 else uniforms.transpose(0, 1).reshape(t, b * k)  # [T, B*K] robot-major
             x, u = self._inner_plan.run(self.system, inner, _start_rows(states, k), b * k, t, None, flat)
             return x.view(b, k, t + 1, -1), u.view(b, k, t, -1)
+        if b > 1 and self._members:  # a table set: one rollout, each member drawing for its robots' rows
+            index = cast(Any, self.policy).nearest(states)[0].tolist()  # [B] each robot's member (host ints)
+            if len(set(index)) > 1:
+                return self._members_rollout(states, index, uniforms)
         groups = self._groups(states)
         if groups is None:
             flat = uniforms[0] if b == 1 else uniforms.transpose(0, 1).reshape(t, b * k)  # [T, B*K] robot-major
@@ -381,6 +385,24 @@ class PolicyProposal(OneRobotCall):
             out_u[rows] = u.view(n, k, t, -1)
         assert out_x is not None and out_u is not None
         return out_x, out_u
+
+    def _members_rollout(self, states: Tensor, index: list[int], uniforms: Tensor) -> tuple[Tensor, Tensor]:
+        """All robots of a table set in one rollout (``index``: each robot's member): the dynamics stepped once for
+        all, each member used drawing its robots' rows (:class:`~cuniform_torch.policies.table_set.MemberRows`)."""
+        from cuniform_torch.policies.table_set import MemberRows
+
+        b, k, t = states.shape[0], self.num_samples, self.horizon
+        by_member: dict[int, list[int]] = {}
+        for robot, member in enumerate(index):
+            by_member.setdefault(member, []).append(robot)
+        samples = torch.arange(k, device=states.device)
+        rows = [torch.cat([robot * k + samples for robot in robots]) for robots in by_member.values()]
+        policy = cast(Any, self.policy)
+        dispatch = MemberRows([policy.member(m) for m in by_member], rows)
+        flat = uniforms.transpose(0, 1).reshape(t, b * k)  # [T, B*K] robot-major
+        x, u = RolloutPlan.of(self.system, dispatch).run(self.system, dispatch, _start_rows(states, k), b * k, t,
+                                                        None, flat)
+        return x.view(b, k, t + 1, -1), u.view(b, k, t, -1)
 
     def rollout(self, start: Tensor, num_samples: int, generator: torch.Generator) -> tuple[Tensor, Tensor]:
         """``num_samples`` rollouts of ``horizon`` steps from a checked ``start [d]`` (finite, of the proposal's

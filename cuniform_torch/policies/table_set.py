@@ -47,7 +47,7 @@ from cuniform_torch.policies.table import load_table as load_table_file
 from cuniform_torch.sampling.start_watch import StartMisses, watch_of
 from cuniform_torch.tables.file import Table, TableError, read_table
 
-__all__ = ["SET_FORMAT", "SET_INDEX", "TableSetPolicy", "LazyMembers", "load_table_set", "load_table"]
+__all__ = ["MemberRows", "SET_FORMAT", "SET_INDEX", "TableSetPolicy", "LazyMembers", "load_table_set", "load_table"]
 
 SET_FORMAT = "cuniform-table-set/1"
 SET_INDEX = "tables.json"
@@ -108,6 +108,42 @@ class LazyMembers(Sequence[TablePolicy]):
     def loaded_members(self) -> list[TablePolicy]:
         """The members read so far (reads none)."""
         return [self._members[i] for i in self.loaded]
+
+
+class MemberRows:
+    """Several members of a table set answering one batch of states, each its own rows (``rows[i]``, ``[n_i]``
+    int64: the rows of member ``members[i]``): a rollout of robots whose starts chose different members steps the
+    dynamics once for all of them, with one lookup per member used. A Policy (``actions``, ``action_probs``) with
+    ``draw(x, t, r)`` and ``watch_start``, for :func:`~cuniform_torch.sampling.rollout.rollout`'s plan."""
+
+    def __init__(self, members: Sequence[TablePolicy], rows: Sequence[Tensor]):
+        self.members, self.rows = list(members), list(rows)
+        first = self.members[0]
+        self.system, self.actions, self.horizon = first.system, first.actions, first.horizon
+        self.device, self.dtype, self.start_relative = first.device, first.dtype, first.start_relative
+
+    def _each(self, x: Tensor, answer: Callable[[TablePolicy, Tensor], Tensor], width: int) -> Tensor:
+        out = x.new_empty((x.shape[0], width), dtype=self.dtype)
+        for member, rows in zip(self.members, self.rows):
+            out.index_copy_(0, rows, answer(member, rows))
+        return out
+
+    def action_probs(self, x: Tensor, t: int) -> Tensor:
+        """``x [N, d]`` -> ``[N, A]``, each row from its member."""
+        return self._each(x, lambda m, rows: m.action_probs(x.index_select(0, rows), t), self.actions.shape[0])
+
+    def draw(self, x: Tensor, t: int, r: Tensor) -> Tensor:
+        """``x [N, d]``, uniforms ``r [N]`` -> actions ``[N, q]``, each row drawn by its member."""
+        return self._each(x, lambda m, rows: m.draw(x.index_select(0, rows), t, r.index_select(0, rows)),
+                          self.actions.shape[1])
+
+    def watch_start(self, x0: Tensor, relative: bool) -> Callable[[], None] | None:
+        """Each member's start check of its rows' starts (``x0 [N, d]``)."""
+        reports = [m.watch_start(x0.index_select(0, rows), relative) for m, rows in zip(self.members, self.rows)]
+        done = [r for r in reports if r is not None]
+        if not done:
+            return None
+        return lambda: [r() for r in done] and None
 
 
 class TableSetPolicy:
@@ -282,6 +318,12 @@ class TableSetPolicy:
         index = self._members_of(x, t, start, "sample")
         return self._by_member(index, lambda m, rows: m.sample(x if rows is None else x[rows.to(x.device)], t,
                                                                   generator))
+
+    def draw(self, x: Tensor, t: int, r: Tensor, start: Tensor | None = None) -> Tensor:
+        """:meth:`sample` with the uniforms ``r [N]`` in ``[0, 1)`` given (each member draws as its ``draw``)."""
+        index = self._members_of(x, t, start, "draw")
+        return self._by_member(index, lambda m, rows: m.draw(x if rows is None else x[rows.to(x.device)], t,
+                                                             r if rows is None else r[rows.to(r.device)]))
 
     def watch_start(self, x0: Tensor, relative: bool) -> Callable[[], None] | None:
         """The start check of the member nearest to ``x0`` (what a rollout through :meth:`for_start` runs)."""
