@@ -143,7 +143,11 @@ class MemberRows:
         done = [r for r in reports if r is not None]
         if not done:
             return None
-        return lambda: [r() for r in done] and None
+
+        def report() -> None:
+            for r in done:
+                r()
+        return report
 
 
 class TableSetPolicy:
