@@ -21,14 +21,15 @@ from __future__ import annotations
 import json
 import re
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
 from cuniform_torch.cli import CLIError
-from cuniform_torch.common.fileio import exclusive_lock, write_json
+from cuniform_torch.common.fileio import MAX_JSON_BYTES, exclusive_lock, read_capped_text, write_json
 from cuniform_torch.common.parallel import run_jobs
 from cuniform_torch.systems import System
-from cuniform_torch.tables.file import TableError, read_table
+from cuniform_torch.tables.file import Table, TableError, read_table, system_to_json
 from precompute.one_table import TableJob, build_table_file
 
 __all__ = ["SET_FORMAT", "parse_starts", "build_table_set", "ensure_table_set", "set_complete", "INDEX"]
@@ -91,15 +92,57 @@ def _build_member(job: TableJob) -> Path:
     return build_table_file(job)
 
 
-def _done(path: Path, start: np.ndarray) -> bool:
-    """Whether ``path`` holds a readable table built from ``start``."""
+_SETTINGS = {"maxflow": ("points", "ties", "points_per_cell", "seed", "map_rule"),
+             "coverage": ("target_samples", "merge_resolution", "steps", "lr", "state_budget", "tol")}
+"""the ``build_info`` entries of a member that its build settings decide (the rest are facts of the build)"""
+
+
+def _settings_differ(table: Table, template: TableJob) -> str | None:
+    """What differs between the member ``table`` and what ``template`` would build (the system and its parameters,
+    the horizon, the method, the method's settings), or None."""
+    want = system_to_json(template.system, template.build.horizon)
+    if table.system != want:
+        try:
+            old, new = json.loads(table.system), json.loads(want)
+            keys = sorted(k for k in set(old) | set(new) if old.get(k) != new.get(k))
+            return "; ".join(f"{k}: {old.get(k)!r} there, {new.get(k)!r} now" for k in keys[:3]) or "the system"
+        except (ValueError, AttributeError):
+            return "the system"
+    if (table.method or "maxflow") != template.method:
+        return f"method: {table.method!r} there, {template.method!r} now"
+    try:
+        old_info = json.loads(table.build_info or "{}")
+    except ValueError:
+        return "build_info unreadable"
+    cfg: Any = template.coverage if template.coverage is not None else template.build
+    for key in _SETTINGS[template.method]:
+        if key == "map_rule" or not hasattr(cfg, key):
+            continue
+        new_value = getattr(cfg, key)
+        new_value = getattr(new_value, "value", new_value)
+        if template.method == "maxflow" and key in ("points_per_cell", "seed") and cfg.points.value != "random":
+            new_value = None
+        if old_info.get(key) != new_value:
+            return f"{key}: {old_info.get(key)!r} there, {new_value!r} now"
+    return None
+
+
+def _done(path: Path, start: np.ndarray, template: TableJob) -> bool:
+    """Whether ``path`` holds a readable table built from ``start`` with ``template``'s settings; a ValueError when
+    it holds a table built from ``start`` with other settings (a rerun never keeps a stale member silently)."""
     if not path.exists():
         return False
     try:
         table = read_table(path, graph=False)
     except TableError:
         return False
-    return table.start is not None and np.array_equal(table.start, start)
+    if table.start is None or not np.array_equal(table.start, start):
+        return False
+    differ = _settings_differ(table, template)
+    if differ is not None:
+        raise ValueError(f"the table set {path.parent} was built with other settings ({path.name}: {differ}); "
+                         f"use another --out, or delete {path.parent} to build it anew")
+    return True
 
 
 def build_table_set(template: TableJob, starts: np.ndarray, out: Path, workers: int = 1,
@@ -121,7 +164,7 @@ def _build_set(template: TableJob, starts: np.ndarray, out: Path, workers: int, 
     out.mkdir(parents=True, exist_ok=True)
     files = [out / f"start_{i:04d}.npz" for i in range(len(starts))]
     todo = [(i, template.from_start(tuple(float(v) for v in s), f))
-            for i, (s, f) in enumerate(zip(starts, files)) if not _done(f, s)]
+            for i, (s, f) in enumerate(zip(starts, files)) if not _done(f, s, template)]
     say = (lambda *a: None) if template.quiet else print
     say(f"table set: {len(starts)} starts, {len(starts) - len(todo)} already built in {out}; building {len(todo)} "
         f"({'Ray' if ray_address else f'{workers} worker(s)'})")
@@ -162,7 +205,7 @@ def ensure_table_set(template: TableJob, starts: np.ndarray, folder: Path, worke
 def set_complete(folder: Path, count: int | None = None) -> bool:
     """Whether ``folder`` holds a finished set (its index lists ``count`` tables, when given, and every file)."""
     try:
-        index = json.loads((Path(folder) / INDEX).read_text())
+        index = json.loads(read_capped_text(Path(folder) / INDEX, MAX_JSON_BYTES, "the table-set index"))
     except (OSError, ValueError):
         return False
     tables = index.get("tables") if isinstance(index, dict) else None

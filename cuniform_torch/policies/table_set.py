@@ -42,6 +42,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from cuniform_torch.common.fileio import MAX_JSON_BYTES, read_capped_text
 from cuniform_torch.policies.table import TablePolicy
 from cuniform_torch.policies.table import load_table as load_table_file
 from cuniform_torch.sampling.start_watch import StartMisses, watch_of
@@ -346,7 +347,7 @@ def load_table_set(folder: str | os.PathLike, device: torch.device | str = "cpu"
     folder = Path(folder)
     index_path = folder / SET_INDEX
     try:
-        index = json.loads(index_path.read_text())
+        index = json.loads(read_capped_text(index_path, MAX_JSON_BYTES, "the table-set index"))
     except (OSError, ValueError) as exc:
         raise TableError(f"{index_path}: not a readable table-set index ({exc})") from None
     except RecursionError:  # the json module's own limit: arrays or objects nested thousands deep

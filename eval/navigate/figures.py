@@ -14,6 +14,7 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 
 from cuniform_torch.cli import ArgumentParser, cli_main
+from cuniform_torch.common.fileio import MAX_JSON_BYTES, read_capped_text
 from eval.common.figures import method_style, plt, save_figure
 
 __all__ = ["TB_METRICS", "success_figure", "write_tensorboard", "main"]
@@ -129,7 +130,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     labels: dict = {}
     for path in args.results:
         try:
-            res = json.loads(path.read_text())
+            res = json.loads(read_capped_text(path, MAX_JSON_BYTES, "a result file"))
             rows += res["summary"]
             labels.update(res["labels"])
         except (OSError, ValueError, KeyError, TypeError) as err:

@@ -41,7 +41,7 @@ import numpy as np
 import torch
 
 from cuniform_torch.common.digest import DIGEST_KEY, DigestError, check_digest, content_digest
-from cuniform_torch.common.fileio import write_npz
+from cuniform_torch.common.fileio import MAX_JSON_BYTES, open_regular, read_capped_text, write_npz
 from cuniform_torch.common.npz import NpzError, member_headers, read_npz
 from cuniform_torch.grid.cells import CellKeys, CellSet, Grid
 from cuniform_torch.systems import System, system_from_json, system_to_json
@@ -143,7 +143,7 @@ class MapDataset:
 def file_sha256(path: str | Path) -> str:
     """sha256 (hex) of a file's bytes."""
     h = hashlib.sha256()
-    with open(path, "rb") as fh:
+    with open_regular(path) as fh:
         for block in iter(lambda: fh.read(1 << 20), b""):
             h.update(block)
     return h.hexdigest()
@@ -197,7 +197,7 @@ def read_map_dataset(root: str | Path, load: bool = False, verify_all: bool = Fa
     if not path.is_file():
         raise MapDatasetError(f"{path}: no dataset.json there (an unfinished or missing data set)")
     try:
-        meta = json.loads(path.read_text())
+        meta = json.loads(read_capped_text(path, MAX_JSON_BYTES, "the data-set manifest"))
     except (OSError, UnicodeDecodeError, ValueError, RecursionError) as exc:  # RecursionError: nested too deep
         raise MapDatasetError(f"{path}: not readable JSON ({type(exc).__name__}: {exc})") from None
     ds = _dataset_from_meta(meta, root, path)

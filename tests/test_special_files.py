@@ -1,0 +1,234 @@
+"""What a path points to (issue 38): every reader opens only regular files and says so otherwise -- a FIFO, a
+device, or a symlink to one is one clear error before any read, never a hang or an unbounded read; JSON and JSONL
+readers read with a size cap; a benchmark folder whose files are links is refused, never written through; an
+output that names a device is refused before anything is written; a table set rebuilt with other settings is
+refused rather than kept stale.
+
+Every call that could hang on a FIFO runs through :func:`_quick` (a thread joined with a timeout), so a broken
+check fails the test instead of hanging the suite."""
+
+from __future__ import annotations
+
+import json
+import os
+import stat
+import threading
+from pathlib import Path
+
+import pytest
+
+from cuniform_torch.cli import CLIError, check_output_file, check_output_folder
+from cuniform_torch.common.fileio import (
+    FileKindError,
+    FileTooLargeError,
+    atomic_path,
+    read_capped_bytes,
+    read_capped_text,
+    write_json,
+)
+from eval.navigate.store import EpisodeStore, StoreError
+from tests.test_bench_records import bench_record, bench_settings
+
+pytestmark = pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="POSIX special files")
+
+
+def _quick(fn, *args, timeout: float = 20.0, **kwargs):
+    """``fn(*args, **kwargs)`` in a thread: its result, or the exception it raised; a failed test (never a hung
+    suite) when it does not return within ``timeout`` seconds (a FIFO opened blocking, an endless read)."""
+    out: dict = {}
+
+    def run() -> None:
+        try:
+            out["value"] = fn(*args, **kwargs)
+        except BaseException as exc:  # noqa: BLE001 -- handed to the test
+            out["error"] = exc
+
+    thread = threading.Thread(target=run, daemon=True)
+    thread.start()
+    thread.join(timeout)
+    if thread.is_alive():
+        _unblock(args)
+        pytest.fail(f"{getattr(fn, '__name__', fn)} did not return within {timeout} s (it blocks on a special file)")
+    if "error" in out:
+        raise out["error"]
+    return out.get("value")
+
+
+def _unblock(args) -> None:
+    """Open each FIFO among ``args`` for writing without blocking, so a reader stuck opening it returns."""
+    for arg in args:
+        try:
+            if isinstance(arg, (str, Path)) and stat.S_ISFIFO(os.stat(arg).st_mode):
+                os.close(os.open(arg, os.O_RDWR | os.O_NONBLOCK))
+        except OSError:
+            pass
+
+
+def _fifo(path: Path) -> Path:
+    os.mkfifo(path)
+    return path
+
+
+# ------------------------------------------------------------------------------------------ the shared readers
+
+@pytest.mark.parametrize("kind", ["fifo", "zero", "urandom", "folder"])
+def test_the_capped_reader_refuses_what_is_not_a_regular_file(tmp_path, kind):
+    path = tmp_path / "tables.json"
+    if kind == "fifo":
+        _fifo(path)
+    elif kind == "folder":
+        path.mkdir()
+    else:
+        path.symlink_to(f"/dev/{kind}")
+    with pytest.raises(FileKindError, match="not a regular file") as err:
+        _quick(read_capped_text, path, 1 << 20, "the table-set index")
+    assert str(path) in str(err.value)
+    if kind in ("zero", "urandom"):
+        assert "character device (through a symlink)" in str(err.value)
+
+
+def test_the_capped_reader_refuses_a_file_over_its_cap_from_its_size(tmp_path):
+    path = tmp_path / "big.json"
+    with open(path, "wb") as fh:  # sparse: 2 GB claimed, nothing stored, never read
+        fh.truncate(2 << 30)
+    with pytest.raises(FileTooLargeError, match="over the limit of 1024 bytes"):
+        read_capped_bytes(path, 1024)
+    path.write_bytes(b"x" * 1024)
+    assert read_capped_bytes(path, 1024) == b"x" * 1024  # at the cap: read
+
+
+def test_an_atomic_write_never_replaces_a_special_file(tmp_path):
+    fifo = _fifo(tmp_path / "out.json")
+    with pytest.raises(FileKindError, match="FIFO"):
+        write_json(fifo, {"a": 1})
+    assert stat.S_ISFIFO(os.stat(fifo).st_mode)  # still the FIFO
+    with pytest.raises(FileKindError, match="character device"), atomic_path("/dev/null"):
+        pass
+    assert stat.S_ISCHR(os.stat("/dev/null").st_mode)
+
+
+# ------------------------------------------------------------------------------------------ the table-set index
+
+@pytest.mark.parametrize("target", ["fifo", "/dev/zero", "/dev/urandom"])
+def test_a_table_set_index_that_is_a_special_file_is_one_clear_error(tmp_path, target):
+    from cuniform_torch.policies.table_set import load_table_set
+    from cuniform_torch.tables.file import TableError
+
+    index = tmp_path / "tables.json"
+    if target == "fifo":
+        _fifo(index)
+    else:
+        index.symlink_to(target)
+    with pytest.raises(TableError, match="not a regular file"):
+        _quick(load_table_set, tmp_path)
+
+
+# ------------------------------------------------------------------------------------------ benchmark folders
+
+def _store(folder: Path) -> EpisodeStore:
+    store = EpisodeStore(folder)
+    store.open(bench_settings())
+    store.append(bench_record(0))
+    return store
+
+
+def test_benchmark_records_that_are_a_fifo_are_refused_not_waited_on(tmp_path):
+    store = _store(tmp_path / "run")
+    store.records_file.unlink()
+    _fifo(store.records_file)
+    for read in (store.load, store.check, lambda: store.open(bench_settings())):
+        with pytest.raises(StoreError, match="FIFO"):
+            _quick(read)
+
+
+def test_benchmark_settings_that_are_a_fifo_are_refused(tmp_path):
+    store = _store(tmp_path / "run")
+    store.settings_file.unlink()
+    _fifo(store.settings_file)
+    for read in (store.load, store.check):
+        with pytest.raises(StoreError, match="FIFO"):
+            _quick(read)
+
+
+def test_benchmark_records_linked_to_a_device_are_refused(tmp_path):
+    store = _store(tmp_path / "run")
+    store.records_file.unlink()
+    store.records_file.symlink_to("/dev/zero")
+    with pytest.raises(StoreError, match="not a regular file"):
+        _quick(store.load)  # a reader: never an endless read
+    with pytest.raises(StoreError, match="symlink"):
+        store.open(bench_settings())  # a run: never written through
+
+
+@pytest.mark.parametrize("target", ["other", "/dev/null"])
+def test_a_benchmark_folder_whose_records_link_elsewhere_is_refused_never_written_through(tmp_path, target):
+    other = _store(tmp_path / "other")
+    before = other.records_file.read_bytes()
+    store = _store(tmp_path / "run")
+    store.records_file.unlink()
+    store.records_file.symlink_to(other.records_file if target == "other" else target)
+    for run in (store.check, lambda: store.open(bench_settings())):
+        with pytest.raises(StoreError, match="is a symlink .*replace the link"):
+            run()
+    with pytest.raises(OSError):  # the append itself never follows a link either
+        store.append(bench_record(5))
+    assert other.records_file.read_bytes() == before
+    assert stat.S_ISCHR(os.stat("/dev/null").st_mode)
+
+
+def test_benchmark_settings_linked_elsewhere_are_refused(tmp_path):
+    other = _store(tmp_path / "other")
+    store = EpisodeStore(tmp_path / "run")
+    store.folder.mkdir()
+    store.settings_file.symlink_to(other.settings_file)
+    with pytest.raises(StoreError, match="is a symlink"):
+        store.open(bench_settings())
+
+
+# ------------------------------------------------------------------------------------------ outputs and devices
+
+@pytest.mark.parametrize("path", ["/dev/null", "/dev/full", "/dev/stdout"])
+def test_an_output_naming_a_device_is_refused(path):
+    if not os.path.exists(path):
+        pytest.skip(f"{path} is missing here")
+    with pytest.raises(CLIError, match=f"--json {path} is "):
+        check_output_file(path, "--json")
+    with pytest.raises(CLIError, match=f"--out {path} is "):
+        check_output_folder(path, "--out")
+
+
+def test_an_output_that_is_a_fifo_is_refused(tmp_path):
+    fifo = _fifo(tmp_path / "out.json")
+    with pytest.raises(CLIError, match="FIFO"):
+        check_output_file(fifo, "--json")
+
+
+def test_build_to_dev_null_is_one_line_and_leaves_it_a_device(capsys):
+    from precompute.build import main
+
+    assert main(["--system", "random_walk_1d", "--horizon", "3", "--no-report", "--quiet", "--out", "/dev/null"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "error: --out /dev/null is a character device" in err
+    assert stat.S_ISCHR(os.stat("/dev/null").st_mode) and not os.path.exists("/dev/null.report.json")
+
+
+# ------------------------------------------------------------------------------------------ a rebuilt table set
+
+@pytest.mark.parametrize("change, said", [(["--horizon", "5"], "horizon: 4 there, 5 now"),
+                                          (["--points", "random"], "points: 'centers' there, 'random' now")])
+def test_a_table_set_rebuilt_with_other_settings_is_refused_not_kept_stale(tmp_path, capsys, change, said):
+    from precompute.build import main
+
+    base = ["--system", "random_walk_1d", "--horizon", "4", "--quiet", "--starts", "0=-1:1:3", "--out", str(tmp_path)]
+    assert main(base) == 0
+    index = (tmp_path / "tables.json").read_bytes()
+    members = {p.name: p.read_bytes() for p in tmp_path.glob("start_*.npz")}
+    capsys.readouterr()
+    argv = [*base, *change]
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert "built with other settings" in err and said in err and "delete" in err
+    assert (tmp_path / "tables.json").read_bytes() == index  # nothing rewritten
+    assert {p.name: p.read_bytes() for p in tmp_path.glob("start_*.npz")} == members
+    assert main(base) == 0  # the same settings still resume
+    assert json.loads((tmp_path / "tables.json").read_text())["tables"][0]["file"] == "start_0000.npz"
