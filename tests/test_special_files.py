@@ -102,9 +102,11 @@ def test_an_atomic_write_never_replaces_a_special_file(tmp_path):
     with pytest.raises(FileKindError, match="FIFO"):
         write_json(fifo, {"a": 1})
     assert stat.S_ISFIFO(os.stat(fifo).st_mode)  # still the FIFO
-    with pytest.raises(FileKindError, match="character device"), atomic_path("/dev/null"):
+    link = tmp_path / "null.json"  # never /dev/null itself: a regression run as root would replace the device
+    link.symlink_to("/dev/null")
+    with pytest.raises(FileKindError, match="character device"), atomic_path(link):
         pass
-    assert stat.S_ISCHR(os.stat("/dev/null").st_mode)
+    assert link.is_symlink() and stat.S_ISCHR(os.stat("/dev/null").st_mode)
 
 
 # ------------------------------------------------------------------------------------------ the table-set index
@@ -203,13 +205,15 @@ def test_an_output_that_is_a_fifo_is_refused(tmp_path):
         check_output_file(fifo, "--json")
 
 
-def test_build_to_dev_null_is_one_line_and_leaves_it_a_device(capsys):
+def test_build_to_a_device_is_one_line_and_leaves_it_a_device(tmp_path, capsys):
     from precompute.build import main
 
-    assert main(["--system", "random_walk_1d", "--horizon", "3", "--no-report", "--quiet", "--out", "/dev/null"]) == 2
+    out = tmp_path / "null.npz"  # a link to /dev/null, not the device: a regression never replaces /dev/null
+    out.symlink_to("/dev/null")
+    assert main(["--system", "random_walk_1d", "--horizon", "3", "--quiet", "--out", str(out)]) == 2
     err = capsys.readouterr().err
-    assert err.count("\n") == 1 and "error: --out /dev/null is a character device" in err
-    assert stat.S_ISCHR(os.stat("/dev/null").st_mode) and not os.path.exists("/dev/null.report.json")
+    assert err.count("\n") == 1 and f"error: --out {out} is a character device (through a symlink)" in err
+    assert out.is_symlink() and not (tmp_path / "null.report.json").exists()
 
 
 # ------------------------------------------------------------------------------------------ a rebuilt table set
