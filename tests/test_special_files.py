@@ -109,6 +109,20 @@ def test_an_atomic_write_never_replaces_a_special_file(tmp_path):
     assert link.is_symlink() and stat.S_ISCHR(os.stat("/dev/null").st_mode)
 
 
+def test_a_world_file_and_a_training_state_that_are_fifos_are_refused(tmp_path):
+    from cuniform_torch.envs.worlds.barn_format import BarnFormatError
+    from cuniform_torch.envs.worlds.barn_worlds import _parse_world
+    from training.tables.train_state import UsageError, load_train_state
+
+    world = _fifo(tmp_path / "world_0.world")
+    with pytest.raises(BarnFormatError, match="FIFO"):
+        _quick(_parse_world, world)
+    state = tmp_path / "state.pt"
+    state.symlink_to("/dev/zero")
+    with pytest.raises(UsageError, match="character device"):
+        _quick(load_train_state, state, {})
+
+
 # ------------------------------------------------------------------------------------------ the table-set index
 
 @pytest.mark.parametrize("target", ["fifo", "/dev/zero", "/dev/urandom"])
