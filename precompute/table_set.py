@@ -104,6 +104,8 @@ def _settings_differ(table: Table, template: TableJob) -> str | None:
     if table.system != want:
         try:
             old, new = json.loads(table.system), json.loads(want)
+            old = {**{k: v for k, v in old.items() if k != "params"}, **(old.get("params") or {})}
+            new = {**{k: v for k, v in new.items() if k != "params"}, **(new.get("params") or {})}
             keys = sorted(k for k in set(old) | set(new) if old.get(k) != new.get(k))
             return "; ".join(f"{k}: {old.get(k)!r} there, {new.get(k)!r} now" for k in keys[:3]) or "the system"
         except (ValueError, AttributeError):

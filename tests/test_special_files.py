@@ -233,6 +233,8 @@ def test_build_to_a_device_is_one_line_and_leaves_it_a_device(tmp_path, capsys):
 # ------------------------------------------------------------------------------------------ a rebuilt table set
 
 @pytest.mark.parametrize("change, said", [(["--horizon", "5"], "horizon: 4 there, 5 now"),
+                                          (["--num-actions", "3"], "num_actions: 5 there, 3 now"),
+                                          (["--param", "dt=2"], "dt: 1"),
                                           (["--points", "random"], "points: 'centers' there, 'random' now")])
 def test_a_table_set_rebuilt_with_other_settings_is_refused_not_kept_stale(tmp_path, capsys, change, said):
     from precompute.build import main
