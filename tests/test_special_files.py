@@ -123,6 +123,20 @@ def test_a_world_file_and_a_training_state_that_are_fifos_are_refused(tmp_path):
         _quick(load_train_state, state, {})
 
 
+@pytest.mark.parametrize("target", ["fifo", "/dev/zero", "/dev/urandom"])
+def test_an_npz_that_is_a_special_file_is_refused_by_name(tmp_path, target):
+    from cuniform_torch.common.npz import NpzError, member_headers, read_npz
+
+    path = tmp_path / "t.npz"
+    if target == "fifo":
+        _fifo(path)
+    else:
+        path.symlink_to(target)
+    for read in (read_npz, member_headers):
+        with pytest.raises(NpzError, match=r"t\.npz: a (FIFO|character device).*, not a regular file"):
+            _quick(read, path)
+
+
 # ------------------------------------------------------------------------------------------ the table-set index
 
 @pytest.mark.parametrize("target", ["fifo", "/dev/zero", "/dev/urandom"])

@@ -72,7 +72,7 @@ def file_kind(mode: int) -> str:
 
 def _not_regular(path: Path, mode: int, what: str) -> FileKindError:
     link = " (through a symlink)" if path.is_symlink() else ""
-    return FileKindError(f"{path}: {what} is {file_kind(mode)}{link}, not a regular file; give a regular file")
+    return FileKindError(f"{path}: {what} is {file_kind(mode)}{link}, not a regular file")
 
 
 def open_regular(path: str | os.PathLike, what: str = "the file") -> io.BufferedReader:
