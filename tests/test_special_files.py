@@ -153,6 +153,18 @@ def test_a_table_set_index_that_is_a_special_file_is_one_clear_error(tmp_path, t
         _quick(load_table_set, tmp_path)
 
 
+@pytest.mark.parametrize("name, said", [("a" * 300 + ".npz", "is not usable .*File name too long"),
+                                        ("nul\0.npz", "but missing")], ids=["too-long", "nul"])
+def test_a_table_set_member_name_the_system_cannot_use_is_one_table_error(tmp_path, name, said):
+    from cuniform_torch.policies.table_set import load_table_set
+    from cuniform_torch.tables.file import TableError
+
+    (tmp_path / "tables.json").write_text(json.dumps({"format": "cuniform-table-set/1", "system": "random_walk_1d",
+                                                      "tables": [{"file": name, "start": [0.0]}]}))
+    with pytest.raises(TableError, match=said):
+        load_table_set(tmp_path)
+
+
 # ------------------------------------------------------------------------------------------ benchmark folders
 
 def _store(folder: Path) -> EpisodeStore:

@@ -363,7 +363,11 @@ def load_table_set(folder: str | os.PathLike, device: torch.device | str = "cpu"
                 or "\\" in entry["file"]:
             raise TableError(f"{index_path}: each table needs a file name in the folder, got {entry!r}")
         path = folder / entry["file"]
-        if not path.is_file():
+        try:
+            found = path.is_file()
+        except (OSError, ValueError) as exc:  # a name too long, a NUL byte
+            raise TableError(f"{index_path}: the table file name {entry['file'][:40]!r}... is not usable ({exc})") from None
+        if not found:
             raise TableError(f"{path}: listed in {index_path} but missing")
         try:
             start = np.asarray(entry.get("start"), dtype=np.float64)
