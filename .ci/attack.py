@@ -5,7 +5,7 @@
 For each file family (table, table set, MLP / start-MLP / map-policy checkpoint, map data set, local map,
 benchmark folder) it writes a small valid original with the project's own writers, makes mutated copies (flipped
 bytes, truncation, crafted ``.npy`` headers, wrong dtypes and shapes, NaN / inf / 1e38, missing and extra keys,
-pickle payloads, JSON of the wrong types, duplicates, symlink loops, ...) and reads each copy through the
+pickle payloads, JSON of the wrong types, duplicates, symlink loops, FIFOs and links to devices, ...) and reads each copy through the
 family's reader API in a forked child of this process (torch and the package already imported, one thread), so
 each case is a fresh process whose memory peak is its own. Each ``python -m`` command is run the same way (its
 module run as ``__main__`` in a forked child, in an empty folder) with bad flag values: the bad-input classes of
@@ -891,14 +891,27 @@ def _replace_by_folder(path: Path) -> None:
     path.mkdir()
 
 
+def _replace_by_special(path: Path, target: str) -> None:
+    """``path`` replaced by a FIFO (``target`` ``"fifo"``) or by a symlink to ``target`` (a device)."""
+    if path.exists() or path.is_symlink():
+        path.unlink()
+    if target == "fifo":
+        os.mkfifo(path)
+    else:
+        path.symlink_to(target)
+
+
 def _broken(name: str, label: str | None = None, missing: bool = True) -> list[tuple[str, Callable[[Path], None]]]:
-    """The file ``name`` of a folder missing (when ``missing``), a folder, a symlink loop: three damaged-folder cases
-    (labelled ``label``, default the name)."""
+    """The file ``name`` of a folder missing (when ``missing``), a folder, a symlink loop, a FIFO, a symlink to
+    ``/dev/zero`` or ``/dev/urandom``: the damaged-folder cases (labelled ``label``, default the name)."""
     label = label or name
     cases: list[tuple[str, Callable[[Path], None]]] = [(f"{label} missing", lambda dst: (dst / name).unlink())]
     return (cases if missing else []) + [
         (f"{label} is a folder", lambda dst: _replace_by_folder(dst / name)),
-        (f"{label} is a symlink loop", lambda dst: _symlink_loop(dst / name))]
+        (f"{label} is a symlink loop", lambda dst: _symlink_loop(dst / name)),
+        (f"{label} is a FIFO", lambda dst: _replace_by_special(dst / name, "fifo")),
+        (f"{label} links to /dev/zero", lambda dst: _replace_by_special(dst / name, "/dev/zero")),
+        (f"{label} links to /dev/urandom", lambda dst: _replace_by_special(dst / name, "/dev/urandom"))]
 
 
 def table_family(work: Path, quick: bool) -> Family:
@@ -1291,6 +1304,11 @@ def table_set_family(work: Path, quick: bool) -> Family:
          lambda dst: shutil.copy(other / "start_0000.npz", dst / member)),
         *_broken(member, "member 1"), *_broken("tables.json"),
         ("the folder is a symlink loop", lambda dst: _symlink_loop(dst)),
+        ("episodes.jsonl links into another benchmark folder",
+         lambda dst: _replace_by_special(dst / "episodes.jsonl", str((original / "episodes.jsonl").resolve()))),
+        ("settings.json links into another benchmark folder",
+         lambda dst: _replace_by_special(dst / "settings.json", str((original / "settings.json").resolve()))),
+        ("episodes.jsonl links to /dev/null", lambda dst: _replace_by_special(dst / "episodes.jsonl", "/dev/null")),
         ("an unknown file in the folder", lambda dst: (dst / "notes.txt").write_text("hello")),
     ]
     return Family("table set (folder)", ["table_set"], original,
@@ -1360,6 +1378,11 @@ def bench_family(work: Path, quick: bool) -> Family:
         ("settings.json missing (records left)", lambda dst: (dst / "settings.json").unlink()),
         *_broken("settings.json", missing=False),
         ("the folder is a symlink loop", lambda dst: _symlink_loop(dst)),
+        ("episodes.jsonl links into another benchmark folder",
+         lambda dst: _replace_by_special(dst / "episodes.jsonl", str((original / "episodes.jsonl").resolve()))),
+        ("settings.json links into another benchmark folder",
+         lambda dst: _replace_by_special(dst / "settings.json", str((original / "settings.json").resolve()))),
+        ("episodes.jsonl links to /dev/null", lambda dst: _replace_by_special(dst / "episodes.jsonl", "/dev/null")),
         ("an unknown file in the folder", lambda dst: (dst / "notes.txt").write_text("hello")),
     ]
     return Family("benchmark folder", ["bench"], original,

@@ -288,8 +288,8 @@ class EpisodeStore:
 
     def _check_own_files(self) -> None:
         """A :class:`StoreError` when ``settings.json`` or ``episodes.jsonl`` is a symlink (a run would write
-        through it, into another folder or ``/dev/null``) or not a regular file (a FIFO, a device): a run writes
-        only the folder's own files."""
+        through it, into another folder or ``/dev/null``; a reader would report another folder's episodes) or not a
+        regular file (a FIFO, a device): a run and a reader use only the folder's own files."""
         for path in (self.settings_file, self.records_file):
             try:
                 mode = os.lstat(path).st_mode
@@ -298,8 +298,8 @@ class EpisodeStore:
             except OSError as err:
                 raise StoreError(f"{path}: cannot be checked ({err.strerror or err}); use another --out") from None
             if stat.S_ISLNK(mode):
-                raise StoreError(f"{path} is a symlink (to {os.readlink(path)}); a run writes only the benchmark "
-                                 "folder's own files: replace the link with a copy of the file, or use another --out")
+                raise StoreError(f"{path} is a symlink (to {os.readlink(path)}); a benchmark folder's files are its "
+                                 "own: replace the link with a copy of the file, or use another --out")
             if not stat.S_ISREG(mode):
                 raise StoreError(f"{path} is {file_kind(mode)}, not a regular file; remove it, or use another --out")
 
@@ -329,6 +329,7 @@ class EpisodeStore:
         return self._load(note=True)
 
     def _load(self, note: bool) -> tuple[dict[str, Any], dict[str, dict]]:
+        self._check_own_files()  # a link: whose records these are is unknown (and a run would write through it)
         settings = self.read_settings()
         records, _, cut, line = self._parse(settings["suite"])
         if cut and note and not self._noted_cut:  # never silently: the reader's numbers lack that episode
