@@ -1304,11 +1304,6 @@ def table_set_family(work: Path, quick: bool) -> Family:
          lambda dst: shutil.copy(other / "start_0000.npz", dst / member)),
         *_broken(member, "member 1"), *_broken("tables.json"),
         ("the folder is a symlink loop", lambda dst: _symlink_loop(dst)),
-        ("episodes.jsonl links into another benchmark folder",
-         lambda dst: _replace_by_special(dst / "episodes.jsonl", str((original / "episodes.jsonl").resolve()))),
-        ("settings.json links into another benchmark folder",
-         lambda dst: _replace_by_special(dst / "settings.json", str((original / "settings.json").resolve()))),
-        ("episodes.jsonl links to /dev/null", lambda dst: _replace_by_special(dst / "episodes.jsonl", "/dev/null")),
         ("an unknown file in the folder", lambda dst: (dst / "notes.txt").write_text("hello")),
     ]
     return Family("table set (folder)", ["table_set"], original,

@@ -42,7 +42,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from cuniform_torch.common.fileio import MAX_JSON_BYTES, read_capped_text
+from cuniform_torch.common.fileio import MAX_JSON_BYTES, file_kind, read_capped_text
 from cuniform_torch.policies.table import TablePolicy
 from cuniform_torch.policies.table import load_table as load_table_file
 from cuniform_torch.sampling.start_watch import StartMisses, watch_of
@@ -368,7 +368,8 @@ def load_table_set(folder: str | os.PathLike, device: torch.device | str = "cpu"
         except (OSError, ValueError) as exc:  # a name too long, a NUL byte
             raise TableError(f"{index_path}: the table file name {entry['file'][:40]!r}... is not usable ({exc})") from None
         if not found:
-            raise TableError(f"{path}: listed in {index_path} but missing")
+            kind = f"{file_kind(os.stat(path).st_mode)}, not a regular file" if path.exists() else "missing"
+            raise TableError(f"{path}: listed in {index_path} but {kind}")
         try:
             start = np.asarray(entry.get("start"), dtype=np.float64)
         except (TypeError, ValueError):
