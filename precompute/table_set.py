@@ -19,6 +19,7 @@ per table its file and start.
 from __future__ import annotations
 
 import json
+import math
 import re
 from pathlib import Path
 from typing import Any
@@ -32,15 +33,20 @@ from cuniform_torch.systems import System
 from cuniform_torch.tables.file import Table, TableError, read_table, system_to_json
 from precompute.one_table import TableJob, build_table_file
 
-__all__ = ["SET_FORMAT", "parse_starts", "build_table_set", "ensure_table_set", "set_complete", "INDEX"]
+__all__ = ["SET_FORMAT", "parse_starts", "build_table_set", "ensure_table_set", "set_complete", "INDEX",
+           "MAX_SET_MEMBERS"]
 
 SET_FORMAT = "cuniform-table-set/1"
 INDEX = "tables.json"
+MAX_SET_MEMBERS = 10_000
+"""the most starts ``--starts`` may name (the members' four-digit names) unless ``--no-limit``: a grid's counts
+multiply, and a million-member set wrote thousands of tables before anyone noticed"""
 _ITEM = re.compile(r"^(\d+)=([^:]+):([^:]+)(?::(\d+))?$")
 
 
-def parse_starts(spec: str, system: System, seed: int = 0) -> np.ndarray:
-    """The starts ``[S, d]`` float64 that ``spec`` names (module docstring); a clear ValueError otherwise."""
+def parse_starts(spec: str, system: System, seed: int = 0, limit: int | None = MAX_SET_MEMBERS) -> np.ndarray:
+    """The starts ``[S, d]`` float64 that ``spec`` names (module docstring); a clear ValueError otherwise, also
+    when they are more than ``limit`` (None: no limit), checked from the counts before any start is made."""
     d = len(system.periodic)
     words = spec.split()
     if not words:
@@ -77,6 +83,10 @@ def parse_starts(spec: str, system: System, seed: int = 0) -> np.ndarray:
     if not ranges:
         raise ValueError("--starts names no dimension; e.g. --starts '3=0:1:5'")
     dims = sorted(ranges)
+    count = sample if sample is not None else math.prod(int(ranges[k][2] or 1) for k in dims)
+    if limit is not None and count > limit:
+        raise ValueError(f"--starts names {count:,} starts, more than the limit of {limit:,} tables in a set; give "
+                         "fewer (grid counts multiply), or --no-limit to build them all")
     if sample is None:
         axes = [np.linspace(ranges[k][0], ranges[k][1], ranges[k][2]) for k in dims]
         values = np.stack([a.ravel() for a in np.meshgrid(*axes, indexing="ij")], axis=1)  # [S, len(dims)]

@@ -277,3 +277,36 @@ def test_a_table_set_rebuilt_with_other_settings_is_refused_not_kept_stale(tmp_p
     assert {p.name: p.read_bytes() for p in tmp_path.glob("start_*.npz")} == members
     assert main(base) == 0  # the same settings still resume
     assert json.loads((tmp_path / "tables.json").read_text())["tables"][0]["file"] == "start_0000.npz"
+
+
+# ------------------------------------------------------------------------------------------ runaway counts
+
+@pytest.mark.parametrize("spec, count", [("0=-1:1:20001", "20,001"), ("random:1000000 0=-1:1", "1,000,000")])
+def test_a_starts_grid_over_the_limit_is_refused_before_any_work(tmp_path, capsys, monkeypatch, spec, count):
+    import time
+
+    import precompute.build
+    from precompute.build import main
+
+    def never(*args, **kwargs):
+        raise AssertionError("the set was built")
+
+    monkeypatch.setattr(precompute.build, "build_table_set", never)  # a regression fails here, never builds
+
+    begin = time.perf_counter()
+    assert main(["--system", "random_walk_1d", "--horizon", "3", "--quiet", "--starts", spec,
+                 "--out", str(tmp_path / "set")]) == 2
+    err = capsys.readouterr().err
+    assert f"--starts names {count} starts, more than the limit of 10,000" in err and "--no-limit" in err
+    assert time.perf_counter() - begin < 5.0 and not (tmp_path / "set").exists()
+    from cuniform_torch import make_system
+    from precompute.table_set import parse_starts
+
+    assert len(parse_starts("0=-1:1:20001", make_system("random_walk_1d"), limit=None)) == 20001  # --no-limit
+
+
+def test_no_limit_without_starts_is_refused(tmp_path, capsys):
+    from precompute.build import main
+
+    assert main(["--system", "random_walk_1d", "--no-limit", "--out", str(tmp_path / "t.npz")]) == 2
+    assert "give --starts too" in capsys.readouterr().err
