@@ -310,3 +310,35 @@ def test_no_limit_without_starts_is_refused(tmp_path, capsys):
 
     assert main(["--system", "random_walk_1d", "--no-limit", "--out", str(tmp_path / "t.npz")]) == 2
     assert "give --starts too" in capsys.readouterr().err
+
+
+def _index(folder: Path, entries: list[dict]) -> None:
+    (folder / "tables.json").write_text(json.dumps({"format": "cuniform-table-set/1", "system": "random_walk_1d",
+                                                    "tables": entries}))
+
+
+def test_a_table_set_index_of_too_many_entries_is_refused_at_once(tmp_path):
+    import time
+
+    from cuniform_torch.policies.table_set import MAX_SET_TABLES, load_table_set
+    from cuniform_torch.tables.file import TableError
+
+    _index(tmp_path, [{"file": f"start_{i:06d}.npz", "start": [float(i)]} for i in range(MAX_SET_TABLES + 1)])
+    begin = time.perf_counter()
+    with pytest.raises(TableError, match="lists 100,001 tables, more than the 100,000"):
+        load_table_set(tmp_path)
+    assert time.perf_counter() - begin < 5.0
+
+
+def test_one_member_listed_20000_times_is_refused_in_a_moment(tmp_path):
+    import time
+
+    from cuniform_torch.policies.table_set import load_table_set
+    from cuniform_torch.tables.file import TableError
+
+    (tmp_path / "start_0000.npz").write_bytes(b"not read")
+    _index(tmp_path, [{"file": "start_0000.npz", "start": [float(i)]} for i in range(20_000)])
+    begin = time.perf_counter()
+    with pytest.raises(TableError, match="start_0000.npz listed more than once"):
+        load_table_set(tmp_path)
+    assert time.perf_counter() - begin < 10.0  # was 47 s: a count per entry
