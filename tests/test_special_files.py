@@ -342,3 +342,36 @@ def test_one_member_listed_20000_times_is_refused_in_a_moment(tmp_path):
     with pytest.raises(TableError, match="start_0000.npz listed more than once"):
         load_table_set(tmp_path)
     assert time.perf_counter() - begin < 10.0  # was 47 s: a count per entry
+
+
+# ------------------------------------------------------------------------------------------ a lock on a full disk
+
+def test_a_lock_that_cannot_be_written_is_removed_and_names_the_file(tmp_path, monkeypatch):
+    import errno
+
+    from cuniform_torch.common import fileio
+
+    real_fdopen = os.fdopen
+
+    class Full:
+        def __init__(self, fd):
+            self.fh = real_fdopen(fd, "w")
+
+        def __enter__(self):
+            return self
+
+        def write(self, text):
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+        def __exit__(self, *exc):
+            self.fh.close()
+
+    lock = tmp_path / "out.npz.lock"
+    monkeypatch.setattr(fileio.os, "fdopen", lambda fd, mode="r", *a, **k: Full(fd))
+    with pytest.raises(OSError) as err, fileio.exclusive_lock(lock):
+        pass
+    assert err.value.errno == errno.ENOSPC and err.value.filename == str(lock)
+    assert not lock.exists()  # no empty lock left behind
+    monkeypatch.undo()
+    with fileio.exclusive_lock(lock):  # a rerun at once takes it
+        assert lock.read_text().split()[0] == str(os.getpid())

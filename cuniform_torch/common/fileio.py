@@ -285,8 +285,13 @@ def _acquire(lock: Path, what: str) -> None:
                                           "finish, or delete the lock file if no such process runs") from None
             _take_over(lock, text)
             continue
-        with os.fdopen(fd, "w") as fh:
-            fh.write(f"{os.getpid()} {_HOST}\n")
+        try:
+            with os.fdopen(fd, "w") as fh:
+                fh.write(f"{os.getpid()} {_HOST}\n")
+        except OSError as exc:  # a full disk: never leave an empty lock that refuses every rerun for 10 s
+            with contextlib.suppress(FileNotFoundError):
+                os.unlink(lock)
+            raise _with_filename(exc, lock) from exc
         return
     raise FileLockedError(f"{what}: could not take the lock file {lock} (other processes keep taking it)")
 
