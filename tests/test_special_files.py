@@ -375,3 +375,36 @@ def test_a_lock_that_cannot_be_written_is_removed_and_names_the_file(tmp_path, m
     monkeypatch.undo()
     with fileio.exclusive_lock(lock):  # a rerun at once takes it
         assert lock.read_text().split()[0] == str(os.getpid())
+
+
+# ------------------------------------------------------------------------------------------ a shared cold cache
+
+def test_a_second_run_on_a_cold_cache_waits_for_the_first_and_uses_its_table(tmp_path, monkeypatch, capsys):
+    import subprocess
+    import sys
+    import time
+
+    from cuniform_torch.common import fileio
+    from cuniform_torch.envs.worlds.robot import NAV_ROBOT
+    from eval.navigate import robot_files
+
+    monkeypatch.setattr(robot_files, "WAIT_POLL_S", 0.05)
+    path = robot_files.table_file(NAV_ROBOT, tmp_path)
+    holder = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])  # the first run, alive
+    try:
+        path.with_name(path.name + ".lock").write_text(f"{holder.pid} {fileio._HOST}\n")
+        got: dict = {}
+        thread = threading.Thread(target=lambda: got.update(path=robot_files.ensure_table(NAV_ROBOT, tmp_path)),
+                                  daemon=True)
+        thread.start()
+        time.sleep(0.5)
+        assert thread.is_alive() and not path.exists()  # waiting, not refused, not building
+        path.write_bytes(b"the first run's table")  # the first run finishes
+        path.with_name(path.name + ".lock").unlink()
+        thread.join(20)
+        assert not thread.is_alive() and got["path"] == path
+        assert path.read_bytes() == b"the first run's table"  # used, not rebuilt
+        assert "is being built by another run" in capsys.readouterr().out
+    finally:
+        holder.kill()
+        holder.wait()
