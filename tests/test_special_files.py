@@ -408,3 +408,15 @@ def test_a_second_run_on_a_cold_cache_waits_for_the_first_and_uses_its_table(tmp
     finally:
         holder.kill()
         holder.wait()
+
+
+# ------------------------------------------------------------------------------------------ a worker killed
+
+def test_a_worker_that_dies_is_one_clear_error_not_a_broken_pool_traceback():
+    from cuniform_torch.cli import error_message
+    from cuniform_torch.common.parallel import WorkerDiedError, run_jobs
+
+    with pytest.raises(WorkerDiedError) as err:
+        run_jobs(os.abort, [(), ()], workers=2)  # each worker dies by a signal, as the OOM killer's SIGKILL does
+    line = error_message(err.value)
+    assert line is not None and "a worker process died" in line and "rerun to resume" in line
