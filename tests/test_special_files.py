@@ -420,3 +420,32 @@ def test_a_worker_that_dies_is_one_clear_error_not_a_broken_pool_traceback():
         run_jobs(os.abort, [(), ()], workers=2)  # each worker dies by a signal, as the OOM killer's SIGKILL does
     line = error_message(err.value)
     assert line is not None and "a worker process died" in line and "rerun to resume" in line
+
+
+def test_simulate_refuses_a_time_limit_of_runaway_steps_before_the_first_step():
+    import time
+
+    import torch
+
+    from cuniform_torch.envs.environment import Environment
+    from cuniform_torch.envs.sim import simulate
+    from cuniform_torch.systems import make_system
+
+    class Counting:
+        commands = 0
+
+        def command(self, state):
+            Counting.commands += 1
+            assert Counting.commands <= 1000, "simulate ran the runaway limit"  # a regression fails, never hangs
+            return state.new_zeros(1)
+
+    args = dict(system=make_system("dubins"), controller=Counting(), x0=torch.zeros(3), env=Environment([]),
+                goal=(50.0, 50.0), goal_tolerance=0.1)  # unreachable: only the time limit ends the run
+    begin = time.perf_counter()
+    with pytest.raises(ValueError, match=r"time_limit 1000000000.0 s at dt 0.2 s is 5,000,000,000 steps, more than "
+                                         r"the limit of 100,000; .*step_limit=5000000000"):
+        simulate(**args, time_limit=1e9)
+    assert time.perf_counter() - begin < 2.0 and Counting.commands == 0
+    assert simulate(**args, time_limit=0.4, step_limit=2).steps == 2  # within a given limit: runs
+    with pytest.raises(ValueError, match="step_limit must be a positive integer"):
+        simulate(**args, time_limit=0.4, step_limit=0)
