@@ -1407,7 +1407,8 @@ INPUT_FOLDER_OUT = {"eval.navigate.compare", "eval.navigate.failures", "eval.nav
 
 def entry_cases(work: Path, quick: bool) -> list[Case]:
     """tests/test_entry_points.py's bad-value cases (every command, every flag of the bad-input classes), then
-    a missing path, an empty folder and an empty file for every flag (and positional) that names an input."""
+    a missing path, an empty folder, an empty file, a FIFO and a link to ``/dev/zero`` for every flag (and
+    positional) that names an input, and a link to ``/dev/null`` for every ``--out`` / ``--json`` output."""
     sys.path.insert(0, str(REPO / "tests"))
     import pytest
     import test_entry_points as tep
@@ -1418,6 +1419,10 @@ def entry_cases(work: Path, quick: bool) -> list[Case]:
     (folder / "empty_file.npz").write_bytes(b"")
     bad_paths = [("a missing path", str(folder / "missing.npz")), ("an empty folder", str(folder / "empty_folder")),
                  ("an empty file", str(folder / "empty_file.npz"))]
+    os.mkfifo(folder / "fifo.npz")
+    (folder / "zero.npz").symlink_to("/dev/zero")
+    (folder / "null.json").symlink_to("/dev/null")  # never /dev/null itself: a regression run as root replaces it
+    special = [("a FIFO", str(folder / "fifo.npz")), ("a link to /dev/zero", str(folder / "zero.npz"))]
     cases = []
     for i, param in enumerate(tep.CASES):
         name, option, value = param.values
@@ -1432,9 +1437,14 @@ def entry_cases(work: Path, quick: bool) -> list[Case]:
                 flags = [o for o in action.option_strings if o in PATH_FLAGS or
                          (o == "--out" and name in INPUT_FOLDER_OUT)]
                 positional = not action.option_strings and action.dest not in ("help",)
+                outputs = [o for o in action.option_strings if o == "--json" or
+                           (o == "--out" and name not in INPUT_FOLDER_OUT)]
+                if outputs:  # an output naming a device: refused before any work, never replaced
+                    argv = [name, outputs[0], str(folder / "null.json")]
+                    cases.append(Case("entry points", f"{' '.join(argv[:-1])} <a link to /dev/null>", argv=argv))
                 if not flags and not positional:
                     continue
-                for label, value in bad_paths[:1] if quick else bad_paths:
+                for label, value in (bad_paths[:1] if quick else bad_paths) + special:
                     if label == "a missing path":  # its own: a command that builds a missing file (a cache) may
                         value = str(folder / f"missing_{len(cases)}.npz")  # not serve the next case from it
                     argv = [name, flags[0], value] if flags else [name, value]

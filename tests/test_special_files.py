@@ -109,6 +109,20 @@ def test_an_atomic_write_never_replaces_a_special_file(tmp_path):
     assert link.is_symlink() and stat.S_ISCHR(os.stat("/dev/null").st_mode)
 
 
+@pytest.mark.parametrize("target", ["fifo", "/dev/zero"])
+def test_a_barn_file_that_is_a_special_file_is_refused(tmp_path, target):
+    from cuniform_torch.envs.worlds.barn import load_barn
+    from cuniform_torch.envs.worlds.barn_format import BarnFormatError
+
+    path = tmp_path / "barn.npz"
+    if target == "fifo":
+        _fifo(path)
+    else:
+        path.symlink_to(target)
+    with pytest.raises(BarnFormatError, match="the BARN file is a (FIFO|character device)"):
+        _quick(load_barn, path)
+
+
 def test_a_world_file_and_a_training_state_that_are_fifos_are_refused(tmp_path):
     from cuniform_torch.envs.worlds.barn_format import BarnFormatError
     from cuniform_torch.envs.worlds.barn_worlds import _parse_world

@@ -27,7 +27,7 @@ import numpy as np
 
 __all__ = ["atomic_path", "write_npz", "write_json", "write_bytes", "remove_stale_temps", "exclusive_lock",
            "FileLockedError", "STALE_TEMP_SECONDS", "FileKindError", "FileTooLargeError", "file_kind",
-           "open_regular", "read_capped_bytes", "read_capped_text", "check_not_special", "MAX_JSON_BYTES", "MAX_SMALL_JSON_BYTES",
+           "open_regular", "check_regular", "read_capped_bytes", "read_capped_text", "check_not_special", "MAX_JSON_BYTES", "MAX_SMALL_JSON_BYTES",
            "MAX_JSONL_BYTES"]
 
 # A fixed timestamp makes the zip (npz) bytes depend on the arrays only, so equal tables are equal files.
@@ -94,6 +94,15 @@ def open_regular(path: str | os.PathLike, what: str = "the file") -> io.Buffered
     except BaseException:
         os.close(fd)
         raise
+
+
+def check_regular(path: str | os.PathLike, what: str = "the file") -> None:
+    """:class:`FileKindError` unless ``path`` is (or a symlink names) a regular file, from ``stat`` alone, for a
+    reader that opens the path itself (``np.load``, ``zipfile``); ``FileNotFoundError`` when it is missing."""
+    path = Path(path)
+    mode = os.stat(path).st_mode
+    if not stat.S_ISREG(mode):
+        raise _not_regular(path, mode, what)
 
 
 def read_capped_bytes(path: str | os.PathLike, max_bytes: int, what: str = "the file") -> bytes:

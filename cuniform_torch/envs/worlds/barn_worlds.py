@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from cuniform_torch.common.fileio import read_capped_bytes
+from cuniform_torch.common.fileio import check_regular, read_capped_bytes
 from cuniform_torch.envs.worlds.barn_format import BarnFormatError, format_error, validate_barn
 
 __all__ = ["convert_worlds", "FILE_START", "FILE_GOAL"]
@@ -92,6 +92,7 @@ def _world_files(folder_or_files: str | os.PathLike | Iterable[str | os.PathLike
 
 def _read_path(path: Path) -> np.ndarray:
     try:
+        check_regular(path, "a BARN path file")  # a FIFO would block np.load; a device never ends
         arr = np.load(path, allow_pickle=False)
     except (ValueError, OSError, EOFError) as exc:
         raise format_error(str(path), None, f"not a readable .npy path ({type(exc).__name__}: {exc})") from None
