@@ -463,3 +463,11 @@ def test_simulate_refuses_a_time_limit_of_runaway_steps_before_the_first_step():
     assert simulate(**args, time_limit=0.4, step_limit=2).steps == 2  # within a given limit: runs
     with pytest.raises(ValueError, match="step_limit must be a positive integer"):
         simulate(**args, time_limit=0.4, step_limit=0)
+
+
+def test_a_profile_that_is_a_fifo_is_refused(tmp_path, capsys):
+    from eval.bench.profile_split import main
+
+    fifo = _fifo(tmp_path / "run.prof")
+    assert _quick(main, [str(fifo)]) == 2
+    assert "a cProfile output is a FIFO" in capsys.readouterr().err
