@@ -5,7 +5,7 @@
 For each file family (table, table set, MLP / start-MLP / map-policy checkpoint, map data set, local map,
 benchmark folder) it writes a small valid original with the project's own writers, makes mutated copies (flipped
 bytes, truncation, crafted ``.npy`` headers, wrong dtypes and shapes, NaN / inf / 1e38, missing and extra keys,
-pickle payloads, JSON of the wrong types, duplicates, symlink loops, ...) and reads each copy through the
+pickle payloads, JSON of the wrong types, duplicates, symlink loops, FIFOs and links to devices, ...) and reads each copy through the
 family's reader API in a forked child of this process (torch and the package already imported, one thread), so
 each case is a fresh process whose memory peak is its own. Each ``python -m`` command is run the same way (its
 module run as ``__main__`` in a forked child, in an empty folder) with bad flag values: the bad-input classes of
@@ -891,14 +891,27 @@ def _replace_by_folder(path: Path) -> None:
     path.mkdir()
 
 
+def _replace_by_special(path: Path, target: str) -> None:
+    """``path`` replaced by a FIFO (``target`` ``"fifo"``) or by a symlink to ``target`` (a device)."""
+    if path.exists() or path.is_symlink():
+        path.unlink()
+    if target == "fifo":
+        os.mkfifo(path)
+    else:
+        path.symlink_to(target)
+
+
 def _broken(name: str, label: str | None = None, missing: bool = True) -> list[tuple[str, Callable[[Path], None]]]:
-    """The file ``name`` of a folder missing (when ``missing``), a folder, a symlink loop: three damaged-folder cases
-    (labelled ``label``, default the name)."""
+    """The file ``name`` of a folder missing (when ``missing``), a folder, a symlink loop, a FIFO, a symlink to
+    ``/dev/zero`` or ``/dev/urandom``: the damaged-folder cases (labelled ``label``, default the name)."""
     label = label or name
     cases: list[tuple[str, Callable[[Path], None]]] = [(f"{label} missing", lambda dst: (dst / name).unlink())]
     return (cases if missing else []) + [
         (f"{label} is a folder", lambda dst: _replace_by_folder(dst / name)),
-        (f"{label} is a symlink loop", lambda dst: _symlink_loop(dst / name))]
+        (f"{label} is a symlink loop", lambda dst: _symlink_loop(dst / name)),
+        (f"{label} is a FIFO", lambda dst: _replace_by_special(dst / name, "fifo")),
+        (f"{label} links to /dev/zero", lambda dst: _replace_by_special(dst / name, "/dev/zero")),
+        (f"{label} links to /dev/urandom", lambda dst: _replace_by_special(dst / name, "/dev/urandom"))]
 
 
 def table_family(work: Path, quick: bool) -> Family:
@@ -1360,6 +1373,11 @@ def bench_family(work: Path, quick: bool) -> Family:
         ("settings.json missing (records left)", lambda dst: (dst / "settings.json").unlink()),
         *_broken("settings.json", missing=False),
         ("the folder is a symlink loop", lambda dst: _symlink_loop(dst)),
+        ("episodes.jsonl links into another benchmark folder",
+         lambda dst: _replace_by_special(dst / "episodes.jsonl", str((original / "episodes.jsonl").resolve()))),
+        ("settings.json links into another benchmark folder",
+         lambda dst: _replace_by_special(dst / "settings.json", str((original / "settings.json").resolve()))),
+        ("episodes.jsonl links to /dev/null", lambda dst: _replace_by_special(dst / "episodes.jsonl", "/dev/null")),
         ("an unknown file in the folder", lambda dst: (dst / "notes.txt").write_text("hello")),
     ]
     return Family("benchmark folder", ["bench"], original,
@@ -1389,7 +1407,8 @@ INPUT_FOLDER_OUT = {"eval.navigate.compare", "eval.navigate.failures", "eval.nav
 
 def entry_cases(work: Path, quick: bool) -> list[Case]:
     """tests/test_entry_points.py's bad-value cases (every command, every flag of the bad-input classes), then
-    a missing path, an empty folder and an empty file for every flag (and positional) that names an input."""
+    a missing path, an empty folder, an empty file, a FIFO and a link to ``/dev/zero`` for every flag (and
+    positional) that names an input, and a link to ``/dev/null`` for every ``--out`` / ``--json`` output."""
     sys.path.insert(0, str(REPO / "tests"))
     import pytest
     import test_entry_points as tep
@@ -1400,6 +1419,10 @@ def entry_cases(work: Path, quick: bool) -> list[Case]:
     (folder / "empty_file.npz").write_bytes(b"")
     bad_paths = [("a missing path", str(folder / "missing.npz")), ("an empty folder", str(folder / "empty_folder")),
                  ("an empty file", str(folder / "empty_file.npz"))]
+    os.mkfifo(folder / "fifo.npz")
+    (folder / "zero.npz").symlink_to("/dev/zero")
+    (folder / "null.json").symlink_to("/dev/null")  # never /dev/null itself: a regression run as root replaces it
+    special = [("a FIFO", str(folder / "fifo.npz")), ("a link to /dev/zero", str(folder / "zero.npz"))]
     cases = []
     for i, param in enumerate(tep.CASES):
         name, option, value = param.values
@@ -1414,9 +1437,14 @@ def entry_cases(work: Path, quick: bool) -> list[Case]:
                 flags = [o for o in action.option_strings if o in PATH_FLAGS or
                          (o == "--out" and name in INPUT_FOLDER_OUT)]
                 positional = not action.option_strings and action.dest not in ("help",)
+                outputs = [o for o in action.option_strings if o == "--json" or
+                           (o == "--out" and name not in INPUT_FOLDER_OUT)]
+                if outputs:  # an output naming a device: refused before any work, never replaced
+                    argv = [name, outputs[0], str(folder / "null.json")]
+                    cases.append(Case("entry points", f"{' '.join(argv[:-1])} <a link to /dev/null>", argv=argv))
                 if not flags and not positional:
                     continue
-                for label, value in bad_paths[:1] if quick else bad_paths:
+                for label, value in (bad_paths[:1] if quick else bad_paths) + special:
                     if label == "a missing path":  # its own: a command that builds a missing file (a cache) may
                         value = str(folder / f"missing_{len(cases)}.npz")  # not serve the next case from it
                     argv = [name, flags[0], value] if flags else [name, value]

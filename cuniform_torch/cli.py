@@ -175,18 +175,31 @@ def _check_folder_writable(path: Path, flag: str) -> None:
         raise CLIError(f"{flag} {path}: cannot create files in {folder} ({exc.strerror or exc})") from None
 
 
+def _check_not_special(path: Path, flag: str, folder: bool) -> None:
+    """CLIError when ``path`` exists and is a device, a FIFO or a socket (or a symlink to one): an output never
+    replaces ``/dev/null`` nor writes into ``/dev/stdout`` or ``/dev/full``."""
+    from cuniform_torch.common.fileio import FileKindError, check_not_special
+
+    try:
+        check_not_special(path, "", folder=folder)
+    except FileKindError as exc:
+        raise CLIError(f"{flag} {exc}".replace(":  is ", " is ", 1)) from None
+
+
 def check_output_file(path: str | os.PathLike, flag: str, example: str = "out.json") -> None:
     """Before long work starts: CLIError unless ``path`` can become a file (not a folder, its folder writable);
     ``example`` is the file name the message suggests inside a folder."""
     path = Path(path)
     if path.is_dir():
         raise CLIError(f"{flag} {path} is a folder; give a file path such as {path / example}")
+    _check_not_special(path, flag, folder=False)
     _check_folder_writable(path, flag)
 
 
 def check_output_folder(path: str | os.PathLike, flag: str) -> None:
     """Before long work starts: CLIError unless ``path`` is, or can become, a writable folder."""
     path = Path(path)
+    _check_not_special(path, flag, folder=True)
     if path.exists() and not path.is_dir():
         raise CLIError(f"{flag} {path} is a file; give a folder")
     _check_folder_writable(path, flag)

@@ -41,7 +41,7 @@ from cuniform_torch.cli import (
     device_arg,
     import_system_modules,
 )
-from cuniform_torch.common.fileio import write_bytes, write_json
+from cuniform_torch.common.fileio import MAX_JSON_BYTES, read_capped_text, write_bytes, write_json
 from eval.common import config
 from eval.common.figures import coverage_vs_samples, trajectory_fans, uniformity_per_level
 from eval.common.methods import Sources
@@ -92,7 +92,7 @@ class Stages:
         """The result in ``path`` when it holds one of the same config, else ``compute()`` written there."""
         if path.exists() and not self.force:
             try:
-                old = json.loads(path.read_text())
+                old = json.loads(read_capped_text(path, MAX_JSON_BYTES, "a result file"))
                 if old.get("config") == json.loads(json.dumps(cfg)):
                     self.reused.append(str(path))
                     print(f"reusing {path}")

@@ -34,7 +34,7 @@ from cuniform_torch.cli import OUT, cli_main
 from precompute.build_args import COVERAGE_ONLY, MAXFLOW_ONLY, make_parser, parse_build_args, system_of, table_job
 from precompute.one_table import TableJob, build_table_file
 from precompute.system_args import parse_params
-from precompute.table_set import build_table_set, ensure_table_set, parse_starts
+from precompute.table_set import MAX_SET_MEMBERS, build_table_set, ensure_table_set, parse_starts
 
 __all__ = ["main", "parse_job", "TableJob", "build_table_file", "build_table_set", "ensure_table_set", "make_parser",
            "MAXFLOW_ONLY", "COVERAGE_ONLY", "parse_params"]
@@ -72,8 +72,8 @@ def parse_job(argv: Sequence[str]) -> tuple[TableJob, dict]:
 def _job_of(args: argparse.Namespace) -> tuple[TableJob, dict]:
     name, system = system_of(args)
     if args.starts is None:
-        if args.workers != 1 or args.ray is not None:
-            raise ValueError("--workers and --ray build a table set: give --starts too")
+        if args.workers != 1 or args.ray is not None or getattr(args, "no_limit", False):
+            raise ValueError("--workers, --ray and --no-limit build a table set: give --starts too")
         return table_job(args, system, args.out or OUT / f"{name}.npz"), {}
     if getattr(args, "start", None) is not None:
         raise ValueError("give --start (one table) or --starts (a table set), not both")
@@ -81,7 +81,8 @@ def _job_of(args: argparse.Namespace) -> tuple[TableJob, dict]:
         raise ValueError("--map builds one safe table; a table set (--starts) takes no map (see precompute.maps.farm)")
     if args.workers < 1:
         raise ValueError(f"--workers must be >= 1, got {args.workers}")
-    starts = parse_starts(args.starts, system, seed=getattr(args, "seed", 0))
+    starts = parse_starts(args.starts, system, seed=getattr(args, "seed", 0),
+                          limit=None if getattr(args, "no_limit", False) else MAX_SET_MEMBERS)
     out: Path = args.out or OUT / f"{name}_set"  # build_table_set refuses a folder named like a file
     template = table_job(args, system, out / "start_0000.npz")
     return template, {"starts": starts, "out": out, "workers": args.workers, "ray_address": args.ray}

@@ -121,6 +121,8 @@ def make_parser() -> argparse.ArgumentParser:
                         help="build a table set, one table per start, into the folder --out: a grid 'DIM=LO:HI:N ...' "
                              "or a seeded sample 'random:N DIM=LO:HI ...' over the non-pose dimensions "
                              "(precompute/table_set.py)")
+    parser.add_argument("--no-limit", action="store_true",
+                        help="with --starts: allow a set of more than 10,000 tables (MAX_SET_MEMBERS)")
     parser.add_argument("--workers", type=int_in(1, 1024), default=1, help="with --starts: tables built in parallel processes")
     parser.add_argument("--ray", nargs="?", const="local", default=None, metavar="ADDRESS",
                         help="with --starts: tables as Ray tasks (a local runtime, or the cluster at ADDRESS)")

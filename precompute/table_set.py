@@ -19,27 +19,34 @@ per table its file and start.
 from __future__ import annotations
 
 import json
+import math
 import re
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
 from cuniform_torch.cli import CLIError
-from cuniform_torch.common.fileio import exclusive_lock, write_json
+from cuniform_torch.common.fileio import MAX_JSON_BYTES, exclusive_lock, read_capped_text, write_json
 from cuniform_torch.common.parallel import run_jobs
 from cuniform_torch.systems import System
-from cuniform_torch.tables.file import TableError, read_table
+from cuniform_torch.tables.file import Table, TableError, read_table, system_to_json
 from precompute.one_table import TableJob, build_table_file
 
-__all__ = ["SET_FORMAT", "parse_starts", "build_table_set", "ensure_table_set", "set_complete", "INDEX"]
+__all__ = ["SET_FORMAT", "parse_starts", "build_table_set", "ensure_table_set", "set_complete", "INDEX",
+           "MAX_SET_MEMBERS"]
 
 SET_FORMAT = "cuniform-table-set/1"
 INDEX = "tables.json"
+MAX_SET_MEMBERS = 10_000
+"""the most starts ``--starts`` may name (the members' four-digit names) unless ``--no-limit``: a grid's counts
+multiply, and a million-member set wrote thousands of tables before anyone noticed"""
 _ITEM = re.compile(r"^(\d+)=([^:]+):([^:]+)(?::(\d+))?$")
 
 
-def parse_starts(spec: str, system: System, seed: int = 0) -> np.ndarray:
-    """The starts ``[S, d]`` float64 that ``spec`` names (module docstring); a clear ValueError otherwise."""
+def parse_starts(spec: str, system: System, seed: int = 0, limit: int | None = MAX_SET_MEMBERS) -> np.ndarray:
+    """The starts ``[S, d]`` float64 that ``spec`` names (module docstring); a clear ValueError otherwise, also
+    when they are more than ``limit`` (None: no limit), checked from the counts before any start is made."""
     d = len(system.periodic)
     words = spec.split()
     if not words:
@@ -76,6 +83,10 @@ def parse_starts(spec: str, system: System, seed: int = 0) -> np.ndarray:
     if not ranges:
         raise ValueError("--starts names no dimension; e.g. --starts '3=0:1:5'")
     dims = sorted(ranges)
+    count = sample if sample is not None else math.prod(int(ranges[k][2] or 1) for k in dims)
+    if limit is not None and count > limit:
+        raise ValueError(f"--starts names {count:,} starts, more than the limit of {limit:,} tables in a set; give "
+                         "fewer (grid counts multiply), or --no-limit to build them all")
     if sample is None:
         axes = [np.linspace(ranges[k][0], ranges[k][1], ranges[k][2]) for k in dims]
         values = np.stack([a.ravel() for a in np.meshgrid(*axes, indexing="ij")], axis=1)  # [S, len(dims)]
@@ -91,15 +102,59 @@ def _build_member(job: TableJob) -> Path:
     return build_table_file(job)
 
 
-def _done(path: Path, start: np.ndarray) -> bool:
-    """Whether ``path`` holds a readable table built from ``start``."""
+_SETTINGS = {"maxflow": ("points", "ties", "points_per_cell", "seed", "map_rule"),
+             "coverage": ("target_samples", "merge_resolution", "steps", "lr", "state_budget", "tol")}
+"""the ``build_info`` entries of a member that its build settings decide (the rest are facts of the build)"""
+
+
+def _settings_differ(table: Table, template: TableJob) -> str | None:
+    """What differs between the member ``table`` and what ``template`` would build (the system and its parameters,
+    the horizon, the method, the method's settings), or None."""
+    want = system_to_json(template.system, template.build.horizon)
+    if table.system != want:
+        try:
+            old, new = json.loads(table.system), json.loads(want)
+            old = {**{k: v for k, v in old.items() if k != "params"}, **(old.get("params") or {})}
+            new = {**{k: v for k, v in new.items() if k != "params"}, **(new.get("params") or {})}
+            keys = sorted(k for k in set(old) | set(new) if old.get(k) != new.get(k))
+            return "; ".join(f"{k}: {old.get(k)!r} there, {new.get(k)!r} now" for k in keys[:3]) or "the system"
+        except (ValueError, AttributeError):
+            return "the system"
+    if (table.method or "maxflow") != template.method:
+        return f"method: {table.method!r} there, {template.method!r} now"
+    try:
+        old_info = json.loads(table.build_info or "{}")
+    except ValueError:
+        return "build_info unreadable"
+    cfg: Any = template.coverage if template.coverage is not None else template.build
+    for key in _SETTINGS[template.method]:
+        if key == "map_rule" or not hasattr(cfg, key):
+            continue
+        new_value = getattr(cfg, key)
+        new_value = getattr(new_value, "value", new_value)
+        if template.method == "maxflow" and key in ("points_per_cell", "seed") and cfg.points.value != "random":
+            new_value = None
+        if old_info.get(key) != new_value:
+            return f"{key}: {old_info.get(key)!r} there, {new_value!r} now"
+    return None
+
+
+def _done(path: Path, start: np.ndarray, template: TableJob) -> bool:
+    """Whether ``path`` holds a readable table built from ``start`` with ``template``'s settings; a ValueError when
+    it holds a table built from ``start`` with other settings (a rerun never keeps a stale member silently)."""
     if not path.exists():
         return False
     try:
         table = read_table(path, graph=False)
     except TableError:
         return False
-    return table.start is not None and np.array_equal(table.start, start)
+    if table.start is None or not np.array_equal(table.start, start):
+        return False
+    differ = _settings_differ(table, template)
+    if differ is not None:
+        raise ValueError(f"the table set {path.parent} was built with other settings ({path.name}: {differ}); "
+                         f"use another --out, or delete {path.parent} to build it anew")
+    return True
 
 
 def build_table_set(template: TableJob, starts: np.ndarray, out: Path, workers: int = 1,
@@ -121,7 +176,7 @@ def _build_set(template: TableJob, starts: np.ndarray, out: Path, workers: int, 
     out.mkdir(parents=True, exist_ok=True)
     files = [out / f"start_{i:04d}.npz" for i in range(len(starts))]
     todo = [(i, template.from_start(tuple(float(v) for v in s), f))
-            for i, (s, f) in enumerate(zip(starts, files)) if not _done(f, s)]
+            for i, (s, f) in enumerate(zip(starts, files)) if not _done(f, s, template)]
     say = (lambda *a: None) if template.quiet else print
     say(f"table set: {len(starts)} starts, {len(starts) - len(todo)} already built in {out}; building {len(todo)} "
         f"({'Ray' if ray_address else f'{workers} worker(s)'})")
@@ -162,7 +217,7 @@ def ensure_table_set(template: TableJob, starts: np.ndarray, folder: Path, worke
 def set_complete(folder: Path, count: int | None = None) -> bool:
     """Whether ``folder`` holds a finished set (its index lists ``count`` tables, when given, and every file)."""
     try:
-        index = json.loads((Path(folder) / INDEX).read_text())
+        index = json.loads(read_capped_text(Path(folder) / INDEX, MAX_JSON_BYTES, "the table-set index"))
     except (OSError, ValueError):
         return False
     tables = index.get("tables") if isinstance(index, dict) else None

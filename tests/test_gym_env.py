@@ -132,7 +132,9 @@ def test_start_at_goal_is_already_done(tasks):
 
 @pytest.mark.parametrize("action, message", [
     (np.zeros(2), r"shape \(1,\)"), (np.float32(0.0), r"shape \(1,\)"), (np.array([np.nan]), "finite"),
-    ("left", "1 numbers"),
+    ("left", "1 real numbers"), (np.array([0.5 + 1j]), "1 real numbers.*complex"),
+    (np.array([0.5], dtype=object), "1 real numbers.*object"), (np.array([True]), "1 real numbers.*bool"),
+    ([True], "1 real numbers.*bool"), ([0.5 + 1j], "1 real numbers.*complex"),
 ])
 def test_bad_action_raises(tasks, action, message):
     env = NavigationEnv(tasks["gaps"])
@@ -208,3 +210,26 @@ def test_missing_gymnasium_names_the_extra(monkeypatch):
     monkeypatch.delitem(sys.modules, "eval.navigate.gym_env")
     with pytest.raises(ImportError, match=r"pip install -e '\.\[gym\]'"):
         importlib.import_module("eval.navigate.gym_env")
+
+
+def test_integer_actions_are_numbers(tasks):
+    env = NavigationEnv(tasks["gaps"])
+    env.reset(seed=0)
+    env.step(np.zeros(1, dtype=np.int64))  # an integer is a real number: accepted
+
+
+@pytest.mark.parametrize("options", [{"unknown": 1}, {"task_index": 0, "seed": 3}, ["task_index"]])
+def test_unknown_reset_options_are_refused(tasks, options):
+    env = NavigationEnv(tasks["gaps"])
+    with pytest.raises(ValueError, match="reset options may hold 'task_index' only"):
+        env.reset(options=options)
+    env.reset(options={"task_index": 0})  # the one option
+
+
+def test_gymnasium_make_takes_make_envs_keywords():
+    register_envs()
+    env = gymnasium.make(ENV_ID, suite="gaps", index=5)
+    assert env.unwrapped.tasks[0].params == make_env("gaps", index=5).tasks[0].params
+    env.reset(seed=0)
+    env.step(np.zeros(1, dtype=np.float32))
+    env.close()

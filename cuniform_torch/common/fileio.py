@@ -15,6 +15,7 @@ import json
 import os
 import re
 import socket
+import stat
 import tempfile
 import time
 import zipfile
@@ -25,7 +26,9 @@ from typing import Any
 import numpy as np
 
 __all__ = ["atomic_path", "write_npz", "write_json", "write_bytes", "remove_stale_temps", "exclusive_lock",
-           "FileLockedError", "STALE_TEMP_SECONDS"]
+           "FileLockedError", "STALE_TEMP_SECONDS", "FileKindError", "FileTooLargeError", "file_kind",
+           "open_regular", "check_regular", "read_capped_bytes", "read_capped_text", "check_not_special", "MAX_JSON_BYTES", "MAX_SMALL_JSON_BYTES",
+           "MAX_JSONL_BYTES"]
 
 # A fixed timestamp makes the zip (npz) bytes depend on the arrays only, so equal tables are equal files.
 _ZIP_TIME = (1980, 1, 1, 0, 0, 0)
@@ -36,6 +39,120 @@ STALE_TEMP_SECONDS = 6 * 3600.0
 a live writer keeps its file's mtime fresh, and one atomic write takes seconds to minutes"""
 
 _HOST = re.sub(r"\W", "_", socket.gethostname())[:24] or "localhost"  # word characters: temp names stay unambiguous
+
+
+MAX_JSON_BYTES = 64 << 20
+"""the largest JSON file that lists many files a reader reads (a table-set index ``tables.json``, a data-set
+manifest ``dataset.json``): 64 MiB"""
+MAX_SMALL_JSON_BYTES = 1 << 20
+"""the largest JSON file of settings a reader reads (a benchmark's ``settings.json``, a model card, a build's
+manifest, a result file): 1 MiB"""
+MAX_JSONL_BYTES = 1 << 30
+"""the largest JSON-lines file a reader reads (a benchmark's ``episodes.jsonl``): 1 GiB"""
+
+
+class FileKindError(ValueError):
+    """A path that names something other than the regular file (or folder) a reader or writer expects: a FIFO, a
+    device, a socket, a folder, or a symlink to one of them."""
+
+
+class FileTooLargeError(ValueError):
+    """A file larger than its reader's cap: refused from its size, before it is read."""
+
+
+def file_kind(mode: int) -> str:
+    """``"a regular file"``, ``"a folder"``, ``"a FIFO (named pipe)"``, ... for an ``st_mode``."""
+    for test, name in ((stat.S_ISREG, "a regular file"), (stat.S_ISDIR, "a folder"), (stat.S_ISFIFO, "a FIFO (named pipe)"),
+                       (stat.S_ISCHR, "a character device"), (stat.S_ISBLK, "a block device"),
+                       (stat.S_ISSOCK, "a socket"), (stat.S_ISLNK, "a symlink")):
+        if test(mode):
+            return name
+    return "not a regular file"
+
+
+def _not_regular(path: Path, mode: int, what: str) -> FileKindError:
+    link = " (through a symlink)" if path.is_symlink() else ""
+    return FileKindError(f"{path}: {what} is {file_kind(mode)}{link}, not a regular file")
+
+
+def open_regular(path: str | os.PathLike, what: str = "the file") -> io.BufferedReader:
+    """``path`` opened for reading in binary, when it is (or a symlink names) a regular file; else one
+    :class:`FileKindError` naming it, before any read. Never blocks: a FIFO is refused from ``stat``, and the file
+    is opened ``O_NONBLOCK`` and checked again with ``fstat`` (a FIFO swapped in meanwhile opens without waiting
+    for a writer). A missing file raises ``FileNotFoundError`` as ``open`` does."""
+    path = Path(path)
+    mode = os.stat(path).st_mode
+    if not stat.S_ISREG(mode):
+        raise _not_regular(path, mode, what)
+    fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | getattr(os, "O_CLOEXEC", 0))
+    try:
+        mode = os.fstat(fd).st_mode
+        if not stat.S_ISREG(mode):
+            raise _not_regular(path, mode, what)
+        os.set_blocking(fd, True)
+        return os.fdopen(fd, "rb")
+    except BaseException:
+        os.close(fd)
+        raise
+
+
+def check_regular(path: str | os.PathLike, what: str = "the file") -> None:
+    """:class:`FileKindError` unless ``path`` is (or a symlink names) a regular file, from ``stat`` alone, for a
+    reader that opens the path itself (``np.load``, ``zipfile``); ``FileNotFoundError`` when it is missing."""
+    path = Path(path)
+    mode = os.stat(path).st_mode
+    if not stat.S_ISREG(mode):
+        raise _not_regular(path, mode, what)
+
+
+def read_capped_bytes(path: str | os.PathLike, max_bytes: int, what: str = "the file") -> bytes:
+    """The bytes of the regular file ``path`` (:func:`open_regular`), at most ``max_bytes``: a larger file is one
+    :class:`FileTooLargeError` from its size before it is read (and one that grows meanwhile, after at most
+    ``max_bytes + 1`` bytes)."""
+    with open_regular(path, what) as fh:
+        size = os.fstat(fh.fileno()).st_size
+        if size <= max_bytes:
+            data = fh.read(max_bytes + 1)
+        if size > max_bytes or len(data) > max_bytes:
+            raise FileTooLargeError(f"{path}: {what} holds {max(size, max_bytes + 1)} bytes, over the limit of "
+                                    f"{max_bytes} bytes for such a file; is it the right file?")
+    return data
+
+
+def read_capped_text(path: str | os.PathLike, max_bytes: int = MAX_JSON_BYTES, what: str = "the file") -> str:
+    """:func:`read_capped_bytes` decoded as UTF-8 (a ``UnicodeDecodeError``, a ``ValueError``, when it is not)."""
+    return read_capped_bytes(path, max_bytes, what).decode("utf-8")
+
+
+def _check_not_system(path: Path, what: str) -> None:
+    for where in {path.absolute(), path.resolve()}:
+        if where.parts[1:2] in (("dev",), ("proc",), ("sys",)):  # /dev/stdout is a link into /proc: never replaced
+            raise FileKindError(f"{path}: {what} is in /{where.parts[1]}, the system's device and process files; "
+                                "refusing to write there, give another path")
+
+
+def check_not_special(path: str | os.PathLike, what: str = "the output", folder: bool = False) -> None:
+    """:class:`FileKindError` when ``path`` exists and is not a regular file (nor a folder, when ``folder``):
+    an output never replaces or writes into a device, a FIFO or a socket (``--out /dev/null``). A symlink is judged
+    by what it names; one that names nothing passes (a write replaces the link, never what it names). An existing
+    path in (or naming a file in) ``/dev``, ``/proc`` or ``/sys`` is refused too: ``/dev/stdout`` names a regular
+    file when the output is redirected to one, and an atomic write would replace the link itself."""
+    path = Path(path)
+    try:
+        mode = os.stat(path).st_mode
+    except (FileNotFoundError, NotADirectoryError):
+        if os.path.lexists(path):  # a dangling link: a write replaces the link itself
+            _check_not_system(path, what)
+        return
+    except OSError as exc:  # a symlink loop, a name too long
+        raise FileKindError(f"{path}: {what} cannot be checked ({exc.strerror or exc}); give another path") from None
+    if stat.S_ISREG(mode) or (folder and stat.S_ISDIR(mode)):
+        _check_not_system(path, what)
+        return
+    expected = "a regular file or a folder" if folder else "a regular file"
+    link = " (through a symlink)" if path.is_symlink() else ""
+    raise FileKindError(f"{path}: {what} is {file_kind(mode)}{link}, not {expected}; refusing to write there, "
+                        "give another path")
 
 
 def _temp_pattern(name: str) -> re.Pattern[str]:
@@ -93,9 +210,11 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     """Yield a temporary path next to ``path``; on success it replaces ``path`` atomically, else is removed.
 
     Stale temporary files of ``path`` (see :func:`remove_stale_temps`) are removed first. An ``OSError`` that
-    names no file is re-raised naming ``path``.
+    names no file is re-raised naming ``path``. A ``path`` that is a device, a FIFO or a socket (or a symlink to
+    one) is a :class:`FileKindError` before anything is written (the rename would replace ``/dev/null``).
     """
     dest = Path(path)
+    check_not_special(dest, "the output", folder=True)  # a folder fails at the rename, naming it
     dest.parent.mkdir(parents=True, exist_ok=True)
     remove_stale_temps(dest)
     fd, tmp = tempfile.mkstemp(prefix=f".{dest.name}.{os.getpid()}-{_HOST}.", suffix=".tmp", dir=dest.parent)
@@ -175,8 +294,13 @@ def _acquire(lock: Path, what: str) -> None:
                                           "finish, or delete the lock file if no such process runs") from None
             _take_over(lock, text)
             continue
-        with os.fdopen(fd, "w") as fh:
-            fh.write(f"{os.getpid()} {_HOST}\n")
+        try:
+            with os.fdopen(fd, "w") as fh:
+                fh.write(f"{os.getpid()} {_HOST}\n")
+        except OSError as exc:  # a full disk: never leave an empty lock that refuses every rerun for 10 s
+            with contextlib.suppress(FileNotFoundError):
+                os.unlink(lock)
+            raise _with_filename(exc, lock) from exc
         return
     raise FileLockedError(f"{what}: could not take the lock file {lock} (other processes keep taking it)")
 

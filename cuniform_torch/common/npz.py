@@ -21,12 +21,15 @@ from __future__ import annotations
 
 import math
 import os
+import stat
 import zipfile
 import zlib
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
 import numpy as np
+
+from cuniform_torch.common.fileio import file_kind
 
 __all__ = ["NpzError", "DEFLATE_MAX_RATIO", "read_npz", "member_headers", "npy_header"]
 
@@ -88,6 +91,12 @@ def member_headers(path: str | os.PathLike) -> dict[str, tuple[tuple[int, ...], 
 
 def _zip(path: str | os.PathLike) -> zipfile.ZipFile:
     try:
+        mode = os.stat(path).st_mode
+    except OSError as exc:
+        raise NpzError(f"{path}: not a readable .npz ({type(exc).__name__}: {exc})") from None
+    if not stat.S_ISREG(mode):  # a FIFO would block the open; a device never ends
+        raise NpzError(f"{path}: {file_kind(mode)}, not a regular file; give the .npz file itself")
+    try:
         return zipfile.ZipFile(path)
     except (OSError, zipfile.BadZipFile, zlib.error, ValueError, EOFError) as exc:
         raise NpzError(f"{path}: not a readable .npz ({type(exc).__name__}: {exc})") from None
@@ -107,6 +116,8 @@ def read_npz(path: str | os.PathLike, *, keys: Sequence[str] | None = None,
     """
     what = what or str(path)
     if not Path(path).is_file():
+        if Path(path).exists():
+            raise NpzError(f"{what}: {file_kind(os.stat(path).st_mode)}, not a regular file; give the .npz file itself")
         raise NpzError(f"{what}: no such file")
     out: dict[str, np.ndarray] = {}
     total = 0

@@ -18,14 +18,20 @@ import threading
 import time
 from collections.abc import Callable, Sequence
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+from concurrent.futures.process import BrokenProcessPool
 from typing import Any
 
-__all__ = ["RAY_MISSING", "ray_available", "run_jobs"]
+__all__ = ["RAY_MISSING", "ray_available", "run_jobs", "WorkerDiedError"]
 
 RAY_MISSING = 'the --ray executor needs Ray: pip install -e ".[ray]"'
 
 PARENT_POLL_S = 0.25
 """s between a worker's checks that its parent is alive"""
+
+
+class WorkerDiedError(ChildProcessError):
+    """A worker process died before it finished its job (SIGKILL by the out-of-memory killer, a crash): one clear
+    error (an ``OSError``) instead of ``BrokenProcessPool``'s traceback; the jobs finished before it were kept."""
 
 
 def ray_available() -> bool:
@@ -83,7 +89,14 @@ def _processes(fn: Callable[..., Any], jobs: Sequence[tuple], workers: int, done
         while pending:
             finished, _ = wait(pending, return_when=FIRST_COMPLETED)
             for future in finished:
-                done(pending.pop(future), future.result())
+                try:
+                    result = future.result()
+                except BrokenProcessPool:
+                    raise WorkerDiedError(
+                        f"a worker process died before finishing its job ({workers} workers; killed, e.g. by the "
+                        "out-of-memory killer, or crashed); the jobs finished before were kept: rerun to resume, "
+                        "with fewer --workers if memory ran out") from None
+                done(pending.pop(future), result)
     finally:  # on an error or Ctrl-C: drop the queued jobs, keep what was done
         pool.shutdown(wait=True, cancel_futures=True)
 

@@ -61,6 +61,11 @@ class SimResult:
         return self.outcome == GOAL
 
 
+MAX_SIM_STEPS = 100_000
+"""the most steps :func:`simulate` runs unless its ``step_limit`` says more (5.5 h of robot time at dt 0.2 s; a
+benchmark episode is a few hundred)"""
+
+
 def _positive(value: Any, what: str, allow_zero: bool = False) -> float:
     ok = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
     if not ok or value < 0 or (value == 0 and not allow_zero):
@@ -79,6 +84,7 @@ def simulate(
     time_limit: float,
     cost: Any = None,
     record: bool = True,
+    step_limit: int | None = None,
 ) -> SimResult:
     """Run ``controller`` on ``system`` from ``x0 [d]`` until it reaches ``goal`` (xy distance <=
     ``goal_tolerance``), collides (``env.in_collision(xy, time=None)``: the truth) or ``time_limit`` (s) runs out.
@@ -86,7 +92,9 @@ def simulate(
     ``cost``, if given, needs ``set_time(t)``; it is called with the current time before every command (for
     obstacles that are sensed only from their ``appear_time`` on). ``controller.reset()`` is called first when it
     exists. Runs on the dtype and device of ``x0``; the controller must answer in the same. A start within
-    the goal tolerance returns ``"goal"`` after 0 steps.
+    the goal tolerance returns ``"goal"`` after 0 steps. ``time_limit / dt`` may be at most ``step_limit`` steps
+    (default :data:`MAX_SIM_STEPS`; checked before the first step, so a mistyped limit is one clear error rather
+    than hours of simulation and gigabytes of recorded states); pass a larger ``step_limit`` to lift it.
     """
     if not callable(getattr(system, "step", None)) or not hasattr(system, "dt") or not hasattr(system, "periodic"):
         raise ValueError(f"simulate: system must have step(x, u), dt and periodic, got {type(system).__name__}")
@@ -117,6 +125,12 @@ def simulate(
 
     goal_t = x0.new_tensor((gx, gy))  # [2]
     max_steps = max(1, math.ceil(limit / dt - 1e-9))  # t = k dt >= time_limit ends the run
+    cap = MAX_SIM_STEPS if step_limit is None else step_limit
+    if isinstance(cap, bool) or not isinstance(cap, int) or cap < 1:
+        raise ValueError(f"simulate: step_limit must be a positive integer, got {step_limit!r}")
+    if max_steps > cap:
+        raise ValueError(f"simulate: time_limit {time_limit!r} s at dt {dt!r} s is {max_steps:,} steps, more than the "
+                         f"limit of {cap:,}; give a shorter time_limit, or step_limit={max_steps} to allow it")
     reset = getattr(controller, "reset", None)  # optional: not in the Controller protocol
     if callable(reset):
         reset()

@@ -28,7 +28,12 @@ from torch import Tensor
 from cuniform_torch.common.digest import DIGEST_KEY
 from cuniform_torch.maps.policy import MapPolicy, MapPolicyConfig
 from cuniform_torch.maps.pretrained import pretrained_names, pretrained_path
-from cuniform_torch.policies.checkpoint import check_checkpoint_digest, read_network_keys, save_policy
+from cuniform_torch.policies.checkpoint import (
+    check_checkpoint_digest,
+    read_checkpoint_file,
+    read_network_keys,
+    save_policy,
+)
 
 __all__ = ["MAP_POLICY_FORMAT", "MapCheckpointError", "map_policy_checkpoint", "save_map_policy", "load_map_policy"]
 
@@ -75,11 +80,7 @@ def load_map_policy(source: str | os.PathLike | dict, device: torch.device | str
         path = Path(source)
         if not path.is_file():
             raise MapCheckpointError(f"{path}: no checkpoint file there")
-        try:
-            ckpt = torch.load(path, map_location="cpu", weights_only=True)
-        except Exception as exc:  # corrupt, truncated, or holding objects that need arbitrary unpickling
-            raise MapCheckpointError(f"{path}: not a readable map-policy checkpoint ({type(exc).__name__}: "
-                                     f"{str(exc)[:200]})") from None
+        ckpt = read_checkpoint_file(path, MapCheckpointError, "map-policy checkpoint")
 
     def fail(msg: str) -> None:
         raise MapCheckpointError(f"{where}: {msg}")

@@ -32,7 +32,7 @@ import torch
 from torch import Tensor
 
 from cuniform_torch.common.digest import DIGEST_KEY, DigestError, check_digest, content_digest
-from cuniform_torch.common.fileio import write_bytes
+from cuniform_torch.common.fileio import open_regular, write_bytes
 from cuniform_torch.grid.cells import Grid
 from cuniform_torch.policies.mlp import MLPConfig, MLPPolicy, MLPSupport
 from cuniform_torch.policies.start_mlp import StartMLPPolicy, StartRegion
@@ -40,7 +40,8 @@ from cuniform_torch.policies.table import Fallback
 from cuniform_torch.systems import system_from_json
 
 __all__ = ["POLICY_FORMAT", "PolicyCheckpointError", "policy_checkpoint", "save_policy", "load_policy", "file_sha256",
-           "read_network_keys", "checkpoint_digest", "check_checkpoint_digest", "MAX_ABS_WEIGHT"]
+           "read_network_keys", "checkpoint_digest", "check_checkpoint_digest", "MAX_ABS_WEIGHT",
+           "MAX_CHECKPOINT_BYTES", "read_checkpoint_file"]
 
 POLICY_FORMAT = "cuniform-policy/1"
 
@@ -50,13 +51,37 @@ buffers, the actions and ``1 / feature_scale``, of the system's scale), while we
 activations into NaN probabilities; such a checkpoint is refused by name instead"""
 
 
+MAX_CHECKPOINT_BYTES = 8 * (1 << 26) + (64 << 20)
+"""the largest checkpoint file a loader reads (576 MiB): the networks' weight limits (2^26 values, of at most 8
+bytes) and room for the rest; a larger file is refused from its size, before ``torch.load`` reads it"""
+
+
 class PolicyCheckpointError(ValueError):
     """A policy checkpoint that is missing, corrupt, of an unknown format, or does not match its network."""
 
 
+def read_checkpoint_file(path: Path, error: type[Exception], what: str,
+                         max_bytes: int = MAX_CHECKPOINT_BYTES) -> Any:
+    """``torch.load(weights_only=True)`` of the regular file ``path`` (never a FIFO or a device: an ``error``),
+    refused from its size, before it is read, over ``max_bytes``; ``error`` when it does not load."""
+    try:
+        fh = open_regular(path, what)
+    except (OSError, ValueError) as exc:
+        raise error(f"{path}: not a readable {what} ({exc})") from None
+    with fh:
+        size = os.fstat(fh.fileno()).st_size
+        if size > max_bytes:
+            raise error(f"{path}: {size} bytes, over the {max_bytes} bytes any {what} this package writes can hold; "
+                        "is it the right file?")
+        try:
+            return torch.load(fh, map_location="cpu", weights_only=True)
+        except Exception as exc:  # corrupt, truncated, or holding objects that need arbitrary unpickling
+            raise error(f"{path}: not a readable {what} ({type(exc).__name__}: {str(exc)[:200]})") from None
+
+
 def file_sha256(path: str | os.PathLike) -> str:
     digest = hashlib.sha256()
-    with open(path, "rb") as fh:
+    with open_regular(path) as fh:
         for chunk in iter(lambda: fh.read(1 << 20), b""):
             digest.update(chunk)
     return digest.hexdigest()
@@ -190,10 +215,7 @@ def load_policy(source: str | os.PathLike | dict, device: torch.device | str = "
         path = Path(source)
         if not path.is_file():
             raise PolicyCheckpointError(f"{path}: no checkpoint file there")
-        try:
-            ckpt = torch.load(path, map_location="cpu", weights_only=True)
-        except Exception as exc:  # corrupt, truncated, or holding objects that need arbitrary unpickling
-            raise PolicyCheckpointError(f"{path}: not a readable policy checkpoint ({type(exc).__name__}: {exc})") from None
+        ckpt = read_checkpoint_file(path, PolicyCheckpointError, "policy checkpoint")
 
     def fail(msg: str) -> None:
         raise PolicyCheckpointError(f"{where}: {msg}")

@@ -27,6 +27,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from cuniform_torch.cli import ArgumentParser, CLIError, cli_main
+from cuniform_torch.common.fileio import check_regular
 
 __all__ = ["split", "main"]
 
@@ -41,6 +42,7 @@ def _find(stats: dict, name: str, files: Sequence[str]) -> list[tuple]:
 def split(profile: str | Path) -> dict[str, float]:
     """``profile`` (a cProfile output file) -> commands and ms per command of each part (module docstring)."""
     try:
+        check_regular(profile, "a cProfile output")  # a FIFO would block the read
         stats = pstats.Stats(str(profile)).stats  # type: ignore[attr-defined]
     except (OSError, EOFError, ValueError, TypeError) as exc:
         raise CLIError(f"{profile}: not a readable cProfile output ({type(exc).__name__}: {exc})") from None

@@ -60,6 +60,7 @@ from cuniform_torch import (
     read_table,
     rollout,
 )
+from cuniform_torch.common.fileio import MAX_JSON_BYTES, read_capped_text
 from cuniform_torch.policies import UniformPolicy
 from cuniform_torch.sampling import GaussianSampler, NormalLogNormalSampler
 from eval.common import config
@@ -271,7 +272,7 @@ def _table_system(path: Path):
 
     path = Path(path)
     if path.is_dir():  # a table set: every member is the same system; the first one says which
-        index = json.loads((path / SET_INDEX).read_text())
+        index = json.loads(read_capped_text(path / SET_INDEX, MAX_JSON_BYTES, "the table-set index"))
         path = path / str(index["tables"][0]["file"])
     if not path.is_file():
         raise FileNotFoundError(f"table file {path} not found (python -m eval.report builds it)")

@@ -36,7 +36,7 @@ from cuniform_torch.cli import (
     positive_int,
     refuse_flags,
 )
-from cuniform_torch.common.fileio import write_json
+from cuniform_torch.common.fileio import MAX_JSON_BYTES, read_capped_text, write_json
 from cuniform_torch.common.parallel import run_jobs
 from eval.common.stats import wilson_interval
 from eval.mountain_car.episode import (
@@ -142,7 +142,7 @@ def format_rows(rows: Sequence[dict]) -> str:
 def _resumed(path: Path, config: dict[str, Any]) -> list[dict]:
     """The records of an earlier run with the same configuration (none when it differs or is absent)."""
     try:
-        old = json.loads(path.read_text())
+        old = json.loads(read_capped_text(path, MAX_JSON_BYTES, "a result file"))
     except (OSError, ValueError):
         return []
     if not isinstance(old, dict) or old.get("config") != config or not isinstance(old.get("records"), list):

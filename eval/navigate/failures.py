@@ -29,7 +29,7 @@ from pathlib import Path
 import torch
 
 from cuniform_torch import CUniformMPPI
-from cuniform_torch.cli import MAX_COUNT, ArgumentParser, cli_main, int_in, positive_int
+from cuniform_torch.cli import MAX_COUNT, ArgumentParser, check_output_file, cli_main, int_in, positive_int
 from cuniform_torch.common.fileio import write_json
 from cuniform_torch.envs import NavigationCost
 from eval.navigate.episode import NavContext, _cost_environment, _sources
@@ -126,6 +126,8 @@ def make_parser() -> ArgumentParser:
 @cli_main()
 def main(argv: Sequence[str] | None = None) -> int:
     args = make_parser().parse_args(argv)
+    if args.json is not None:
+        check_output_file(args.json, "--json", "failures.json")
     if args.probe_samples < 1:
         raise ValueError(f"--probe-samples must be >= 1, got {args.probe_samples}")
     _, records = load_folder(args.out)

@@ -13,7 +13,8 @@ import sys
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
-from cuniform_torch.cli import ArgumentParser, cli_main
+from cuniform_torch.cli import ArgumentParser, check_output_file, cli_main
+from cuniform_torch.common.fileio import MAX_JSON_BYTES, read_capped_text
 from eval.common.figures import method_style, plt, save_figure
 
 __all__ = ["TB_METRICS", "success_figure", "write_tensorboard", "main"]
@@ -125,11 +126,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("results", type=Path, nargs="+", help="results.json files written by python -m eval.navigate")
     p.add_argument("--out", type=Path, required=True, help="PNG to write")
     args = p.parse_args(argv)
+    check_output_file(args.out, "--out", "success.png")
     rows: list = []
     labels: dict = {}
     for path in args.results:
         try:
-            res = json.loads(path.read_text())
+            res = json.loads(read_capped_text(path, MAX_JSON_BYTES, "a result file"))
             rows += res["summary"]
             labels.update(res["labels"])
         except (OSError, ValueError, KeyError, TypeError) as err:

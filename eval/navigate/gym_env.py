@@ -183,6 +183,9 @@ class NavigationEnv(gymnasium.Env):
 
     def _pick_task(self, options: dict | None) -> int:
         """``options["task_index"]`` if given, else one task drawn from ``self.np_random`` (0 for one task)."""
+        if options is not None and (not isinstance(options, dict) or set(options) - {"task_index"}):
+            unknown = sorted(map(str, set(options) - {"task_index"})) if isinstance(options, dict) else options
+            raise ValueError(f"NavigationEnv: reset options may hold 'task_index' only, got {unknown!r}")
         k = (options or {}).get("task_index")
         if k is None:
             return int(self.np_random.integers(len(self.tasks))) if len(self.tasks) > 1 else 0
@@ -214,9 +217,13 @@ class NavigationEnv(gymnasium.Env):
         """``action [q]`` (array-like) -> the clipped float64 control ``[q]``; a bad shape or value raises."""
         q = self._low.shape[0]
         try:
-            u = torch.as_tensor(np.asarray(action, dtype=np.float64))
-        except (TypeError, ValueError):
-            raise ValueError(f"NavigationEnv: the action must be {q} numbers, got {action!r}") from None
+            raw = np.asarray(action)
+            if raw.dtype.kind not in "iuf":  # bool, complex (its imaginary part dropped), object, text: refused
+                raise TypeError(f"dtype {raw.dtype}")
+            u = torch.as_tensor(raw.astype(np.float64))
+        except (TypeError, ValueError) as exc:
+            raise ValueError(f"NavigationEnv: the action must be {q} real numbers (integer or float), got {action!r} "
+                             f"({exc})") from None
         if u.shape != (q,):
             raise ValueError(f"NavigationEnv: the action must have shape ({q},), got {tuple(u.shape)}")
         if not bool(torch.isfinite(u).all()):
@@ -306,9 +313,15 @@ def _draw(task: NavTask, sensed_env: Environment, path: np.ndarray) -> np.ndarra
 # ------------------------------------------------------------------------------------------------ registry
 
 def register_envs() -> None:
-    """Register :data:`ENV_ID` (``gymnasium.make(ENV_ID, tasks=...)``); calling it again does nothing."""
+    """Register :data:`ENV_ID`: ``gymnasium.make(ENV_ID, tasks=...)`` (:class:`NavigationEnv`'s keywords) or
+    ``gymnasium.make(ENV_ID, suite="forest", index=0, ...)`` (:func:`make_env`'s); calling it again does nothing."""
     if ENV_ID not in gymnasium.registry:
-        gymnasium.register(id=ENV_ID, entry_point="eval.navigate.gym_env:NavigationEnv")
+        gymnasium.register(id=ENV_ID, entry_point="eval.navigate.gym_env:make_registered")
+
+
+def make_registered(**kwargs: Any) -> NavigationEnv:
+    """The entry point of :data:`ENV_ID`: :func:`make_env` when ``suite`` is given, else :class:`NavigationEnv`."""
+    return make_env(**kwargs) if "suite" in kwargs else NavigationEnv(**kwargs)
 
 
 def make_env(suite: str, index: int | None = 0, count: int | None = None, seed: int = 0,

@@ -22,7 +22,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from cuniform_torch.cli import ArgumentParser, add_system_module_arg, cli_main, import_system_modules
+from cuniform_torch.cli import ArgumentParser, add_system_module_arg, check_output_file, cli_main, import_system_modules
 from cuniform_torch.common.fileio import write_json
 from cuniform_torch.envs.worlds.robot import RobotPreset
 from cuniform_torch.envs.worlds.suites import NavTask
@@ -250,6 +250,8 @@ def make_parser() -> ArgumentParser:
 @cli_main()
 def main(argv: Sequence[str] | None = None) -> int:
     args = make_parser().parse_args(argv)
+    if args.json is not None:
+        check_output_file(args.json, "--json", "replay.json")
     import_system_modules(args.system_module)
     given = {"table": args.table, "coverage_table": args.coverage_table, "policy": args.policy,
              "map_policy": args.map_policy}

@@ -14,8 +14,11 @@ hash of everything that defines them, so a changed preset builds new files and a
 
 from __future__ import annotations
 
+import time
+from collections.abc import Callable
 from pathlib import Path
 
+from cuniform_torch.common.fileio import FileLockedError
 from cuniform_torch.envs.worlds.robot import RobotPreset
 
 __all__ = ["table_file", "policy_file", "ensure_table", "ensure_policy", "DISTILL_EPOCHS"]
@@ -44,6 +47,26 @@ def _system(robot: RobotPreset):
     return make_system(robot.system, **params)
 
 
+WAIT_POLL_S = 2.0
+"""seconds between looks at a cached file another run is building"""
+
+
+def _build_once(path: Path, done: Path, build: Callable[[], object]) -> None:
+    """``build()`` unless ``done`` exists; while another run (sharing the cache) holds the lock of ``path``, wait for
+    it (said once) and use what it built: two benchmarks on one cold ``--cache`` serialize."""
+    said = False
+    while not done.exists():
+        try:
+            build()
+            return
+        except FileLockedError as exc:
+            if not said:
+                print(f"{path} is being built by another run ({str(exc).split(' (lock file')[0]}); waiting for it",
+                      flush=True)
+                said = True
+            time.sleep(WAIT_POLL_S)
+
+
 def ensure_table(robot: RobotPreset, cache: Path, method: str = "maxflow", quiet: bool = False) -> Path:
     """``robot``'s table of ``method`` (:func:`precompute.one_table.build_table_file`, or a table set when the
     robot has ``starts``), built when not cached yet."""
@@ -66,9 +89,10 @@ def ensure_table(robot: RobotPreset, cache: Path, method: str = "maxflow", quiet
     job = TableJob(system=system, out=path, build=BuildConfig(horizon=robot.horizon), coverage=coverage,
                    report=False, quiet=quiet)
     if robot.starts is not None:
-        build_table_set(job, parse_starts(robot.starts, system), path)
+        starts = parse_starts(robot.starts, system)
+        _build_once(path, done, lambda: build_table_set(job, starts, path))
     else:
-        build_table_file(job)
+        _build_once(path, done, lambda: build_table_file(job))
     if not done.exists():
         raise RuntimeError(f"building {path} left no {done.name}")
     return path
@@ -86,8 +110,8 @@ def ensure_policy(robot: RobotPreset, cache: Path, quiet: bool = False) -> Path:
 
     table = ensure_table(robot, cache, quiet=quiet)
     print(f"distilling the navigation robot's table into {path} (once; cached)")
-    distill(DistillConfig(tables=[str(table)], out=str(path), epochs=DISTILL_EPOCHS,
-                          logdir=str(Path(cache) / "runs" / path.stem), quiet=quiet))
+    _build_once(path, path, lambda: distill(DistillConfig(tables=[str(table)], out=str(path), epochs=DISTILL_EPOCHS,
+                                                         logdir=str(Path(cache) / "runs" / path.stem), quiet=quiet)))
     if not path.exists():
         raise RuntimeError(f"distilling {path} wrote no checkpoint")
     return path

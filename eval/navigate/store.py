@@ -22,13 +22,21 @@ import json
 import math
 import os
 import re
+import stat
 import sys
 import warnings
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import Any, BinaryIO
 
-from cuniform_torch.common.fileio import write_json
+from cuniform_torch.common.fileio import (
+    MAX_JSONL_BYTES,
+    MAX_SMALL_JSON_BYTES,
+    file_kind,
+    read_capped_bytes,
+    read_capped_text,
+    write_json,
+)
 from eval.navigate.episode import episode_key
 
 __all__ = ["EpisodeStore", "StoreError", "SETTINGS", "RECORD", "OUTCOMES", "check_settings", "check_record"]
@@ -252,6 +260,7 @@ class EpisodeStore:
         if problem is not None:  # a settings_record out of step with SETTINGS: a bug, said before any write
             raise ValueError(f"the run's settings for {self.settings_file}: {problem}")
         self.folder.mkdir(parents=True, exist_ok=True)
+        self._check_own_files()
         if self.settings_file.exists():
             old = self.read_settings()
             differ = sorted(k for k in set(old) | set(settings) if k != MERGED and old.get(k) != settings.get(k))
@@ -272,9 +281,27 @@ class EpisodeStore:
     def check(self) -> None:
         """Refuse early, before the work that makes a run's settings (the source files' digests), a folder that
         :meth:`open` refuses whatever the settings: records without settings, settings or records of the wrong
-        shape. A folder without either passes (a new run)."""
+        shape, files that are links or not regular files. A folder without either passes (a new run)."""
+        self._check_own_files()
         if self.settings_file.exists() or self._has_records():
             self._load(note=False)  # the run's open() warns about a cut-short last line, and drops it
+
+    def _check_own_files(self) -> None:
+        """A :class:`StoreError` when ``settings.json`` or ``episodes.jsonl`` is a symlink (a run would write
+        through it, into another folder or ``/dev/null``; a reader would report another folder's episodes) or not a
+        regular file (a FIFO, a device): a run and a reader use only the folder's own files."""
+        for path in (self.settings_file, self.records_file):
+            try:
+                mode = os.lstat(path).st_mode
+            except FileNotFoundError:
+                continue
+            except OSError as err:
+                raise StoreError(f"{path}: cannot be checked ({err.strerror or err}); use another --out") from None
+            if stat.S_ISLNK(mode):
+                raise StoreError(f"{path} is a symlink (to {os.readlink(path)}); a benchmark folder's files are its "
+                                 "own: replace the link with a copy of the file, or use another --out")
+            if not stat.S_ISREG(mode):
+                raise StoreError(f"{path} is {file_kind(mode)}, not a regular file; remove it, or use another --out")
 
     def _no_settings(self) -> StoreError:
         return StoreError(f"{self.folder} holds episode records ({self.records_file.name}) but no settings.json, so "
@@ -283,13 +310,13 @@ class EpisodeStore:
 
     def read_settings(self) -> dict[str, Any]:
         """The folder's settings, checked (:data:`SETTINGS`); a :class:`StoreError` naming the file otherwise."""
-        if not self.settings_file.is_file():
+        if not os.path.lexists(self.settings_file):  # something there that is not a file is said below
             if self._has_records():
                 raise self._no_settings()
             raise StoreError(f"{self.folder} is not a benchmark folder: it has no settings.json "
                              "(python -m eval.navigate --out)")
         try:
-            settings = _loads(self.settings_file.read_text())
+            settings = _loads(read_capped_text(self.settings_file, MAX_SMALL_JSON_BYTES, "the benchmark settings"))
         except (OSError, ValueError) as err:
             raise StoreError(f"{self.settings_file}: unreadable ({err}); use another --out") from None
         problem = check_settings(settings)
@@ -302,6 +329,7 @@ class EpisodeStore:
         return self._load(note=True)
 
     def _load(self, note: bool) -> tuple[dict[str, Any], dict[str, dict]]:
+        self._check_own_files()  # a link: whose records these are is unknown (and a run would write through it)
         settings = self.read_settings()
         records, _, cut, line = self._parse(settings["suite"])
         if cut and note and not self._noted_cut:  # never silently: the reader's numbers lack that episode
@@ -322,22 +350,25 @@ class EpisodeStore:
 
     def _records_bytes(self) -> bytes | None:
         """``episodes.jsonl``'s bytes; None when there is none; a :class:`StoreError` when something is there but
-        cannot be read (a folder, a symlink loop or one to nothing: never taken for a folder without records)."""
+        cannot be read (a folder, a symlink loop or one to nothing: never taken for a folder without records; a FIFO
+        or a device; a file over :data:`~cuniform_torch.common.fileio.MAX_JSONL_BYTES`)."""
         if not (self.records_file.exists() or self.records_file.is_symlink()):
             return None
         try:
-            return self.records_file.read_bytes()
+            return read_capped_bytes(self.records_file, MAX_JSONL_BYTES, "the episode records")
         except OSError as err:
             raise StoreError(f"{self.records_file}: unreadable ({err.strerror or err}); fix or delete it") from None
+        except ValueError as err:
+            raise StoreError(f"{err}; fix or delete it") from None
 
     def _read(self, suite: str) -> dict[str, dict]:
         records, good, cut, _ = self._parse(suite)
         if cut:  # the last write, cut short: dropped so that appends start on a fresh line
             warnings.warn(f"{self.records_file}: dropping an incomplete last line ({cut} bytes)", stacklevel=2)
-            with open(self.records_file, "r+b") as f:
+            with self._open_own("r+b") as f:
                 f.truncate(good)
         elif self.records_file.exists() and self.records_file.stat().st_size:
-            with open(self.records_file, "r+b") as f:
+            with self._open_own("r+b") as f:
                 f.seek(-1, os.SEEK_END)
                 if f.read(1) != b"\n":  # a whole last record cut before its newline: appends start on a fresh line
                     f.write(b"\n")
@@ -377,9 +408,25 @@ class EpisodeStore:
             good += len(line) + 1
         return records, good, 0, 0
 
+    def _open_own(self, mode: str) -> BinaryIO:
+        """``episodes.jsonl`` opened for writing (``"ab"``: appends, created when missing; ``"r+b"``), never through a
+        symlink (``O_NOFOLLOW``: an ``OSError`` naming it) and only when it is a regular file."""
+        flags = (os.O_WRONLY | os.O_APPEND | os.O_CREAT) if mode == "ab" else os.O_RDWR
+        fd = os.open(self.records_file, flags | os.O_NOFOLLOW | os.O_NONBLOCK | getattr(os, "O_CLOEXEC", 0), 0o644)
+        try:
+            st_mode = os.fstat(fd).st_mode
+            if not stat.S_ISREG(st_mode):
+                raise StoreError(f"{self.records_file} is {file_kind(st_mode)}, not a regular file; remove it, or "
+                                 "use another --out")
+            os.set_blocking(fd, True)
+            return os.fdopen(fd, mode)
+        except BaseException:
+            os.close(fd)
+            raise
+
     def append(self, record: dict) -> None:
         """Append one record and flush it to disk."""
-        with open(self.records_file, "ab") as f:
+        with self._open_own("ab") as f:
             f.write(json.dumps(record, separators=(",", ":")).encode() + b"\n")
             f.flush()
             os.fsync(f.fileno())

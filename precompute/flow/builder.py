@@ -23,7 +23,7 @@ import numpy as np
 import scipy
 import torch
 
-from cuniform_torch.common.fileio import write_json, write_npz
+from cuniform_torch.common.fileio import MAX_SMALL_JSON_BYTES, read_capped_text, write_json, write_npz
 from cuniform_torch.grid.cells import Grid
 from cuniform_torch.systems import System, system_to_json
 from cuniform_torch.tables.file import Table, system_fields
@@ -161,7 +161,7 @@ def check_resume(checkpoint_dir: str | Path, system: System, config: BuildConfig
     ``checkpoint_dir`` holds; a no-op for a folder without settings (none yet, or from an older version)."""
     ckpt, settings = Path(checkpoint_dir), build_settings(system, config)
     try:
-        saved = json.loads((ckpt / MANIFEST).read_text())
+        saved = json.loads(read_capped_text(ckpt / MANIFEST, MAX_SMALL_JSON_BYTES, "a build manifest"))
     except (OSError, ValueError):
         return  # no manifest (an old folder) or a damaged one: the per-step fingerprints still guard the table
     if not isinstance(saved, dict):

@@ -31,6 +31,7 @@ from __future__ import annotations
 import hashlib
 import json
 import math
+import os
 import re
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
@@ -41,7 +42,7 @@ import numpy as np
 import torch
 
 from cuniform_torch.common.digest import DIGEST_KEY, DigestError, check_digest, content_digest
-from cuniform_torch.common.fileio import write_npz
+from cuniform_torch.common.fileio import MAX_JSON_BYTES, file_kind, open_regular, read_capped_text, write_npz
 from cuniform_torch.common.npz import NpzError, member_headers, read_npz
 from cuniform_torch.grid.cells import CellKeys, CellSet, Grid
 from cuniform_torch.systems import System, system_from_json, system_to_json
@@ -143,7 +144,7 @@ class MapDataset:
 def file_sha256(path: str | Path) -> str:
     """sha256 (hex) of a file's bytes."""
     h = hashlib.sha256()
-    with open(path, "rb") as fh:
+    with open_regular(path) as fh:
         for block in iter(lambda: fh.read(1 << 20), b""):
             h.update(block)
     return h.hexdigest()
@@ -194,10 +195,12 @@ def read_map_dataset(root: str | Path, load: bool = False, verify_all: bool = Fa
     the farm's build time). One :class:`MapDatasetError` per problem."""
     root = Path(root)
     path = root / "dataset.json"
+    if path.exists() and not path.is_file():
+        raise MapDatasetError(f"{path}: {file_kind(os.stat(path).st_mode)}, not a regular file")
     if not path.is_file():
         raise MapDatasetError(f"{path}: no dataset.json there (an unfinished or missing data set)")
     try:
-        meta = json.loads(path.read_text())
+        meta = json.loads(read_capped_text(path, MAX_JSON_BYTES, "the data-set manifest"))
     except (OSError, UnicodeDecodeError, ValueError, RecursionError) as exc:  # RecursionError: nested too deep
         raise MapDatasetError(f"{path}: not readable JSON ({type(exc).__name__}: {exc})") from None
     ds = _dataset_from_meta(meta, root, path)
@@ -305,7 +308,8 @@ def _close(a: Any, b: Any) -> bool:
 def _check_sha(ds: MapDataset, k: int) -> Path:
     path = ds.root / ds.shards[k]["file"]
     if not path.is_file():
-        raise MapDatasetError(f"{path}: shard {k} is missing")
+        what = f"{file_kind(os.stat(path).st_mode)}, not a regular file" if path.exists() else "missing"
+        raise MapDatasetError(f"{path}: shard {k} is {what}")
     if file_sha256(path) != ds.shards[k]["sha256"]:
         raise MapDatasetError(f"{path}: sha256 does not match dataset.json (a changed, truncated or foreign shard)")
     return path

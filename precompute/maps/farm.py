@@ -42,7 +42,7 @@ from cuniform_torch.cli import (
     positive_float,
     positive_int,
 )
-from cuniform_torch.common.fileio import exclusive_lock, write_json
+from cuniform_torch.common.fileio import MAX_JSON_BYTES, exclusive_lock, read_capped_text, write_json
 from cuniform_torch.common.parallel import run_jobs
 from cuniform_torch.systems import make_system, resolve_system, system_from_json
 from precompute.coverage.method import CoverageConfig
@@ -182,7 +182,7 @@ def _load_progress(out: Path, spec: dict) -> dict[str, dict]:
             raise CLIError(f"--out {out} holds a data set without {PROGRESS}; choose another --out")
         return {}
     try:
-        saved = json.loads(path.read_text())
+        saved = json.loads(read_capped_text(path, MAX_JSON_BYTES, "the farm's progress file"))
         same = saved["spec"] == spec
         done = saved["done"]
     except (OSError, ValueError, KeyError, TypeError):

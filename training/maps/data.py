@@ -23,6 +23,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from cuniform_torch.common.fileio import MAX_JSON_BYTES, read_capped_bytes, read_capped_text
 from cuniform_torch.grid.cells import Grid
 from cuniform_torch.maps.encoder import PatchSpec
 from cuniform_torch.systems import System, system_from_json
@@ -72,7 +73,7 @@ class MapData:
 
 def dataset_digest(folder: str | os.PathLike) -> str:
     """sha256 of a data set's ``dataset.json`` (which holds every shard's sha256)."""
-    return hashlib.sha256((Path(folder) / "dataset.json").read_bytes()).hexdigest()
+    return hashlib.sha256(read_capped_bytes(Path(folder) / "dataset.json", MAX_JSON_BYTES, "the data-set manifest")).hexdigest()
 
 
 def load_map_data(folders: Sequence[str | os.PathLike], deep_checks: bool = True) -> MapData:
@@ -125,9 +126,7 @@ def _raw_header(folder: Path) -> dict | None:
     then says what is wrong with it)."""
     path = folder / "dataset.json"
     try:
-        if path.stat().st_size > 64 << 20:
-            return None
-        head = json.loads(path.read_text())
+        head = json.loads(read_capped_text(path, MAX_JSON_BYTES, "the data-set manifest"))
     except (OSError, ValueError, RecursionError):
         return None
     return head if isinstance(head, dict) else None
@@ -148,7 +147,7 @@ def _read_folder(folder: Path, deep_checks: bool) -> dict:
     """One data set, read and validated (every shard, sha256 first) by :func:`precompute.maps.dataset.read_map_dataset`."""
     ds = read_map_dataset(folder, load=True, verify_all=deep_checks)
     index = folder / "dataset.json"
-    raw = index.read_bytes()
+    raw = read_capped_bytes(index, MAX_JSON_BYTES, "the data-set manifest")
     shards = [ds.shard(k).arrays for k in range(len(ds.shards))]
     nbytes = len(raw) + sum((folder / sh["file"]).stat().st_size for sh in ds.shards)
     return {"path": folder, "meta": ds.meta, "shards": shards, "sha256": hashlib.sha256(raw).hexdigest(),

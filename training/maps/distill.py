@@ -47,7 +47,7 @@ from cuniform_torch.cli import (
     positive_int,
     threads_arg,
 )
-from cuniform_torch.common.fileio import exclusive_lock
+from cuniform_torch.common.fileio import MAX_JSON_BYTES, exclusive_lock, read_capped_text
 from cuniform_torch.maps.checkpoint import map_policy_checkpoint, save_map_policy
 from training.maps.data import load_map_data
 from training.maps.train import Trainer, make_policy, split_entries
@@ -207,7 +207,7 @@ def _run(cfg: MapDistillConfig, out: Path, state_path: Path) -> int:
     trainer.policy.load_state_dict(best)
     metrics = {"best_epoch": best_epoch, "best_val_kl": best_val if split.val_entries else math.nan,
                "train_seconds": seconds, "entries": data.num_entries, "rows": int(data.centres.shape[0])}
-    radii = {json.loads((Path(src["path"]) / "dataset.json").read_text()).get("radius") for src in data.sources}
+    radii = {json.loads(read_capped_text(Path(src["path"]) / "dataset.json", MAX_JSON_BYTES, "the data-set manifest")).get("radius") for src in data.sources}
     if len(radii) == 1 and isinstance(next(iter(radii)), (int, float)):
         metrics["robot_radius"] = float(next(iter(radii)))  # the obstacles' inflation the tables were built with
     metrics = {k: v for k, v in metrics.items() if not (isinstance(v, float) and math.isnan(v))}

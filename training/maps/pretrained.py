@@ -25,7 +25,7 @@ from pathlib import Path
 from typing import Any
 
 from cuniform_torch.cli import ArgumentParser, CLIError, cli_main, int_in
-from cuniform_torch.common.fileio import write_json
+from cuniform_torch.common.fileio import MAX_JSON_BYTES, read_capped_text, write_json
 from cuniform_torch.envs.worlds.robot import NAV_ROBOT, RobotPreset, preset_dict
 from cuniform_torch.maps.checkpoint import load_map_policy
 from cuniform_torch.maps.pretrained import CARD_FORMAT, PRETRAINED_DIR
@@ -120,7 +120,7 @@ def model_card(recipe: Recipe, checkpoint: Path, folders: Sequence[Path], farm_s
     metrics = dict(_load_policy_dict(checkpoint).get("metrics", {}))
     data = []
     for farm, folder in zip(recipe.farms, folders):
-        head = json.loads((Path(folder) / "dataset.json").read_text())
+        head = json.loads(read_capped_text(Path(folder) / "dataset.json", MAX_JSON_BYTES, "the data-set manifest"))
         data.append({"suite": farm.suite, "split": "train", "maps": farm.count, "poses_per_map": farm.poses,
                      "seed": farm.seed, "entries": len(head["entries"]), "method": head["method"],
                      "keys": sorted({e["source"] for e in head["entries"]}), "dataset_sha256": dataset_digest(folder)})

@@ -26,6 +26,7 @@ import torch
 from cuniform_torch.cli import (
     MAX_COUNT,
     ArgumentParser,
+    check_output_file,
     cli_main,
     int_in,
     non_negative_int,
@@ -144,6 +145,8 @@ def make_parser() -> ArgumentParser:
 def main(argv: Sequence[str] | None = None) -> int:
     parser = make_parser()
     args = parser.parse_args(argv)
+    if args.json:
+        check_output_file(args.json, "--json", "timing.json")
     if args.checkpoint is not None:
         refuse_flags(parser, args, SIZES, "with --checkpoint (the checkpoint has its own sizes)")
     if args.threads:

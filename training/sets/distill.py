@@ -28,6 +28,7 @@ from typing import TYPE_CHECKING, Any
 
 import torch
 
+from cuniform_torch.common.fileio import MAX_JSON_BYTES, read_capped_text
 from cuniform_torch.grid.cells import Grid
 from cuniform_torch.policies.checkpoint import file_sha256, policy_checkpoint, save_policy
 from cuniform_torch.policies.mlp import MLPConfig, default_feature_scale
@@ -72,7 +73,7 @@ def distill_set(cfg: DistillConfig, out: Path, state_path: Path, comparison_path
     if not dims:
         raise UsageError(f"--tables {folder}: {system.name} has no dimension beyond its pose; one table serves "
                          f"every start, distil a table file")
-    index = json.loads((folder / SET_INDEX).read_text())
+    index = json.loads(read_capped_text(folder / SET_INDEX, MAX_JSON_BYTES, "the table-set index"))
     files = [folder / e["file"] for e in index["tables"]]
     shas = [file_sha256(p) for p in files]
     fingerprint = {**{k: getattr(cfg, k) for k in RESUME_KEYS}, "tables_sha256": [file_sha256(folder / SET_INDEX), *shas]}

@@ -42,8 +42,8 @@ from typing import Any
 import numpy as np
 import torch
 
-from cuniform_torch.cli import ArgumentParser, cli_main, int_in, non_negative_int, positive_int
-from cuniform_torch.common.fileio import write_json
+from cuniform_torch.cli import ArgumentParser, check_output_file, cli_main, int_in, non_negative_int, positive_int
+from cuniform_torch.common.fileio import MAX_JSON_BYTES, read_capped_text, write_json
 from cuniform_torch.controllers.mppi import CUniformMPPI
 from cuniform_torch.policies.checkpoint import load_policy
 from cuniform_torch.policies.start_mlp import StartMLPPolicy
@@ -185,6 +185,8 @@ def make_parser() -> ArgumentParser:
 def main(argv: Sequence[str] | None = None) -> int:
     """Print the held-out comparison and the command times (module docstring); 0, or 2 after ``error: ...``."""
     args = make_parser().parse_args(argv)
+    if args.json:
+        check_output_file(args.json, "--json", "set_eval.json")
     for name in ("samples", "repeats"):
         if getattr(args, name) < 1:
             raise UsageError(f"--{name} must be a positive integer")
@@ -192,7 +194,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         raise UsageError("--num-samples must be positive and --warmup >= 0")
     folder = Path(args.set)
     tset = load_table_set(folder)
-    index = json.loads((folder / SET_INDEX).read_text())
+    index = json.loads(read_capped_text(folder / SET_INDEX, MAX_JSON_BYTES, "the table-set index"))
     mlp = load_policy(args.policy)
     if not isinstance(mlp, StartMLPPolicy):
         raise UsageError(f"--policy {args.policy} is not start-conditioned (distil the set folder itself)")

@@ -32,12 +32,12 @@ def save_train_state(path: Path, state: dict[str, Any]) -> None:
 def load_train_state(path: Path, fingerprint: dict[str, Any], fmt: str = TRAIN_STATE_FORMAT) -> dict[str, Any]:
     """The saved training state of format ``fmt``, after checking it belongs to this config and these inputs
     (:class:`UsageError`)."""
-    if not path.is_file():
+    if not path.exists():  # something there that is not a file is said by the reader
         raise UsageError(f"--resume: no training state at {path} (run without --resume first)")
-    try:
-        state = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as exc:  # truncated or foreign file
-        raise UsageError(f"--resume: {path} is not a readable training state ({type(exc).__name__}: {exc})") from None
+    from cuniform_torch.policies.checkpoint import MAX_CHECKPOINT_BYTES, read_checkpoint_file
+
+    state = read_checkpoint_file(path, UsageError, "training state (--resume)",  # the optimizer's moments: 3x
+                                 max_bytes=4 * MAX_CHECKPOINT_BYTES)
     if not isinstance(state, dict) or state.get("format") != fmt:
         raise UsageError(f"--resume: {path} is not a training state of format {fmt!r}")
     saved = state.get("fingerprint", {})

@@ -41,7 +41,7 @@ from pathlib import Path
 
 import numpy as np
 
-from cuniform_torch.common.fileio import write_npz
+from cuniform_torch.common.fileio import check_regular, write_npz
 from cuniform_torch.envs import Circle, Environment
 from cuniform_torch.envs.worlds.barn_format import KEYS, BarnFormatError, format_error, validate_barn
 from cuniform_torch.envs.worlds.barn_worlds import FILE_GOAL, FILE_START, convert_worlds
@@ -95,6 +95,7 @@ class BarnMap:
 def _read_npz(path: Path) -> dict[str, np.ndarray]:
     source = str(path)
     try:
+        check_regular(path, "the BARN file")  # a FIFO would block np.load; a device never ends
         data = np.load(path, allow_pickle=False)
         if not isinstance(data, np.lib.npyio.NpzFile):
             raise format_error(source, None, "not an .npz archive (a single .npy array)")

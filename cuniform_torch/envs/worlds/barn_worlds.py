@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
+from cuniform_torch.common.fileio import check_regular, read_capped_bytes
 from cuniform_torch.envs.worlds.barn_format import BarnFormatError, format_error, validate_barn
 
 __all__ = ["convert_worlds", "FILE_START", "FILE_GOAL"]
@@ -25,13 +26,17 @@ FILE_GOAL = (-2.0, 13.0)
 """the shipped file's goal (x, y)"""
 
 _WORLD_NAME = re.compile(r"world_(\d+)\.world")
+_MAX_WORLD_BYTES = 64 << 20  # a BARN world is ~100 kB
 _FORBIDDEN = re.compile(rb"<!\s*(DOCTYPE|ENTITY)", re.IGNORECASE)
 
 
 def _parse_world(path: Path) -> tuple[np.ndarray, float]:
     """``world_<id>.world`` -> (centers float32 [M, 2], cylinder radius)."""
     source = str(path)
-    data = path.read_bytes()
+    try:
+        data = read_capped_bytes(path, _MAX_WORLD_BYTES, "a Gazebo world file")
+    except ValueError as exc:  # a FIFO, a device, a file far larger than any world
+        raise format_error(source, None, str(exc).removeprefix(f"{source}: ")) from None
     if _FORBIDDEN.search(data):
         raise format_error(source, None, "contains a DOCTYPE or ENTITY declaration; refusing to parse it")
     try:
@@ -87,6 +92,7 @@ def _world_files(folder_or_files: str | os.PathLike | Iterable[str | os.PathLike
 
 def _read_path(path: Path) -> np.ndarray:
     try:
+        check_regular(path, "a BARN path file")  # a FIFO would block np.load; a device never ends
         arr = np.load(path, allow_pickle=False)
     except (ValueError, OSError, EOFError) as exc:
         raise format_error(str(path), None, f"not a readable .npy path ({type(exc).__name__}: {exc})") from None
