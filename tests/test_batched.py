@@ -73,6 +73,24 @@ def test_cumppi_batched_equals_alone(table, local):
     _same_as_alone(lambda seed, n: CUMPPI(table, goal_cost, num_samples=64, local=local, seed=seed, num_robots=n))
 
 
+def test_cumppi_in_one_pass_batched_equals_alone(table):
+    _same_as_alone(lambda seed, n: CUMPPI(table, goal_cost, num_samples=64, seed=seed, num_robots=n, pipelined=True))
+
+
+def test_cumppi_in_one_pass_seeds_the_next_local_pass_with_this_commands_best_cuniform_sequence(table):
+    """One pass: K1 C-Uniform rollouts and K2 local ones side by side; after a command the local nominal is each
+    robot's lowest-cost C-Uniform sequence of that command, shifted one step."""
+    ctrl = CUMPPI(table, goal_cost, num_samples=64, seed=[1, 2], num_robots=2, pipelined=True)
+    k1 = ctrl.cuniform.num_samples
+    result = ctrl.plan(STARTS[:2])
+    assert result.actions.shape[1] == 64 and ctrl.num_samples == 64
+    ctrl.proposal.update(result)
+    best = result.costs[:, :k1].argmin(dim=1)
+    for b in range(2):
+        seq = result.actions[b, best[b]]
+        torch.testing.assert_close(ctrl.local.nominal[b], torch.cat((seq[1:], seq[-1:])))
+
+
 def test_an_int_seed_gives_robot_zero_that_seed_and_the_others_their_own_streams():
     batched = MPPI(DUBINS, goal_cost, num_samples=32, horizon=6, seed=5, num_robots=3)
     alone = MPPI(DUBINS, goal_cost, num_samples=32, horizon=6, seed=5)

@@ -29,6 +29,7 @@ from cuniform_torch.controllers.checks import check_positive_int
 from cuniform_torch.controllers.core import COST_CAP, CostFn, MPPICore, MPPIResult, mppi_weights
 from cuniform_torch.controllers.proposals import (
     CompositeProposal,
+    PipelinedProposal,
     GaussianProposal,
     NormalLogNormalProposal,
     PolicyProposal,
@@ -256,6 +257,9 @@ class CUMPPI(MPPICore):
     :param horizon: T (default: the policy's)
     :param bank_size: a proposal bank for the first stage (see :class:`CUniformMPPI`)
     :param device: the policy's device when a checkpoint dict is given
+    :param pipelined: one pass per command (:class:`~cuniform_torch.controllers.proposals.PipelinedProposal`): the
+        local rollouts around the previous command's best C-Uniform sequence, rolled out and costed together with
+        this command's C-Uniform rollouts, and all of them weighed (a mixture); False: the two stages of the paper
     """
 
     def __init__(self, policy: Policy | dict[str, Any], cost_fn: CostFn, num_samples: int = 1000,
@@ -263,7 +267,7 @@ class CUMPPI(MPPICore):
                  local: str = "mppi", horizon: int | None = None, bank_size: int | None = None,
                  terminal_cost: Callable[[Tensor], Tensor] | None = None, device: torch.device | str | None = None,
                  seed: int | Sequence[int] | None = None, num_robots: int = 1, debug: bool | None = None,
-                 cuda_graph: bool = False, **local_kwargs: Any):
+                 cuda_graph: bool = False, pipelined: bool = False, **local_kwargs: Any):
         check_positive_int("num_samples", num_samples)
         if not 0 < cuniform_fraction < 1:
             raise ValueError(f"cuniform_fraction must be in (0, 1), got {cuniform_fraction!r}")
@@ -280,5 +284,9 @@ class CUMPPI(MPPICore):
         self.local = local_cls(self.cuniform.system, num_samples - k_cu, self.cuniform.horizon, noise_std=noise_std,
                                device=self.cuniform.device, dtype=self.cuniform.dtype, num_robots=num_robots,
                                **local_kwargs)
-        super().__init__(CompositeProposal(self.cuniform, self.local), cost_fn, lambda_, terminal_cost,
-                         seed=shifted(seed, 1), debug=debug, cuda_graph=cuda_graph)
+        self.pipelined = bool(pipelined)
+        proposal: CompositeProposal | PipelinedProposal = (
+            PipelinedProposal(self.cuniform._batch, self.cuniform.streams, self.local) if self.pipelined
+            else CompositeProposal(self.cuniform, self.local))
+        super().__init__(proposal, cost_fn, lambda_, terminal_cost, seed=shifted(seed, 1), debug=debug,
+                         cuda_graph=cuda_graph)

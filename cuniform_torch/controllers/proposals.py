@@ -44,7 +44,7 @@ from cuniform_torch.sampling.start_watch import new_episode
 from cuniform_torch.systems import System
 
 __all__ = ["Proposal", "SingleRobotProposal", "as_batched", "GaussianProposal", "NormalLogNormalProposal", "PolicyProposal", "CompositeProposal",
-           "PROPOSAL_MEMBERS", "SINGLE_ROBOT_MEMBERS", "OneRobotCall"]
+           "PROPOSAL_MEMBERS", "SINGLE_ROBOT_MEMBERS", "OneRobotCall", "PipelinedProposal"]
 
 
 @runtime_checkable
@@ -445,3 +445,38 @@ class CompositeProposal(OneRobotCall):
     def close(self) -> None:
         if isinstance(self.first, Closeable):
             self.first.close()
+
+
+class PipelinedProposal(OneRobotCall):
+    """CU-MPPI in one pass (``CUMPPI(..., pipelined=True)``): each command proposes the first stage's C-Uniform
+    rollouts (``first``, K1 per robot, from its own ``first_streams``) and the local Gaussian (or log-normal)
+    rollouts (``local``, K2 per robot) around the best C-Uniform sequence of the *previous* command, shifted one step,
+    side by side: ``[B, K1 + K2, ...]``, rolled out and costed together, so nothing waits on a first-stage plan. The
+    core weighs all K1 + K2 (a mixture proposal); :meth:`update` takes each robot's lowest-cost C-Uniform sequence
+    of this command as the next command's local nominal. The first command's local rollouts are around zero."""
+
+    def __init__(self, first: Proposal, first_streams: RobotStreams, local: GaussianProposal):
+        self.first, self.first_streams, self.local = first, first_streams, local
+        self.system, self.horizon, self.num_robots = local.system, local.horizon, local.num_robots
+        self.num_samples = first.num_samples + local.num_samples
+        self.device, self.dtype = local.device, local.dtype
+
+    def propose_batch(self, states: Tensor, streams: RobotStreams) -> tuple[Tensor, Tensor]:
+        cu_states, cu_actions = self.first.propose_batch(states, self.first_streams)  # [B, K1, ...]
+        local_states, local_actions = self.local.propose_batch(states, streams)  # [B, K2, ...]
+        return torch.cat((cu_states, local_states), dim=1), torch.cat((cu_actions, local_actions), dim=1)
+
+    def update(self, result: MPPIResult) -> None:
+        """The next local nominal: each robot's lowest-cost C-Uniform sequence, shifted one step (last repeated)."""
+        k1 = self.first.num_samples
+        costs, actions = result.costs, result.actions
+        if costs.ndim == 1:  # one robot's result
+            costs, actions = costs.unsqueeze(0), actions.unsqueeze(0)
+        best = torch.argmin(costs[:, :k1], dim=1)  # [B]
+        index = best.view(-1, 1, 1, 1).expand(-1, 1, *actions.shape[2:])
+        seq = actions[:, :k1].gather(1, index)[:, 0]  # [B, T, q]
+        self.local.seed(torch.cat((seq[:, 1:], seq[:, -1:]), dim=1))
+
+    def reset(self, robots: Tensor | None = None) -> None:
+        self.first.reset(robots)
+        self.local.reset(robots)

@@ -6,7 +6,8 @@
 
 Every controller drives the navigation benchmark's robot (Dubins, 0.5 m/s, 7 turn rates, dt 0.2 s) on BARN map 0
 (the shipped half) under the navigation cost, from the map's start (robot ``b`` a little further along x): MPPI
-(std 1.0), log-MPPI (std 0.3), C-Uniform MPPI on the robot's max-flow table, CU-MPPI on it, CFU-MPPI with the
+(std 1.0), log-MPPI (std 0.3), C-Uniform MPPI on the robot's max-flow table, CU-MPPI on it (and in one pass,
+``cumppi_pipe``), CFU-MPPI with the
 shipped map policy, and pytorch_mppi (the ``[bench]`` extra; ``MPPI_Batched`` for a batch) on the same dynamics
 with a per-step goal-and-collision cost. Commands are timed round-robin (one command of each controller in turn,
 ``--repeats`` rounds after ``--warmup``), so a varying load on a shared machine hits all alike; each figure is a
@@ -40,7 +41,7 @@ from cuniform_torch.cli import (
 )
 from cuniform_torch.common.fileio import write_json
 
-METHODS = ("mppi", "log_mppi", "cuniform", "cumppi", "cfu_mppi", "pytorch_mppi")
+METHODS = ("mppi", "log_mppi", "cuniform", "cumppi", "cumppi_pipe", "cfu_mppi", "pytorch_mppi")
 
 
 def make_parser() -> ArgumentParser:
@@ -94,7 +95,7 @@ def build(args) -> tuple[dict[tuple[str, int, int], Callable[[], object]], dict]
     states = start.repeat(b, 1)
     states[:, 0] += 0.05 * torch.arange(b, device=device)
     state = states[0] if b == 1 else states
-    needs_table = {"cuniform", "cumppi"} & set(args.methods)
+    needs_table = {"cuniform", "cumppi", "cumppi_pipe"} & set(args.methods)
     table = None
     if needs_table and min(args.horizon) <= NAV_ROBOT.horizon:
         table = TablePolicy(read_table(ensure_table(NAV_ROBOT, Path(args.cache))), device=device)
@@ -118,6 +119,8 @@ def build(args) -> tuple[dict[tuple[str, int, int], Callable[[], object]], dict]
             return CUniformMPPI(table, cost, k, horizon=t, seed=0, **kw)
         if name == "cumppi" and table is not None:
             return CUMPPI(table, cost, k, horizon=t, seed=0, **kw)
+        if name == "cumppi_pipe" and table is not None:
+            return CUMPPI(table, cost, k, horizon=t, seed=0, pipelined=True, **kw)
         if name == "cfu_mppi":
             return CFUMPPI("unicycle-0.5", env, cost, k, horizon=t, device=device, seed=0, **kw)
         return None

@@ -28,6 +28,9 @@ nominal. Method keys:
   release's way; not executed dynamics, see :mod:`eval.common.graph_sampling`). Open-loop only;
 * ``cumppi`` (both): CU-MPPI: the best C-Uniform rollout of the max-flow table seeds a local MPPI pass (half of
   the budget each). Closed-loop only;
+* ``cumppi_pipe`` (navigate, opt-in): CU-MPPI in one pass (``CUMPPI(pipelined=True)``): the local rollouts around
+  the previous command's best C-Uniform sequence, rolled out and costed with this command's C-Uniform ones, all
+  weighed together;
 * ``cfu_mppi`` (navigate): CFU-MPPI: the same with a map-conditioned policy (``--map-policy FILE``, from
   ``python -m training.maps.distill``), which senses the local map at each command within the task's sensing
   range (opt-in: it needs that file). Closed-loop only.
@@ -38,6 +41,7 @@ the navigation benchmark (the best of them per suite and budget).
 
 from __future__ import annotations
 
+import functools
 import json
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -164,6 +168,8 @@ METHODS: dict[str, Method] = {m.key: m for m in [
            color="#8c564b", linestyle="--", benchmarks=(PAPER,)),
     Method("cumppi", "CU-MPPI (max-flow table)", "cuniform", CUMPPI, source="table", open_loop=False,
            color="#e377c2", benchmarks=_BOTH),
+    Method("cumppi_pipe", "CU-MPPI in one pass (max-flow table)", "cuniform", functools.partial(CUMPPI, pipelined=True),
+           source="table", open_loop=False, color="#c51b8a", benchmarks=(NAVIGATE,), opt_in=(NAVIGATE,)),
     Method("cfu_mppi", "CFU-MPPI (map-conditioned policy)", "cuniform", CFUMPPI, source="map_policy",
            open_loop=False, color="#17becf", benchmarks=(NAVIGATE,), opt_in=(NAVIGATE,)),
 ]}
