@@ -29,9 +29,9 @@ from cuniform_torch.controllers.checks import check_positive_int
 from cuniform_torch.controllers.core import COST_CAP, CostFn, MPPICore, MPPIResult, mppi_weights
 from cuniform_torch.controllers.proposals import (
     CompositeProposal,
-    PipelinedProposal,
     GaussianProposal,
     NormalLogNormalProposal,
+    PipelinedProposal,
     PolicyProposal,
 )
 from cuniform_torch.controllers.streams import RobotStreams, robot_seeds, shifted
