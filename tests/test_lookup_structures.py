@@ -200,9 +200,9 @@ class TestPolicySlots:
     def test_packed_counter_folds_before_its_low_word_overflows(self, dubins_table):
         policy = TablePolicy(dubins_table)
         x = policy.grid.centers(torch.tensor([[1, 0, 0], [40, 40, 0]])).float()
-        policy._packed_queries = 2**32 - 1  # as if 4 billion lookups had been counted
+        policy.counts._packed_queries = 2**31 - 1  # as if 2 billion lookups had been counted
         policy.action_probs(x, 0)  # folds first, then counts
-        assert policy._packed_queries == 2
+        assert policy.counts._packed_queries == 2
         assert int(policy.nearest_hits) == 1 and int(policy.misses) == 1
         policy.action_probs(x, 0)
         assert int(policy.nearest_hits) == 2 and int(policy.misses) == 2

@@ -38,6 +38,7 @@ from cuniform_torch.maps import kernels
 from cuniform_torch.maps.encoder import MapEncoder, PatchSpec
 from cuniform_torch.maps.local_features import PROBES, LocalFeatures
 from cuniform_torch.policies.mlp_ops import check_query, inverse_cdf_draw, inverse_cdf_pick, state_features
+from cuniform_torch.sampling.fallback_counts import CountsFallbacks, FallbackCounts
 from cuniform_torch.sampling.rollout import StartWatch
 from cuniform_torch.systems import MAX_ACTIONS, MAX_HORIZON, System
 from cuniform_torch.systems.models import Dubins
@@ -155,7 +156,7 @@ class MapPolicyConfig:
         return out
 
 
-class MapPolicy(nn.Module):
+class MapPolicy(CountsFallbacks, nn.Module):
     """pi(u | x, t, map): ``set_map(patch)`` once, then ``action_probs(x [N, d], t) -> [N, A]`` for that map.
 
     ``encode(occupancy [B, H, W]) -> [B, E]``, ``encode_local(occupancy) -> [B, C, H, W]`` (local features only)
@@ -208,7 +209,8 @@ class MapPolicy(nn.Module):
         self.encodes = 0
         self.compiled = True
         """roll out through :meth:`fused_rollout` where it applies (False: always step by step)"""
-        self.reset_counters()
+        self.counts = FallbackCounts(self.device)
+        """the lookups' fallback counts (:class:`~cuniform_torch.sampling.fallback_counts.FallbackCounts`)"""
 
     # -------------------------------------------------------------------------------- traits
     @property
@@ -376,9 +378,7 @@ class MapPolicy(nn.Module):
             self._local_map if local is not None else None,
             local.probes if local is not None else torch.zeros((0, 2)), geometry, num_samples, horizon, generator,
             uniforms)
-        self._queries += num_samples * horizon
-        self._near += near
-        self._miss += miss
+        self.counts.add_split(num_samples * horizon, near, miss)
         return states, actions
 
     def _count(self, x: Tensor) -> Tensor:
@@ -390,40 +390,11 @@ class MapPolicy(nn.Module):
         else:
             near = miss = torch.zeros(x.shape[0], dtype=torch.bool, device=x.device)
         miss = miss | ~torch.isfinite(x).all(dim=1)  # NaN compares False above: caught here
-        self._queries += x.shape[0]
-        self._near += (near & ~miss).sum()
-        self._miss += miss.sum()
+        self.counts.add_split(x.shape[0], (near & ~miss).sum(), miss.sum())
         return miss
-
-    # -------------------------------------------------------------------------------- honest-support counters
-    def reset_counters(self) -> None:
-        """Zero ``queries`` (host int), ``nearest_hits`` and ``misses`` (device tensors: counting never syncs)."""
-        self._queries = 0
-        self._near = torch.zeros((), dtype=torch.int64, device=self.device)
-        self._miss = torch.zeros((), dtype=torch.int64, device=self.device)
-
-    @property
-    def queries(self) -> int:
-        return self._queries
-
-    @property
-    def nearest_hits(self) -> Tensor:
-        return self._near
-
-    @property
-    def misses(self) -> Tensor:
-        return self._miss
-
-    @property
-    def miss_rate(self) -> float:
-        return int(self._miss) / self._queries if self._queries else 0.0
-
-    @property
-    def nearest_rate(self) -> float:
-        return int(self._near) / self._queries if self._queries else 0.0
 
     def _apply(self, fn, recurse: bool = True):  # .to(device) moves the counters; the folded map is derived from
         super()._apply(fn, recurse)             # the weights, so it is dropped (set_map again)
         self._map_bias, self._w_state, self._layers, self._local_map = None, None, [], None
-        self._near, self._miss = self._near.to(self.device), self._miss.to(self.device)
+        self.counts.to(self.device)
         return self

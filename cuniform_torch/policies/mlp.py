@@ -43,6 +43,7 @@ from torch import Tensor, nn
 from cuniform_torch.grid.cells import Grid
 from cuniform_torch.policies.mlp_ops import check_query, encode_features, state_features
 from cuniform_torch.policies.table import Fallback
+from cuniform_torch.sampling.fallback_counts import CountsFallbacks, FallbackCounts
 from cuniform_torch.sampling.rollout import StartWatch, check_states
 from cuniform_torch.systems import MAX_ACTIONS, MAX_HORIZON, System
 from cuniform_torch.tables.file import Table
@@ -186,7 +187,7 @@ class MLPSupport:
         return {"cells": self.cells.cpu(), "level_offsets": self.level_offsets.cpu()}
 
 
-class MLPPolicy(nn.Module):
+class MLPPolicy(CountsFallbacks, nn.Module):
     """pi(u | x, t): ``action_probs(x [N, d], t) -> [N, A]``; works in ``rollout`` and every controller.
 
     It knows its support (``support``, else the box of the table's cells; see the module docstring), counts the
@@ -241,7 +242,8 @@ class MLPPolicy(nn.Module):
         # state), else the zero state
         start = None if support is None else self._grid.centers(support.cells[:1])[0]
         self._start_watch = StartWatch(f"MLP policy ({system.name})", system, start)
-        self.reset_counters()
+        self.counts = FallbackCounts(self.device)
+        """the lookups' fallback counts (:class:`~cuniform_torch.sampling.fallback_counts.FallbackCounts`)"""
 
     @property
     def start_relative(self) -> bool:
@@ -289,7 +291,7 @@ class MLPPolicy(nn.Module):
         with torch.no_grad():
             probs = torch.softmax(self(x, t), dim=1)  # [N, A]
             code = self.support_codes(x, t)  # [N]
-            self._count(x.shape[0], code)
+            self.counts.add(x.shape[0], code.sum())
             miss = (code >= MISS).unsqueeze(1)  # [N, 1]
             return torch.where(miss, torch.full_like(probs[:1], 1.0 / probs.shape[1]), probs)
 
@@ -321,55 +323,6 @@ class MLPPolicy(nn.Module):
         near = self.fallback is Fallback.NEAREST
         code = torch.where(excess <= 0, 0, torch.where((excess <= 1) & near, NEAREST, MISS))
         return torch.where(torch.isnan(excess), MISS, code)
-
-    def reset_counters(self) -> None:
-        """Zero ``queries`` (a host int), ``nearest_hits`` and ``misses`` (device tensors: counting never syncs)."""
-        self._queries, self._code = 0, None
-
-    def _count(self, n: int, code: Tensor) -> None:
-        """Add ``n`` queries with fallback codes ``code [N]`` (nearest hits + 2^32 x misses, summed on the
-        device; one packed count is safe up to 2^31 queries, then folded into the split counters)."""
-        if self._code is None or self._code.device != code.device or self._queries_packed + n >= 2**31:
-            self._fold(code.device)
-        self._queries += n
-        self._queries_packed += n
-        self._code += code.sum()
-
-    def _fold(self, device: torch.device) -> None:
-        hits, misses = self._split()
-        zero = torch.zeros((), dtype=torch.int64, device=device)
-        self._hits, self._misses, self._code, self._queries_packed = hits.to(device), misses.to(device), zero, 0
-
-    def _split(self) -> tuple[Tensor, Tensor]:
-        if self._code is None:
-            zero = torch.zeros((), dtype=torch.int64, device=self.device)
-            return zero, zero.clone()
-        return self._hits + (self._code & 0xFFFFFFFF), self._misses + (self._code >> 32)
-
-    @property
-    def queries(self) -> int:
-        """States looked up by :meth:`action_probs` so far (a host int)."""
-        return self._queries
-
-    @property
-    def nearest_hits(self) -> Tensor:
-        """States within one cell of the support, answered by the network (a 0-d device tensor)."""
-        return self._split()[0]
-
-    @property
-    def misses(self) -> Tensor:
-        """States given the uniform row (outside the support, NaN or infinite; a 0-d device tensor)."""
-        return self._split()[1]
-
-    @property
-    def miss_rate(self) -> float:
-        """Share of lookups so far given the uniform row (syncs the device)."""
-        return int(self.misses) / self._queries if self._queries else 0.0
-
-    @property
-    def nearest_rate(self) -> float:
-        """Share of lookups so far within one cell of the support (syncs the device)."""
-        return int(self.nearest_hits) / self._queries if self._queries else 0.0
 
 
 def default_feature_scale(cells_centres: Tensor, grid: Grid) -> list[float]:

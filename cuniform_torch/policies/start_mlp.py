@@ -128,6 +128,7 @@ class StartMLPPolicy(MLPPolicy):
         first[dims] = region.starts[0]
         self.register_buffer("_start", first.float(), persistent=False)  # [d] the current start
         self._warned = False
+        self._outside_starts = 0
         self._fold_key: tuple | None = None
         self._folded_layer: tuple | None = None
 
@@ -210,7 +211,7 @@ class StartMLPPolicy(MLPPolicy):
             logits = self._logits(x, t)  # [N, A]
             e = logits.sub_(logits.amax(dim=1, keepdim=True)).exp_()  # torch.softmax is slow on few actions
             code = self.support_codes(x, t)  # [N]
-            self._count(x.shape[0], code)
+            self.counts.add(x.shape[0], code.sum())
             return e.masked_fill_((code >= MISS).unsqueeze(1), 1.0)
 
     def action_probs(self, x: Tensor, t: int) -> Tensor:

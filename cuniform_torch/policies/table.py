@@ -38,6 +38,7 @@ from torch import Tensor
 
 from cuniform_torch.common.options import Option, option_label
 from cuniform_torch.grid.cells import Grid
+from cuniform_torch.sampling.fallback_counts import CountsFallbacks, FallbackCounts
 from cuniform_torch.sampling.rollout import StartWatch, check_generator, check_states
 from cuniform_torch.systems import System
 from cuniform_torch.systems.models import Dubins
@@ -48,7 +49,6 @@ from cuniform_torch.tables.torch_kernel import lookup_and_draw, lookup_entries
 
 __all__ = ["Fallback", "Kernel", "Lookup", "TablePolicy", "UniformPolicy", "load_table"]
 
-_LOW_WORD = 0xFFFFFFFF  # a packed fallback count: nearest hits in the low 32 bits, misses above
 
 
 @option_label('fallback')
@@ -71,7 +71,7 @@ class Kernel(Option):
     """one compiled CPU loop (:mod:`~cuniform_torch.tables.cpu_kernels`): float32 on a CPU, dense or int32-hash lookup"""
 
 
-class TablePolicy:
+class TablePolicy(CountsFallbacks):
     """The Policy interface over a table: ``actions [A, q]`` and ``action_probs(x [N, d], t) -> [N, A]``.
 
     Also an :class:`~cuniform_torch.sampling.rollout.ActionSampler`: ``sample(x, t, generator)`` draws the actions with
@@ -121,7 +121,8 @@ class TablePolicy:
         """roll out a Dubins system in one compiled call (:meth:`fused_rollout`) when the numba kernel runs"""
         # compiled, the level goes in as a 0-d tensor: one graph serves every level
         self._levels = [torch.tensor(t, device=self.device) if compile else t for t in range(self.horizon + 1)]
-        self.reset_counters()
+        self.counts = FallbackCounts(self.device)
+        """the lookups' fallback counts (:class:`~cuniform_torch.sampling.fallback_counts.FallbackCounts`)"""
 
     def _choose_kernel(self, kernel: Kernel, compile: bool) -> Kernel:
         """The kernel :meth:`sample` runs: numba when asked for (an error naming what rules it out) or, for
@@ -178,7 +179,7 @@ class TablePolicy:
         """p(u | cell of x, t): ``x [N, d]`` -> ``[N, A]``, with the fallback for states outside L_t."""
         self._check(x, t)
         entry = lookup_entries(self.index, x, t)  # [N]
-        self._count(x.shape[0], self.index.entry_code.index_select(0, entry).sum())
+        self.counts.add(x.shape[0], self.index.entry_code.index_select(0, entry).sum())
         return self.index.entry_probs.index_select(0, entry)  # [N, A]; entry E: the uniform row
 
     def sample(self, x: Tensor, t: int, generator: torch.Generator | None = None) -> Tensor:
@@ -212,7 +213,7 @@ class TablePolicy:
         if uniforms is None:
             uniforms = torch.rand((horizon, num_samples), generator=generator, dtype=torch.float32)
         states, actions, total = self._numba.dubins_rollout(uniforms, system.dt, system.speed)
-        self._count(num_samples * horizon, total)
+        self.counts.add(num_samples * horizon, total)
         return states, actions
 
     def _draw_scaled(self, x: Tensor, t: int, r: Tensor) -> Tensor:
@@ -220,58 +221,11 @@ class TablePolicy:
         n = x.shape[0]
         if self._numba is not None:
             u, total = self._numba.draw(x, t, r)  # [N, q], a host int
-            self._count(n, total)
+            self.counts.add(n, total)
             return u
         u, code = self._torch_step(self.index, x, self._levels[t], r)
-        self._count(n, code.sum())
+        self.counts.add(n, code.sum())
         return u  # [N, q]
-
-    def reset_counters(self) -> None:
-        """Zero ``queries`` (a host int), ``nearest_hits`` and ``misses`` (device tensors: counting never syncs)."""
-        zero = lambda: torch.zeros((), dtype=torch.int64, device=self.device)  # noqa: E731
-        self.queries, self._hits, self._misses, self._packed, self._packed_queries = 0, zero(), zero(), zero(), 0
-        self._packed_host = 0  # what the numba kernel counts (a host int: no tensor op per step)
-
-    def _count(self, n: int, code: Tensor | int) -> None:
-        """Add a batch of ``n`` lookups with fallback count ``code`` (nearest hits + 2^32 x misses: a device tensor,
-        or a host int from the numba kernel). One add into a packed counter; it is split into the two counters
-        before its low word could overflow."""
-        if self._packed_queries + n >= 2**32:
-            self._fold()
-        self.queries += n  # a host int
-        self._packed_queries += n
-        if isinstance(code, int):
-            self._packed_host += code
-        else:
-            self._packed += code
-
-    def _fold(self) -> None:
-        self._hits += (self._packed & _LOW_WORD) + (self._packed_host & _LOW_WORD)
-        self._misses += (self._packed >> 32) + (self._packed_host >> 32)
-        self._packed.zero_()
-        self._packed_host = self._packed_queries = 0
-
-    @property
-    def nearest_hits(self) -> Tensor:
-        """Lookups answered by the nearest cell of the level set (a 0-d device tensor)."""
-        return self._hits + (self._packed & _LOW_WORD) + (self._packed_host & _LOW_WORD)
-
-    @property
-    def misses(self) -> Tensor:
-        """Lookups that fell back to uniform probabilities (a 0-d device tensor)."""
-        return self._misses + (self._packed >> 32) + (self._packed_host >> 32)
-
-    @property
-    def miss_rate(self) -> float:
-        """Share of lookups so far that fell back to uniform probabilities (syncs the device)."""
-        q = self.queries
-        return int(self.misses) / q if q else 0.0
-
-    @property
-    def nearest_rate(self) -> float:
-        """Share of lookups so far answered by the nearest cell of the level set (syncs the device)."""
-        q = self.queries
-        return int(self.nearest_hits) / q if q else 0.0
 
 
 def load_table(
