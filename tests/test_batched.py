@@ -310,7 +310,7 @@ def test_cuda_graph_needs_a_cuda_device_and_no_bank(table):
 
 @pytest.mark.gpu
 @pytest.mark.skipif(not CUDA, reason="needs a CUDA device")
-@pytest.mark.parametrize("kind", ["mppi", "log_mppi", "cuniform", "cumppi", "mppi_navigation"])
+@pytest.mark.parametrize("kind", ["mppi", "log_mppi", "cuniform", "cumppi", "cumppi_pipe", "mppi_navigation"])
 def test_on_cuda_a_graphed_command_is_the_eager_command(dubins_table, kind):
     """``cuda_graph=True``: the first command is captured and every later one replayed; seeded alike, the replays
     command what eager commands do (the registered streams advance as eager draws do), for 1 and for 8 robots."""
@@ -327,6 +327,8 @@ def test_on_cuda_a_graphed_command_is_the_eager_command(dubins_table, kind):
                                                     cuda_graph=g),
         "cumppi": lambda seed, n, g: CUMPPI(table, goal_cost_cuda, num_samples=256, seed=seed, num_robots=n,
                                             cuda_graph=g),
+        "cumppi_pipe": lambda seed, n, g: CUMPPI(table, goal_cost_cuda, num_samples=256, seed=seed, num_robots=n,
+                                                 cuda_graph=g, pipelined=True),
         "mppi_navigation": lambda seed, n, g: MPPI(DUBINS, nav, num_samples=256, horizon=10, device="cuda",
                                                    seed=seed, num_robots=n, cuda_graph=g),
     }[kind]

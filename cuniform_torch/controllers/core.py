@@ -208,7 +208,9 @@ class MPPICore:
     def _generators(self) -> list[torch.Generator]:
         """Every stream a command draws from (a two-stage controller's first stage has its own)."""
         first = getattr(self.proposal, "first", None)
-        return list(self.streams.generators) + (first._generators() if isinstance(first, MPPICore) else [])
+        own = getattr(self.proposal, "first_streams", None)  # a one-pass CU-MPPI draws its first stage's too
+        return (list(self.streams.generators) + (first._generators() if isinstance(first, MPPICore) else [])
+                + (list(own.generators) if isinstance(own, RobotStreams) else []))
 
     def _replay(self, states: Tensor) -> Tensor:
         """The command of ``states [B, d]`` by one replay of the captured graph: ``[B, q]``."""
