@@ -15,9 +15,9 @@ from its cache (``__pycache__`` next to the module, else numba's cache folder in
   the loop is compiled in memory.
 
 Each is one :class:`CompiledCacheWarning` (once per cache folder, or once for the missing folder) naming the file or
-folder and what to do. What this cannot catch: data files that unpickle cleanly but hold another function's code
-(two ``.nbc`` files swapped by hand) crash the process when called; numba records no digest of a data file to
-check it against. Deleting the ``__pycache__`` folder named in a warning (or setting ``NUMBA_CACHE_DIR``) rebuilds
+folder and what to do. A data file that unpickles cleanly but holds another loop's code (two ``.nbc`` files
+swapped) is refused the same way when its function name or argument types differ from the loop's; numba records
+no digest of a data file, so one with the same name and types but other code (edited by hand) is not caught. Deleting the ``__pycache__`` folder named in a warning (or setting ``NUMBA_CACHE_DIR``) rebuilds
 the cache.
 """
 
@@ -65,7 +65,8 @@ def njit(**options: Any) -> Callable[[Callable[..., Any]], Any]:
                        f"in this process (seconds). To cache them, make the folder of {source} or your home "
                        "writable, or set NUMBA_CACHE_DIR to a writable folder")
             return numba.njit(cache=False, **options)(fn)
-        dispatcher._cache = _GuardedCache(dispatcher._cache, getattr(fn, "__qualname__", repr(fn)))
+        dispatcher._cache = _GuardedCache(dispatcher._cache, getattr(fn, "__qualname__", repr(fn)),
+                                          getattr(fn, "__module__", None))
         return dispatcher
 
     return decorate
@@ -75,9 +76,10 @@ class _GuardedCache:
     """A numba ``FunctionCache`` whose load and save failures turn it off (for this process) with one warning: the
     dispatcher then compiles in memory, as it does on a cache miss. Everything else is the wrapped cache's."""
 
-    def __init__(self, inner: Any, name: str):
+    def __init__(self, inner: Any, name: str, module: str | None = None):
         self._inner = inner
         self._name = name
+        self._module = module
 
     def __getattr__(self, attr: str) -> Any:
         return getattr(self._inner, attr)
@@ -97,10 +99,27 @@ class _GuardedCache:
 
     def load_overload(self, sig: Any, target_context: Any) -> Any:
         try:
-            return self._inner.load_overload(sig, target_context)
-        except Exception as exc:  # a damaged index or data file: unpickling, rebuilding, reading
+            cres = self._inner.load_overload(sig, target_context)
+            if cres is not None:
+                self._check_loaded(cres, sig)
+            return cres
+        except Exception as exc:  # a damaged index or data file: unpickling, rebuilding, reading, another loop's
             self._give_up("read", exc)
             return None
+
+    def _check_loaded(self, cres: Any, sig: Any) -> None:
+        """ValueError unless the loaded code is this function's, for ``sig`` (a data file of another loop, put in
+        this one's place, would be called with the wrong arguments)."""
+        from numba.core import sigutils
+
+        args, _ = sigutils.normalize_signature(sig)
+        fndesc = getattr(cres, "fndesc", None)
+        qualname = getattr(fndesc, "qualname", None)
+        module = getattr(fndesc, "modname", self._module)
+        loaded = tuple(getattr(getattr(cres, "signature", None), "args", ()))
+        if qualname != self._name or module != self._module or loaded != tuple(args):
+            raise ValueError(f"a data file holds the code of {module}.{qualname} for {len(loaded)} argument(s), "
+                             f"not of {self._module}.{self._name} for these {len(args)}")
 
     def save_overload(self, sig: Any, data: Any) -> None:
         try:
