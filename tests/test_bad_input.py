@@ -699,7 +699,9 @@ def test_rollout_names_a_system_whose_step_returns_a_wrong_shape(policy):
         def step(self, x, u):
             return super().step(x, u)[:, :2]
 
-    with pytest.raises(ValueError, match=r"dubins.step returned shape \[4, 2\] for 4 states of dimension 3"):
+    # probed once, before the rollout (check_dynamics): the shape of the probe's batch, then what it must be
+    with pytest.raises(ValueError, match=r"'dubins' \(Truncating\): step\(x, u\).* returned a \[4, 2\] tensor.*must "
+                                         r"return \[4, 3\]"):
         rollout(Truncating(), policy, torch.zeros(3), 4, 2)
 
 

@@ -42,7 +42,8 @@ def test_a_users_step_gets_contiguous_states_in_every_rollout(dubins_table):
     assert states.shape == reference.shape == (64, 6, 3)
     MPPI(car, NavigationCost(Environment([]), goal=(2.0, 0.0)), num_samples=64, horizon=5, seed=0).command(
         torch.zeros(3))  # the Gaussian proposal's open-loop rollout
-    assert len(car.seen) == 10 and all(car.seen), "a step that did not opt in got a column-major state"
+    # 5 steps of each rollout, plus the 2 steps of the one construction probe (check_dynamics: cached afterwards)
+    assert len(car.seen) == 12 and all(car.seen), "a step that did not opt in got a column-major state"
 
 
 def test_the_same_states_whichever_layout(dubins_table):

@@ -206,7 +206,7 @@ class _Broken:
         return torch.zeros(2, 1, dtype=dtype)
 
     def step(self, x, u):
-        return x
+        return x.clone()
 
     def params(self):
         return {}
@@ -217,7 +217,11 @@ class _Broken:
     (dict(cell_size=(0.1,)), r"cell_size needs 2 value"),
     (dict(se2_invariant=True), r"SE\(2\)-invariant system needs the state \(x, y, theta, \.\.\.\)"),
     (dict(periodic=(False, True), cell_size=(0.1, 0.3)), r"bad grid: the angle cell size .*must be 2\*pi/K"),
-    (dict(step=lambda x, u: x[:, :1]), r"step\(x \[2, 2\] float64.*must return \[2, 2\] float64"),
+    (dict(step=lambda x, u: x[:, :1]), r"step\(x, u\) .*\[2, 2\] tensor of torch.float64.* must return \[2, 2\]"),
+    (dict(step=lambda x, u: x), r"returned x itself"),
+    (dict(step=lambda x, u: x.add_(1)), r"changed its input x in place"),
+    (dict(step=lambda x, u: (x + 1).long()), r"torch.int64.*nothing is cast silently"),
+    (dict(action_set=lambda dtype=None, device=None: torch.zeros(0, 1, dtype=dtype)), r"non-empty \[A, q\]"),
     (dict(params=lambda: {"f": object()}), r"params\(\) must be JSON-serializable"),
     (dict(cell_offset=(0.5, 0.0)), r"bad grid"),
 ])

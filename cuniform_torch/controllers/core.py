@@ -61,7 +61,7 @@ from cuniform_torch.controllers.proposals import (
 )
 from cuniform_torch.controllers.result import MPPIResult
 from cuniform_torch.controllers.streams import RobotStreams, robot_seeds
-from cuniform_torch.systems import System
+from cuniform_torch.systems import System, check_dynamics
 
 __all__ = ["CostFn", "MPPIResult", "mppi_weights", "MPPICore", "COST_CAP"]
 
@@ -147,7 +147,8 @@ class MPPICore:
         self.dtype = dtype
         self.lambda_ = _check_lambda(lambda_, dtype)
         self.state_dim = len(self.system.periodic)
-        self.action_dim = self.system.action_set(dtype=dtype, device=self.device).shape[1]
+        # a user system's action set and step, probed once here (a no-op for one its proposal already probed)
+        self.action_dim = check_dynamics(self.system, dtype, self.device).shape[1]
         self.debug = (self.device.type == "cpu") if debug is None else bool(debug)
         """check values per command (NaN states, the proposals' shapes, all-NaN costs): needs a host read"""
         if generator is not None:

@@ -41,7 +41,7 @@ from cuniform_torch.policies.checkpoint import load_policy
 from cuniform_torch.sampling.noise import GaussianSampler, NormalLogNormalSampler
 from cuniform_torch.sampling.rollout import Policy, PolicyTraits, RolloutPlan, open_loop, same_device
 from cuniform_torch.sampling.start_watch import new_episode
-from cuniform_torch.systems import System
+from cuniform_torch.systems import System, check_dynamics
 
 __all__ = ["Proposal", "SingleRobotProposal", "as_batched", "GaussianProposal", "NormalLogNormalProposal", "PolicyProposal", "CompositeProposal",
            "PROPOSAL_MEMBERS", "SINGLE_ROBOT_MEMBERS", "OneRobotCall", "PipelinedProposal"]
@@ -202,7 +202,7 @@ class GaussianProposal(OneRobotCall):
         self.num_robots = check_positive_int("num_robots", num_robots)
         self.device = torch.device(device)
         self.dtype = _check_dtype(dtype)
-        actions = system.action_set(dtype=dtype, device=self.device)  # [A, q]
+        actions = check_dynamics(system, self.dtype, self.device)  # [A, q]: the user's step probed once, here
         self.low, self.high = actions.min(dim=0).values, actions.max(dim=0).values  # [q] action bounds
         self.noise_std = noise_std
         self._nominal = torch.zeros((self.num_robots, self.horizon, self.low.shape[0]), dtype=self.dtype,
@@ -326,6 +326,7 @@ class PolicyProposal(OneRobotCall):
         self.num_samples = check_positive_int("num_samples", num_samples)
         self.num_robots = check_positive_int("num_robots", num_robots)
         self.dtype = traits.dtype or torch.float32
+        check_dynamics(self.system, self.dtype, self.device)  # a user system's step, probed once (cached)
         self.plan = RolloutPlan.of(self.system, self.policy)
         """how the policy is rolled out, settled here: a command runs it without the per-call checks"""
         self._members = callable(getattr(self.policy, "nearest", None)) and hasattr(self.policy, "members")

@@ -9,12 +9,12 @@ multiply-add: numba contracts only under fastmath), so every answer is the torch
 
 from __future__ import annotations
 
-import numba
+from cuniform_torch.common.compiled import njit
 
 __all__ = ["any_contains"]
 
 
-@numba.njit(cache=True, nogil=True, boundscheck=False)
+@njit(nogil=True, boundscheck=False)
 def any_contains(pts, circles, rects, hit):
     """``hit[i] |= pts[i]`` inside any disc of ``circles [C, 3]`` (x, y, r^2) or rectangle of ``rects [R, 4]``."""
     for i in range(pts.shape[0]):

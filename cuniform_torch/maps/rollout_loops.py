@@ -7,14 +7,14 @@ from __future__ import annotations
 
 import math
 
-import numba
 import numpy as np
 
+from cuniform_torch.common.compiled import njit
 from cuniform_torch.systems.dubins_loops import dubins_advance
 
 __all__ = ["features", "draw_and_step"]
 
-@numba.njit(cache=True, nogil=True, inline="always")
+@njit(nogil=True, inline="always")
 def read(fmap, c, ix, iy):
     """Bilinear read of channel ``c`` at pixel coordinates ``(ix, iy)`` (column, row); zero off the map."""
     H, W = fmap.shape[1], fmap.shape[2]
@@ -33,7 +33,7 @@ def read(fmap, c, ix, iy):
                 v += (wx if dx else np.float32(1.0) - wx) * fy * fmap[c, yy, xx]
     return v
 
-@numba.njit(cache=True, nogil=True, boundscheck=False)
+@njit(nogil=True, boundscheck=False)
 def features(t, states, feat, ok, counts, fmap, probes, geo):
     """The first layer's inputs of the states at step ``t`` (``states [T+1, 3, N]``) into ``feat [N, F]``,
     ``ok [N]`` (inside the support box and finite) and the near / miss counters ``counts [2]``."""
@@ -63,7 +63,7 @@ def features(t, states, feat, ok, counts, fmap, probes, geo):
                 feat[i, k] = read(fmap, ch, ix, iy) if finite else np.float32(0.0)
                 k += 1
 
-@numba.njit(cache=True, nogil=True, boundscheck=False)
+@njit(nogil=True, boundscheck=False)
 def draw_and_step(t, logits, uniforms, states, picks, actions, ok, geo, pi, two_pi):
     """Step ``t``'s draw from ``logits [N, A]`` (uniform where not ``ok``) with ``uniforms[t]``, into
     ``picks [T, N]``, and the Dubins step of ``states[t]`` into ``states[t + 1]``."""

@@ -5,12 +5,13 @@ compiled anew in every process).
 
 from __future__ import annotations
 
-import numba
 import numpy as np
+
+from cuniform_torch.common.compiled import njit
 
 __all__ = ["to_world", "to_world_time_major"]
 
-@numba.njit(cache=True, nogil=True, inline="always")
+@njit(nogil=True, inline="always")
 def heading(lth, pth, pi, two_pi):
     """``wrap(lth + pth)`` as ``se2_to_world`` computes it: ``((a + pi) mod 2 pi) - pi`` with torch's
     ``remainder`` (fmod, then + 2 pi when negative)."""
@@ -26,7 +27,7 @@ def heading(lth, pth, pi, two_pi):
         m = a
     return m - pi
 
-@numba.njit(cache=True, nogil=True, boundscheck=False)
+@njit(nogil=True, boundscheck=False)
 def to_world(local, px, py, c, s, pth, pi, two_pi, out):
     """``local [T+1, d, N]`` (origin frame) -> ``out [N, T+1, d]`` (world frame of the pose)."""
     steps, d, n = local.shape
@@ -39,7 +40,7 @@ def to_world(local, px, py, c, s, pth, pi, two_pi, out):
             for j in range(3, d):
                 out[i, t, j] = local[t, j, i]
 
-@numba.njit(cache=True, nogil=True, boundscheck=False)
+@njit(nogil=True, boundscheck=False)
 def to_world_time_major(local, px, py, c, s, pth, pi, two_pi, out):
     """``local [T+1, d, N]`` (origin frame) -> ``out [T+1, d, N]`` (world frame of the pose): every read and
     write a contiguous row; the arithmetic of ``to_world``."""

@@ -32,7 +32,7 @@ from cuniform_torch.common.tensors import check_generator, check_states, same_de
 from cuniform_torch.sampling import kernels as rollout_kernels
 from cuniform_torch.sampling.draws import inverse_cdf_pick
 from cuniform_torch.sampling.start_watch import OWN_ROBOT, StartMismatchWarning, StartWatch
-from cuniform_torch.systems import System
+from cuniform_torch.systems import System, check_dynamics
 
 __all__ = ["Policy", "ActionSampler", "PolicyTraits", "RolloutPlan", "StartMismatchWarning", "StartWatch", "rollout",
            "rollout_actions", "check_states", "check_generator", "same_device", "OWN_ROBOT"]
@@ -137,6 +137,7 @@ def rollout_actions(system: System, x0: Tensor, actions: Tensor) -> Tensor:
     _check_args(system, x0, actions.shape[0], actions.shape[1])
     if actions.dtype != x0.dtype or not same_device(actions.device, x0.device):
         raise ValueError(f"actions are {actions.dtype} on {actions.device} but x0 is {x0.dtype} on {x0.device}")
+    check_dynamics(system, x0.dtype, x0.device)  # a user system's step, probed once per dtype and device
     if not bool(torch.isfinite(x0).all()):
         raise ValueError("x0 contains NaN or infinite values")
     return open_loop(system, x0.detach(), actions.detach())
@@ -341,6 +342,7 @@ def rollout(
     """
     _check_args(system, x0, num_samples, horizon)
     check_generator(generator, x0.device)
+    check_dynamics(system, x0.dtype, x0.device)  # a user system's step, probed once per dtype and device
     x0 = x0.detach()
     plan = RolloutPlan.of(system, policy)
     plan.check(x0, horizon)

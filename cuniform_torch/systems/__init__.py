@@ -5,6 +5,7 @@ builder (float64 on the CPU) and the runtime (float32 on any device): ``step`` o
 the dtype and device of its inputs. Where each thing lives:
 
 * :mod:`.protocol`: :class:`System`, :func:`check_system` (says what a user system lacks),
+  :func:`check_dynamics` (probes a user ``step`` once: no in-place update, its input's dtype, ``[N, d]``),
   :func:`se2_invariance_gap` (checks a claimed SE(2) invariance numerically), the limits ``MAX_ACTIONS``,
   ``MAX_HORIZON`` and ``DEFAULT_HORIZON``.
 * :mod:`.models`: the built-in ``random_walk_1d`` (:class:`RandomWalk1D`) and ``dubins`` (:class:`Dubins`), and the
@@ -35,6 +36,7 @@ from cuniform_torch.systems.protocol import (
     MAX_ACTIONS,
     MAX_HORIZON,
     System,
+    check_dynamics,
     check_system,
     se2_invariance_gap,
     system_horizon,
@@ -71,6 +73,7 @@ __all__ = [
     "system_to_json",
     "system_from_json",
     "wrap_angle",
+    "check_dynamics",
     "check_system",
     "se2_invariance_gap",
     "resolve_system",

@@ -7,13 +7,14 @@ from __future__ import annotations
 
 import math
 
-import numba
 import numpy as np
+
+from cuniform_torch.common.compiled import njit
 
 __all__ = ["dubins_advance"]
 
 
-@numba.njit(cache=True, nogil=True, inline="always")
+@njit(nogil=True, inline="always")
 def dubins_advance(states, t, i, rate, dt, speed, pi, two_pi):
     """Row ``i`` of ``states [T+1, 3, N]`` (float32, start frame) from step ``t`` to ``t + 1`` at turn rate
     ``rate``: the heading ``wrap(theta + rate dt)``, then ``(x, y) += (speed cos, speed sin) dt`` of the new heading

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import json
 import math
+import weakref
 from typing import Any, ClassVar, Protocol, runtime_checkable
 
 import torch
@@ -16,7 +17,7 @@ from cuniform_torch.common.checks import positive, positive_int, wrap_angle
 from cuniform_torch.common.frames import se2_to_world
 from cuniform_torch.grid.cells import check_grid
 
-__all__ = ["System", "check_system", "se2_invariance_gap", "system_horizon", "DEFAULT_HORIZON", "MAX_ACTIONS",
+__all__ = ["System", "check_system", "check_dynamics", "se2_invariance_gap", "system_horizon", "DEFAULT_HORIZON", "MAX_ACTIONS",
            "MAX_HORIZON"]
 
 DEFAULT_HORIZON = 10
@@ -51,7 +52,8 @@ class System(Protocol):
     (:data:`DEFAULT_HORIZON` otherwise).
 
     Methods: ``action_set`` (the finite actions ``[A, q]``), ``step`` (batched, differentiable torch ops; the
-    dtype and device of its inputs), ``params`` (JSON-serializable constructor arguments). A table is built
+    dtype and device of its inputs; a new tensor, its inputs left unchanged: :func:`check_dynamics` probes it once
+    where a controller, proposal or rollout is made), ``params`` (JSON-serializable constructor arguments). A table is built
     from the zero state, so the zero state must be a valid start.
     """
 
@@ -98,8 +100,8 @@ def check_system(system: Any) -> None:
 
     Checks the attributes of :class:`System`, the grid (:func:`~cuniform_torch.grid.cells.check_grid`: sizes, offsets,
     angle cells of ``2 pi / K``), the action set (a finite float ``[A, q]``), the SE(2) contract (``x, y, theta``
-    first, ``theta`` an angle), that ``step`` maps ``[2, d]`` zeros to ``[2, d]`` in the same dtype, and that
-    ``params()`` is JSON-serializable.
+    first, ``theta`` an angle), ``step`` by :func:`check_dynamics` (float64, on the CPU), and that ``params()`` is
+    JSON-serializable.
     """
     who = f"system {getattr(system, 'name', type(system).__name__)!r}"
     missing = [a for a in ("name", "dt", "cell_size", "periodic", "cell_offset", "se2_invariant")
@@ -124,23 +126,114 @@ def check_system(system: Any) -> None:
         raise ValueError(f"{who}: an SE(2)-invariant system needs the state (x, y, theta, ...) with theta "
                          f"periodic and x, y not; periodic is {periodic}")
     system_horizon(system)
-    actions = system.action_set(dtype=torch.float64)
-    if not isinstance(actions, Tensor) or actions.ndim != 2 or actions.shape[0] < 1 or actions.shape[1] < 1:
-        raise ValueError(f"{who}: action_set must return a [A, q] tensor with A, q >= 1, got "
-                         f"{list(actions.shape) if isinstance(actions, Tensor) else type(actions).__name__}")
+    try:
+        actions = check_dynamics(system, torch.float64, "cpu", who=who)
+    except TypeError as exc:  # this check's one error type
+        raise ValueError(str(exc)) from None
     if actions.shape[0] > MAX_ACTIONS:
         raise ValueError(f"{who}: action_set has {actions.shape[0]} actions; at most {MAX_ACTIONS} are supported")
-    if actions.dtype != torch.float64 or not bool(torch.isfinite(actions).all()):
-        raise ValueError(f"{who}: action_set(dtype=torch.float64) must return finite float64 actions, got {actions.dtype}")
-    x = torch.zeros((2, d), dtype=torch.float64)
-    out = system.step(x, actions[:1].expand(2, -1))
-    if not isinstance(out, Tensor) or out.shape != (2, d) or out.dtype != torch.float64:
-        raise ValueError(f"{who}: step(x [2, {d}] float64, u [2, {actions.shape[1]}]) must return [2, {d}] float64, "
-                         f"got {getattr(out, 'dtype', type(out).__name__)} {list(getattr(out, 'shape', []))}")
     try:
         json.dumps(system.params())
     except (TypeError, ValueError) as exc:
         raise ValueError(f"{who}: params() must be JSON-serializable ({exc})") from None
+
+
+_CHECKED: dict[int, tuple[weakref.ref[Any], set[tuple[torch.dtype, str]]]] = {}
+"""systems whose dynamics passed :func:`check_dynamics`, by ``id``: (a weak reference, the (dtype, device) pairs)"""
+
+
+def _describe(value: Any) -> str:
+    if isinstance(value, Tensor):
+        return f"a {list(value.shape)} tensor of {value.dtype} on {value.device}"
+    return f"{type(value).__module__}.{type(value).__qualname__}" if value is not None else "None"
+
+
+def check_dynamics(system: Any, dtype: torch.dtype = torch.float64, device: torch.device | str = "cpu",
+                   who: str | None = None) -> Tensor:
+    """Check a (user) system's ``action_set`` and ``step`` once, in ``dtype`` on ``device``; return the action set.
+
+    What a controller, proposal or rollout relies on and never checks per step: ``action_set(dtype, device)`` is a
+    non-empty finite ``[A, q]`` tensor of that dtype and device, and ``step`` (probed twice on a few states: from
+    zeros, then from where that led) returns a *new* ``[N, d]`` tensor of its input's dtype and device and leaves
+    its inputs ``x`` and ``u`` unchanged (a ``step`` that updates ``x`` in place corrupts the rollouts it is part
+    of; an integer result would be cast silently). TypeError (not a tensor) or ValueError naming the system and
+    the rule otherwise. A system that passed for this dtype and device is not probed again (by identity).
+    """
+    who = who or f"system {getattr(system, 'name', type(system).__name__)!r} ({type(system).__name__})"
+    device = torch.device(device)
+    key = (dtype, device.type if device.index is None else str(device))
+    if _probed(system, key):
+        return system.action_set(dtype=dtype, device=device)
+    missing = [m for m in ("action_set", "step") if not callable(getattr(system, m, None))]
+    missing += [] if hasattr(system, "periodic") else ["periodic"]
+    if missing:
+        raise TypeError(f"{who} lacks {', '.join(missing)} of the System protocol (see cuniform_torch.systems.System)")
+    d = len(tuple(system.periodic))
+    actions = system.action_set(dtype=dtype, device=device)
+    if not isinstance(actions, Tensor):
+        raise TypeError(f"{who}: action_set(dtype, device) must return a torch.Tensor [A, q], got {_describe(actions)}")
+    if actions.ndim != 2 or actions.shape[0] < 1 or actions.shape[1] < 1:
+        raise ValueError(f"{who}: action_set must return a non-empty [A, q] tensor (A, q >= 1), got "
+                         f"{_describe(actions)}")
+    if actions.dtype != dtype or not _same_device(actions.device, device):
+        raise ValueError(f"{who}: action_set(dtype={dtype}, device={device}) must return actions of that dtype and "
+                         f"device, got {_describe(actions)} (use torch.tensor(..., dtype=dtype, device=device))")
+    if not bool(torch.isfinite(actions).all()):
+        raise ValueError(f"{who}: action_set must return finite actions (it has NaN or infinite values)")
+    a = actions.shape[0]
+    n = max(2, min(a, 4))
+    u = actions[torch.arange(n, device=device) % a]  # [n, q]: a few different actions
+    x = torch.zeros((n, d), dtype=dtype, device=device)
+    with torch.no_grad():
+        for probe in ("zero states", "the states the first step reached"):
+            x_before, u_before = x.clone(), u.clone()
+            out = system.step(x, u)
+            where = f"step(x, u) from {probe} (x a [{n}, {d}] tensor of {dtype} on {device})"
+            if not isinstance(out, Tensor):
+                raise TypeError(f"{who}: {where} must return a torch.Tensor [{n}, {d}], got {_describe(out)}")
+            if out.dtype != dtype or not _same_device(out.device, device) or out.shape != (n, d):
+                raise ValueError(f"{who}: {where} returned {_describe(out)}; it must return [{n}, {d}] in the dtype "
+                                 f"and on the device of x (nothing is cast silently: compute in x.dtype)")
+            if not torch.allclose(x, x_before, rtol=0, atol=0, equal_nan=True) or not torch.allclose(
+                    u, u_before, rtol=0, atol=0, equal_nan=True):
+                raise ValueError(f"{who}: {where} changed its input {'x' if not torch.equal(x, x_before) else 'u'} "
+                                 "in place; step must leave x and u unchanged and return a new tensor (build the "
+                                 "result with out-of-place ops, or start from x.clone())")
+            if out is x or (out.numel() > 0 and out.untyped_storage().data_ptr() == x.untyped_storage().data_ptr()):
+                raise ValueError(f"{who}: {where} returned x itself (or a view of it); step must return a new tensor "
+                                 "(e.g. x.clone() when nothing moves)")
+            if not bool(torch.isfinite(out).all()):
+                break  # nothing to step on from there; the first probe checked the rules
+            x = out
+    _remember(system, key)
+    return actions
+
+
+def _probed(system: Any, key: tuple[torch.dtype, str]) -> bool:
+    entry = _CHECKED.get(id(system))
+    return entry is not None and entry[0]() is system and key in entry[1]
+
+
+def _remember(system: Any, key: tuple[torch.dtype, str]) -> None:
+    """Note that ``system`` passed :func:`check_dynamics` for ``key`` (forgotten when the system is collected)."""
+    ident = id(system)
+
+    def forget(_ref: weakref.ref[Any]) -> None:
+        _CHECKED.pop(ident, None)
+
+    entry = _CHECKED.get(ident)
+    if entry is None or entry[0]() is not system:
+        try:
+            entry = (weakref.ref(system, forget), set())
+        except TypeError:  # not weakly referenceable (__slots__ without __weakref__): probed at every construction
+            return
+        _CHECKED[ident] = entry
+    entry[1].add(key)
+
+
+def _same_device(a: torch.device, b: torch.device) -> bool:
+    """``cuda`` and ``cuda:0`` (the current device) are the same device here."""
+    return a.type == b.type and (a.index is None or b.index is None or a.index == b.index)
 
 
 def se2_invariance_gap(system: System, states: Tensor | None = None, num_states: int = 256, seed: int = 0) -> float:

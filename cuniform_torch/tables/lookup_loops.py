@@ -5,14 +5,14 @@ compiled anew in every process).
 
 from __future__ import annotations
 
-import numba
 import numpy as np
 
+from cuniform_torch.common.compiled import njit
 from cuniform_torch.systems.dubins_loops import dubins_advance
 
 __all__ = ["step_dense", "step_hash", "rollout_dense", "rollout_hash", "dubins_step"]
 
-jit = numba.njit(cache=True, nogil=True, boundscheck=False)
+jit = njit(nogil=True, boundscheck=False)
 
 @jit
 def keys(x, scale, shift, low, high, span, period, inv_period, half, key):
