@@ -33,7 +33,8 @@ BUILD_SECONDS: dict[tuple[str, int], float] = {
 """seconds to build the built-in robot's files (:data:`NAV_ROBOT`'s system and parameters) by ``(method, horizon)``
 (``policy``: the MLP of :func:`ensure_policy`), one torch thread, on the project's 2-core machine (issue 37): the
 tables measured at load about 5 (other jobs running) by ``python -c`` calls of :func:`ensure_table` on an empty
-cache; the policy (300 epochs on the 81 329-cell table) at load 2-4.6: 116 epochs took 272 s (its TensorBoard
+cache (the 15-step coverage table again at load 2.2-2.5: 57.2 s, against 81.4 s with torch's two threads, the
+code before); the policy (300 epochs on the 81 329-cell table) at load 2-4.6: 116 epochs took 272 s (its TensorBoard
 ``charts/epoch_seconds``; the run was stopped there), so 300 take about 700 s. The 15-step tables are 12.5 MB
 (max-flow) and 11 MB (coverage): too big to ship as package data beside the map policy, so they are built once,
 announced with these times."""
