@@ -1,9 +1,10 @@
 """The whole evaluation in one command: tables, distillation, every experiment, figures, dashboards, report.
 
     python -m eval.report            # about 20-30 minutes on a 2-core CPU
-    python -m eval.report --quick    # about a minute: fewer seeds and sizes, 2 s horizon, a briefly trained MLP
+    python -m eval.report --quick    # about 16 s: fewer seeds and sizes, 2 s horizon, a briefly trained MLP
 
-Stages (each prints its time; a finished stage is reused on the next run unless ``--force``):
+Stages (each prints its time, and the run ends with a table of them, each build's command below its stage: what
+cost what; a finished stage is reused on the next run unless ``--force``):
 
 1. tables: the default Dubins preset (2 s) and the 3 s preset of the closed-loop experiments, each built by
    max-flow (the paper) and by the coverage method, with ``python -m precompute.build``, unless present;
@@ -63,14 +64,33 @@ class Stages:
     commands: list[str] = field(default_factory=list)
     reused: list[str] = field(default_factory=list)
     made: list[str] = field(default_factory=list)
+    steps: dict[str, list[tuple[str, float]]] = field(default_factory=dict)
+    """each stage's commands (:meth:`run_step`) and their seconds"""
+    current: str = ""
 
     def stage(self, name: str, fn: Callable[[], object]):
         print(f"\n== {name}", flush=True)
+        self.current = name
         start = time.perf_counter()
         value = fn()
         self.timings[name] = time.perf_counter() - start
         print(f"== {name}: {self.timings[name]:.1f} s", flush=True)
         return value
+
+    def table(self) -> str:
+        """What cost what: each stage's seconds and share of the total, its commands indented below it."""
+        total = self.timings.get("total") or sum(self.timings.values()) or 1.0
+        rows = []
+        for name, seconds in self.timings.items():
+            if name == "total":
+                continue
+            rows.append((name, seconds))
+            rows += [(f"  {step}", t) for step, t in self.steps.get(name, [])]
+        width = max([len(r[0]) for r in rows] + [len("total")])
+        lines = [f"{'stage':<{width}}  {'seconds':>8}  {'share':>6}"]
+        lines += [f"{name:<{width}}  {t:8.1f}  {100 * t / total:5.1f}%" for name, t in rows]
+        lines.append(f"{'total':<{width}}  {total:8.1f}  100.0%")
+        return "\n".join(lines)
 
     def reuse(self, path: Path) -> bool:
         """Whether ``path`` is kept from an earlier run (it exists and there is no ``force``); says so."""
@@ -86,7 +106,11 @@ class Stages:
         it on the same flags (an error propagates as that function raises it)."""
         self.commands.append(f"python -m {module} " + " ".join(argv))
         print("$ " + self.commands[-1], flush=True)
+        start = time.perf_counter()
         run(argv)
+        out = argv[argv.index("--out") + 1] if "--out" in argv else ""
+        self.steps.setdefault(self.current, []).append((f"{module} {Path(out).name}".rstrip(),
+                                                        time.perf_counter() - start))
 
     def cached(self, path: Path, cfg: dict, compute: Callable[[], dict]) -> dict:
         """The result in ``path`` when it holds one of the same config, else ``compute()`` written there."""
@@ -107,11 +131,13 @@ class Stages:
 
 def build_inputs(paths: OutputPaths, runs: Path, stages: Stages) -> None:
     """Tables and the distilled policy, each made only when missing (or ``force``)."""
-    from precompute.build import build_table_file, parse_job
+    from precompute.build import build_table_file, parse_job, with_threads
+    from precompute.build_args import parse_build_args
     from training.distill import distill, parse_args
 
     def build(argv: list[str]) -> None:
-        build_table_file(parse_job(argv)[0])
+        # with the command's torch threads (--threads, 1 by default), as `python -m precompute.build` runs it
+        with_threads(parse_build_args(argv).threads, lambda: build_table_file(parse_job(argv)[0]))
 
     def train(argv: list[str]) -> None:
         distill(parse_args(argv))
@@ -144,7 +170,7 @@ def write_markdown(path: Path, sections: list[tuple[str, str]], stages: Stages, 
              f"Machine: {machine()}.", "",
              "Produced by `python -m eval.report" + (" --quick`" if quick else "`") + " with these steps:", "",
              "```", *stages.commands, "```", "",
-             "Stage times: " + ", ".join(f"{k} {v:.0f} s" for k, v in stages.timings.items()) + ".", ""]
+             "Stage times (what cost what):", "", "```", stages.table(), "```", ""]
     if stages.reused:
         lines += [f"Reused from an earlier run ({len(stages.reused)} of {len(stages.reused) + len(stages.made)} "
                   "outputs; `--force` remakes them): " + ", ".join(f"`{p}`" for p in stages.reused) + ".", ""]
@@ -159,7 +185,7 @@ def write_markdown(path: Path, sections: list[tuple[str, str]], stages: Stages, 
 @cli_main()
 def main(argv=None) -> int:
     p = ArgumentParser(prog="python -m eval.report", description=__doc__.split("\n\n")[0])
-    p.add_argument("--quick", action="store_true", help="about a minute: fewer seeds and sizes")
+    p.add_argument("--quick", action="store_true", help="about 16 s: fewer seeds and sizes")
     p.add_argument("--out", type=Path, default=DEFAULT.root, help="folder of tables, results, figures and the report")
     p.add_argument("--runs", type=Path, default=RUNS_EVAL, help="TensorBoard folder")
     p.add_argument("--device", type=device_arg, default="cpu", help="torch device of the experiments' rollouts")
@@ -238,6 +264,7 @@ def _report(args) -> int:
     ]
     stages.timings["total"] = time.perf_counter() - total
     write_markdown(paths.report, sections, stages, args.quick)
+    print("\n" + stages.table())
     print(f"\nreused {len(stages.reused)} of {len(stages.reused) + len(stages.made)} outputs of earlier runs")
     print(f"wrote {paths.report}, {len(list(paths.figures.glob('*.png')))} figures in {paths.figures}, "
           f"TensorBoard runs in {runs} (tensorboard --logdir {runs}); total {stages.timings['total']:.0f} s")

@@ -29,6 +29,7 @@ import argparse
 import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
+from typing import TypeVar
 
 from cuniform_torch.cli import OUT, cli_main
 from precompute.build_args import COVERAGE_ONLY, MAXFLOW_ONLY, make_parser, parse_build_args, system_of, table_job
@@ -36,8 +37,10 @@ from precompute.one_table import TableJob, build_table_file
 from precompute.system_args import parse_params
 from precompute.table_set import MAX_SET_MEMBERS, build_table_set, ensure_table_set, parse_starts
 
-__all__ = ["main", "parse_job", "TableJob", "build_table_file", "build_table_set", "ensure_table_set", "make_parser",
-           "MAXFLOW_ONLY", "COVERAGE_ONLY", "parse_params"]
+__all__ = ["main", "parse_job", "with_threads", "TableJob", "build_table_file", "build_table_set", "ensure_table_set",
+           "make_parser", "MAXFLOW_ONLY", "COVERAGE_ONLY", "parse_params"]
+
+T = TypeVar("T")
 
 
 @cli_main(interrupted="interrupted: no table written")
@@ -46,11 +49,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     ``error: ...`` line, or 130 on Ctrl-C."""
     argv = sys.argv[1:] if argv is None else list(argv)
     args = parse_build_args(argv)
-    return _with_threads(args.threads, lambda: _run(args))
+    return with_threads(args.threads, lambda: _run(args))
 
 
-def _with_threads(threads: int, run: Callable[[], int]) -> int:
-    """``run()`` with ``threads`` torch threads (0: unchanged), the caller's setting restored after."""
+def with_threads(threads: int, run: Callable[[], T]) -> T:
+    """``run()`` with ``threads`` torch threads (0: unchanged), the caller's setting restored after. The builds of
+    ``eval.report`` and the navigation benchmark's robot use it with ``--threads``' default (1), as the command
+    does: on 2 busy cores torch's default of one thread per core made the coverage build of the default preset
+    5-10x slower (17-40 s against 2-3.5 s, load 5-6)."""
     import torch
 
     previous = torch.get_num_threads()

@@ -151,7 +151,12 @@ def test_report_quick_runs_end_to_end(tmp_path, capsys):
     assert {p.name for p in outputs} >= {"dubins.npz", "dubins_cov.npz", "dubins.policy.pt", "coverage.json",
                                          "uniformity.json", "sudden_obstacle.json", "cluttered.json"}
     before = {p: p.stat().st_mtime_ns for p in outputs}
-    capsys.readouterr()
+    first = capsys.readouterr().out  # what cost what: the stage table ends the run, each build's command below
+    table = first[first.index("\nstage "):]
+    for row in ("tables and policy", "  precompute.build dubins.npz", "  precompute.build dubins_cov.npz",
+                "  training.distill dubins.policy.pt", "coverage", "navigation (short)", "total"):
+        assert f"\n{row} " in table
+    assert "Stage times (what cost what):" in text and "  precompute.build dubins.npz" in text
     assert main(["--quick", "--out", str(tmp_path / "out"), "--runs", str(tmp_path / "runs")]) == 0
     out = capsys.readouterr().out
     assert {p: p.stat().st_mtime_ns for p in outputs} == before
@@ -160,3 +165,42 @@ def test_report_quick_runs_end_to_end(tmp_path, capsys):
     n = len(reused)
     assert f"reused {n} of {n} outputs of earlier runs" in out and "$ python -m" not in out  # no build, no distill
     assert f"Reused from an earlier run ({n} of {n} outputs" in (root / "report.md").read_text()
+
+
+def test_the_stage_table_says_what_cost_what():
+    from eval.report import Stages
+
+    stages = Stages()
+    stages.stage("tables", lambda: stages.run_step("precompute.build", ["--out", "x/t.npz"], lambda argv: None))
+    stages.stage("coverage", lambda: None)
+    stages.timings.update(tables=3.0, coverage=1.0, total=4.0)
+    stages.steps["tables"] = [("precompute.build t.npz", 2.5)]
+    lines = stages.table().splitlines()
+    assert lines[0].split() == ["stage", "seconds", "share"]
+    assert [line.split() for line in lines[1:]] == [["tables", "3.0", "75.0%"], ["precompute.build", "t.npz", "2.5",
+                                                    "62.5%"], ["coverage", "1.0", "25.0%"], ["total", "4.0", "100.0%"]]
+    assert lines[2].startswith("  precompute.build t.npz")
+
+
+def test_the_report_builds_its_tables_on_the_commands_one_thread(tmp_path, monkeypatch):
+    import precompute.build
+    import training.distill
+    from eval.common.paths import OutputPaths
+    from eval.report import Stages, build_inputs
+
+    seen = []
+
+    def build(job):  # the threads it ran with; an empty file stands for the table
+        seen.append((job.out.name, torch.get_num_threads()))
+        job.out.write_bytes(b"")
+
+    monkeypatch.setattr(precompute.build, "build_table_file", build)
+    monkeypatch.setattr(training.distill, "distill", lambda cfg: None)
+    threads = torch.get_num_threads()
+    stages = Stages()
+    stages.stage("tables and policy", lambda: build_inputs(OutputPaths(tmp_path, quick=True), tmp_path / "runs",
+                                                           stages))
+    assert seen == [("dubins.npz", 1), ("dubins_cov.npz", 1)]  # as `python -m precompute.build` (--threads 1)
+    assert torch.get_num_threads() == threads
+    assert [step for step, _ in stages.steps["tables and policy"]] == [
+        "precompute.build dubins.npz", "precompute.build dubins_cov.npz", "training.distill dubins.policy.pt"]
