@@ -5,6 +5,7 @@ built on them (:class:`MPPI`, :class:`LogMPPI`, :class:`CUniformMPPI`, :class:`C
 from cuniform_torch.controllers.bank import BankProposal, BankRefreshWarning
 from cuniform_torch.controllers.cfu import CFUMPPI, SensedMapPolicy
 from cuniform_torch.controllers.core import COST_CAP, CostFn, MPPICore, mppi_weights
+from cuniform_torch.controllers.filtered import ColoredMPPI, LowPassMPPI
 from cuniform_torch.controllers.mppi import CUMPPI, MPPI, CUniformMPPI, LogMPPI
 from cuniform_torch.controllers.proposals import (
     CompositeProposal,
@@ -17,7 +18,7 @@ from cuniform_torch.controllers.result import MPPIResult
 
 __all__ = [
     "MPPICore", "MPPIResult", "CostFn", "mppi_weights", "COST_CAP",
-    "MPPI", "LogMPPI", "CUniformMPPI", "CUMPPI", "CFUMPPI", "SensedMapPolicy",
+    "MPPI", "LogMPPI", "CUniformMPPI", "CUMPPI", "CFUMPPI", "SensedMapPolicy", "ColoredMPPI", "LowPassMPPI",
     "Proposal", "GaussianProposal", "NormalLogNormalProposal", "PolicyProposal", "BankProposal", "CompositeProposal",
     "BankRefreshWarning",
 ]

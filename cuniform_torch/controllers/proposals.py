@@ -239,9 +239,13 @@ class GaussianProposal(OneRobotCall):
         """``[B, n, q]`` zero-mean noise, robot ``b``'s from its own stream."""
         return streams.randn((n, self.low.shape[0]), self.dtype).mul_(self.std)
 
+    def _sequences(self, streams: RobotStreams, k: int, t: int) -> Tensor:
+        """``[B, K, T, q]`` zero-mean noise sequences (a fresh tensor: updated in place)."""
+        return self._noise(streams, k * t).view(-1, k, t, self.low.shape[0])
+
     def propose_batch(self, states: Tensor, streams: RobotStreams) -> tuple[Tensor, Tensor]:
         b, k, t, q = states.shape[0], self.num_samples, self.horizon, self.low.shape[0]
-        actions = self._noise(streams, k * t).view(b, k, t, q)  # a fresh tensor: updated in place
+        actions = self._sequences(streams, k, t)  # [B, K, T, q], a fresh tensor: updated in place
         actions.add_(self._nominal.unsqueeze(1)).clamp_(self.low, self.high)  # [B, K, T, q]
         trajectories = open_loop(self.system, _start_rows(states, k), actions.view(b * k, t, q))  # [B*K, T+1, d]
         return trajectories.view(b, k, t + 1, -1), actions

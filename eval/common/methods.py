@@ -28,6 +28,8 @@ nominal. Method keys:
   release's way; not executed dynamics, see :mod:`eval.common.graph_sampling`). Open-loop only;
 * ``cumppi`` (both): CU-MPPI: the best C-Uniform rollout of the max-flow table seeds a local MPPI pass (half of
   the budget each). Closed-loop only;
+* ``mppi_pink_1.0``, ``mppi_lowpass_1.0`` (navigate, opt-in): MPPI with time-correlated noise of std 1.0, pink
+  (power spectrum ~ 1/f) or low-pass (AR(1), a = 0.8) (:mod:`cuniform_torch.controllers.filtered`);
 * ``cumppi_pipe`` (navigate, opt-in): CU-MPPI in one pass (``CUMPPI(pipelined=True)``): the local rollouts around
   the previous command's best C-Uniform sequence, rolled out and costed with this command's C-Uniform ones, all
   weighed together;
@@ -65,6 +67,7 @@ from cuniform_torch import (
     rollout,
 )
 from cuniform_torch.common.fileio import MAX_JSON_BYTES, read_capped_text
+from cuniform_torch.controllers.filtered import ColoredMPPI, LowPassMPPI
 from cuniform_torch.policies import UniformPolicy
 from cuniform_torch.sampling import GaussianSampler, NormalLogNormalSampler
 from eval.common import config
@@ -156,6 +159,10 @@ METHODS: dict[str, Method] = {m.key: m for m in [
              benchmarks=(NAVIGATE,)) for s in _NAV_NOISE),
     Method("log_mppi_0.3", "log-MPPI (std 0.3)", "log_mppi", LogMPPI, NormalLogNormalSampler, 0.3, color="#f16913",
            benchmarks=(NAVIGATE,)),
+    Method("mppi_pink_1.0", "MPPI, pink noise (std 1.0)", "mppi", ColoredMPPI, GaussianSampler, 1.0, open_loop=False,
+           color="#6a51a3", benchmarks=(NAVIGATE,), opt_in=(NAVIGATE,)),
+    Method("mppi_lowpass_1.0", "MPPI, low-pass noise (std 1.0, a 0.8)", "mppi", LowPassMPPI, GaussianSampler, 1.0,
+           open_loop=False, color="#807dba", benchmarks=(NAVIGATE,), opt_in=(NAVIGATE,)),
     Method("uniform", "uniform discrete actions", "uniform", CUniformMPPI, source="uniform", color="#737373",
            benchmarks=_BOTH),
     Method("cu_table", "C-Uniform table (max-flow)", "cuniform", CUniformMPPI, source="table", paper=True,
@@ -207,8 +214,9 @@ def parse_methods(keys: Sequence[str] | None, *, benchmark: str, closed_loop: bo
 
 def gaussian_baselines(benchmark: str) -> tuple[str, ...]:
     """The keys of ``benchmark``'s Gaussian-noise MPPI baselines (what the navigation benchmark compares every
-    other method with), in :data:`METHODS`' order."""
-    return tuple(k for k, m in methods_of(benchmark).items() if m.noise is GaussianSampler)
+    other method with; white noise: the colored and low-pass ones are methods of their own), in :data:`METHODS`'
+    order."""
+    return tuple(k for k, m in methods_of(benchmark).items() if m.noise is GaussianSampler and m.controller is MPPI)
 
 
 @dataclass
