@@ -6,7 +6,7 @@
 
 Every controller drives the navigation benchmark's robot (Dubins, 0.5 m/s, 7 turn rates, dt 0.2 s) on BARN map 0
 (the shipped half) under the navigation cost, from the map's start (robot ``b`` a little further along x): MPPI
-(std 1.0), log-MPPI (std 0.3), C-Uniform MPPI on the robot's max-flow table, CU-MPPI on it (and in one pass,
+(std 1.0), log-MPPI (std 0.3), MPPI with pink and with low-pass noise (std 1.0; ``mppi_pink``, ``mppi_lowpass``), C-Uniform MPPI on the robot's max-flow table, CU-MPPI on it (and in one pass,
 ``cumppi_pipe``), CFU-MPPI with the
 shipped map policy, and pytorch_mppi (the ``[bench]`` extra; ``MPPI_Batched`` for a batch) on the same dynamics
 with a per-step goal-and-collision cost. Commands are timed round-robin (one command of each controller in turn,
@@ -41,7 +41,8 @@ from cuniform_torch.cli import (
 )
 from cuniform_torch.common.fileio import write_json
 
-METHODS = ("mppi", "log_mppi", "cuniform", "cumppi", "cumppi_pipe", "cfu_mppi", "pytorch_mppi")
+METHODS = ("mppi", "log_mppi", "mppi_pink", "mppi_lowpass", "cuniform", "cumppi", "cumppi_pipe", "cfu_mppi",
+           "pytorch_mppi")
 
 
 def make_parser() -> ArgumentParser:
@@ -75,6 +76,7 @@ def _batch_kw(robots: int) -> dict:
 def build(args) -> tuple[dict[tuple[str, int, int], Callable[[], object]], dict]:
     """One ``command`` closure per (method, K, T), all on the same map, cost and states."""
     from cuniform_torch import CFUMPPI, CUMPPI, MPPI, CUniformMPPI, LogMPPI, TablePolicy, read_table
+    from cuniform_torch.controllers import ColoredMPPI, LowPassMPPI
     from cuniform_torch.envs import NavigationCost
     from cuniform_torch.envs.worlds.barn import load_barn
     from cuniform_torch.envs.worlds.robot import NAV_ROBOT
@@ -113,6 +115,10 @@ def build(args) -> tuple[dict[tuple[str, int, int], Callable[[], object]], dict]
             return MPPI(system, cost, k, t, noise_std=1.0, device=device, seed=0, **kw)
         if name == "log_mppi":
             return LogMPPI(system, cost, k, t, noise_std=0.3, device=device, seed=0, **kw)
+        if name == "mppi_pink":
+            return ColoredMPPI(system, cost, k, t, noise_std=1.0, beta=1.0, device=device, seed=0, **kw)
+        if name == "mppi_lowpass":
+            return LowPassMPPI(system, cost, k, t, noise_std=1.0, a=0.8, device=device, seed=0, **kw)
         if t > NAV_ROBOT.horizon:
             return None
         if name == "cuniform" and table is not None:
