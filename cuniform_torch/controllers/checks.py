@@ -63,17 +63,6 @@ def _check_lambda(lambda_: float, dtype: torch.dtype) -> float:
     return value
 
 
-def _check_seed(seed: int | None) -> int | None:
-    if seed is not None and (isinstance(seed, bool) or not isinstance(seed, numbers.Integral)):
-        raise TypeError(f"seed must be an int or None, got {type(seed).__name__} ({seed!r:.40})")
-    return None if seed is None else int(seed)
-
-
-def make_generator(seed: int | None, device: torch.device | str) -> torch.Generator:
-    """A controller's generator on ``device``, seeded by ``seed`` (TypeError unless it is an int or None)."""
-    return seeded_generator(_check_seed(seed), torch.device(device))
-
-
 def _callable_name(fn: object) -> str:
     """A user callable's name for an error message: its ``__qualname__``, else a short repr."""
     name = getattr(fn, "__qualname__", None)
@@ -105,11 +94,6 @@ def _check_costs(costs: object, who: str, fn: object, shape: tuple[int, ...], dt
 
 def _describe(x: object) -> str:
     return f"{list(x.shape)} {x.dtype} on {x.device}" if isinstance(x, Tensor) else type(x).__name__
-
-
-def check_state(state: Tensor, state_dim: int, dtype: torch.dtype, device: torch.device) -> Tensor:
-    """``state [d]`` of the controller's dtype and device, finite; detached (a state is an observation)."""
-    return check_state_batch(state, 1, state_dim, dtype, device, True)[0][0]
 
 
 def check_state_batch(state: Tensor, num_robots: int, state_dim: int, dtype: torch.dtype, device: torch.device,

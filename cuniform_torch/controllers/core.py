@@ -190,7 +190,7 @@ class MPPICore:
         costs, weights = self._evaluate(states, actions)
         b, k, t, q = actions.shape
         nominal = torch.bmm(weights.unsqueeze(1), actions.reshape(b, k, t * q)).view(b, t, q)  # [B, T, q]
-        return MPPIResult(nominal[:, 0], nominal, states, actions, costs, weights, self.lambda_)
+        return MPPIResult(nominal[:, 0], nominal, states, actions, costs, weights)
 
     def command(self, state: Tensor) -> Tensor:
         """The controls to apply at ``state [B, d]``: ``[B, q]`` (one robot's ``[d]`` -> ``[q]``); the proposal
@@ -208,10 +208,8 @@ class MPPICore:
 
     def _generators(self) -> list[torch.Generator]:
         """Every stream a command draws from (a two-stage controller's first stage has its own)."""
-        first = getattr(self.proposal, "first", None)
-        own = getattr(self.proposal, "first_streams", None)  # a one-pass CU-MPPI draws its first stage's too
-        return (list(self.streams.generators) + (first._generators() if isinstance(first, MPPICore) else [])
-                + (list(own.generators) if isinstance(own, RobotStreams) else []))
+        extra = getattr(self.proposal, "extra_streams", None)  # a two-stage proposal's first-stage streams
+        return list(self.streams.generators) + (list(extra.generators) if isinstance(extra, RobotStreams) else [])
 
     def _replay(self, states: Tensor) -> Tensor:
         """The command of ``states [B, d]`` by one replay of the captured graph: ``[B, q]``."""

@@ -29,6 +29,7 @@ generator)``) still does, for one robot. The ones here:
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Any, Protocol, cast, runtime_checkable
 
 import torch
@@ -115,9 +116,8 @@ class OneRobotCall:
     batch of one; a convenience for tests and tools)."""
 
     num_robots: int
-
-    def propose_batch(self, states: Tensor, streams: RobotStreams) -> tuple[Tensor, Tensor]:
-        raise NotImplementedError
+    propose_batch: Callable[[Tensor, RobotStreams], tuple[Tensor, Tensor]]
+    """the subclass's batched draw (:class:`Proposal`)"""
 
     def propose(self, state: Tensor, generator: torch.Generator) -> tuple[Tensor, Tensor]:
         """``state [d]`` -> ``[K, T+1, d]``, ``[K, T, q]``."""
@@ -169,7 +169,9 @@ class Closeable(Protocol):
 
 class Planner(Protocol):
     """A controller's planning step (what :class:`CompositeProposal` seeds from): ``_plan(states [B, d])`` -> a
-    batched :class:`MPPIResult`."""
+    batched :class:`MPPIResult`, drawing from its ``streams``."""
+
+    streams: RobotStreams
 
     def _plan(self, state: Tensor) -> MPPIResult:
         ...
@@ -347,17 +349,10 @@ class PolicyProposal(OneRobotCall):
         new_episode(self.policy)  # a controller's first episode: its off-start rollouts warn afresh
 
     def _groups(self, states: Tensor) -> list[list[int]] | None:
-        """Robots rolled out together (each group in one rollout); None: all of them at once."""
+        """Robots rolled out together (each group in one rollout); None: all of them at once. Only a policy set per
+        start (``for_start`` alone) needs groups: one robot each."""
         b = states.shape[0]
-        if b == 1 or not (self._members or self._per_start):
-            return None
-        if self._per_start:
-            return [[i] for i in range(b)]
-        index = cast(Any, self.policy).nearest(states)[0].tolist()  # [B] the member of each robot (host ints)
-        groups: dict[int, list[int]] = {}
-        for robot, member in enumerate(index):
-            groups.setdefault(member, []).append(robot)
-        return None if len(groups) == 1 else list(groups.values())
+        return [[i] for i in range(b)] if b > 1 and self._per_start else None
 
     def propose_batch(self, states: Tensor, streams: RobotStreams) -> tuple[Tensor, Tensor]:
         b, k, t = states.shape[0], self.num_samples, self.horizon
@@ -369,15 +364,14 @@ class PolicyProposal(OneRobotCall):
             return x.view(b, k, t + 1, -1), u.view(b, k, t, -1)
         if b > 1 and self._members:  # a table set: one rollout, each member drawing for its robots' rows
             index = cast(Any, self.policy).nearest(states)[0].tolist()  # [B] each robot's member (host ints)
-            if len(set(index)) > 1:
-                return self._members_rollout(states, index, uniforms)
+            return self._members_rollout(states, index, uniforms)
         groups = self._groups(states)
         if groups is None:
             flat = uniforms[0] if b == 1 else uniforms.transpose(0, 1).reshape(t, b * k)  # [T, B*K] robot-major
             x, u = self.plan.run(self.system, self.policy, _start_rows(states, k), b * k, t, None, flat)
             return x.view(b, k, t + 1, -1), u.view(b, k, t, -1)
         out_x = out_u = None
-        for robots in groups:  # members of a table set, or robots of a per-start policy
+        for robots in groups:  # the robots of a per-start policy
             rows = torch.tensor(robots, device=states.device)
             n = len(robots)
             flat = uniforms.index_select(0, rows).transpose(0, 1).reshape(t, n * k)
@@ -433,6 +427,8 @@ class CompositeProposal(OneRobotCall):
 
     def __init__(self, first: Planner, local: GaussianProposal):
         self.first, self.local = first, local
+        self.extra_streams = first.streams
+        """the first stage's streams, drawn within a command too (a CUDA graph registers them)"""
         self.system, self.num_samples, self.horizon = local.system, local.num_samples, local.horizon
         self.num_robots, self.device, self.dtype = local.num_robots, local.device, local.dtype
 
@@ -462,6 +458,8 @@ class PipelinedProposal(OneRobotCall):
 
     def __init__(self, first: Proposal, first_streams: RobotStreams, local: GaussianProposal):
         self.first, self.first_streams, self.local = first, first_streams, local
+        self.extra_streams = first_streams
+        """the first stage's streams, drawn within a command too (a CUDA graph registers them)"""
         self.system, self.horizon, self.num_robots = local.system, local.horizon, local.num_robots
         self.num_samples = first.num_samples + local.num_samples
         self.device, self.dtype = local.device, local.dtype

@@ -36,8 +36,6 @@ class MPPIResult:
     """``[K]`` finite costs"""
     weights: Tensor
     """``[K]`` sum to 1"""
-    lambda_: float | Tensor | None = None
-    """the temperature the weights were computed with"""
 
     @property
     def best(self) -> Tensor:
@@ -54,7 +52,7 @@ class MPPIResult:
         if not self.batched:
             raise ValueError("robot(b) takes one robot of a batched result; this one has no robot dimension")
         return MPPIResult(self.command[b], self.nominal[b], self.states[b], self.actions[b], self.costs[b],
-                          self.weights[b], self.lambda_)
+                          self.weights[b])
 
     def best_actions(self) -> Tensor:
         """The lowest-cost proposal's action sequence: ``[T, q]`` (``[B, T, q]`` for a batch), no host sync."""

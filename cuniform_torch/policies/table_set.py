@@ -112,6 +112,10 @@ class LazyMembers(Sequence[TablePolicy]):
         return [self._members[i] for i in self.loaded]
 
 
+def _rows(x: Tensor, rows: Tensor | None) -> Tensor:
+    return x if rows is None else x.index_select(0, rows)
+
+
 class MemberRows:
     """Several members of a table set answering one batch of states, each its own rows (``rows[i]``, ``[n_i]``
     int64: the rows of member ``members[i]``): a rollout of robots whose starts chose different members steps the
@@ -124,7 +128,10 @@ class MemberRows:
         self.system, self.actions, self.horizon = first.system, first.actions, first.horizon
         self.device, self.dtype, self.start_relative = first.device, first.dtype, first.start_relative
 
-    def _each(self, x: Tensor, answer: Callable[[TablePolicy, Tensor], Tensor], width: int) -> Tensor:
+    def _each(self, x: Tensor, answer: Callable[[TablePolicy, Tensor | None], Tensor], width: int) -> Tensor:
+        """Each member's answer for its rows (``rows`` None: one member answers every row, no gather)."""
+        if len(self.members) == 1:
+            return answer(self.members[0], None)
         out = x.new_empty((x.shape[0], width), dtype=self.dtype)
         for member, rows in zip(self.members, self.rows):
             out.index_copy_(0, rows, answer(member, rows))
@@ -132,16 +139,15 @@ class MemberRows:
 
     def action_probs(self, x: Tensor, t: int) -> Tensor:
         """``x [N, d]`` -> ``[N, A]``, each row from its member."""
-        return self._each(x, lambda m, rows: m.action_probs(x.index_select(0, rows), t), self.actions.shape[0])
+        return self._each(x, lambda m, rows: m.action_probs(_rows(x, rows), t), self.actions.shape[0])
 
     def draw(self, x: Tensor, t: int, r: Tensor) -> Tensor:
         """``x [N, d]``, uniforms ``r [N]`` -> actions ``[N, q]``, each row drawn by its member."""
-        return self._each(x, lambda m, rows: m.draw(x.index_select(0, rows), t, r.index_select(0, rows)),
-                          self.actions.shape[1])
+        return self._each(x, lambda m, rows: m.draw(_rows(x, rows), t, _rows(r, rows)), self.actions.shape[1])
 
     def watch_start(self, x0: Tensor, relative: bool) -> Callable[[], None] | None:
         """Each member's start check of its rows' starts (``x0 [N, d]``)."""
-        reports = [m.watch_start(x0.index_select(0, rows), relative) for m, rows in zip(self.members, self.rows)]
+        reports = [m.watch_start(_rows(x0, rows), relative) for m, rows in zip(self.members, self.rows)]
         done = [r for r in reports if r is not None]
         if not done:
             return None
