@@ -73,7 +73,7 @@ from cuniform_torch.policies.mlp import MAX_FREQUENCIES, MLPConfig, MLPPolicy, d
 from cuniform_torch.policies.table import TablePolicy
 from cuniform_torch.tables.file import Table, read_table
 from training.sets.distill import distill_set
-from training.tables.config import DistillConfig
+from training.tables.config import DistillConfig, with_epochs
 from training.tables.evaluate import compare, kl_per_level, sizes
 from training.tables.loop import run_epochs
 from training.tables.setup import (
@@ -118,7 +118,7 @@ def parse_args(argv: Sequence[str] | None = None) -> DistillConfig:
 def check_config(cfg: DistillConfig) -> DistillConfig:
     """``cfg`` checked (:class:`UsageError` naming the bad setting by its flag), its derived fields filled."""
     for name in ("hidden", "layers", "epochs", "batch_size", "val_points", "patience", "eval_every"):
-        if getattr(cfg, name) < 1:
+        if getattr(cfg, name) is not None and getattr(cfg, name) < 1:
             raise UsageError(f"--{name.replace('_', '-')} must be a positive integer, got {getattr(cfg, name)}")
     if cfg.threads < 0:
         raise UsageError(f"--threads must be >= 0, got {cfg.threads}")
@@ -198,6 +198,7 @@ def _distill(cfg: DistillConfig) -> int:
     # ---- tables
     tables = read_tables(cfg.tables)
     table = tables[0]
+    cfg = with_epochs(cfg, sum(int(t.cells.shape[0]) for t in tables))
     system, T = table.make_system(), table.horizon
     grid = Grid.of(system)
     table_shas = [file_sha256(p) for p in cfg.tables]

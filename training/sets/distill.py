@@ -34,6 +34,7 @@ from cuniform_torch.policies.checkpoint import file_sha256, policy_checkpoint, s
 from cuniform_torch.policies.mlp import MLPConfig, default_feature_scale
 from cuniform_torch.policies.start_mlp import StartMLPPolicy, StartRegion, start_dims_of
 from cuniform_torch.policies.table_set import SET_INDEX, load_table_set
+from training.tables.config import with_epochs
 from training.tables.evaluate import compare, kl_per_level
 from training.tables.loop import run_epochs
 from training.tables.setup import (
@@ -67,6 +68,7 @@ def distill_set(cfg: DistillConfig, out: Path, state_path: Path, comparison_path
     members = tset.members
     tables = [m.table for m in members]
     starts = tset.starts  # [S, d] float64
+    cfg = with_epochs(cfg, sum(int(tb.cells.shape[0]) for tb in tables))
     system, T = members[0].system, tables[0].horizon
     grid = Grid.of(system)
     dims = start_dims_of(system)

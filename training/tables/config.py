@@ -6,11 +6,20 @@ table set), so that neither imports the other for it.
 
 from __future__ import annotations
 
+import dataclasses
+import math
 from dataclasses import dataclass, field
 
 from cuniform_torch.cli import RUNS
 
-__all__ = ["DistillConfig"]
+__all__ = ["DistillConfig", "DEFAULT_EPOCHS", "DEFAULT_CELL_PASSES", "with_epochs"]
+
+DEFAULT_EPOCHS = 100
+"""epochs of a default run on a table of at most :data:`DEFAULT_CELL_PASSES` / 100 cells"""
+DEFAULT_CELL_PASSES = 6_800_000
+"""cells x epochs a default run makes at most: a larger table gets fewer epochs (each epoch already makes more
+optimiser steps), never fewer than 20. The paper-scale table (168,933 cells) gets 41 epochs, about 3.5 minutes on
+a 2-core CPU, at KL 0.06 (docs/results/distillation.md); 100 epochs there would take about 8 minutes."""
 
 
 @dataclass
@@ -30,9 +39,10 @@ class DistillConfig:
     networks distilled before the encoding: on out/dubins.npz 1500 epochs of 3 x 256 reached KL 0.052, 100 epochs
     with the encoding 0.022). One table (or pooled tables) only: a table set's start-conditioned MLP reads the
     plain features and ignores it"""
-    epochs: int = 100
-    """passes over the data, each with fresh jitter (on out/dubins.npz: see docs/results/distillation.md for the
-    time and the KL of the default and of longer runs)"""
+    epochs: int | None = None
+    """passes over the data, each with fresh jitter (default: 100, fewer on tables of over 68,000 cells so that a
+    default run makes at most 6.8 million cell passes: the paper-scale table's 168,933 cells get 41; see
+    docs/results/distillation.md for the time and the KL of the default and of longer runs)"""
     lr: float = 5e-3
     """Adam's initial learning rate, cosine-annealed per epoch to lr / 100 at the last epoch"""
     batch_size: int = 1024
@@ -66,3 +76,12 @@ class DistillConfig:
     """epochs between the eval/kl_level_<t> scalars and the figures"""
     system_module: list[str] = field(default_factory=list)
     """modules to import first (--system-module, repeatable): they register the user systems the tables name"""
+
+
+def with_epochs(cfg: DistillConfig, cells: int) -> DistillConfig:
+    """``cfg`` with ``epochs`` set: as given, or the default for a table (or set) of ``cells`` cells in all levels:
+    :data:`DEFAULT_EPOCHS`, down to ``ceil(DEFAULT_CELL_PASSES / cells)`` (at least 20) for large tables."""
+    if cfg.epochs is not None:
+        return cfg
+    epochs = min(DEFAULT_EPOCHS, max(20, math.ceil(DEFAULT_CELL_PASSES / max(cells, 1))))
+    return dataclasses.replace(cfg, epochs=epochs)
