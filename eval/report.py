@@ -41,6 +41,7 @@ from cuniform_torch.cli import (
     cli_main,
     device_arg,
     import_system_modules,
+    int_in,
 )
 from cuniform_torch.common.fileio import MAX_JSON_BYTES, read_capped_text, write_bytes, write_json
 from eval.common import config
@@ -183,6 +184,11 @@ def write_markdown(path: Path, sections: list[tuple[str, str]], stages: Stages, 
 
 
 @cli_main()
+def default_workers() -> int:
+    """The CPU cores this process may use (its affinity where the platform has one)."""
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+
+
 def main(argv=None) -> int:
     p = ArgumentParser(prog="python -m eval.report", description=__doc__.split("\n\n")[0])
     p.add_argument("--quick", action="store_true", help="about 16 s: fewer seeds and sizes")
@@ -194,6 +200,9 @@ def main(argv=None) -> int:
     p.add_argument("--no-mlp", action="store_true",
                    help="leave the distilled MLP out of the closed-loop experiments (saves several minutes on a CPU: "
                         "its forward pass costs about 10x a table lookup per control cycle)")
+    p.add_argument("--workers", type=int_in(1, 1024), default=default_workers(),
+                   help="processes for the closed-loop episodes, one torch thread each (default: the CPU cores "
+                        "this process may use; the records do not depend on it)")
     add_system_module_arg(p)
     args = p.parse_args(argv)
     import_system_modules(args.system_module)
@@ -233,7 +242,7 @@ def _report(args) -> int:
             # --quick: the 2 s tables drive the controllers (horizon 10 instead of 15)
             cfg = replace(module.QUICK, horizon=10) if args.quick else replace(module.CONFIG(), include_mlp=not args.no_mlp)
             name = module.__name__.split(".")[-1]
-            closed[name] = experiment(module, cfg, cl_sources, progress=not args.quick)
+            closed[name] = experiment(module, cfg, cl_sources, progress=not args.quick, workers=args.workers)
             closed_md.append(module.markdown(closed[name]))
             closed_figs += module.figures(closed[name], paths.figures)
 
@@ -241,7 +250,8 @@ def _report(args) -> int:
         from eval.navigate import run as navigate
 
         nav = stages.stage("navigation (short)", lambda: navigate.short_run(paths.root / "navigate", args.quick,
-                                                                             progress=not args.quick))
+                                                                             progress=not args.quick,
+                                                                             workers=args.workers))
         closed_md.append(navigate.render(nav))
 
     def make_figures() -> dict:

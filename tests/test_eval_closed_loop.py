@@ -330,3 +330,12 @@ def test_an_unreachable_goal_is_never_a_success(sources):
     """The goal 20 m away with 4 s to drive at 1 m/s: every seed must time out (a success here is a bug)."""
     records = _success(sources, "cu_table", Environment([]), time_limit=4.0, goal=(20.0, 0.0))
     assert [r["outcome"] for r in records] == ["timeout"] * len(SEEDS)
+
+
+def test_workers_give_the_same_records(sources):
+    """Episodes in two worker processes: the same records, in the same order, as in this process (wall_s aside)."""
+    cfg = _cl(environments=("u_shape", "rectangles"), starts=2)
+    alone = cluttered.run(cfg, sources, progress=False)
+    pooled = cluttered.run(cfg, sources, progress=False, workers=2)
+    assert len(alone["records"]) == 8
+    assert _strip(pooled["records"]) == _strip(alone["records"])

@@ -328,9 +328,10 @@ QUICK = NavConfig(suite="barn", tasks=2, budgets=(16, 64), methods=("mppi_1.0", 
 """``python -m eval.report --quick``'s: 2 maps, 2 methods, a 10-step table (2 s of build instead of 8)"""
 
 
-def short_run(root: Path, quick: bool = False, progress: bool = True) -> dict:
-    """The report's short benchmark run (:data:`SHORT`, or :data:`QUICK`) under ``root`` (its results written too)."""
-    cfg = QUICK if quick else SHORT
+def short_run(root: Path, quick: bool = False, progress: bool = True, workers: int = 1) -> dict:
+    """The report's short benchmark run (:data:`SHORT`, or :data:`QUICK`) under ``root`` (its results written too),
+    its episodes in ``workers`` processes."""
+    cfg = dataclasses.replace(QUICK if quick else SHORT, workers=workers)
     out = Path(root) / ("barn_quick" if quick else "barn_short")
     robot = dataclasses.replace(NAV_ROBOT, horizon=cfg.horizon)
     res = run(cfg, out, robot, cache=Path(root) / "cache", progress=progress)

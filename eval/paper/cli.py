@@ -112,6 +112,8 @@ def add_closed_loop_args(p: argparse.ArgumentParser, cls: type, only: tuple[str,
     add_output_args(p, figures=True)
     p.add_argument("--quick", action="store_true", help="tiny sizes (a few seconds)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.add_argument("--workers", type=int_in(1, 1024), default=1,
+                   help="run the episodes in this many processes, one torch thread each (records the same; default 1)")
     add_no_limit_arg(p)
 
 
@@ -172,7 +174,8 @@ def main(module: ModuleType, argv, show: Callable[[dict], None] | None = None) -
     args = module.make_parser().parse_args(argv)
     cfg = module.config_from_args(args)
     prepare(args)
-    result = module.run(cfg, sources_from_args(args), progress=not getattr(args, "quiet", False))
+    workers = {"workers": args.workers} if hasattr(args, "workers") else {}  # the closed-loop experiments'
+    result = module.run(cfg, sources_from_args(args), progress=not getattr(args, "quiet", False), **workers)
     (show or (lambda r: print(module.markdown(r))))(result)
     if args.json is not None:
         print()

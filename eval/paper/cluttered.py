@@ -206,7 +206,8 @@ def episodes(cfg: ClutteredConfig, methods: list[str], speed: float) -> list[Epi
     return out
 
 
-def run(cfg: ClutteredConfig, sources: Sources, progress: bool = True, record_paths: bool = True) -> dict:
+def run(cfg: ClutteredConfig, sources: Sources, progress: bool = True, record_paths: bool = True,
+        workers: int = 1) -> dict:
     """Run the experiment; a JSON-ready dict (config, geometry, starts, per-episode records, summary)."""
     t0 = time.perf_counter()
     unknown = [e for e in cfg.environments if e not in ENVIRONMENTS]
@@ -216,7 +217,7 @@ def run(cfg: ClutteredConfig, sources: Sources, progress: bool = True, record_pa
                                               include_slow=cfg.include_mlp)]
     speed = float(getattr(sources.system, "speed", 1.0))
     records = run_episodes(episodes(cfg, methods, speed), sources, cfg, record_paths=record_paths,
-                           progress=progress, desc="cluttered")
+                           progress=progress, workers=workers, desc="cluttered")
     return {
         "experiment": "cluttered",
         "config": asdict(cfg),

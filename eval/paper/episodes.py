@@ -23,11 +23,12 @@ from pathlib import Path
 
 import torch
 
+from cuniform_torch.common.parallel import run_jobs
 from cuniform_torch.envs import Environment, NavigationCost, simulate
 from eval.common import config
 from eval.common.methods import METHODS, PAPER, Method, Sources, make_controller, parse_methods
 
-__all__ = ["ControllerSettings", "Episode", "OUTCOMES", "SLOW_NOTE", "usable_methods", "run_episodes"]
+__all__ = ["ControllerSettings", "Episode", "OUTCOMES", "SLOW_NOTE", "usable_methods", "run_episode", "run_episodes"]
 
 OUTCOMES = ("goal", "collision", "timeout")
 """what an episode can end in (``cuniform_torch.envs.simulate``)"""
@@ -121,14 +122,53 @@ def _path_list(path: torch.Tensor) -> list[list[float]]:
     return [[round(float(x), 3), round(float(y), 3)] for x, y in path[:, :2].tolist()]
 
 
+def run_episode(ep: Episode, sources: Sources, settings: ControllerSettings, record_paths: bool = True) -> dict:
+    """One episode's record (see :func:`run_episodes`)."""
+    method = METHODS[ep.method]
+    cost = NavigationCost(ep.env, ep.goal, goal_tolerance=ep.goal_tolerance,
+                          collision_penalty=settings.collision_penalty, per_state=settings.per_state,
+                          stop_at_goal=settings.stop_at_goal)
+    ctrl = make_controller(method, sources, cost, ep.num_samples, ep.horizon, ep.seed, lambda_=settings.lambda_)
+    x0 = torch.tensor(ep.x0, dtype=torch.float32, device=sources.device)
+    t0 = time.perf_counter()
+    res = simulate(sources.system, ctrl, x0, ep.env, ep.goal, ep.goal_tolerance, ep.time_limit, cost=cost,
+                   record=record_paths)
+    rec = dict(ep.tags)
+    rec.update(method=ep.method, num_samples=ep.num_samples, seed=ep.seed, x0=list(ep.x0), goal=list(ep.goal),
+               outcome=res.outcome, success=res.success, time=round(res.time, 6),
+               path_length=round(res.path_length, 6), steps=res.steps,
+               wall_s=round(time.perf_counter() - t0, 4))
+    if record_paths:
+        rec["path"] = _path_list(res.path.cpu())
+    return rec
+
+
+_WORKER_SOURCES: dict[tuple, Sources] = {}
+"""a worker process's sources, loaded once per process (not once per episode)"""
+
+
+def _episode_in_worker(ep: Episode, files: tuple, settings: ControllerSettings, record_paths: bool) -> dict:
+    """:func:`run_episode` in a worker process, on one torch thread (the workers share the cores)."""
+    torch.set_num_threads(1)
+    if files not in _WORKER_SOURCES:
+        table, coverage_table, policy, map_policy, device = files
+        _WORKER_SOURCES[files] = Sources(table, coverage_table, policy, map_policy, device)
+    return run_episode(ep, _WORKER_SOURCES[files], settings, record_paths)
+
+
 def run_episodes(episodes: Sequence[Episode], sources: Sources, settings: ControllerSettings,
-                 record_paths: bool = True, progress: bool = True, desc: str = "episodes") -> list[dict]:
-    """Run every episode; one record per episode (plain JSON types).
+                 record_paths: bool = True, progress: bool = True, desc: str = "episodes",
+                 workers: int = 1) -> list[dict]:
+    """Run every episode; one record per episode (plain JSON types), in the order of ``episodes``.
 
     The controllers use ``settings.lambda_``; the cost is :class:`~cuniform_torch.envs.NavigationCost` with
     ``settings.collision_penalty`` per colliding state (``per_state``, the paper's per-state obstacle cost summed
     over the horizon) or once per colliding rollout, both cost terms ending at a rollout's first arrival at the
     goal (``stop_at_goal``; False: collisions after it count too).
+
+    ``workers`` > 1 runs the episodes in that many spawned processes (:func:`~cuniform_torch.common.parallel.run_jobs`),
+    each on one torch thread (CPU sources only); an episode's record does not depend on where it ran (each has its
+    own controller seed) apart from ``wall_s``.
 
     Record: the episode's ``tags``, ``method``, ``num_samples``, ``seed``, ``x0``, ``goal``, ``outcome``
     (one of :data:`OUTCOMES`), ``success``, ``time`` (s, simulated), ``path_length`` (m), ``steps``,
@@ -136,24 +176,10 @@ def run_episodes(episodes: Sequence[Episode], sources: Sources, settings: Contro
     """
     from tqdm.auto import tqdm
 
-    system = sources.system
-    out = []
-    for ep in tqdm(episodes, desc=desc, disable=not progress, leave=False):
-        method = METHODS[ep.method]
-        cost = NavigationCost(ep.env, ep.goal, goal_tolerance=ep.goal_tolerance,
-                              collision_penalty=settings.collision_penalty, per_state=settings.per_state,
-                              stop_at_goal=settings.stop_at_goal)
-        ctrl = make_controller(method, sources, cost, ep.num_samples, ep.horizon, ep.seed, lambda_=settings.lambda_)
-        x0 = torch.tensor(ep.x0, dtype=torch.float32, device=sources.device)
-        t0 = time.perf_counter()
-        res = simulate(system, ctrl, x0, ep.env, ep.goal, ep.goal_tolerance, ep.time_limit, cost=cost,
-                       record=record_paths)
-        rec = dict(ep.tags)
-        rec.update(method=ep.method, num_samples=ep.num_samples, seed=ep.seed, x0=list(ep.x0), goal=list(ep.goal),
-                   outcome=res.outcome, success=res.success, time=round(res.time, 6),
-                   path_length=round(res.path_length, 6), steps=res.steps,
-                   wall_s=round(time.perf_counter() - t0, 4))
-        if record_paths:
-            rec["path"] = _path_list(res.path.cpu())
-        out.append(rec)
-    return out
+    if workers <= 1 or len(episodes) <= 1 or sources.device != "cpu":
+        return [run_episode(ep, sources, settings, record_paths)
+                for ep in tqdm(episodes, desc=desc, disable=not progress, leave=False)]
+    files = (sources.table, sources.coverage_table, sources.policy, sources.map_policy, sources.device)
+    with tqdm(total=len(episodes), desc=desc, disable=not progress, leave=False) as bar:
+        return run_jobs(_episode_in_worker, [(ep, files, settings, record_paths) for ep in episodes], workers=workers,
+                        on_done=lambda i, rec: bar.update())

@@ -135,7 +135,8 @@ def episodes(cfg: SuddenObstacleConfig, methods: list[str]) -> list[Episode]:
     return out
 
 
-def run(cfg: SuddenObstacleConfig, sources: Sources, progress: bool = True, record_paths: bool = True) -> dict:
+def run(cfg: SuddenObstacleConfig, sources: Sources, progress: bool = True, record_paths: bool = True,
+        workers: int = 1) -> dict:
     """Run the experiment; a JSON-ready dict (config, offsets, oracle, per-episode records, summary)."""
     t0 = time.perf_counter()
     methods = [m.key for m in usable_methods(cfg.methods, sources, requested=cfg.methods is not None,
@@ -143,7 +144,7 @@ def run(cfg: SuddenObstacleConfig, sources: Sources, progress: bool = True, reco
     offs = offsets(cfg)
     system = sources.system
     oracle = {str(a): [oracle_feasible(cfg, system, off, a) for off in offs] for a in cfg.appear}
-    records = run_episodes(episodes(cfg, methods), sources, cfg, record_paths=record_paths, progress=progress,
+    records = run_episodes(episodes(cfg, methods), sources, cfg, record_paths=record_paths, progress=progress, workers=workers,
                            desc="sudden obstacle")
     return {
         "experiment": "sudden_obstacle",
