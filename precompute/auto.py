@@ -400,7 +400,8 @@ def choose(system: System, region: Region | str | dict, config: AutoConfig = Aut
         allowed *= 1.05
         counts, axes = grid_for(allowed)
     spacing = [(2 * math.pi / c if periodic[dim] and region.width(j) >= _TWO_PI - 1e-3 else
-                (region.width(j) / (c - 1) if c > 1 else 0.0)) for j, (dim, c) in enumerate(zip(region.dims, counts))]
+                (region.width(j) / (c - 1) if c > 1 else region.width(j)))  # one member: the box's edges
+               for j, (dim, c) in enumerate(zip(region.dims, counts))]
     predicted = sum(sp / 2 * sh for sp, sh in zip(spacing, shift))
     mesh = np.stack([a.ravel() for a in np.meshgrid(*axes, indexing="ij")], axis=1)  # [S, k]
     starts = np.zeros((len(mesh), d))

@@ -20,7 +20,9 @@ set as ``<set>.policy.pt``), which serves starts between the members. ``AutoResu
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
+import io
 import os
 import sys
 import time
@@ -157,7 +159,8 @@ def auto_cuniform(system: System, starts: str | dict, horizon: int = 15, *, out:
                             epochs=distill.epochs, lr=distill.lr, batch_size=distill.batch_size, seed=seed,
                             quiet=quiet, eval_samples=[200], eval_every=max(distill.epochs, 1),
                             logdir=str(path.with_name(path.name + ".runs")))
-        with_threads(1, lambda: run_distill(cfg))
+        with contextlib.redirect_stdout(io.StringIO()) if quiet else contextlib.nullcontext():
+            with_threads(1, lambda: run_distill(cfg))  # quiet: its per-member comparison is in the JSON beside it
     seconds["distill"] = time.perf_counter() - t0
     mlp = load_policy(policy_path)
     result = AutoResult(choice, tset, mlp, path, seconds)
