@@ -58,8 +58,8 @@ def test_walk_cell_is_its_step(walk):
 def test_double_integrator_cells_follow_the_spread():
     """p' = p + v dt + a dt^2 / 2, v' = v + a dt: after T steps the position spreads a (T dt)^2 and the speed
     2 a T dt, so cells in proportion have c_p / c_v = T dt / 2; the scale is the finest that fits the budget."""
-    T, dt, budget = 10, 0.2, 1500
-    c = choose(DoubleIntegrator(), "0=-1:1 1=-1:1", AutoConfig(horizon=T, cell_budget=budget, member_budget=30))
+    T, dt, budget = 10, 0.1, 1500  # spreads 1 m and 2 m/s: unequal, so a wrong rule shows in the ratio
+    c = choose(DoubleIntegrator(dt=dt), "0=-1:1 1=-1:1", AutoConfig(horizon=T, cell_budget=budget, member_budget=30))
     assert c.spread == pytest.approx([1.0 * (T * dt) ** 2, 2 * 1.0 * T * dt], rel=1e-9)
     cp, cv = c.system.cell_size
     assert cp / cv == pytest.approx(T * dt / 2, rel=1e-9)
