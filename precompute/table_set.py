@@ -29,7 +29,7 @@ import numpy as np
 from cuniform_torch.cli import CLIError
 from cuniform_torch.common.fileio import MAX_JSON_BYTES, exclusive_lock, read_capped_text, write_json
 from cuniform_torch.common.parallel import run_jobs
-from cuniform_torch.systems import System
+from cuniform_torch.systems import _REGISTRY, System, factory_path, is_builtin, load_factory, register_system
 from cuniform_torch.tables.file import Table, TableError, read_table, system_to_json
 from precompute.one_table import TableJob, build_table_file
 
@@ -98,8 +98,29 @@ def parse_starts(spec: str, system: System, seed: int = 0, limit: int | None = M
     return np.round(starts, 12)  # 0.25, not 0.25000000000000006: the starts are printed and compared
 
 
-def _build_member(job: TableJob) -> Path:
+def _build_member(job: TableJob, factory: str | None = None) -> Path:
+    """Build one member; ``factory`` (``"module:qualname"``) registers a user system first: a spawned worker or a
+    Ray task starts with the built-in systems only, and writing a table rebuilds its system from the registry."""
+    if factory is not None:
+        register_system(job.system.name, load_factory(factory))  # the same definition: a no-op in this process
     return build_table_file(job)
+
+
+def worker_factory(system: System, workers: int, ray_address: str | None) -> str | None:
+    """The ``"module:qualname"`` of a user system's factory that the set's worker processes import and register
+    (None: built in this process, or a built-in system); a clear ValueError when a worker could not rebuild it (a
+    factory defined in ``__main__``, a notebook or a function)."""
+    if workers <= 1 and ray_address is None:
+        return None
+    factory = _REGISTRY.get(system.name, type(system))
+    if is_builtin(factory):
+        return None
+    path = factory_path(factory)
+    if path is None:
+        raise ValueError(f"system {system.name!r}: its factory {getattr(factory, '__qualname__', factory)!r} cannot be "
+                         "imported by a worker process (defined in __main__, a notebook or a function); define it at "
+                         "the top of an importable module (--system my_robots:Factory), or build with --workers 1")
+    return path
 
 
 _SETTINGS = {"maxflow": ("points", "ties", "points_per_cell", "seed", "map_rule"),
@@ -173,6 +194,7 @@ def build_table_set(template: TableJob, starts: np.ndarray, out: Path, workers: 
 
 
 def _build_set(template: TableJob, starts: np.ndarray, out: Path, workers: int, ray_address: str | None) -> Path:
+    factory = worker_factory(template.system, workers, ray_address)  # before any folder or table is made
     out.mkdir(parents=True, exist_ok=True)
     files = [out / f"start_{i:04d}.npz" for i in range(len(starts))]
     todo = [(i, template.from_start(tuple(float(v) for v in s), f))
@@ -190,7 +212,7 @@ def _build_set(template: TableJob, starts: np.ndarray, out: Path, workers: int, 
             bar.update()
 
         try:
-            run_jobs(_build_member, [(job,) for _, job in todo], workers, ray_address, finished)
+            run_jobs(_build_member, [(job, factory) for _, job in todo], workers, ray_address, finished)
         except (ValueError, OSError, CLIError) as exc:
             raise ValueError(f"a table of the set failed ({exc}); {done} of {len(todo)} were written: rerun to "
                              "resume") from None
