@@ -183,12 +183,12 @@ def write_markdown(path: Path, sections: list[tuple[str, str]], stages: Stages, 
     write_bytes(path, "\n".join(lines).encode())
 
 
-@cli_main()
 def default_workers() -> int:
     """The CPU cores this process may use (its affinity where the platform has one)."""
     return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
 
 
+@cli_main()
 def main(argv=None) -> int:
     p = ArgumentParser(prog="python -m eval.report", description=__doc__.split("\n\n")[0])
     p.add_argument("--quick", action="store_true", help="about 16 s: fewer seeds and sizes")

@@ -37,7 +37,9 @@ from cuniform_torch.cli import (
     add_dataclass_args,
     cli_main,
     dataclass_from_args,
+    horizon_arg,
     int_in,
+    positive_float,
     positive_int,
 )
 from cuniform_torch.common.fileio import write_json
@@ -178,10 +180,12 @@ def make_parser() -> ArgumentParser:
                         help="a system parameter as JSON (repeatable)")
     parser.add_argument("--starts", required=True, metavar="SPEC",
                         help="the region of starts, 'DIM=LO:HI ...' (e.g. '0=-3.14159:3.14159 1=-8:8')")
-    add_dataclass_args(parser, AutoConfig, arg_types={n: positive_int for n in
-                                                      ("horizon", "cell_budget", "member_budget", "probes", "sequences")})
+    add_dataclass_args(parser, AutoConfig, arg_types={
+        "horizon": horizon_arg, "seed": int_in(0, 2**31 - 1), "shift_cells": positive_float,
+        **{n: positive_int for n in ("cell_budget", "member_budget", "probes", "sequences", "actions_per_dim")}})
     add_dataclass_args(parser, DistillBudget, arg_types={"hidden": int_in(1, 65536), "layers": int_in(1, 64),
-                                                         "epochs": positive_int, "batch_size": positive_int})
+                                                         "epochs": positive_int, "batch_size": positive_int,
+                                                         "lr": positive_float})
     parser.add_argument("--workers", type=int_in(1, 1024), default=2, help="processes building the tables")
     parser.add_argument("--out", type=Path, default=OUT / "auto", help="the cache folder")
     parser.add_argument("--quiet", action="store_true", help="no progress bars")
