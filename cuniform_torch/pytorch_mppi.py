@@ -18,8 +18,8 @@ and returning a tensor; ``reset()``, ``U``, ``get_action_sequence()``, ``get_rol
 
 What differs, on purpose: the random numbers come from the controller's own stream (``seed=``, a keyword; without
 it, a seed is drawn from torch's global generator at construction, so ``torch.manual_seed`` still makes a run
-repeat), not from the global generator; the first nominal (no ``U_init``) and ``reset()`` are ``u_init`` at every
-step, not a noise draw; ``running_cost`` is called once per command on all K*T rows (it must be row-wise);
+repeat), not from the global generator (the first nominal without ``U_init``, and ``reset()``'s, is a noise draw
+from that stream, as pytorch_mppi's is from the global one); ``running_cost`` is called once per command on all K*T rows (it must be row-wise);
 ``MPPI_Batched`` draws independent noise per environment (pytorch_mppi shares one draw). Refused with one
 ValueError (never ignored): ``step_dependent_dynamics``, ``rollout_samples`` > 1 (and its ``rollout_var_*``),
 ``specific_action_sampler``, ``change_horizon``, ``compile``, a ``[K, nx]`` batch of start states.
@@ -73,7 +73,7 @@ class MPPI:
     :param u_min: ``[nu]`` lower action bounds (default ``-u_max``; none: unbounded)
     :param u_max: ``[nu]`` upper action bounds (default ``-u_min``)
     :param u_init: ``[nu]`` appended when the nominal shifts (default zeros)
-    :param U_init: ``[T, nu]`` the first nominal (default ``u_init`` at every step)
+    :param U_init: ``[T, nu]`` the first nominal (default: a draw of the noise at every step)
     :param u_scale: actions are scaled by it before the dynamics and costs see them
     :param u_per_command: actions returned per command (1: ``[nu]``; more: ``[u_per_command, nu]``)
     :param step_dependent_dynamics: refused when True
@@ -132,6 +132,13 @@ class MPPI:
         """``[K]`` each sample's weight in the latest command"""
         self.result: MPPIResult | None = None
         """the latest command's whole result"""
+        if U_init is None:
+            self._noise_nominal()
+
+    def _noise_nominal(self) -> None:
+        """pytorch_mppi's first nominal (and its reset's): a draw of the noise ``N(noise_mu, Sigma)`` at every step,
+        each robot's from its own stream."""
+        self._proposal.nominal = self._proposal._noise(self.controller.streams, self.T)  # [B, T, nu]
 
     # ------------------------------------------------------------------------------------------ pytorch_mppi's API
 
@@ -183,8 +190,8 @@ class MPPI:
         self._proposal.shift()
 
     def reset(self) -> None:
-        """A new episode: the first nominal again (``U_init``, or ``u_init`` at every step)."""
-        self.controller.reset()
+        """A new episode: a fresh noise draw as the nominal (pytorch_mppi's reset)."""
+        self._noise_nominal()
 
     def get_rollouts(self, state: Any, num_rollouts: int = 1, U: Tensor | None = None) -> Tensor:
         """The states the nominal (or ``U [T, nu]``) drives from ``state [nx]``: ``[num_rollouts, T, nx]``
