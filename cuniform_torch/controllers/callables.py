@@ -439,12 +439,14 @@ def resolve(who: str, system: object, cost_fn: object, *, nx: int | None = None,
     U0 = _vector("U_init", U_init)
     sizes = {name: v.shape[-1] for name, v in (("u_min", low), ("u_max", high), *vectors.items(), ("U_init", U0))
              if v is not None and v.ndim >= 1}
-    if sigma_inv is not None and sigma_inv.shape[0] > 1:
+    if sigma_inv is not None:  # a 0-d covariance is one action dimension (pytorch_mppi's nu = 1)
         sizes["noise_sigma"] = sigma_inv.shape[0]
-    if isinstance(noise_std, Tensor) and noise_std.numel() > 1:
+    if isinstance(noise_std, Tensor) and noise_std.numel() > 1 and noise_sigma is None:
         sizes["noise_std"] = noise_std.numel()
     if len(set(sizes.values())) > 1:
-        raise ValueError(f"the action dimension differs between arguments: {sizes}")
+        raise ValueError(f"the action dimension differs between arguments: {sizes} (a 0-d noise_sigma is one "
+                         f"dimension, as in pytorch_mppi: for q of them give a [q, q] covariance, e.g. "
+                         f"v * torch.eye(q))")
     system_q = None if fn_given else check_action_dim(system)
     q = next(iter(sizes.values()), system_q or 1)
     if system_q is not None and q != system_q:
@@ -457,10 +459,6 @@ def resolve(who: str, system: object, cost_fn: object, *, nx: int | None = None,
         system = DynamicsSystem(system, int(nx), low, high, float(u_scale))  # type: ignore[arg-type]
     elif u_scale != 1:
         raise ValueError("u_scale scales a dynamics function's actions; a System's step takes its own")
-    if noise_std is not None and isinstance(noise_std, Tensor) and noise_std.numel() == 1 and q > 1:
-        noise_std = noise_std.expand(q).clone()
-        if sigma_inv is not None:
-            sigma_inv = torch.eye(q, dtype=torch.float64) * sigma_inv.reshape(())
     if control_cost is None:
         control_cost = noise_sigma is not None
     if control_cost and noise_std is None:
