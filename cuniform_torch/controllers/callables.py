@@ -217,8 +217,14 @@ class CallableProposal(GaussianProposal):
     ``eps ~ N(noise_mu, Sigma)`` (``Sigma = chol chol^T``, or ``diag(std^2)``), clipped to bounds that may be
     infinite; the warm start shifts in ``u_init`` (or repeats the last action); ``action_cost`` is the control cost.
 
+    :param system: the dynamics (a System or a :class:`DynamicsSystem`)
+    :param num_samples: K per robot
+    :param horizon: T
+    :param noise_std: ``[q]`` (or scalar) std; None: a quarter of each action range
     :param options: the settings
-    :param others: as :class:`~cuniform_torch.controllers.proposals.GaussianProposal`'s
+    :param device: where it runs
+    :param dtype: its dtype
+    :param num_robots: B
     """
 
     def __init__(self, system: Any, num_samples: int, horizon: int, noise_std: float | Tensor | None,

@@ -1,12 +1,10 @@
 """A pytorch_mppi user's script: the pendulum swing-up of pytorch_mppi's example (tests/pendulum.py), with gym's
 Pendulum-v1 equations in a few lines of numpy instead of gym. The twin files pendulum_user_pytorch_mppi.py and
-pendulum_user_cuniform.py differ by the import line only (python -m eval.bench.switch_pendulum runs both).
-
-    python -m eval.bench.pendulum_user_pytorch_mppi SEED    # or pendulum_user_cuniform: the same with cuniform
+pendulum_user_cuniform.py differ by the import line only; ``python -m eval.bench.switch_pendulum`` runs both
+(``run(seed)``: one episode's total reward) and prints their returns side by side.
 """
 
 import math  # noqa: I001 (a user script: its twin imports MPPI from cuniform_torch, a first-party name, in place)
-import sys
 
 import numpy as np
 import torch
@@ -66,6 +64,3 @@ def run(seed=0, steps=STEPS):
         total += reward
     return total
 
-
-if __name__ == "__main__":
-    print(f"total reward {run(int(sys.argv[1]) if len(sys.argv) > 1 else 0):.2f}")

@@ -74,7 +74,13 @@ def main(argv: list[str] | None = None) -> int:
     torch.set_num_threads(args.threads)
     import importlib
 
-    runs = {name: importlib.import_module(f"eval.bench.{module}").run for name, module in SCRIPTS.items()}
+    runs = {}
+    for name, module in SCRIPTS.items():
+        try:
+            runs[name] = importlib.import_module(f"eval.bench.{module}").run
+        except ImportError as exc:  # pytorch_mppi is the [bench] extra
+            print(f"{module} needs pytorch_mppi ({exc}; pip install pytorch-mppi, the [bench] extra): its column is "
+                  f"skipped")
     if args.defaults:
         runs["cuniform_defaults"] = run_defaults
     print(script_diff())
