@@ -17,6 +17,7 @@ import pytest
 import torch
 
 from cuniform_torch import MPPI, LogMPPI, make_system
+from cuniform_torch.controllers import ColoredMPPI, LowPassMPPI
 from cuniform_torch.controllers.callables import covariance_to_noise
 from cuniform_torch.controllers.temperature import auto_temperature
 from cuniform_torch.pytorch_mppi import MPPI as DropIn
@@ -78,6 +79,14 @@ class TestSignature:
         alone = [_make(seed=s).command(np.array(x)) for s, x in zip((1, 2, 3), ([math.pi, 1.0], [0.1, 0.0],
                                                                                [-2.0, 3.0]))]
         np.testing.assert_allclose(u, np.stack(alone), rtol=0, atol=1e-12)
+
+    @pytest.mark.parametrize("cls", [LogMPPI, ColoredMPPI, LowPassMPPI])
+    def test_the_other_gaussian_controllers_take_a_dynamics_function_too(self, cls):
+        ctrl = cls(dynamics, nx=2, running_cost=running_cost, u_min=-2.0, u_max=2.0, num_samples=32, horizon=6,
+                   seed=0)
+        assert ctrl.proposal.std.tolist() == [1.0]  # the noise from the bounds
+        u = ctrl.command(np.array([math.pi, 1.0]))
+        assert isinstance(u, np.ndarray) and u.shape == (1,) and -2 <= float(u[0]) <= 2
 
     def test_a_trajectory_cost_with_a_dynamics_function(self):
         u = MPPI(dynamics, trajectory_cost, 64, 10, nx=2, u_min=-2.0, u_max=2.0, seed=0).command(np.zeros(2))

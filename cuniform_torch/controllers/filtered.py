@@ -28,6 +28,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
+from cuniform_torch.controllers.callables import DynamicsFn
 from cuniform_torch.controllers.core import CostFn
 from cuniform_torch.controllers.mppi import MPPI
 from cuniform_torch.controllers.proposals import GaussianProposal
@@ -114,8 +115,8 @@ class ColoredMPPI(MPPI):
     :param beta: the spectrum's exponent, in [0, 4]
     """
 
-    def __init__(self, system: System, cost_fn: CostFn, num_samples: int = 1000, horizon: int = 15,
-                 lambda_: float | str = 0.567, noise_std: float | Tensor | None = None, beta: float = 1.0,
+    def __init__(self, system: System | DynamicsFn, cost_fn: CostFn | None = None, num_samples: int = 1000,
+                 horizon: int = 15, lambda_: float | str = 0.567, noise_std: float | Tensor | None = None, beta: float = 1.0,
                  terminal_cost: Callable[[Tensor], Tensor] | None = None, **kwargs: Any):
         self.beta = beta
         super().__init__(system, cost_fn, num_samples, horizon, lambda_, noise_std, terminal_cost, **kwargs)
@@ -133,8 +134,8 @@ class LowPassMPPI(MPPI):
     :param a: the AR(1) coefficient in [0, 1) itself (default 0.8 when no cutoff is given)
     """
 
-    def __init__(self, system: System, cost_fn: CostFn, num_samples: int = 1000, horizon: int = 15,
-                 lambda_: float | str = 0.567, noise_std: float | Tensor | None = None, cutoff: float | None = None,
+    def __init__(self, system: System | DynamicsFn, cost_fn: CostFn | None = None, num_samples: int = 1000,
+                 horizon: int = 15, lambda_: float | str = 0.567, noise_std: float | Tensor | None = None, cutoff: float | None = None,
                  a: float | None = None, terminal_cost: Callable[[Tensor], Tensor] | None = None, **kwargs: Any):
         if cutoff is not None and a is not None:
             raise ValueError("give a cutoff (Hz) or the coefficient a, not both")
