@@ -84,9 +84,10 @@ def _check_costs(costs: object, who: str, fn: object, shape: tuple[int, ...], dt
         raise ValueError(f"{who} {_callable_name(fn)} returned {type(costs).__name__} {costs!r:.60}; {expected}")
     if costs.shape != shape or costs.dtype != dtype or not same_device(costs.device, device):
         hint = ""
-        if costs.ndim == 2 and len(shape) == 1:
-            hint = (" (a [K, T] tensor is a cost per step: sum it over the steps, dim=1)" if costs.shape[0] == shape[0]
-                    else "")
+        if costs.ndim == len(shape) + 1 and costs.shape[:-1] == shape:  # [N, T] (or [B, K, T]): a cost per step
+            hint = (f" (a {list(costs.shape)} tensor is a cost per step: sum it over the steps, "
+                    f"{who}(...).sum(dim=-1); or give a per-step cost(state [K, d], action [K, q]) -> [K] as "
+                    f"running_cost=, pytorch_mppi's way)")
         raise ValueError(f"{who} {_callable_name(fn)} returned a {list(costs.shape)} tensor of {costs.dtype} on "
                          f"{costs.device}; {expected}{hint}")
     return costs.detach()
@@ -96,13 +97,18 @@ def _describe(x: object) -> str:
     return f"{list(x.shape)} {x.dtype} on {x.device}" if isinstance(x, Tensor) else type(x).__name__
 
 
-def check_state_batch(state: Tensor, num_robots: int, state_dim: int, dtype: torch.dtype, device: torch.device,
+def check_state_batch(state: object, num_robots: int, state_dim: int, dtype: torch.dtype, device: torch.device,
                       values: bool) -> tuple[Tensor, bool]:
     """``state [B, d]`` (B = ``num_robots``) or, for one robot, ``[d]``, of the controller's dtype and device;
     finite when ``values`` (a host read). Returns it detached as ``[B, d]`` and whether a ``[d]`` state was given."""
     shapes = f"[{num_robots}, {state_dim}]" + (f" or [{state_dim}]" if num_robots == 1 else "")
     if not isinstance(state, Tensor):
-        raise ValueError(f"state must be a tensor of shape {shapes}, got {type(state).__name__}")
+        fix = ""
+        if type(state).__module__ == "numpy" or isinstance(state, (list, tuple)):
+            fix = (f": pass torch.as_tensor(state, dtype={dtype}, device={str(device)!r}), or build the controller "
+                   f"with convert_states=True (a numpy state is then converted once and the command comes back as "
+                   f"a numpy array)")
+        raise ValueError(f"state must be a tensor of shape {shapes}, got {type(state).__name__}{fix}")
     single = state.ndim == 1 and num_robots == 1
     if state.shape != (num_robots, state_dim) and not (single and state.shape == (state_dim,)):
         more = (f" (this controller has {num_robots} robots: num_robots sets it)"
@@ -111,7 +117,9 @@ def check_state_batch(state: Tensor, num_robots: int, state_dim: int, dtype: tor
     if not same_device(state.device, device):
         raise ValueError(f"state is on {state.device} but the controller is on {device}")
     if state.dtype != dtype:
-        raise ValueError(f"state is {state.dtype} but the controller is {dtype}; pass state.to({dtype})")
+        raise ValueError(f"state is {state.dtype} but the controller is {dtype}; pass state.to({dtype}), or build the "
+                         f"controller with dtype={state.dtype} (or convert_states=True: converted per command, the "
+                         f"command back in the state's dtype)")
     state = state.detach()
     if single:
         state = state.unsqueeze(0)

@@ -13,7 +13,10 @@ B robots at once (``state [B, d]``; a ``[d]`` state is one robot and gets result
    ``[B, K]`` (a cost per robot: goals per robot); likewise ``terminal_cost(states[..., -1, :])``. NaN and
    +-inf (e.g. the paper's infinite collision cost) become a large finite penalty, so weights never go NaN;
 3. weight them per robot, ``w = softmax(-(cost - min cost) / lambda)`` (``lambda = 0``: all weight on the best
-   one), and return the weighted average of each robot's action sequences (its first action is the command).
+   one; ``lambda_="auto"``: per command and robot, the ``lambda`` whose weights have the effective sample size
+   ``target_ess``, :mod:`~cuniform_torch.controllers.temperature`), and return the weighted average of each
+   robot's action sequences (its first action is the command). A proposal with an ``action_cost(actions) ->
+   [B, K]`` (pytorch_mppi's control cost ``U Sigma^-1 eps``) adds ``lambda * action_cost`` to the costs.
 
 :meth:`MPPICore.command` is ``plan``, then ``proposal.update(result)`` (the warm starts), then the commands.
 :meth:`MPPICore.reset` forgets the warm start of every robot, or of the robots named (their episodes ended).
@@ -23,7 +26,9 @@ controller's dtype cannot hold, a ``seed`` that is not an integer or one per rob
 of the protocol). Per command the state's shape, dtype and device are checked (no host sync); its values (NaN),
 the proposals' shapes and the costs' (all NaN for a robot) are checked when ``debug`` is on: by default on a CPU,
 where reading a value is free, and off on CUDA, where it would wait for the device (``debug=True`` turns them on
-there). A state that requires grad is detached (a controller never differentiates through its input).
+there). A state that requires grad is detached (a controller never differentiates through its input). With
+``convert_states=True`` a numpy state, or a tensor of another floating dtype, is converted once at the edge and the
+command comes back as the state's type and dtype (without it such a state is refused, naming that fix).
 
 ``cuda_graph=True`` (a CUDA device): the first command is captured in one CUDA graph (plan and warm-start update,
 for that batch shape) and every later command is one replay, so a command costs a few microseconds of launch
@@ -35,8 +40,9 @@ counters (a table's ``queries``) count the captured command only; device-side co
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from typing import Protocol
+from typing import Protocol, overload
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -61,6 +67,7 @@ from cuniform_torch.controllers.proposals import (
 )
 from cuniform_torch.controllers.result import MPPIResult
 from cuniform_torch.controllers.streams import RobotStreams, robot_seeds
+from cuniform_torch.controllers.temperature import auto_temperature, check_target_ess, temperature_weights
 from cuniform_torch.systems import System, check_dynamics
 
 __all__ = ["CostFn", "MPPIResult", "mppi_weights", "MPPICore", "COST_CAP"]
@@ -106,19 +113,24 @@ class MPPICore:
     :param proposal: a :class:`~cuniform_torch.controllers.proposals.Proposal` (or a one-robot proposal)
     :param cost_fn: ``states [N, T+1, d]``, ``actions [N, T, q]`` -> ``[N]`` over all robots' rollouts (or, with
         ``batched = True``, ``[B, K, T+1, d]`` -> ``[B, K]``)
-    :param lambda_: the softmax temperature (0: all weight on the best rollout)
+    :param lambda_: the softmax temperature (0: all weight on the best rollout), or ``"auto"``: chosen per command
+        and robot so that the weights' effective sample size is ``target_ess`` (reported in
+        :attr:`MPPIResult.lambda_ <cuniform_torch.controllers.result.MPPIResult.lambda_>`)
     :param terminal_cost: optional cost of the last states, ``[N, d]`` -> ``[N]``
     :param seed: an int, one int per robot, or None
     :param generator: the streams themselves, one ``torch.Generator`` per robot (instead of ``seed``)
     :param debug: per-command value checks (default: on a CPU, off on CUDA)
     :param cuda_graph: one CUDA graph per command (CUDA only)
+    :param target_ess: with ``lambda_="auto"``: the effective sample size aimed for, in ``[1, K]`` (default K / 10)
+    :param convert_states: accept numpy states and tensors of another floating dtype (converted once; the command
+        comes back as the state's type and dtype); False: such a state is a ValueError naming the fix
     """
 
-    def __init__(self, proposal: Proposal | SingleRobotProposal, cost_fn: CostFn, lambda_: float = 0.567,
+    def __init__(self, proposal: Proposal | SingleRobotProposal, cost_fn: CostFn, lambda_: float | str = 0.567,
                  terminal_cost: Callable[[Tensor], Tensor] | None = None,
                  seed: int | Sequence[int] | None = None, *,
                  generator: torch.Generator | Sequence[torch.Generator] | None = None, debug: bool | None = None,
-                 cuda_graph: bool = False):
+                 cuda_graph: bool = False, target_ess: float | None = None, convert_states: bool = False):
         if not isinstance(proposal, (Proposal, SingleRobotProposal)):
             members = SINGLE_ROBOT_MEMBERS if hasattr(proposal, "propose") else PROPOSAL_MEMBERS
             missing = [m for m in members if not hasattr(proposal, m)]
@@ -145,7 +157,20 @@ class MPPICore:
         if not (isinstance(dtype, torch.dtype) and dtype.is_floating_point):
             raise ValueError(f"dtype must be a floating-point torch.dtype, got {dtype!r}")
         self.dtype = dtype
-        self.lambda_ = _check_lambda(lambda_, dtype)
+        self.auto_lambda = isinstance(lambda_, str) and lambda_ == "auto"
+        """the temperature is chosen per command (``lambda_="auto"``)"""
+        if target_ess is not None and not self.auto_lambda:
+            raise ValueError(f"target_ess={target_ess!r} sets the automatic temperature: pass lambda_=\"auto\" too "
+                             f"(lambda_={lambda_!r} is a fixed temperature)")
+        if isinstance(lambda_, str) and not self.auto_lambda:
+            raise ValueError(f"lambda_ must be a number >= 0 or \"auto\", got {lambda_!r}")
+        self.lambda_: float | str = "auto" if self.auto_lambda else _check_lambda(lambda_, dtype)  # type: ignore[arg-type]
+        self.target_ess = check_target_ess(target_ess, self.num_samples) if self.auto_lambda else None
+        """the effective sample size the automatic temperature aims for (None: a fixed ``lambda_``)"""
+        self.convert_states = bool(convert_states)
+        action_cost = getattr(proposal, "action_cost", None)
+        self._action_cost: Callable[[Tensor], Tensor] | None = action_cost if callable(action_cost) else None
+        """the proposal's cost of its own actions (``[B, K, T, q]`` -> ``[B, K]``), weighed as pytorch_mppi does"""
         self.state_dim = len(self.system.periodic)
         # a user system's action set and step, probed once here (a no-op for one its proposal already probed)
         self.action_dim = check_dynamics(self.system, dtype, self.device).shape[1]
@@ -173,12 +198,17 @@ class MPPICore:
         self._graph: torch.cuda.CUDAGraph | None = None
         self._static_state: Tensor | None = None
         self._static_command: Tensor | None = None
+        self._fixed_lambda = (None if self.auto_lambda else torch.full(
+            (self.num_robots,), float(self.lambda_), dtype=dtype, device=self.device))  # type: ignore[arg-type]
+        """``[B]`` the fixed temperature, made once: every result reports it (no tensor made per command)"""
 
     # -------------------------------------------------------------------------------- the one MPPI iteration
 
-    def plan(self, state: Tensor) -> MPPIResult:
-        """One MPPI iteration from ``state [B, d]`` (or one robot's ``[d]``); the warm starts are left as they were."""
-        states, single = self._check_state(state)
+    def plan(self, state: Tensor | np.ndarray) -> MPPIResult:
+        """One MPPI iteration from ``state [B, d]`` (or one robot's ``[d]``); the warm starts are left as they were.
+        (With ``convert_states``, the result is in the controller's dtype, whatever the state's.)"""
+        given: object = self._convert(state)[0] if self.convert_states else state
+        states, single = self._check_state(given)
         result = self._plan(states)
         return result.robot(0) if single else result
 
@@ -187,22 +217,44 @@ class MPPICore:
         states, actions = self._batch.propose_batch(state, self.streams)
         if self.debug:
             self._check_proposals(states, actions)
-        costs, weights = self._evaluate(states, actions)
+        costs, weights, lambdas = self._evaluate(states, actions)
         b, k, t, q = actions.shape
         nominal = torch.bmm(weights.unsqueeze(1), actions.reshape(b, k, t * q)).view(b, t, q)  # [B, T, q]
-        return MPPIResult(nominal[:, 0], nominal, states, actions, costs, weights)
+        return MPPIResult(nominal[:, 0], nominal, states, actions, costs, weights, lambdas)
 
-    def command(self, state: Tensor) -> Tensor:
+    @overload
+    def command(self, state: Tensor) -> Tensor: ...
+
+    @overload
+    def command(self, state: np.ndarray) -> np.ndarray: ...
+
+    def command(self, state: Tensor | np.ndarray) -> Tensor | np.ndarray:
         """The controls to apply at ``state [B, d]``: ``[B, q]`` (one robot's ``[d]`` -> ``[q]``); the proposal
-        warm-starts the next command from this one."""
-        states, single = self._check_state(state)
+        warm-starts the next command from this one. With ``convert_states``, a numpy state gets a numpy command
+        and a tensor of another dtype a command of its dtype."""
+        given, back = self._convert(state) if self.convert_states else (state, None)
+        states, single = self._check_state(given)
         if self.cuda_graph:
             command = self._replay(states)
         else:
             result = self._plan(states)
             self._batch.update(result)
             command = result.command
-        return command[0] if single else command
+        command = command[0] if single else command
+        return command if back is None else back(command)
+
+    def command_result(self, state: Tensor | np.ndarray) -> MPPIResult:
+        """:meth:`command`'s whole work: the same iteration and warm start, returning the :class:`MPPIResult`
+        (``result.command`` is what ``command`` returns, in the controller's dtype; ``result.lambda_`` the
+        temperature used, ``result.ess`` the weights' effective sample size). Eager: not with ``cuda_graph``."""
+        if self.cuda_graph:
+            raise ValueError("command_result runs the command eagerly; with cuda_graph=True use command(state) (one "
+                             "replay of the captured graph)")
+        given: object = self._convert(state)[0] if self.convert_states else state
+        states, single = self._check_state(given)
+        result = self._plan(states)
+        self._batch.update(result)
+        return result.robot(0) if single else result
 
     # -------------------------------------------------------------------------------- one CUDA graph per command
 
@@ -272,7 +324,25 @@ class MPPICore:
 
     # -------------------------------------------------------------------------------- checks
 
-    def _check_state(self, state: Tensor) -> tuple[Tensor, bool]:
+    def _convert(self, state: object) -> tuple[object, Callable[[Tensor], Tensor | np.ndarray] | None]:
+        """``convert_states``: a numpy state (or a floating tensor of another dtype) as a tensor of the controller's
+        dtype and device, converted once, and how to give the command back in the state's type and dtype (None:
+        nothing to convert). Anything else passes through to the state check."""
+        if isinstance(state, Tensor):
+            if state.dtype == self.dtype or not state.is_floating_point():
+                return state, None
+            dtype = state.dtype
+            return state.to(self.dtype), lambda u: u.to(dtype)
+        if isinstance(state, np.ndarray):
+            if state.dtype.kind != "f":
+                raise ValueError(f"state is a numpy array of {state.dtype}; a state is floating point (e.g. "
+                                 f"state.astype(np.float64))")
+            np_dtype = state.dtype
+            tensor = torch.as_tensor(state, dtype=self.dtype, device=self.device)
+            return tensor, lambda u: u.detach().cpu().numpy().astype(np_dtype, copy=False)
+        return state, None
+
+    def _check_state(self, state: object) -> tuple[Tensor, bool]:
         """``state [B, d]`` (or ``[d]``: one robot) of the controller's dtype and device, detached; finite when
         ``debug``. Returns ``[B, d]`` and whether one ``[d]`` state was given."""
         return check_state_batch(state, self.num_robots, self.state_dim, self.dtype, self.device, self.debug)
@@ -298,8 +368,9 @@ class MPPICore:
         out = fn(flat, actions.reshape(b * k, *actions.shape[2:])) if actions is not None else fn(flat[:, -1])
         return _check_costs(out, who, fn, (b * k,), self.dtype, self.device).view(b, k)
 
-    def _evaluate(self, states: Tensor, actions: Tensor) -> tuple[Tensor, Tensor]:
-        """Finite costs ``[B, K]`` of the proposals and their weights ``[B, K]``; the user's costs are checked."""
+    def _evaluate(self, states: Tensor, actions: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """Finite costs ``[B, K]`` of the proposals, their weights ``[B, K]`` and the temperature ``[B]`` that
+        weighed them; the user's costs are checked."""
         costs = self._cost(self.cost_fn, self._cost_batched, "cost_fn", states, actions)
         if self.terminal_cost is not None:
             costs = costs + self._cost(self.terminal_cost, self._terminal_batched, "terminal_cost", states, None)
@@ -309,4 +380,15 @@ class MPPICore:
                              f"{'' if self.terminal_cost is None else ' + terminal_cost ' + _callable_name(self.terminal_cost)}"
                              f" returned NaN for all {k} proposals of a robot; expected a [{k}] tensor of costs")
         costs = _finite_costs(costs)
-        return costs, _weights(costs, self.lambda_)
+        extra = None if self._action_cost is None else self._action_cost(actions)  # [B, K], not over lambda
+        if self._fixed_lambda is not None:
+            lam = float(self.lambda_)  # type: ignore[arg-type]
+            if extra is not None:  # pytorch_mppi's total cost: state costs + lambda * U Sigma^-1 eps
+                costs = _finite_costs(costs + lam * extra)
+            return costs, _weights(costs, lam), self._fixed_lambda
+        assert self.target_ess is not None
+        lambdas = auto_temperature(costs, self.target_ess, extra)  # [B]
+        weights = temperature_weights(costs, lambdas, extra)
+        if extra is not None:
+            costs = _finite_costs(costs + lambdas.unsqueeze(1) * extra)
+        return costs, weights, lambdas

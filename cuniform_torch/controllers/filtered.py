@@ -28,6 +28,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
+from cuniform_torch.controllers.callables import DynamicsFn
 from cuniform_torch.controllers.core import CostFn
 from cuniform_torch.controllers.mppi import MPPI
 from cuniform_torch.controllers.proposals import GaussianProposal
@@ -70,7 +71,8 @@ class FilteredNoiseProposal(GaussianProposal):
     """MPPI's proposal with white noise mixed along time by ``mix [T, T]`` (unit variance per step); the subclasses
     make the two usual ones."""
 
-    def __init__(self, system: System, num_samples: int, horizon: int, mix: Tensor, noise_std: float | Tensor = 0.3,
+    def __init__(self, system: System, num_samples: int, horizon: int, mix: Tensor,
+                 noise_std: float | Tensor | None = 0.3,
                  device: torch.device | str = "cpu", dtype: torch.dtype = torch.float32, num_robots: int = 1):
         super().__init__(system, num_samples, horizon, noise_std, device, dtype, num_robots)
         if mix.shape != (self.horizon, self.horizon):
@@ -87,7 +89,7 @@ class FilteredNoiseProposal(GaussianProposal):
 class ColoredNoiseProposal(FilteredNoiseProposal):
     """Colored (power-law) noise around the nominal: spectrum ``~ 1 / f^beta`` along the horizon."""
 
-    def __init__(self, system: System, num_samples: int, horizon: int, noise_std: float | Tensor = 0.3,
+    def __init__(self, system: System, num_samples: int, horizon: int, noise_std: float | Tensor | None = 0.3,
                  beta: float = 1.0, device: torch.device | str = "cpu", dtype: torch.dtype = torch.float32,
                  num_robots: int = 1):
         self.beta = float(beta)
@@ -98,7 +100,7 @@ class ColoredNoiseProposal(FilteredNoiseProposal):
 class LowPassProposal(FilteredNoiseProposal):
     """Low-pass (AR(1)) noise around the nominal: ``a = exp(-2 pi cutoff dt)``, or ``a`` given."""
 
-    def __init__(self, system: System, num_samples: int, horizon: int, noise_std: float | Tensor = 0.3,
+    def __init__(self, system: System, num_samples: int, horizon: int, noise_std: float | Tensor | None = 0.3,
                  a: float = 0.8, device: torch.device | str = "cpu", dtype: torch.dtype = torch.float32,
                  num_robots: int = 1):
         self.a = float(a)
@@ -113,8 +115,8 @@ class ColoredMPPI(MPPI):
     :param beta: the spectrum's exponent, in [0, 4]
     """
 
-    def __init__(self, system: System, cost_fn: CostFn, num_samples: int = 1000, horizon: int = 15,
-                 lambda_: float = 0.567, noise_std: float | Tensor = 0.3, beta: float = 1.0,
+    def __init__(self, system: System | DynamicsFn, cost_fn: CostFn | None = None, num_samples: int = 1000,
+                 horizon: int = 15, lambda_: float | str = 0.567, noise_std: float | Tensor | None = None, beta: float = 1.0,
                  terminal_cost: Callable[[Tensor], Tensor] | None = None, **kwargs: Any):
         self.beta = beta
         super().__init__(system, cost_fn, num_samples, horizon, lambda_, noise_std, terminal_cost, **kwargs)
@@ -132,8 +134,8 @@ class LowPassMPPI(MPPI):
     :param a: the AR(1) coefficient in [0, 1) itself (default 0.8 when no cutoff is given)
     """
 
-    def __init__(self, system: System, cost_fn: CostFn, num_samples: int = 1000, horizon: int = 15,
-                 lambda_: float = 0.567, noise_std: float | Tensor = 0.3, cutoff: float | None = None,
+    def __init__(self, system: System | DynamicsFn, cost_fn: CostFn | None = None, num_samples: int = 1000,
+                 horizon: int = 15, lambda_: float | str = 0.567, noise_std: float | Tensor | None = None, cutoff: float | None = None,
                  a: float | None = None, terminal_cost: Callable[[Tensor], Tensor] | None = None, **kwargs: Any):
         if cutoff is not None and a is not None:
             raise ValueError("give a cutoff (Hz) or the coefficient a, not both")

@@ -25,6 +25,15 @@ import torch
 from torch import Tensor
 
 from cuniform_torch.controllers.bank import BankProposal, BankRefreshWarning
+from cuniform_torch.controllers.callables import (
+    CallableOptions,
+    CallableProposal,
+    DynamicsFn,
+    RunningCostFn,
+    TerminalStateCostFn,
+    is_system,
+    resolve,
+)
 from cuniform_torch.controllers.checks import check_positive_int
 from cuniform_torch.controllers.core import COST_CAP, CostFn, MPPICore, MPPIResult, mppi_weights
 from cuniform_torch.controllers.proposals import (
@@ -48,12 +57,20 @@ class MPPI(MPPICore):
     """MPPI: the core with a :class:`~cuniform_torch.controllers.proposals.GaussianProposal` (std ``noise_std``, scalar or
     ``[q]``, around a nominal sequence that the command's weighted sequence, shifted one step, warm-starts).
 
-    :param system: the dynamics (any :class:`~cuniform_torch.systems.protocol.System`); its action set's range
-        bounds the actions
+    The dynamics come one of two ways: a :class:`~cuniform_torch.systems.protocol.System` with a trajectory
+    ``cost_fn``; or pytorch_mppi's: a function ``dynamics(state [K, d], action [K, q]) -> [K, d]`` with ``nx``,
+    ``u_min`` / ``u_max`` and a per-step ``running_cost`` (``MPPI(dynamics, nx=2, running_cost=cost,
+    noise_sigma=..., u_min=..., u_max=...)``, the names and meanings of pytorch_mppi's ``MPPI``:
+    :mod:`~cuniform_torch.controllers.callables`; the guide "Coming from pytorch_mppi" maps every argument).
+
+    :param system: the dynamics: a :class:`~cuniform_torch.systems.protocol.System` (its action set's range bounds
+        the actions), or a function ``(state [K, d], action [K, q]) -> [K, d]`` (then give ``nx``)
     :param cost_fn: trajectory cost, ``states [N, T+1, d]``, ``actions [N, T, q]`` -> ``[N]`` (all robots' rollouts
-        at once, N = B*K; with ``cost_fn.batched = True``: ``[B, K, T+1, d]`` -> ``[B, K]``), may be inf
+        at once, N = B*K; with ``cost_fn.batched = True``: ``[B, K, T+1, d]`` -> ``[B, K]``), may be inf; or
+        None with ``running_cost``
     :param num_samples: K, rollouts per robot and command
-    :param lambda_: the temperature of ``softmax(-(cost - min) / lambda_)``; 0 puts all weight on the best rollout
+    :param lambda_: the temperature of ``softmax(-(cost - min) / lambda_)``; 0 puts all weight on the best rollout;
+        ``"auto"``: per command and robot, the one whose weights' effective sample size is ``target_ess``
     :param terminal_cost: optional, ``states [N, d]`` (the last states) -> ``[N]``, added to ``cost_fn``
     :param seed: an int, one int per robot, or None (fresh entropy); robot ``b`` of an int seed ``s`` uses
         ``s + b * 1_000_003``
@@ -61,22 +78,68 @@ class MPPI(MPPICore):
     :param debug: per-command checks that read values (a NaN state, all-NaN costs); default on a CPU, off on CUDA
     :param cuda_graph: capture the first command in one CUDA graph and replay it (CUDA only)
     :param horizon: T, steps per rollout
-    :param noise_std: the Gaussian noise's standard deviation, a scalar or one per action dimension ``[q]``
+    :param noise_std: the Gaussian noise's standard deviation, a scalar or one per action dimension ``[q]``; None
+        (and no ``noise_sigma``): a quarter of each action dimension's range
+        (:func:`~cuniform_torch.controllers.proposals.default_noise_std`)
     :param device: where the controller runs
-    :param dtype: its floating-point dtype (states must be of it)
+    :param dtype: its floating-point dtype (default: ``noise_sigma``'s when it is a floating tensor, else float32)
+    :param nx: with a dynamics function: the state dimension d
+    :param running_cost: per-step cost ``(state [N, d], action [N, q]) -> [N]`` of the state each action led to
+        (pytorch_mppi's; instead of ``cost_fn``), called once per command on all ``B*K*T`` rows
+    :param terminal_state_cost: with ``running_cost``: pytorch_mppi's ``(states [1, N, T, d], actions [1, N, T, q])
+        -> [1, N]``
+    :param noise_sigma: the noise covariance (pytorch_mppi's): a scalar variance or ``[q, q]`` (a full matrix is
+        sampled through its Cholesky factor); instead of ``noise_std``
+    :param noise_mu: ``[q]`` the noise's mean (default 0)
+    :param u_min: with a dynamics function: ``[q]`` (or scalar) lower action bounds (default: ``-u_max``, or none)
+    :param u_max: upper bounds (default: ``-u_min``, or none)
+    :param u_init: ``[q]`` the action appended when the nominal shifts (default: the last action repeated)
+    :param U_init: ``[T, q]`` the first nominal (default: ``u_init``, or zeros, at every step)
+    :param control_cost: add pytorch_mppi's ``lambda * sum_t U_t Sigma^-1 eps_t`` to each rollout's cost (default:
+        on when ``noise_sigma`` is given)
+    :param target_ess: with ``lambda_="auto"``: the effective sample size aimed for (default K / 10)
+    :param convert_states: accept numpy states and tensors of another floating dtype, the command coming back as
+        the state's type and dtype (default: on for a dynamics function, off for a System)
     """
 
-    def __init__(self, system: System, cost_fn: CostFn, num_samples: int = 1000, horizon: int = 15,
-                 lambda_: float = 0.567, noise_std: float | Tensor = 0.3,
+    def __init__(self, system: System | DynamicsFn, cost_fn: CostFn | None = None, num_samples: int = 1000,
+                 horizon: int = 15, lambda_: float | str = 0.567, noise_std: float | Tensor | None = None,
                  terminal_cost: Callable[[Tensor], Tensor] | None = None, device: torch.device | str = "cpu",
-                 dtype: torch.dtype = torch.float32, seed: int | Sequence[int] | None = None, num_robots: int = 1,
-                 debug: bool | None = None, cuda_graph: bool = False):
+                 dtype: torch.dtype | None = None, seed: int | Sequence[int] | None = None, num_robots: int = 1,
+                 debug: bool | None = None, cuda_graph: bool = False, *, nx: int | None = None,
+                 running_cost: RunningCostFn | None = None, terminal_state_cost: TerminalStateCostFn | None = None,
+                 noise_sigma: float | Tensor | None = None, noise_mu: float | Tensor | None = None,
+                 u_min: float | Tensor | None = None, u_max: float | Tensor | None = None,
+                 u_init: float | Tensor | None = None, U_init: Tensor | None = None, control_cost: bool | None = None,
+                 target_ess: float | None = None, convert_states: bool | None = None):
+        self._options: CallableOptions | None = None
+        pytorch_style = {"nx": nx, "running_cost": running_cost, "terminal_state_cost": terminal_state_cost,
+                         "noise_sigma": noise_sigma, "noise_mu": noise_mu, "u_min": u_min, "u_max": u_max,
+                         "u_init": u_init, "U_init": U_init, "control_cost": control_cost}
+        fn_given = not is_system(system)
+        if fn_given or any(v is not None for v in pytorch_style.values()):
+            parts = resolve(type(self).__name__, system, cost_fn, noise_std=noise_std, dtype=dtype,
+                            **pytorch_style)  # type: ignore[arg-type]
+            system, cost_fn, noise_std, dtype = parts.system, parts.cost_fn, parts.noise_std, parts.dtype
+            self._options = parts.options
+            if self._options is not None and type(self)._proposal is not MPPI._proposal:
+                raise ValueError(f"{type(self).__name__} draws its own noise (std noise_std, bounded actions): "
+                                 f"a full noise_sigma, noise_mu, u_init, U_init, control_cost and unbounded actions "
+                                 f"(no u_min / u_max) are MPPI's; give finite u_min / u_max and noise_std, or use "
+                                 f"MPPI")
+        elif cost_fn is None:
+            raise ValueError(f"{type(self).__name__}: give a cost: cost_fn(states [N, T+1, d], actions [N, T, q]) -> "
+                             f"[N], or a per-step running_cost(state [K, d], action [K, q]) -> [K]")
+        dtype = torch.float32 if dtype is None else dtype
         proposal = self._proposal(system, num_samples, horizon, noise_std, device, dtype, num_robots)
-        super().__init__(proposal, cost_fn, lambda_, terminal_cost, seed, debug=debug, cuda_graph=cuda_graph)
-        self.noise_std = noise_std
+        super().__init__(proposal, cost_fn, lambda_, terminal_cost, seed, debug=debug, cuda_graph=cuda_graph,
+                         target_ess=target_ess, convert_states=fn_given if convert_states is None else convert_states)
+        self.noise_std = noise_std if noise_std is not None else proposal.std
 
-    @staticmethod
-    def _proposal(system, num_samples, horizon, noise_std, device, dtype, num_robots) -> GaussianProposal:
+    def _proposal(self, system, num_samples, horizon, noise_std, device, dtype, num_robots) -> GaussianProposal:
+        if self._options is not None:
+            return CallableProposal(system, num_samples, horizon, noise_std, self._options, device, dtype,
+                                    num_robots)
         return GaussianProposal(system, num_samples, horizon, noise_std, device, dtype, num_robots)
 
     @property
@@ -109,8 +172,9 @@ class LogMPPI(MPPI):
         ``debug``, ``cuda_graph``)
     """
 
-    def __init__(self, system: System, cost_fn: CostFn, num_samples: int = 1000, horizon: int = 15,
-                 lambda_: float = 0.567, noise_std: float | Tensor = 0.3, lognormal_mean: float = 1.0,
+    def __init__(self, system: System | DynamicsFn, cost_fn: CostFn | None = None, num_samples: int = 1000,
+                 horizon: int = 15, lambda_: float | str = 0.567, noise_std: float | Tensor | None = None,
+                 lognormal_mean: float = 1.0,
                  lognormal_var: float = 1.0, **kwargs: Any):
         self.lognormal_mean, self.lognormal_var = lognormal_mean, lognormal_var
         super().__init__(system, cost_fn, num_samples, horizon, lambda_, noise_std, **kwargs)

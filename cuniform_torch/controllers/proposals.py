@@ -45,7 +45,8 @@ from cuniform_torch.sampling.start_watch import new_episode
 from cuniform_torch.systems import System, check_dynamics
 
 __all__ = ["Proposal", "SingleRobotProposal", "as_batched", "GaussianProposal", "NormalLogNormalProposal", "PolicyProposal", "CompositeProposal",
-           "PROPOSAL_MEMBERS", "SINGLE_ROBOT_MEMBERS", "OneRobotCall", "PipelinedProposal"]
+           "PROPOSAL_MEMBERS", "SINGLE_ROBOT_MEMBERS", "OneRobotCall", "PipelinedProposal", "default_noise_std",
+           "NOISE_FRACTION"]
 
 
 @runtime_checkable
@@ -188,15 +189,31 @@ def _start_rows(states: Tensor, k: int) -> Tensor:
 
 # ------------------------------------------------------------------------------------------ Gaussian, log-normal
 
+NOISE_FRACTION = 0.25
+"""the default noise std, per action dimension, as a fraction of its range ``high - low``: the range is the mean
++- 2 std (a system whose actions span [-2, 2] gets std 1)"""
+
+
+def default_noise_std(low: Tensor, high: Tensor) -> Tensor:
+    """The noise std when none is given: :data:`NOISE_FRACTION` of each action dimension's range, ``[q]``.
+    ValueError for an unbounded (or zero-width) dimension, naming what to give instead."""
+    std = (high - low) * NOISE_FRACTION  # [q]
+    if not bool(torch.isfinite(std).all()) or not bool((std > 0).all()):
+        raise ValueError(f"no noise scale was given and the action bounds [{low.tolist()}, {high.tolist()}] do not "
+                         f"set one (an unbounded or zero-width dimension): give noise_std (a std, scalar or [q]) or "
+                         f"noise_sigma (a covariance), or finite bounds u_min / u_max")
+    return std
+
 class GaussianProposal(OneRobotCall):
     """MPPI's proposal: ``actions = clip(nominal + eps)``, ``eps ~ N(0, noise_std^2)`` (scalar or ``[q]`` std),
     rolled out open-loop from each robot's state; the warm start shifts each robot's weighted sequence one step.
 
     ``nominal`` (``[T, q]`` for one robot, ``[B, T, q]`` for ``num_robots`` B) starts at zero (``reset()``); set it
-    to seed the next proposals.
+    to seed the next proposals. ``noise_std=None``: a quarter of each action dimension's range
+    (:func:`default_noise_std`).
     """
 
-    def __init__(self, system: System, num_samples: int, horizon: int, noise_std: float | Tensor = 0.3,
+    def __init__(self, system: System, num_samples: int, horizon: int, noise_std: float | Tensor | None = 0.3,
                  device: torch.device | str = "cpu", dtype: torch.dtype = torch.float32, num_robots: int = 1):
         self.system = system
         self.num_samples = check_positive_int("num_samples", num_samples)
@@ -206,11 +223,18 @@ class GaussianProposal(OneRobotCall):
         self.dtype = _check_dtype(dtype)
         actions = check_dynamics(system, self.dtype, self.device)  # [A, q]: the user's step probed once, here
         self.low, self.high = actions.min(dim=0).values, actions.max(dim=0).values  # [q] action bounds
+        self.low, self.high = self._bounds(self.low, self.high)
+        if noise_std is None:
+            noise_std = default_noise_std(self.low, self.high)
         self.noise_std = noise_std
         self._nominal = torch.zeros((self.num_robots, self.horizon, self.low.shape[0]), dtype=self.dtype,
                                     device=self.device)  # [B, T, q]
         self.law = self._law(noise_std)  # the noise law, built (and its std checked) once
         self.std = self.law.std  # [q]
+
+    def _bounds(self, low: Tensor, high: Tensor) -> tuple[Tensor, Tensor]:
+        """The action bounds ``[q]`` each, from the action set's range; a subclass may widen them (to +-inf)."""
+        return low, high
 
     def _law(self, noise_std: float | Tensor) -> GaussianSampler:
         return GaussianSampler(self._nominal[0], noise_std, self.low, self.high)
@@ -270,7 +294,7 @@ class NormalLogNormalProposal(GaussianProposal):
     log-normal factor has mean ``lognormal_mean`` and variance ``lognormal_var``
     (:class:`~cuniform_torch.sampling.noise.NormalLogNormalSampler`)."""
 
-    def __init__(self, system: System, num_samples: int, horizon: int, noise_std: float | Tensor = 0.3,
+    def __init__(self, system: System, num_samples: int, horizon: int, noise_std: float | Tensor | None = 0.3,
                  lognormal_mean: float = 1.0, lognormal_var: float = 1.0, device: torch.device | str = "cpu",
                  dtype: torch.dtype = torch.float32, num_robots: int = 1):
         self.lognormal_mean, self.lognormal_var = lognormal_mean, lognormal_var

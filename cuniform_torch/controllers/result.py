@@ -36,11 +36,20 @@ class MPPIResult:
     """``[K]`` finite costs"""
     weights: Tensor
     """``[K]`` sum to 1"""
+    lambda_: Tensor | None = None
+    """``[]`` the temperature these weights were computed with (``[B]`` for a batch): the ``lambda_`` given, or
+    the one the automatic temperature (``lambda_="auto"``) chose for this command and robot"""
 
     @property
     def best(self) -> Tensor:
         """Index of the lowest-cost proposal (a 0-d tensor, ``[B]`` for a batch; no host sync)."""
         return torch.argmin(self.costs, dim=-1)
+
+    @property
+    def ess(self) -> Tensor:
+        """The weights' effective sample size ``1 / sum(w^2)``: 1 (all weight on one proposal) to K (uniform); a
+        0-d tensor (``[B]`` for a batch), no host sync."""
+        return self.weights.square().sum(dim=-1).reciprocal()
 
     @property
     def batched(self) -> bool:
@@ -52,7 +61,7 @@ class MPPIResult:
         if not self.batched:
             raise ValueError("robot(b) takes one robot of a batched result; this one has no robot dimension")
         return MPPIResult(self.command[b], self.nominal[b], self.states[b], self.actions[b], self.costs[b],
-                          self.weights[b])
+                          self.weights[b], None if self.lambda_ is None else self.lambda_[b])
 
     def best_actions(self) -> Tensor:
         """The lowest-cost proposal's action sequence: ``[T, q]`` (``[B, T, q]`` for a batch), no host sync."""
