@@ -1,11 +1,14 @@
 """Controllers: the one MPPI core (:class:`MPPICore`) and its plug-in, the :class:`Proposal`; the MPPI family
-built on them (:class:`MPPI`, :class:`LogMPPI`, :class:`CUniformMPPI`, :class:`CUMPPI`) and CFU-MPPI
-(:class:`CFUMPPI`, a map policy sensing the world)."""
+built on them (:class:`MPPI`, :class:`LogMPPI`, :class:`CUniformMPPI`, :class:`CUMPPI`), CFU-MPPI
+(:class:`CFUMPPI`, a map policy sensing the world), the samplers MPC users switch to (:class:`ColoredMPPI`,
+:class:`LowPassMPPI`, :class:`SmoothMPPI`, :class:`KernelMPPI`) and mixtures of proposals (:class:`MixtureMPPI`,
+:class:`CUniformMixtureMPPI`)."""
 
 from cuniform_torch.controllers.bank import BankProposal, BankRefreshWarning
 from cuniform_torch.controllers.cfu import CFUMPPI, SensedMapPolicy
 from cuniform_torch.controllers.core import COST_CAP, CostFn, MPPICore, mppi_weights
 from cuniform_torch.controllers.filtered import ColoredMPPI, LowPassMPPI
+from cuniform_torch.controllers.mixture import CUniformMixtureMPPI, MixtureMPPI, MixtureProposal
 from cuniform_torch.controllers.mppi import CUMPPI, MPPI, CUniformMPPI, LogMPPI
 from cuniform_torch.controllers.proposals import (
     CompositeProposal,
@@ -15,10 +18,12 @@ from cuniform_torch.controllers.proposals import (
     Proposal,
 )
 from cuniform_torch.controllers.result import MPPIResult
+from cuniform_torch.controllers.smooth import KernelMPPI, SmoothMPPI
 
 __all__ = [
     "MPPICore", "MPPIResult", "CostFn", "mppi_weights", "COST_CAP",
     "MPPI", "LogMPPI", "CUniformMPPI", "CUMPPI", "CFUMPPI", "SensedMapPolicy", "ColoredMPPI", "LowPassMPPI",
+    "SmoothMPPI", "KernelMPPI", "MixtureMPPI", "CUniformMixtureMPPI", "MixtureProposal",
     "Proposal", "GaussianProposal", "NormalLogNormalProposal", "PolicyProposal", "BankProposal", "CompositeProposal",
     "BankRefreshWarning",
 ]
