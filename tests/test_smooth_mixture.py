@@ -213,3 +213,68 @@ def test_batched_equals_alone(name, policy):
             batched.reset(torch.tensor([1]))
             alone[1].reset()
         x = batched.system.step(x, u)
+
+
+# ------------------------------------------------------------------------------------------ no host sync
+
+@pytest.mark.parametrize("name", ["smooth", "kernel", "three_part_mixture"])
+def test_a_command_reads_nothing_back_to_the_host_when_debug_is_off(name, policy, monkeypatch):
+    """A command of each new proposal is a tensor program: no ``.item()`` / ``bool(t)`` / ``.tolist()`` per command
+    (what would wait for a CUDA device)."""
+    names = ("item", "tolist", "__bool__", "__int__", "__float__", "__index__", "numpy")
+    ctrl = _controllers(name, policy, [0, 1], robots=2)
+    ctrl.debug = False
+    ctrl.command(STARTS)
+    calls: list[str] = []
+    originals = {n: getattr(torch.Tensor, n) for n in names}
+
+    def counting(n, original):
+        def counted(tensor, *args, **kwargs):
+            calls.append(n)
+            return original(tensor, *args, **kwargs)
+        return counted
+
+    for n, original in originals.items():
+        monkeypatch.setattr(torch.Tensor, n, counting(n, original))
+    ctrl.command(STARTS)
+    ctrl.plan(STARTS)
+    for n, original in originals.items():
+        monkeypatch.setattr(torch.Tensor, n, original)
+    assert calls == [], f"{name} read {calls} back per command"
+
+
+# ------------------------------------------------------------------------------------------ on a CUDA device
+
+CUDA = torch.cuda.is_available()
+
+
+@pytest.mark.gpu
+@pytest.mark.skipif(not CUDA, reason="needs a CUDA device")
+@pytest.mark.parametrize("name", ["smooth", "kernel", "mixture"])
+def test_on_cuda_batched_equals_alone_and_a_graphed_command_is_the_eager_command(name, dubins_table):
+    """On CUDA: a batch commands what its robots would alone, and ``cuda_graph=True`` replays what eager commands
+    command (the smoothness cost reads the proposal's last actions in place; the mixture's parts share the streams)."""
+    goal = GOAL.cuda()
+
+    def cost(states, actions):
+        return (states[:, 1:, :2] - goal).square().sum(dim=(1, 2))
+
+    table = TablePolicy(dubins_table, device="cuda")
+    make = {
+        "smooth": lambda seed, n, g: SmoothMPPI(DUBINS, cost, num_samples=256, horizon=10, noise_std=3.0,
+                                                device="cuda", seed=seed, num_robots=n, cuda_graph=g),
+        "kernel": lambda seed, n, g: KernelMPPI(DUBINS, cost, num_samples=256, horizon=10, noise_std=0.8,
+                                                device="cuda", seed=seed, num_robots=n, cuda_graph=g),
+        "mixture": lambda seed, n, g: CUniformMixtureMPPI(table, cost, num_samples=256, noise_std=0.5, seed=seed,
+                                                          num_robots=n, cuda_graph=g),
+    }[name]
+    starts = STARTS.cuda()
+    batched, graphed = make([3, 8], 2, False), make([3, 8], 2, True)
+    alone = [make(s, 1, False) for s in (3, 8)]
+    x = starts.clone()
+    for _ in range(4):
+        u = batched.command(x)
+        torch.testing.assert_close(graphed.command(x), u, atol=1e-4, rtol=0)
+        for b in range(2):
+            torch.testing.assert_close(alone[b].command(x[b]), u[b], atol=1e-4, rtol=0)
+        x = DUBINS.step(x, u)
