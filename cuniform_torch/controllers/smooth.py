@@ -24,7 +24,9 @@ How they differ from pytorch_mppi 0.9.1's ``SMPPI`` / ``KMPPI`` (which are one-r
 iteration): SMPPI there adds ``dt * (U + eps)`` to a stored action sequence step by step, integrating the rate across
 commands rather than along the horizon; here the samples are the lifted system's rollouts (rates integrated along
 the horizon from the applied action), the form of the paper's input-lifted dynamics. Its noise-likelihood term
-``lambda * U Sigma^-1 eps`` is left out, as the core's MPPI leaves it out. KMPPI there shifts the control points by
+``lambda * U Sigma^-1 eps`` is left out, as the core's MPPI leaves it out, and its action-sequence cost sums the
+jumps within the sequence only, where this one also counts the jump from the action applied last (what makes
+consecutive commands smooth). KMPPI there shifts the control points by
 interpolating at ``t_k + 1`` (the last one extrapolated); here they are refit to the shifted nominal (its last
 action repeated). Both draw from each robot's own stream (a batch commands what its robots would alone).
 """
