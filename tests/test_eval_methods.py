@@ -21,13 +21,16 @@ from eval.common.methods import (
 
 PAPER_KEYS = ["mppi_low", "mppi_medium", "mppi_high", "log_mppi_low", "log_mppi_medium", "log_mppi_high", "uniform",
               "cu_table", "cu_coverage", "cu_mlp", "cu_graph", "cumppi"]
-NAV_KEYS = ["mppi_0.1", "mppi_0.3", "mppi_1.0", "log_mppi_0.3", "mppi_pink_1.0", "mppi_lowpass_1.0", "uniform", "cu_table", "cu_coverage", "cu_mlp",
-            "cumppi", "cumppi_pipe", "cfu_mppi"]
+NAV_KEYS = ["mppi_0.1", "mppi_0.3", "mppi_1.0", "log_mppi_0.3", "mppi_pink_1.0", "mppi_lowpass_1.0", "smppi_2.0",
+            "kmppi_1.0", "uniform", "cu_table", "cu_coverage", "cu_mlp", "cumppi", "cumppi_pipe", "mix_cu_mppi_0.5",
+            "cfu_mppi"]
 SHARED = ["uniform", "cu_table", "cu_coverage", "cu_mlp", "cumppi"]
 
 NAV_LABELS = {"mppi_0.1": "MPPI (std 0.1)", "mppi_0.3": "MPPI (std 0.3)", "mppi_1.0": "MPPI (std 1.0)",
               "log_mppi_0.3": "log-MPPI (std 0.3)", "mppi_pink_1.0": "MPPI, pink noise (std 1.0)",
-              "mppi_lowpass_1.0": "MPPI, low-pass noise (std 1.0, a 0.8)", "uniform": "uniform discrete actions",
+              "mppi_lowpass_1.0": "MPPI, low-pass noise (std 1.0, a 0.8)",
+              "smppi_2.0": "smooth MPPI (rate std 2.0 rad/s^2)", "kmppi_1.0": "kernel MPPI (7 control points, std 1.0)",
+              "mix_cu_mppi_0.5": "mixture: half C-Uniform table, half MPPI std 1.0", "uniform": "uniform discrete actions",
               "cu_table": "C-Uniform (max-flow table)", "cu_coverage": "C-Uniform (coverage table)",
               "cu_mlp": "C-Uniform (distilled MLP)", "cumppi": "CU-MPPI (max-flow table)",
               "cumppi_pipe": "CU-MPPI in one pass (max-flow table)", "cfu_mppi": "CFU-MPPI (map-conditioned policy)"}
@@ -54,7 +57,8 @@ def test_every_key_resolves_in_its_benchmark_and_the_defaults_are_kept():
     # defaults: the navigation benchmark leaves its opt-in methods out; the paper's experiments take all that apply
     # (its closed loop drops the slow cu_mlp itself, eval.paper.episodes)
     assert [m.key for m in parse_methods(None, benchmark=NAVIGATE, closed_loop=True)] == \
-        [k for k in NAV_KEYS if k not in ("mppi_pink_1.0", "mppi_lowpass_1.0", "cu_mlp", "cumppi_pipe", "cfu_mppi")]
+        [k for k in NAV_KEYS if k not in ("mppi_pink_1.0", "mppi_lowpass_1.0", "smppi_2.0", "kmppi_1.0", "cu_mlp",
+                                     "cumppi_pipe", "mix_cu_mppi_0.5", "cfu_mppi")]
     assert [m.key for m in parse_methods(None, benchmark=PAPER, closed_loop=True)] == closed
     assert [m.key for m in parse_methods(None, benchmark=PAPER, closed_loop=False)] == opened
     assert gaussian_baselines(NAVIGATE) == ("mppi_0.1", "mppi_0.3", "mppi_1.0")
@@ -73,8 +77,8 @@ def test_a_shared_method_is_one_object_with_each_benchmarks_label():
 
 @pytest.mark.parametrize("keys,where,closed_loop,message", [
     (["mppi_1.0", "magic"], NAVIGATE, True, "unknown method(s) magic; choose from mppi_0.1, mppi_0.3, mppi_1.0, "
-     "log_mppi_0.3, mppi_pink_1.0, mppi_lowpass_1.0, uniform, cu_table, cu_coverage, cu_mlp, cumppi, cumppi_pipe, "
-     "cfu_mppi"),
+     "log_mppi_0.3, mppi_pink_1.0, mppi_lowpass_1.0, smppi_2.0, kmppi_1.0, uniform, cu_table, cu_coverage, cu_mlp, "
+     "cumppi, cumppi_pipe, mix_cu_mppi_0.5, cfu_mppi"),
     (["mppi_low"], NAVIGATE, True, "unknown method(s) mppi_low; choose from mppi_0.1"),  # the paper's key
     (["mppi_0.3", "cfu_mppi"], PAPER, True, "unknown method(s) mppi_0.3, cfu_mppi; choose from mppi_low"),
     (["cumppi"], PAPER, False, "unknown method(s) cumppi; choose from"),  # closed-loop only

@@ -6,8 +6,10 @@
 
 Every controller drives the navigation benchmark's robot (Dubins, 0.5 m/s, 7 turn rates, dt 0.2 s) on BARN map 0
 (the shipped half) under the navigation cost, from the map's start (robot ``b`` a little further along x): MPPI
-(std 1.0), log-MPPI (std 0.3), MPPI with pink and with low-pass noise (std 1.0; ``mppi_pink``, ``mppi_lowpass``), C-Uniform MPPI on the robot's max-flow table, CU-MPPI on it (and in one pass,
-``cumppi_pipe``), CFU-MPPI with the
+(std 1.0), log-MPPI (std 0.3), MPPI with pink and with low-pass noise (std 1.0; ``mppi_pink``, ``mppi_lowpass``),
+smooth MPPI (rate std 2.0; ``smppi``) and kernel MPPI (7 control points, std 1.0; ``kmppi``), C-Uniform MPPI on
+the robot's max-flow table, CU-MPPI on it (and in one pass, ``cumppi_pipe``), the mixture of half C-Uniform
+table and half MPPI std 1.0 rollouts (``mix_cu_mppi``), CFU-MPPI with the
 shipped map policy, and pytorch_mppi (the ``[bench]`` extra; ``MPPI_Batched`` for a batch) on the same dynamics
 with a per-step goal-and-collision cost. Commands are timed round-robin (one command of each controller in turn,
 ``--repeats`` rounds after ``--warmup``), so a varying load on a shared machine hits all alike; each figure is a
@@ -41,8 +43,8 @@ from cuniform_torch.cli import (
 )
 from cuniform_torch.common.fileio import write_json
 
-METHODS = ("mppi", "log_mppi", "mppi_pink", "mppi_lowpass", "cuniform", "cumppi", "cumppi_pipe", "cfu_mppi",
-           "pytorch_mppi")
+METHODS = ("mppi", "log_mppi", "mppi_pink", "mppi_lowpass", "smppi", "kmppi", "cuniform", "cumppi", "cumppi_pipe",
+           "mix_cu_mppi", "cfu_mppi", "pytorch_mppi")
 
 
 def make_parser() -> ArgumentParser:
@@ -76,7 +78,7 @@ def _batch_kw(robots: int) -> dict:
 def build(args) -> tuple[dict[tuple[str, int, int], Callable[[], object]], dict]:
     """One ``command`` closure per (method, K, T), all on the same map, cost and states."""
     from cuniform_torch import CFUMPPI, CUMPPI, MPPI, CUniformMPPI, LogMPPI, TablePolicy, read_table
-    from cuniform_torch.controllers import ColoredMPPI, LowPassMPPI
+    from cuniform_torch.controllers import ColoredMPPI, CUniformMixtureMPPI, KernelMPPI, LowPassMPPI, SmoothMPPI
     from cuniform_torch.envs import NavigationCost
     from cuniform_torch.envs.worlds.barn import load_barn
     from cuniform_torch.envs.worlds.robot import NAV_ROBOT
@@ -97,7 +99,7 @@ def build(args) -> tuple[dict[tuple[str, int, int], Callable[[], object]], dict]
     states = start.repeat(b, 1)
     states[:, 0] += 0.05 * torch.arange(b, device=device)
     state = states[0] if b == 1 else states
-    needs_table = {"cuniform", "cumppi", "cumppi_pipe"} & set(args.methods)
+    needs_table = {"cuniform", "cumppi", "cumppi_pipe", "mix_cu_mppi"} & set(args.methods)
     table = None
     if needs_table and min(args.horizon) <= NAV_ROBOT.horizon:
         table = TablePolicy(read_table(ensure_table(NAV_ROBOT, Path(args.cache))), device=device)
@@ -119,6 +121,10 @@ def build(args) -> tuple[dict[tuple[str, int, int], Callable[[], object]], dict]
             return ColoredMPPI(system, cost, k, t, noise_std=1.0, beta=1.0, device=device, seed=0, **kw)
         if name == "mppi_lowpass":
             return LowPassMPPI(system, cost, k, t, noise_std=1.0, a=0.8, device=device, seed=0, **kw)
+        if name == "smppi":
+            return SmoothMPPI(system, cost, k, t, noise_std=2.0, device=device, seed=0, **kw)
+        if name == "kmppi":
+            return KernelMPPI(system, cost, k, t, noise_std=1.0, device=device, seed=0, **kw)
         if t > NAV_ROBOT.horizon:
             return None
         if name == "cuniform" and table is not None:
@@ -127,6 +133,8 @@ def build(args) -> tuple[dict[tuple[str, int, int], Callable[[], object]], dict]
             return CUMPPI(table, cost, k, horizon=t, seed=0, **kw)
         if name == "cumppi_pipe" and table is not None:
             return CUMPPI(table, cost, k, horizon=t, seed=0, pipelined=True, **kw)
+        if name == "mix_cu_mppi" and table is not None:
+            return CUniformMixtureMPPI(table, cost, k, cuniform_fraction=0.5, noise_std=1.0, horizon=t, seed=0, **kw)
         if name == "cfu_mppi":
             return CFUMPPI("unicycle-0.5", env, cost, k, horizon=t, device=device, seed=0, **kw)
         return None

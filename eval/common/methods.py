@@ -30,6 +30,14 @@ nominal. Method keys:
   the budget each). Closed-loop only;
 * ``mppi_pink_1.0``, ``mppi_lowpass_1.0`` (navigate, opt-in): MPPI with time-correlated noise of std 1.0, pink
   (power spectrum ~ 1/f) or low-pass (AR(1), a = 0.8) (:mod:`cuniform_torch.controllers.filtered`);
+* ``smppi_2.0`` (navigate, opt-in): smooth MPPI: noise of std 2.0 rad/s^2 on the turn rate's rate, integrated
+  along the horizon from the last command (a sample's deviation at step t: 0.4 sqrt(t + 1) rad/s), with the
+  action-sequence cost of weight 1 (:class:`~cuniform_torch.controllers.smooth.SmoothMPPI`);
+* ``kmppi_1.0`` (navigate, opt-in): kernel MPPI: noise of std 1.0 on 7 control points, the sequence their RBF
+  interpolation (sigma 1 step) (:class:`~cuniform_torch.controllers.smooth.KernelMPPI`);
+* ``mix_cu_mppi_0.5`` (navigate, opt-in): a mixture proposal: half of K C-Uniform rollouts of the max-flow table,
+  half Gaussian MPPI rollouts (std 1.0) around the warm-started weighted sequence, all weighted together
+  (:class:`~cuniform_torch.controllers.mixture.CUniformMixtureMPPI`);
 * ``cumppi_pipe`` (navigate, opt-in): CU-MPPI in one pass (``CUMPPI(pipelined=True)``): the local rollouts around
   the previous command's best C-Uniform sequence, rolled out and costed with this command's C-Uniform ones, all
   weighed together;
@@ -68,6 +76,8 @@ from cuniform_torch import (
 )
 from cuniform_torch.common.fileio import MAX_JSON_BYTES, read_capped_text
 from cuniform_torch.controllers.filtered import ColoredMPPI, LowPassMPPI
+from cuniform_torch.controllers.mixture import CUniformMixtureMPPI
+from cuniform_torch.controllers.smooth import KernelMPPI, SmoothMPPI
 from cuniform_torch.policies import UniformPolicy
 from cuniform_torch.sampling import GaussianSampler, NormalLogNormalSampler
 from eval.common import config
@@ -163,6 +173,10 @@ METHODS: dict[str, Method] = {m.key: m for m in [
            color="#6a51a3", benchmarks=(NAVIGATE,), opt_in=(NAVIGATE,)),
     Method("mppi_lowpass_1.0", "MPPI, low-pass noise (std 1.0, a 0.8)", "mppi", LowPassMPPI, GaussianSampler, 1.0,
            open_loop=False, color="#807dba", benchmarks=(NAVIGATE,), opt_in=(NAVIGATE,)),
+    Method("smppi_2.0", "smooth MPPI (rate std 2.0 rad/s^2)", "mppi", SmoothMPPI, GaussianSampler, 2.0,
+           open_loop=False, color="#54278f", benchmarks=(NAVIGATE,), opt_in=(NAVIGATE,)),
+    Method("kmppi_1.0", "kernel MPPI (7 control points, std 1.0)", "mppi", KernelMPPI, GaussianSampler, 1.0,
+           open_loop=False, color="#9e9ac8", benchmarks=(NAVIGATE,), opt_in=(NAVIGATE,)),
     Method("uniform", "uniform discrete actions", "uniform", CUniformMPPI, source="uniform", color="#737373",
            benchmarks=_BOTH),
     Method("cu_table", "C-Uniform table (max-flow)", "cuniform", CUniformMPPI, source="table", paper=True,
@@ -177,6 +191,9 @@ METHODS: dict[str, Method] = {m.key: m for m in [
            color="#e377c2", benchmarks=_BOTH),
     Method("cumppi_pipe", "CU-MPPI in one pass (max-flow table)", "cuniform", functools.partial(CUMPPI, pipelined=True),
            source="table", open_loop=False, color="#c51b8a", benchmarks=(NAVIGATE,), opt_in=(NAVIGATE,)),
+    Method("mix_cu_mppi_0.5", "mixture: half C-Uniform table, half MPPI std 1.0", "cuniform",
+           functools.partial(CUniformMixtureMPPI, cuniform_fraction=0.5, noise_std=1.0), source="table",
+           open_loop=False, color="#74c476", benchmarks=(NAVIGATE,), opt_in=(NAVIGATE,)),
     Method("cfu_mppi", "CFU-MPPI (map-conditioned policy)", "cuniform", CFUMPPI, source="map_policy",
            open_loop=False, color="#17becf", benchmarks=(NAVIGATE,), opt_in=(NAVIGATE,)),
 ]}

@@ -7,8 +7,9 @@ lookup, an MLP, Gaussian noise), so "which method for a 5 ms cycle?" is not answ
 which compare methods at the same sample count K. From a benchmark folder (read through
 :class:`eval.navigate.store.EpisodeStore`, the folder's one parser) this says:
 
-* per (method, K): success with its 95% Wilson interval, and the median and p95 cycle time (ms) over **all
-  commands** of its episodes (:func:`eval.navigate.stats.summarize`, from the merged cycle histograms). All
+* per (method, K): success with its 95% Wilson interval, the BARN Challenge's score (mean with its 95% interval;
+  :mod:`eval.navigate.score`: ``success * OT / clip(time, 2 OT, 8 OT)``, OT the task's reference length over
+  2 m/s), and the median and p95 cycle time (ms) over **all commands** of its episodes (:func:`eval.navigate.stats.summarize`, from the merged cycle histograms). All
   commands, not the median of per-episode medians: a real-time loop misses its deadline per command, so the
   share of commands over the budget is what matters, and per-episode medians would hide the slow tail and count
   a 10-command episode as much as a 500-command one. The histograms bin times by 5.9%, so a quantile is exact
@@ -43,7 +44,8 @@ from cuniform_torch.cli import ArgumentParser, check_output_file, cli_main, posi
 from cuniform_torch.common.fileio import write_bytes
 from eval.common.markdown import table
 from eval.common.methods import NAVIGATE, gaussian_baselines, methods_of
-from eval.navigate.stats import _best_baseline, _by_episode, _compare, fmt_rate, summarize
+from eval.navigate.score import episode_scores, score_summary
+from eval.navigate.stats import _best_baseline, _by_episode, _compare, fmt_rate, fmt_score, summarize
 from eval.navigate.store import EpisodeStore
 
 __all__ = ["DEFAULT_BUDGETS_MS", "FIT_QUANTILE", "cells", "pick_k", "budget_rows", "pareto_front", "threads_note",
@@ -64,11 +66,13 @@ def _method_order(methods: Sequence[str]) -> list[str]:
     return known + sorted(m for m in set(methods) if m not in known)
 
 
-def cells(records: Sequence[Mapping]) -> list[dict]:
+def cells(records: Sequence[Mapping], scores: Mapping[str, float] | None = None) -> list[dict]:
     """One row per (method, K) of ``records`` (one suite): :func:`eval.navigate.stats.summarize`'s row (success
     with its Wilson interval, ``cycle_ms_median`` / ``cycle_ms_p95`` over all commands, None without any) plus
-    ``commands`` (timed cycles) and ``threads`` (the sorted distinct ``threads`` of its records when every record
-    has one, else None). Rows by method (registry order), then K."""
+    ``commands`` (timed cycles), ``threads`` (the sorted distinct ``threads`` of its records when every record
+    has one, else None) and the BARN score of ``scores`` (by record key; :func:`eval.navigate.score.score_summary`'s
+    ``score_mean``, ``score_low``, ``score_high``, all None unless every episode of the cell has a score). Rows by
+    method (registry order), then K."""
     records = list(records)
     if not records:
         raise ValueError("no episode records to judge")
@@ -81,6 +85,8 @@ def cells(records: Sequence[Mapping]) -> list[dict]:
         row["commands"] = int(sum(r.get("cycles", 0) for r in mine))
         threads = [r.get("threads") for r in mine]
         row["threads"] = sorted(set(threads)) if all(isinstance(t, int) for t in threads) else None
+        mine_scores = [scores[r["key"]] for r in mine if r.get("key") in scores] if scores else []
+        row.update(score_summary(mine_scores if len(mine_scores) == len(mine) else []))
     order = {m: i for i, m in enumerate(_method_order([r["method"] for r in rows]))}
     return sorted(rows, key=lambda r: (order[r["method"]], r["budget"]))
 
@@ -171,34 +177,43 @@ def threads_note(settings: Mapping[str, Any], cell_rows: Sequence[Mapping]) -> s
 
 
 def judge(settings: Mapping[str, Any], records: Sequence[Mapping], budgets_ms: Sequence[float] = DEFAULT_BUDGETS_MS,
-          baselines: Sequence[str] | None = None) -> dict:
+          baselines: Sequence[str] | None = None, scores: Mapping[str, float] | None = None,
+          score_note: str = "") -> dict:
     """The judgement of one folder's ``settings`` and ``records``: ``suite``, ``episodes``, ``threads`` (a note),
-    ``baselines`` (the Gaussian baselines present), ``budgets_ms``, ``cells`` (:func:`cells`) and ``budgets``
-    (:func:`budget_rows`). ``baselines``: default the registry's Gaussian baselines of the navigation benchmark."""
+    ``baselines`` (the Gaussian baselines present), ``budgets_ms``, ``cells`` (:func:`cells`, with the BARN score of
+    ``scores``, by record key) and ``budgets`` (:func:`budget_rows`), ``score_note`` (what lacks a score, and why).
+    ``baselines``: default the registry's Gaussian baselines of the navigation benchmark."""
     budgets = sorted({float(b) for b in budgets_ms})
     if not budgets:
         raise ValueError("give at least one cycle budget (ms)")
     records = list(records)
-    cell_rows = cells(records)
+    cell_rows = cells(records, scores)
     base = list(gaussian_baselines(NAVIGATE) if baselines is None else baselines)
     present = [m for m in base if any(c["method"] == m for c in cell_rows)]
     return dict(suite=settings.get("suite"), episodes=len(records), threads=threads_note(settings, cell_rows),
                 baselines=present, budgets_ms=budgets, cells=cell_rows,
-                budgets=budget_rows(records, cell_rows, budgets, base))
+                budgets=budget_rows(records, cell_rows, budgets, base), score_note=score_note)
 
 
-def judge_folder(folder: str | Path, budgets_ms: Sequence[float] = DEFAULT_BUDGETS_MS) -> dict:
-    """:func:`judge` of a benchmark folder, read through :meth:`EpisodeStore.load` (checked; read only)."""
+def judge_folder(folder: str | Path, budgets_ms: Sequence[float] = DEFAULT_BUDGETS_MS,
+                 barn_file: str | Path | None = None, cache: str | Path | None = None) -> dict:
+    """:func:`judge` of a benchmark folder, read through :meth:`EpisodeStore.load` (checked; read only), with each
+    episode's BARN score (:func:`eval.navigate.score.episode_scores`: ``barn_file`` when the run used another than
+    the shipped one; the geodesic reference lengths cached under ``cache`` when given)."""
     settings, by_key = EpisodeStore(folder).load()
     if not by_key:
         raise ValueError(f"{folder} holds no episode yet (python -m eval.navigate --out {folder})")
-    return {**judge(settings, list(by_key.values()), budgets_ms), "folder": str(folder)}
+    records = list(by_key.values())
+    scores, note = episode_scores(settings, records, barn_file, cache)
+    return {**judge(settings, records, budgets_ms, scores=scores, score_note=note), "folder": str(folder)}
 
 
 # ------------------------------------------------------------------------------------------------ markdown
 
 def _ms(x: float | None) -> str:
     return "-" if x is None else f"{x:.3g}"
+
+
 
 
 def _budget_line(row: Mapping) -> list[Any]:
@@ -208,9 +223,9 @@ def _budget_line(row: Mapping) -> list[Any]:
         fast = row["fastest"]
         why = ("no cycle times recorded" if fast is None else
                f"no K fits (fastest: p95 {_ms(fast[FIT_QUANTILE])} ms at K = {fast['budget']})")
-        return [b, row["method"], "-", "-", why, "-", "-", "-", "-", "-", "-", "-"]
+        return [b, row["method"], "-", "-", why, "-", "-", "-", "-", "-", "-", "-", "-"]
     head = [b, row["method"], cell["budget"], ", ".join(map(str, row["fits"])), fmt_rate(cell, "success"),
-            _ms(cell[FIT_QUANTILE])]
+            fmt_score(cell), _ms(cell[FIT_QUANTILE])]
     c = row["comparison"]
     if row["is_baseline"]:
         return head + ["(best baseline)", "-", "-", "-", "-", "-"]
@@ -228,21 +243,25 @@ def render(res: Mapping) -> str:
     parts = [f"# Equal compute: {res['suite']}{where}",
              f"{res['episodes']} episodes. Cycle times: wall time of each controller command, over all commands of "
              f"a cell's episodes, on the machine and under the load of the run that wrote them. CPU threads per "
-             f"episode: {res['threads']}. Gaussian baselines: {base}."]
-    body = [[c["method"], c["budget"], c["n"], fmt_rate(c, "success"), c["commands"], _ms(c["cycle_ms_median"]),
-             _ms(c["cycle_ms_p95"]), ", ".join(map(str, c["threads"])) if c["threads"] else "unknown"]
+             f"episode: {res['threads']}. Gaussian baselines: {base}. BARN score: the BARN Challenge's "
+             f"success x OT / clip(time, 2 OT, 8 OT), OT the task's reference length / 2 m/s (max 0.5; "
+             f"eval.navigate.score), mean [95% CI] over a cell's episodes"
+             + (f" ({res['score_note']})" if res.get("score_note") else "") + "."]
+    body = [[c["method"], c["budget"], c["n"], fmt_rate(c, "success"), fmt_score(c), c["commands"],
+             _ms(c["cycle_ms_median"]), _ms(c["cycle_ms_p95"]),
+             ", ".join(map(str, c["threads"])) if c["threads"] else "unknown"]
             for c in res["cells"]]
     parts.append("## Per method and K\n\n" + table(
-        ["method", "K", "episodes", "success [95% CI]", "commands", "cycle ms median", "cycle ms p95", "threads"],
-        body, align="lrrlrrrl"))
+        ["method", "K", "episodes", "success [95% CI]", "BARN score [95% CI]", "commands", "cycle ms median",
+         "cycle ms p95", "threads"], body, align="lrrllrrrl"))
     lines = [_budget_line(r) for r in res["budgets"]]
     parts.append(
         "## Time budgets\n\nA K fits a budget when its p95 cycle time is within it; each method at its most "
         "successful K that fits, against the best Gaussian baseline at its own K that fits (paired on (task, "
         "seed): wins / losses, success difference with its 95% Newcombe interval, exact McNemar p; better / "
         "worse at p < 0.05).\n\n" + table(
-            ["budget", "method", "K", "K that fit", "success [95% CI]", "p95 ms", "against", "pairs",
-             "wins / losses", "diff [95% CI]", "McNemar p", "verdict"], lines, align="rlrllrlrrlrl"))
+            ["budget", "method", "K", "K that fit", "success [95% CI]", "BARN score", "p95 ms", "against", "pairs",
+             "wins / losses", "diff [95% CI]", "McNemar p", "verdict"], lines, align="rlrlllrlrrlrl"))
     return "\n\n".join(parts) + "\n"
 
 
@@ -310,6 +329,10 @@ def make_parser() -> ArgumentParser:
                    metavar="MS", help="cycle budgets in ms (default: 2 5 10 20)")
     p.add_argument("--out", type=Path, default=None, help="also write the markdown here")
     p.add_argument("--figure", type=Path, default=None, help="draw success vs cycle time to this PNG")
+    p.add_argument("--barn-file", type=Path, default=None,
+                   help="the BARN file the run used, when not the shipped one (for the BARN score)")
+    p.add_argument("--cache", type=Path, default=Path("out/navigate/cache"),
+                   help="where the geodesic reference lengths of forest and clutter tasks are cached")
     return p
 
 
@@ -333,7 +356,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     for flag, path, example in (("--out", args.out, "budget.md"), ("--figure", args.figure, "budget.png")):
         if path is not None:
             check_output_file(path, flag, example)
-    res = judge_folder(args.folder, args.budgets_ms)
+    res = judge_folder(args.folder, args.budgets_ms, args.barn_file, args.cache)
     print(render(res), end="")
     for path in write_budget(res, args.out, args.figure):
         print(f"wrote {path}")

@@ -34,7 +34,7 @@ from eval.navigate.cycle_hist import (
 
 __all__ = ["T_MIN", "BINS_PER_DECADE", "NUM_BINS", "OUTCOMES", "cycle_histogram", "merge_histograms",
            "histogram_quantile", "bin_centre", "summarize", "newcombe_paired_interval", "mcnemar_exact_p",
-           "paired_comparisons", "fmt_rate", "markdown"]
+           "paired_comparisons", "fmt_rate", "fmt_score", "markdown"]
 
 OUTCOMES = ("goal", "collision", "timeout")
 """the possible ``outcome`` values of a record"""
@@ -82,7 +82,8 @@ def _ms(seconds: float | None) -> float | None:
     return None if seconds is None else 1000.0 * seconds
 
 
-def _summary_row(key: tuple, keys: Sequence[str], recs: Sequence[Mapping]) -> dict:
+def _summary_row(key: tuple, keys: Sequence[str], recs: Sequence[Mapping],
+                 scores: Mapping[str, float] | None = None) -> dict:
     """One summary row of a group (see :func:`summarize`)."""
     n = len(recs)
     good = [r for r in recs if r["success"]]
@@ -100,22 +101,30 @@ def _summary_row(key: tuple, keys: Sequence[str], recs: Sequence[Mapping]) -> di
     row["cycle_ms_median"] = _ms(histogram_quantile(hist, 0.5))
     row["cycle_ms_p95"] = _ms(histogram_quantile(hist, 0.95))
     row["wall_s"] = float(sum(r.get("wall_s", 0.0) for r in recs))
+    if scores is not None:
+        from eval.navigate.score import score_summary
+
+        mine = [scores[r["key"]] for r in recs if r.get("key") in scores]
+        row.update(score_summary(mine if len(mine) == n else []))
     return row
 
 
-def summarize(records: Sequence[Mapping], keys: Sequence[str] = ("suite", "method", "budget")) -> list[dict]:
+def summarize(records: Sequence[Mapping], keys: Sequence[str] = ("suite", "method", "budget"),
+              scores: Mapping[str, float] | None = None) -> list[dict]:
     """One row per group of ``keys`` (first-appearance order).
 
     Row: the key values, ``n``, ``successes``, ``collisions``, ``timeouts``; ``success_rate``,
     ``collision_rate``, ``timeout_rate`` each with 95% Wilson ``<name>_rate_low`` / ``_high``;
     ``path_length_mean`` / ``_median`` (m) and ``time_mean`` / ``_median`` (s) over successful episodes (None
     without one); ``cycle_ms_median`` / ``cycle_ms_p95`` (ms, from the merged cycle histograms, None without
-    any); ``wall_s`` (sum of episode compute seconds).
+    any); ``wall_s`` (sum of episode compute seconds); with ``scores`` (each record's BARN score by its ``key``,
+    :func:`eval.navigate.score.episode_scores`), ``score_mean`` / ``score_low`` / ``score_high`` (None unless
+    every record of the group has a score).
     """
     records = list(records)
     for i, r in enumerate(records):
         _check_record(r, (*keys, *_SUMMARY_FIELDS), i)
-    return [_summary_row(key, keys, recs) for key, recs in _group(records, keys).items()]
+    return [_summary_row(key, keys, recs, scores) for key, recs in _group(records, keys).items()]
 
 
 # ------------------------------------------------------------------------------------------------ paired tests
@@ -274,12 +283,21 @@ def fmt_rate(row: Mapping, name: str) -> str:
 def _summary_table(rows: Sequence[Mapping]) -> str:
     from eval.common.markdown import table
 
-    body = [[r["budget"], r["method"], r["n"], fmt_rate(r, "success"), fmt_rate(r, "collision"),
+    scored = any("score_mean" in r for r in rows)  # a BARN score column only when the rows carry one
+    body = [[r["budget"], r["method"], r["n"], fmt_rate(r, "success"),
+             *([fmt_score(r)] if scored else []), fmt_rate(r, "collision"),
              fmt_rate(r, "timeout"), _fmt(r["path_length_mean"]), _fmt(r["time_mean"]),
              f"{_fmt(r['cycle_ms_median'])} / {_fmt(r['cycle_ms_p95'])}"] for r in rows]
-    head = ["budget", "method", "n", "success [95% CI]", "collision", "timeout", "path length (m)", "time (s)",
-            "cycle ms median / p95"]
-    return table(head, body, align="rlrlllrrr")
+    head = ["budget", "method", "n", "success [95% CI]", *(["BARN score [95% CI]"] if scored else []), "collision",
+            "timeout", "path length (m)", "time (s)", "cycle ms median / p95"]
+    return table(head, body, align="rlrl" + ("l" if scored else "") + "llrrr")
+
+
+def fmt_score(row: Mapping) -> str:
+    """``0.27 [0.24, 0.30]``: a row's mean BARN score with its 95% interval ("-" without one)."""
+    if row.get("score_mean") is None:
+        return "-"
+    return f"{row['score_mean']:.2f} [{row['score_low']:.2f}, {row['score_high']:.2f}]"
 
 
 def _comparison_table(rows: Sequence[Mapping]) -> str:

@@ -1,0 +1,194 @@
+"""The BARN Challenge's navigation score of each episode, from its record (success, time) and its task.
+
+The Challenge's ``run.py`` scores an episode ``success * OT / clip(time, 2 OT, 8 OT)``, with the optimal time ``OT``
+the reference path's length over 2 m/s (the Jackal's top speed): at most 0.5 (a run in 2 OT or less), 1/8 for a
+success in 8 OT or more, 0 for a failure. Its reference path is the polyline from the start through the map's A*
+path (the dataset's ``path_<id>.npy``, in grid cells) to the goal, the cells converted to metres as its
+``path_coord_to_gazebo_coord`` does: ``x = 0.15 c - 4.575``, ``y = 0.15 r + 5.075`` (0.15 m cells: two cylinder
+radii; the grid's origin 30 cells left of x = -0.075, 5 m up from y = 0.075). The converted paths of the shipped maps
+keep 0.30-0.46 m from every cylinder centre (with the cell's two coordinates swapped they would hit cylinders).
+
+A world without such a path (the forest and clutter suites) takes the geodesic distance instead: the shortest
+8-connected path from the start's cell to the goal around the robot-inflated obstacles, all of them known, on
+cells of :data:`GEODESIC_RESOLUTION` m (:func:`eval.navigate.cost_to_go.geodesic_distance`, the benchmark's cost-to-
+go planner). A grid path is at most 8% longer than the true one (in the worst direction); along the corridors, which
+run along x, much less: clutter task 5's is 36.13 m at 0.1 m cells, 36.01 m at 0.025 m. The gap suite is not scored
+(its tasks depend on the sweep's length, which its settings do not record).
+
+What differs from the Challenge: our robot drives at 0.5 m/s (the Challenge's Jackal up to 2 m/s), so a perfect run
+on the reference path takes 4 OT and scores 0.25; the simulator is ours (a unicycle, no Gazebo physics). The score
+still ranks episodes as the Challenge does: a success that takes a longer way scores less.
+
+:func:`episode_scores` scores a folder's records (rebuilding each task from the folder's settings; the geodesic
+lengths, seconds per task, are cached under ``cache`` when one is given); :func:`score_summary` is a cell's mean
+with its 95% interval.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+from collections.abc import Iterable, Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from cuniform_torch.common.fileio import MAX_JSON_BYTES, read_capped_text, write_json
+
+__all__ = ["CHALLENGE_SPEED", "BARN_CELL", "BARN_ORIGIN", "GEODESIC_RESOLUTION", "barn_path_xy", "polyline_length",
+           "barn_reference_length", "geodesic_length", "barn_score", "reference_lengths", "episode_scores",
+           "score_summary", "SCORED_SUITES"]
+
+CHALLENGE_SPEED = 2.0
+"""m/s: the Challenge's optimal time is the reference length over this"""
+BARN_CELL = 0.15
+"""m: a BARN grid cell (two cylinder radii of 0.075 m)"""
+BARN_ORIGIN = (-0.075 - 30 * BARN_CELL, 0.075 + 5.0)
+"""(x, y) in m of grid cell (0, 0): the Challenge's ``r_shift``, ``c_shift``"""
+GEODESIC_RESOLUTION = 0.1
+"""m: the cell of the geodesic distance where a world has no reference path"""
+SCORED_SUITES = ("barn", "forest", "clutter")
+"""suites whose tasks get a reference length (module docstring)"""
+
+
+def barn_path_xy(cells: np.ndarray) -> np.ndarray:
+    """``[P, 2]`` grid cells (the dataset's path file) -> ``[P, 2]`` float64 metres (the Challenge's conversion)."""
+    cells = np.asarray(cells, dtype=np.float64).reshape(-1, 2)
+    return np.stack((cells[:, 0] * BARN_CELL + BARN_ORIGIN[0], cells[:, 1] * BARN_CELL + BARN_ORIGIN[1]), axis=1)
+
+
+def polyline_length(points: np.ndarray) -> float:
+    """The length (m) of the polyline through ``points [P, 2]``."""
+    points = np.asarray(points, dtype=np.float64).reshape(-1, 2)
+    return float(np.linalg.norm(np.diff(points, axis=0), axis=1).sum())
+
+
+def barn_reference_length(cells: np.ndarray, start: Sequence[float], goal: Sequence[float]) -> float:
+    """The Challenge's reference length (m): start -> the map's path (``cells [P, 2]``, converted) -> goal."""
+    path = barn_path_xy(cells)
+    return polyline_length(np.concatenate(([np.asarray(start[:2], float)], path, [np.asarray(goal[:2], float)])))
+
+
+def geodesic_length(task: Any, resolution: float = GEODESIC_RESOLUTION) -> float | None:
+    """The grid geodesic (m) from ``task.start`` to ``task.goal`` around ``task.environment`` (the robot-inflated
+    obstacles, all known); None when the goal cannot be reached on the grid."""
+    import torch
+
+    from eval.navigate.cost_to_go import UNREACHABLE, CostToGo
+
+    to_go = CostToGo(task.bounds, task.goal, resolution)
+    to_go.update(task.environment)
+    length = float(to_go(torch.tensor(task.start[:2], dtype=torch.float32)))
+    return None if length >= UNREACHABLE else length
+
+
+def barn_score(success: bool, time: float, reference_length: float) -> float:
+    """``success * OT / clip(time, 2 OT, 8 OT)``, ``OT = reference_length / 2`` (m/s): in [0, 0.5]."""
+    if not (math.isfinite(reference_length) and reference_length > 0):
+        raise ValueError(f"the reference length must be a finite number > 0 (m), got {reference_length!r}")
+    if not (math.isfinite(time) and time >= 0):
+        raise ValueError(f"an episode's time must be a finite number >= 0 (s), got {time!r}")
+    ot = reference_length / CHALLENGE_SPEED
+    return float(bool(success)) * ot / min(max(time, 2 * ot), 8 * ot)
+
+
+# ------------------------------------------------------------------------------------------------ a folder's tasks
+
+def _digest(path: Path) -> str:
+    return hashlib.sha256(Path(path).read_bytes()).hexdigest()[:16]
+
+
+def _barn_lengths(settings: Mapping[str, Any], ids: set[int], barn_file: Path | None) -> tuple[dict[int, float], str]:
+    from cuniform_torch.envs.worlds.barn import CHALLENGE_GOAL, CHALLENGE_START, load_barn
+
+    recorded = settings.get("barn_file")
+    if recorded is not None and (barn_file is None or _digest(barn_file) != recorded):
+        given = "none given" if barn_file is None else f"{barn_file} has another digest"
+        return {}, (f"the run used a BARN file of digest {recorded} ({given}): give it (--barn-file) to score its "
+                    f"episodes")
+    maps = {m.map_id: m for m in load_barn(barn_file if recorded is not None else None)}
+    lengths = {i: barn_reference_length(maps[i].path, CHALLENGE_START, CHALLENGE_GOAL) for i in ids if i in maps}
+    missing = sorted(ids - set(lengths))
+    return lengths, (f"no BARN map {', '.join(map(str, missing))} in the file" if missing else "")
+
+
+def _cache_file(cache: Path, settings: Mapping[str, Any], resolution: float) -> Path:
+    key = dict(suite=settings["suite"], seed=settings["seed"], radius=settings["robot"]["radius"],
+               resolution=resolution)
+    return Path(cache) / "references" / f"{hashlib.sha256(json.dumps(key, sort_keys=True).encode()).hexdigest()[:16]}.json"
+
+
+def _read_cache(path: Path) -> dict[int, float]:
+    """The cached lengths of ``path`` (empty when absent or not such a file: it is rebuilt)."""
+    try:
+        data = json.loads(read_capped_text(path, MAX_JSON_BYTES, "a reference-length cache"))
+        return {int(k): float(v) for k, v in data["lengths"].items() if math.isfinite(float(v)) and float(v) > 0}
+    except (OSError, ValueError, KeyError, TypeError, AttributeError):
+        return {}
+
+
+def _geodesic_lengths(settings: Mapping[str, Any], ids: set[int], cache: Path | None,
+                      resolution: float) -> tuple[dict[int, float], str]:
+    from cuniform_torch.envs.worlds.suites import SuiteError
+    from cuniform_torch.envs.worlds.tasks import make_task
+
+    path = _cache_file(cache, settings, resolution) if cache is not None else None
+    lengths = _read_cache(path) if path is not None else {}
+    known = {i: lengths[i] for i in ids if i in lengths}
+    bad = []
+    for i in sorted(ids - set(known)):
+        try:
+            task = make_task(settings["suite"], i, float(settings["robot"]["radius"]), seed=int(settings["seed"]))
+        except SuiteError:
+            bad.append(i)
+            continue
+        length = geodesic_length(task, resolution)
+        if length is None:
+            bad.append(i)
+        else:
+            known[i] = lengths[i] = length
+    if path is not None and len(lengths) > len(_read_cache(path)):
+        path.parent.mkdir(parents=True, exist_ok=True)
+        write_json(path, dict(suite=settings["suite"], seed=settings["seed"], radius=settings["robot"]["radius"],
+                              resolution=resolution, lengths={str(k): v for k, v in sorted(lengths.items())}))
+    return known, (f"no reference for {settings['suite']} task(s) {', '.join(map(str, bad))}" if bad else "")
+
+
+def reference_lengths(settings: Mapping[str, Any], task_ids: Iterable[int], barn_file: str | Path | None = None,
+                      cache: str | Path | None = None,
+                      resolution: float = GEODESIC_RESOLUTION) -> tuple[dict[int, float], str]:
+    """``({task_id: reference length (m)}, note)`` for the tasks of a benchmark folder's ``settings``: BARN from
+    each map's path (the run's BARN file: the shipped one, or ``barn_file`` when the settings name another), forest
+    and clutter the grid geodesic (cached under ``cache``/references when given). The note says which tasks have
+    none and why ("" when all do)."""
+    ids = {int(i) for i in task_ids}
+    suite = settings.get("suite")
+    if suite not in SCORED_SUITES:
+        return {}, f"the {suite} suite has no reference lengths (scored suites: {', '.join(SCORED_SUITES)})"
+    if suite == "barn":
+        return _barn_lengths(settings, ids, None if barn_file is None else Path(barn_file))
+    return _geodesic_lengths(settings, ids, None if cache is None else Path(cache), resolution)
+
+
+def episode_scores(settings: Mapping[str, Any], records: Sequence[Mapping[str, Any]],
+                   barn_file: str | Path | None = None, cache: str | Path | None = None) -> tuple[dict[str, float], str]:
+    """``({record key: BARN score}, note)``: each record's :func:`barn_score` (from its ``success`` and ``time`` and
+    its task's reference length); records whose task has no reference length are left out, and the note says why."""
+    lengths, note = reference_lengths(settings, {r["task_id"] for r in records}, barn_file, cache)
+    scores = {str(r["key"]): barn_score(bool(r["success"]), float(r["time"]), lengths[int(r["task_id"])])
+              for r in records if int(r["task_id"]) in lengths}
+    return scores, note
+
+
+def score_summary(values: Sequence[float]) -> dict[str, float | None]:
+    """``score_mean`` and its 95% interval ``score_low`` / ``score_high`` (normal approximation, within [0, 0.5])
+    of a cell's episode scores; all None without any."""
+    n = len(values)
+    if n == 0:
+        return dict(score_mean=None, score_low=None, score_high=None)
+    mean = float(np.mean(values))
+    half = 1.96 * float(np.std(values, ddof=1)) / math.sqrt(n) if n > 1 else 0.0
+    top = 0.5
+    return dict(score_mean=mean, score_low=max(0.0, mean - half), score_high=min(top, mean + half))
