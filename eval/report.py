@@ -202,7 +202,7 @@ def main(argv=None) -> int:
                         "its forward pass costs about 10x a table lookup per control cycle)")
     p.add_argument("--workers", type=int_in(1, 1024), default=default_workers(),
                    help="processes for the closed-loop episodes, one torch thread each (default: the CPU cores "
-                        "this process may use; the records do not depend on it)")
+                        "this process may use; --quick: 1; the records do not depend on it)")
     add_system_module_arg(p)
     args = p.parse_args(argv)
     import_system_modules(args.system_module)
@@ -213,6 +213,8 @@ def main(argv=None) -> int:
 
 def _report(args) -> int:
     """Every stage of the report (see the module docstring)."""
+    if args.quick:  # a few episodes each: starting worker processes (about 3 s each) would cost more than they save
+        args.workers = 1
     paths = OutputPaths(args.out / "quick", quick=True) if args.quick else OutputPaths(args.out)
     runs = args.runs / "quick" if args.quick else args.runs
     stages = Stages(force=args.force)
