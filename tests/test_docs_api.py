@@ -23,7 +23,9 @@ DOCS = ROOT / "docs"
 API_PAGE = DOCS / "api" / "toplevel.md"
 HOOK = DOCS / "hooks" / "sphinx_roles.py"
 BUILD_AND_DISTILL = ["precompute.flow.builder.BuildConfig", "precompute.flow.builder.build_table",
-                     "training.distill.DistillConfig", "training.distill.distill"]
+                     "training.distill.DistillConfig", "training.distill.distill", "training.auto.auto_cuniform",
+                     "cuniform_torch.pytorch_mppi.MPPI", "cuniform_torch.pytorch_mppi.MPPI_Batched"]
+"""the page's names beyond ``cuniform_torch.__all__``: the build and distill functions, the pytorch_mppi drop-in"""
 RAW_ROLE = re.compile(r":(?:class|func|meth|mod|attr|data|exc|obj|const):(?:`|<code>)")
 MACHINE_PATH = re.compile(r"(?<![\w.~])/(?:tmp|root|work|home)/")
 
