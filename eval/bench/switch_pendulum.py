@@ -59,7 +59,8 @@ def run_defaults(seed: int, steps: int) -> float:
 
 def make_parser() -> ArgumentParser:
     p = ArgumentParser(prog="python -m eval.bench.switch_pendulum", description=(__doc__ or "").split("\n\n")[0])
-    p.add_argument("--seeds", type=non_negative_int, nargs="+", default=[0, 1, 2])
+    p.add_argument("--seed", dest="seeds", type=non_negative_int, nargs="+", default=[0, 1, 2],
+                   help="the seeds, one run of each script per seed (default 0 1 2)")
     p.add_argument("--steps", type=positive_int, default=200)
     p.add_argument("--defaults", action="store_true", help="also this library's MPPI with its defaults")
     p.add_argument("--threads", type=positive_int, default=1, help="torch CPU threads")
