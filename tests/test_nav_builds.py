@@ -39,7 +39,7 @@ def test_a_build_is_announced_with_its_time_before_it_starts_and_once(tmp_path, 
 def test_expected_times_name_seconds_for_the_measured_robots():
     assert expected_time(NAV_ROBOT) == f"about {BUILD_SECONDS[('maxflow', 15)]:.0f} s on a 2-core CPU"
     assert expected_time(NAV_ROBOT, "coverage") == f"about {BUILD_SECONDS[('coverage', 15)]:.0f} s on a 2-core CPU"
-    assert expected_time(NAV_ROBOT, "policy") == "about 12 minutes on a 2-core CPU"
+    assert expected_time(NAV_ROBOT, "policy") == "about 4 minutes on a 2-core CPU"
     other = expected_time(replace(NAV_ROBOT, horizon=7), "coverage")
     assert "not measured" in other and f"about {BUILD_SECONDS[('coverage', 15)]:.0f} s" in other
     assert "not measured" in expected_time(replace(NAV_ROBOT, params={**NAV_ROBOT.params, "speed": 0.7}))
