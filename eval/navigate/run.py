@@ -47,7 +47,7 @@ from cuniform_torch.cli import (
     positive_int,
     refuse_flags,
 )
-from cuniform_torch.common.fileio import exclusive_lock
+from cuniform_torch.common.fileio import exclusive_lock, open_regular
 from cuniform_torch.envs.worlds.robot import NAV_ROBOT, RobotPreset, preset_dict
 from cuniform_torch.envs.worlds.suites import NavTask
 from cuniform_torch.envs.worlds.tasks import SPLITS, SUITES, TIME_LIMITS, make_tasks
@@ -145,7 +145,10 @@ def _check(cfg: NavConfig) -> None:
 
 
 def _file_digest(path: Path | None) -> str | None:
-    """A short sha256 of a file, or of a table set's index and tables."""
+    """A short sha256 of a file, or of a table set's index and tables. Each is opened as a regular file
+    (:func:`~cuniform_torch.common.fileio.open_regular`) and read in blocks: a FIFO, a device or a link to one is one
+    FileKindError (a ValueError) naming it, never a hang (``eval.navigate.replay --table FIFO`` hung here) or an
+    endless read."""
     if path is None:
         return None
     import hashlib
@@ -154,7 +157,9 @@ def _file_digest(path: Path | None) -> str | None:
     files = [path / "tables.json", *sorted(path.glob("*.npz"))] if path.is_dir() else [path]
     h = hashlib.sha256()
     for f in files:
-        h.update(f.read_bytes())
+        with open_regular(f, "an input file of the benchmark") as fh:
+            for block in iter(lambda: fh.read(1 << 20), b""):
+                h.update(block)
     return h.hexdigest()[:16]
 
 
