@@ -231,6 +231,19 @@ def test_a_benchmark_folder_whose_records_link_elsewhere_is_refused_never_writte
     assert stat.S_ISCHR(os.stat("/dev/null").st_mode)
 
 
+@pytest.mark.parametrize("kind", ["symlink loop", "file"])
+def test_a_benchmark_folder_that_cannot_be_made_is_one_store_error(tmp_path, kind):
+    """EpisodeStore.open of a folder path that is a symlink loop or a regular file (the attack's appending reader:
+    a raw FileExistsError before)."""
+    folder = tmp_path / "bench"
+    if kind == "file":
+        folder.write_text("not a folder")
+    else:
+        folder.symlink_to(folder.name)
+    with pytest.raises(StoreError, match=f"{folder}: cannot be used as a benchmark folder"):
+        EpisodeStore(folder).open(bench_settings())
+
+
 def test_benchmark_settings_linked_elsewhere_are_refused(tmp_path):
     other = _store(tmp_path / "other")
     store = EpisodeStore(tmp_path / "run")
