@@ -1590,6 +1590,202 @@ def entry_cases(work: Path, quick: bool) -> list[Case]:
     return cases
 
 
+# --------------------------------------------------------------------------------------------------- issue 38's calls
+
+def run_call_case(case: Case, call: Callable[[], Any], errors: tuple[type, ...], match: str | None, workdir: Path,
+                  timeout: float, watch: list[Path]) -> None:
+    """``call()`` in a forked child: raising one of ``errors`` (whose message matches ``match``) is a clear error,
+    another exception a traceback, returning a silent wrong (every call here is one that must be refused)."""
+    import re
+
+    result = workdir / "result.json"
+    if result.exists():
+        result.unlink()
+    before = snapshot(watch)
+
+    def child() -> int:
+        try:
+            call()
+            out = {"status": "accepted"}
+        except BaseException as exc:  # noqa: BLE001 - classified by the parent
+            out = {"status": "raised", "type": f"{type(exc).__module__}.{type(exc).__qualname__}",
+                   "family": isinstance(exc, errors) and (match is None or re.search(match, str(exc)) is not None),
+                   "message": str(exc)[:3000]}
+        result.write_text(json.dumps(out))
+        return 0
+
+    how, code, case.peak_mb, case.seconds = _fork(child, workdir, timeout)
+    case.left, case.lost = list(_LEFT), lost_since(before)
+    if how != "exit" or not result.exists():
+        case.outcome, case.detail = "crash/hang", f"{how} {code}"
+        return
+    out = json.loads(result.read_text())
+    if out["status"] == "accepted":
+        case.outcome, case.detail = "silent wrong", "accepted"
+    elif out["family"]:
+        case.outcome, case.detail = "clear error", out["message"].splitlines()[0][:300]
+    else:
+        case.outcome, case.detail = "traceback", f"{out['type']}: {out['message'][:300]}"
+
+
+def _parametrized(test: Any) -> list[tuple]:
+    """The argument tuples of a test's ``pytest.mark.parametrize`` (its table of cases)."""
+    (mark,) = [m for m in getattr(test, "pytestmark", []) if m.name == "parametrize"]
+    names = mark.args[0] if isinstance(mark.args[0], (list, tuple)) else mark.args[0].split(",")
+    rows = [v.values if type(v).__name__ == "ParameterSet" else v for v in mark.args[1]]
+    return [tuple(v) if len(names) > 1 else (v,) for v in rows]
+
+
+def issue38_calls(work: Path, quick: bool) -> list[tuple[Case, Callable[[], Any], tuple[type, ...], str | None]]:
+    """Issue 38's runaway counts, edited cards, misbehaving user systems and gymnasium actions, as calls; the user
+    systems and the gymnasium actions are the tables of tests/test_user_step_probe.py and tests/test_gym_env.py."""
+    import torch
+
+    import cuniform_torch.maps.pretrained as pretrained
+    from cuniform_torch import MPPI
+    from cuniform_torch.envs.environment import Environment
+    from cuniform_torch.envs.sim import simulate
+    from cuniform_torch.maps import load_map_policy
+    from cuniform_torch.policies.table_set import MAX_SET_TABLES, load_table_set
+    from cuniform_torch.systems import make_system
+    from cuniform_torch.tables.file import TableError
+
+    sys.path.insert(0, str(REPO / "tests"))
+    import test_user_step_probe as probe
+
+    folder = work / "calls"
+    folder.mkdir()
+    calls: list[tuple[Case, Callable[[], Any], tuple[type, ...], str | None]] = []
+
+    def add(family: str, label: str, call: Callable[[], Any], errors: tuple[type, ...], match: str | None = None,
+            target: Path | None = None) -> None:
+        size = _tree_size(target) if target is not None else 0
+        calls.append((Case(family, label, str(target or ""), "call", size=size), call, errors, match))
+
+    def index(name: str, entries: list[dict]) -> Path:
+        dst = folder / name
+        dst.mkdir()
+        (dst / "tables.json").write_text(json.dumps({"format": "cuniform-table-set/1", "system": "random_walk_1d",
+                                                     "tables": entries}))
+        return dst
+
+    counts = "runaway counts"
+    big = index("index-too-many", [{"file": f"start_{i:06d}.npz", "start": [float(i)]}
+                                   for i in range(MAX_SET_TABLES + 1)])
+    add(counts, f"tables.json of {MAX_SET_TABLES + 1:,} entries", lambda: load_table_set(big), (TableError,),
+        "more than the", big)
+    dup = index("index-one-member-20000-times", [{"file": "start_0000.npz", "start": [float(i)]}
+                                                  for i in range(20_000)])
+    (dup / "start_0000.npz").write_bytes(b"not read")
+    add(counts, "tables.json listing one member 20,000 times", lambda: load_table_set(dup), (TableError,),
+        "listed more than once", dup)
+    long_name = index("index-long-name", [{"file": "a" * 300 + ".npz", "start": [0.0]}])
+    add(counts, "a 300-character member name", lambda: load_table_set(long_name), (TableError,), "not usable",
+        long_name)
+
+    class Zero:
+        def command(self, state: Any) -> Any:
+            return state.new_zeros(1)
+
+    def runaway() -> Any:
+        return simulate(system=make_system("dubins"), controller=Zero(), x0=torch.zeros(3), env=Environment([]),
+                        goal=(50.0, 50.0), goal_tolerance=0.1, time_limit=1e9)
+
+    add(counts, "simulate(time_limit=1e9), an unreachable goal", runaway, (ValueError,), "more than the limit")
+
+    cards = "shipped policy card"
+    shipped = "unicycle-0.5"
+
+    def shelf(name: str, edit: Callable[[Path], None]) -> Path:
+        dst = folder / name
+        dst.mkdir()
+        for path in pretrained.PRETRAINED_DIR.glob(f"{shipped}*"):
+            shutil.copy(path, dst / path.name)
+        edit(dst)
+        return dst
+
+    def card_edit(**robot: Any) -> Callable[[Path], None]:
+        def edit(dst: Path) -> None:
+            path = dst / f"{shipped}.json"
+            card = json.loads(path.read_text())
+            for key, value in robot.items():
+                (card["robot"] if key in card["robot"] else card["robot"]["params"])[key] = value
+            path.write_text(json.dumps(card, indent=2))
+        return edit
+
+    def sparse(dst: Path) -> None:
+        with open(dst / f"{shipped}.map_policy.pt", "r+b") as fh:
+            fh.truncate(2 << 30)
+
+    def load_from(dst: Path) -> Callable[[], Any]:
+        def load() -> Any:
+            pretrained.PRETRAINED_DIR = dst  # the child's own copy of the module: the original is untouched
+            return load_map_policy(shipped)
+        return load
+
+    for label, edit in (("the card's speed edited to 0.6", card_edit(speed=0.6)),
+                        ("the card's radius edited to 0.5", card_edit(radius=0.5)),
+                        ("the card's horizon edited to 12", card_edit(horizon=12)),
+                        ("the weights file 2 GB (sparse)", sparse)):
+        dst = shelf(f"card-{len(calls)}", edit)
+        add(cards, label, load_from(dst), (pretrained.PretrainedError,), None, dst)
+
+    systems = "user System"
+    for label, system, error, match in probe.CASES:
+        def make(system: Any = system) -> Any:
+            return MPPI(system, probe._cost, num_samples=16, horizon=4, seed=0)
+        add(systems, f"MPPI of a system whose {label}", make, (error,), match)
+
+    try:
+        sys.path.insert(0, str(REPO / "tests"))
+        import test_gym_env as gym_tests
+
+        from eval.navigate.gym_env import NavigationEnv, make_env
+    except ImportError:  # gymnasium is an extra
+        return calls
+    gym = "gymnasium environment"
+
+    def stepped(action: Any) -> Callable[[], Any]:
+        def step() -> Any:
+            env = make_env("gaps", index=0)
+            env.reset(seed=0)
+            return env.step(action)
+        return step
+
+    for action, message in _parametrized(gym_tests.test_bad_action_raises):
+        add(gym, f"step({action!r})", stepped(action), (ValueError,), message)
+    for (options,) in _parametrized(gym_tests.test_unknown_reset_options_are_refused):
+        def reset(options: Any = options) -> Any:
+            return make_env("gaps", index=0).reset(options=options)
+        add(gym, f"reset(options={options!r})", reset, (ValueError,), "reset options may hold")
+    assert NavigationEnv is not None
+    return calls
+
+
+def issue38_commands(work: Path) -> tuple[list[Case], list[Path]]:
+    """Commands of issue 38 that must be refused before any work: a --starts grid of a million members, a benchmark
+    run into a folder whose records link into another folder or to /dev/null; ``(cases, folders to watch)``."""
+    from eval.navigate.store import EpisodeStore
+
+    folder = work / "commands"
+    other = folder / "other-benchmark"
+    store = EpisodeStore(other)
+    store.open(BENCH_SETTINGS)
+    store.append(BENCH_RECORD)
+    cases = [Case("commands", "precompute.build --starts of 1,000,000 members",
+                  argv=["precompute.build", "--system", "random_walk_1d", "--horizon", "3", "--quiet", "--starts",
+                        "0=-1:1:1000000", "--out", str(folder / "huge-set")])]
+    for label, target in (("links into another benchmark folder", other / "episodes.jsonl"),
+                          ("links to /dev/null", Path("/dev/null"))):
+        out = folder / f"bench-{len(cases)}"
+        out.mkdir()
+        (out / "episodes.jsonl").symlink_to(target)
+        cases.append(Case("commands", f"eval.navigate --out FOLDER whose episodes.jsonl {label}",
+                          argv=["eval.navigate", "--suite", "gaps", "--tasks", "1", "--methods", "mppi_1.0",
+                                "--budgets", "16", "--quiet", "--cache", str(folder / "cache"), "--out", str(out)]))
+    return cases, [other, *(folder / f"bench-{i}" for i in (1, 2))]
+
+
 # --------------------------------------------------------------------------------------------------- the run
 
 def baseline_mb() -> float:
@@ -1652,14 +1848,14 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python .ci/attack.py", description=__doc__.split("\n\n")[0])
     p.add_argument("--quick", action="store_true", help="a smaller sample of every class (a few minutes)")
     p.add_argument("--out", type=Path, default=None, help="write every case and the summary as JSON here")
-    p.add_argument("--families", default=",".join([*FAMILIES, "entry"]),
-                   help=f"comma-separated subset of {', '.join([*FAMILIES, 'entry'])}")
+    p.add_argument("--families", default=",".join([*FAMILIES, "issue38", "entry"]),
+                   help=f"comma-separated subset of {', '.join([*FAMILIES, 'issue38', 'entry'])}")
     p.add_argument("--timeout", type=float, default=None, help="seconds per case (default 60, quick 30)")
     p.add_argument("--keep", action="store_true", help="keep the folder of mutated files")
     p.add_argument("--markdown", action="store_true", help="print the summary as a markdown table too")
     args = p.parse_args(argv)
     chosen = [f.strip() for f in args.families.split(",") if f.strip()]
-    unknown = sorted(set(chosen) - {*FAMILIES, "entry"})
+    unknown = sorted(set(chosen) - {*FAMILIES, "issue38", "entry"})
     if unknown:
         p.error(f"--families: unknown {', '.join(unknown)}")
     timeout = args.timeout or (30.0 if args.quick else 60.0)
@@ -1703,6 +1899,18 @@ def main(argv: list[str] | None = None) -> int:
             all_cases += fam.cases
             print(f"{fam.name}: {len(fam.cases)} cases in {time.time() - t0:.0f} s (originals and copies made in "
                   f"{built:.0f} s)", flush=True)
+        if "issue38" in chosen:
+            t0 = time.time()
+            calls = issue38_calls(work, args.quick)
+            for case, call, errors, match in calls:
+                run_call_case(case, call, errors, match, work / "calls" / "run", timeout,
+                              watch=[Path(case.target)] if case.target else [])
+            commands, watched = issue38_commands(work)
+            for case in commands:
+                run_command_case(case, work / "commands" / "run", timeout, watch=watched)
+            all_cases += [c for c, *_ in calls] + commands
+            print(f"issue 38 calls and commands: {len(calls) + len(commands)} cases in {time.time() - t0:.0f} s",
+                  flush=True)
         if "entry" in chosen:
             t0 = time.time()
             cases = entry_cases(work, args.quick)
