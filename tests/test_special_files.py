@@ -302,6 +302,37 @@ def test_the_benchmark_digests_its_inputs_from_regular_files_only(tmp_path, wher
         _quick(lambda _fifo: _file_digest(target), fifo, timeout=10.0)  # fifo: what _quick unblocks
 
 
+def test_a_benchmark_out_that_is_a_device_is_refused_before_any_work(tmp_path, capsys, monkeypatch):
+    """eval.navigate --out LINK->/dev/null: one line naming the device before the tasks are made (it made them,
+    then said only "File exists"; under load the attack run saw it still at work after 30 s)."""
+    import eval.navigate.run as nav_run
+
+    out = tmp_path / "null"
+    out.symlink_to("/dev/null")
+    monkeypatch.setattr(nav_run, "make_tasks", lambda *a, **k: pytest.fail("work started before --out was checked"))
+    assert nav_run.main(["--suite", "gaps", "--tasks", "1", "--methods", "mppi_1.0", "--budgets", "16",
+                         "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and f"--out {out} is a character device (through a symlink)" in err, err
+    assert out.is_symlink() and stat.S_ISCHR(os.stat("/dev/null").st_mode)
+
+
+def test_eval_bench_reads_every_given_table_before_timing(tmp_path, capsys, monkeypatch, dubins_table):
+    """eval.bench --table FIFO (the horizon-10 table): refused before any controller is timed (it was read after
+    the horizon-15 rows: 19 s and 635 MB), naming what is there."""
+    import eval.bench.controllers as bench
+    from cuniform_torch import write_table
+
+    good = tmp_path / "t15.npz"
+    write_table(good, dubins_table)
+    fifo = _fifo(tmp_path / "t10.npz")
+    monkeypatch.setattr(bench, "MPPI", lambda *a, **k: pytest.fail("a controller was timed before --table was read"))
+    assert _quick(lambda _fifo: bench.main(["--table15", str(good), "--table", str(fifo), "--samples", "2"]), fifo,
+                  timeout=60.0) == 2
+    err = capsys.readouterr().err
+    assert err.strip() == f"error: {fifo}: no table file there (a FIFO (named pipe))", err
+
+
 # ------------------------------------------------------------------------------------------ a rebuilt table set
 
 @pytest.mark.parametrize("change, said", [(["--horizon", "5"], "horizon: 4 there, 5 now"),

@@ -141,6 +141,8 @@ def main(argv=None) -> int:
     tables = {15: _table(args.table15, 15)}
     if not args.rollout_only and 10 in args.horizons:
         tables[10] = _table(args.table, 10)
+    for path in tables.values():  # every given table read before any timing: a bad --table is refused at once
+        load_table(path, device=device)  # (a FIFO given as --table was refused after the horizon-15 rows, 19 s)
     rows = []
     header = f"{'T':>3} {'K':>6} {'MPPI':>8} {'logMPPI':>8} {'CU-MPPI':>8} {'CU bank':>8} {'CUMPPI':>8}"
     if not args.rollout_only:

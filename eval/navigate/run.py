@@ -36,6 +36,7 @@ from cuniform_torch.cli import (
     add_dataclass_args,
     add_no_limit_arg,
     add_system_module_arg,
+    check_output_folder,
     check_work,
     cli_main,
     dataclass_from_args,
@@ -386,8 +387,9 @@ def make_parser() -> ArgumentParser:
 
 
 def _check_flags(p: ArgumentParser, args, cfg: NavConfig, out: Path) -> None:
-    """The flags that do not apply to ``cfg``'s suite, a run too large, and ``--paths`` on a folder whose episodes
-    were kept without their paths: refused before any work (:func:`cuniform_torch.cli.refuse_flags`)."""
+    """The flags that do not apply to ``cfg``'s suite, a run too large, an ``--out`` that cannot be a folder (a
+    device, a FIFO, a file), and ``--paths`` on a folder whose episodes were kept without their paths: refused
+    before any work (:func:`cuniform_torch.cli.refuse_flags`)."""
     if cfg.suite != "barn":
         refuse_flags(p, args, ["barn_file", "barn_worlds"], f"to --suite {cfg.suite} (BARN maps: --suite barn)")
     if cfg.suite not in ("forest", "clutter"):
@@ -396,6 +398,7 @@ def _check_flags(p: ArgumentParser, args, cfg: NavConfig, out: Path) -> None:
     counts = {"tasks": cfg.tasks, "repeats": cfg.repeats, "budgets": len(cfg.budgets),
               "methods": len(cfg.methods) if cfg.methods is not None else None}
     check_work({k: v for k, v in counts.items() if v is not None}, "episodes", args.no_limit)
+    check_output_folder(out, "--out")  # a link to /dev/null: one line now, not "File exists" after the tasks
     if cfg.paths:
         store = EpisodeStore(out)
         if store.records_file.is_file():
