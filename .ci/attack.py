@@ -1945,13 +1945,15 @@ def main(argv: list[str] | None = None) -> int:
         print("not tried, as the contract allows them (valid files of other content): " +
               ", ".join(f"{k}: {v}" for k, v in SKIPPED.items()))
     bad = [c for c in all_cases if c.outcome in BAD or c.lost or c.left]
-    big = [c for c in all_cases if c.argv is None and c.size < SMALL_FILE and c.peak_mb > PEAK_LIMIT_MB]
+    special = ("a FIFO", "a link to /dev/")  # an entry case's input that is a special file
+    big = [c for c in all_cases if c.peak_mb > PEAK_LIMIT_MB and (
+        (c.argv is None and c.size < SMALL_FILE) or any(w in c.mutation for w in special))]
     unnamed = [c for c in all_cases if c.outcome == "clear error" and c.extra.get("names_file") is False]
     disagree = [c for c in all_cases if "forked_outcome" in c.extra and c.extra["forked_outcome"] != c.outcome]
     said = [c for c in all_cases if c.outcome == "left out, said"]
     for title, group in (("silent wrong / traceback / code ran / crash or hang / lost / left processes", bad),
                          ("left out and said on stderr (not failures; listed to be seen)", said),
-                         (f"peak over {PEAK_LIMIT_MB} MB for a file under 10 MB", big),
+                         (f"peak over {PEAK_LIMIT_MB} MB for a file under 10 MB or a special file", big),
                          ("clear errors that do not name the file or folder", unnamed),
                          ("real python -m runs classified otherwise than their forked runs", disagree)):
         if group:
