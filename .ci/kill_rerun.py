@@ -7,7 +7,8 @@ developer tool (not shipped), like ``.ci/attack.py``.
 For each command (a table-set build with ``--workers 2``, a distillation, a map-policy training, a navigation
 benchmark with ``--workers 2``; each at small settings, inputs made first by the project's own commands) it:
 
-1. runs the command once, uninterrupted: the reference, and its wall time W;
+1. runs the command twice, uninterrupted: a warm-up (caches filled) and the reference, which must agree; W is the
+   reference's wall time;
 2. for each signal (SIGKILL as the out-of-memory killer sends it, SIGTERM, SIGINT as Ctrl-C sends it), each moment
    (early / middle / late: 15 % / 50 % / 85 % of W after the start) and each target (the whole process group, as
    the OOM killer's victim's workers die with it and Ctrl-C reaches the terminal's group; or only the parent, whose
@@ -399,12 +400,18 @@ def run_command(cmd: Command, work: Path, quick: bool, say: Callable[[str], None
     inputs.mkdir(parents=True)
     watched = cmd.setup(inputs, token)
     argv = cmd.argv(inputs)
-    ref_dir = base / "reference"
-    ref = run_to_end(argv, ref_dir, token)
-    if ref.rc != 0:
-        raise SystemExit(f"error: the reference run of {cmd.name} failed (exit {ref.rc}):\n{ref.stderr[-2000:]}")
-    reference = cmd.fingerprint(ref_dir / "out")
-    say(f"{cmd.name}: reference {ref.seconds:.1f} s, {len(reference)} items compared")
+    runs = []
+    for name in ("warm-up", "reference"):  # the first also fills numba's and Python's caches: the reference's wall
+        ran = run_to_end(argv, base / name, token)  # time is a warm run's, as every later run's is
+        if ran.rc != 0:
+            raise SystemExit(f"error: the {name} run of {cmd.name} failed (exit {ran.rc}):\n{ran.stderr[-2000:]}")
+        runs.append((ran, cmd.fingerprint(base / name / "out")))
+    (_, warm), (ref, reference) = runs
+    same = differences(reference, warm)
+    if same:  # two uninterrupted runs must agree, or no kill can be judged
+        raise SystemExit(f"error: two uninterrupted runs of {cmd.name} differ: {'; '.join(same[:4])}")
+    say(f"{cmd.name}: reference {ref.seconds:.1f} s (warm-up {runs[0][0].seconds:.1f} s, equal), {len(reference)} "
+        "items compared")
     cases = []
     for sig, target, moment in plan(quick):
         case = Case(cmd.name, sig, target, moment, after_s=round(MOMENTS[moment] * ref.seconds, 2))
