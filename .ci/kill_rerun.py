@@ -365,6 +365,7 @@ class Case:
     moment: str
     after_s: float = 0.0
     killed: str = ""
+    killed_stderr: str = ""  # the killed run's last stderr lines (the JSON only)
     equal: str = ""
     left: list[str] = dataclasses.field(default_factory=list)
     rerun_rc: int | None = None
@@ -418,6 +419,7 @@ def run_command(cmd: Command, work: Path, quick: bool, say: Callable[[str], None
         folder = base / f"{sig}-{target}-{moment}"
         killed, what = run_and_signal(argv, folder, token, SIGNALS[sig], case.after_s, target == "group")
         case.killed = _killed_said(killed, what)
+        case.killed_stderr = "\n".join(killed.stderr.strip().splitlines()[-3:])[-600:]
         left_after_kill = _left_processes(token)
         rerun = run_to_end(argv + cmd.rerun_extra(folder / "out"), folder, token)
         case.rerun_rc = rerun.rc
