@@ -93,6 +93,33 @@ def test_a_ctrl_c_of_a_pool_is_the_parents_alone(tmp_path, target, slow_import, 
     assert not left, f"processes left: {left}"
 
 
+@pytest.mark.skipif(not hasattr(signal, "raise_signal"), reason="POSIX signals")
+def test_a_sigterm_of_a_pools_parent_ends_the_workers_first_and_still_dies_of_it(tmp_path):
+    """``kill PID`` of a run with workers (the parent alone): it died at once and left its workers mid-job (a
+    ``ConnectionResetError`` traceback from one mid-handshake, the resource tracker's "leaked semaphore" warning);
+    now the workers are ended and the pool shut down first, and the process still dies of SIGTERM."""
+    (tmp_path / "slow_job.py").write_text(SLOW_MODULE)
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(ROOT), str(tmp_path)]))
+    proc = subprocess.Popen([sys.executable, "-c", PARENT, "0"], cwd=tmp_path, env=env, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, start_new_session=True)
+    try:
+        assert proc.stdout is not None and proc.stdout.readline().strip() == "ready"
+        time.sleep(4.0)  # the workers run their 60 s jobs
+        os.kill(proc.pid, signal.SIGTERM)
+        _, err = proc.communicate(timeout=15)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
+    time.sleep(1.0)
+    left = _session_processes(proc.pid)
+    for pid in left:
+        os.kill(pid, signal.SIGKILL)
+    assert proc.returncode == -signal.SIGTERM, (proc.returncode, err)
+    assert "Traceback" not in err and "leaked" not in err, err
+    assert not left, f"processes left: {left}"
+
+
 # ------------------------------------------------------------------------------------------ the harness's checks
 
 def _harness():

@@ -99,7 +99,41 @@ def _sigint_blocked() -> Iterator[None]:
         signal.pthread_sigmask(signal.SIG_SETMASK, old)
 
 
+class _Terminated(BaseException):
+    """SIGTERM arrived while a pool ran (:func:`_sigterm_ends_the_pool`)."""
+
+
+@contextlib.contextmanager
+def _sigterm_ends_the_pool() -> Iterator[None]:
+    """While the block runs (in the main thread, SIGTERM at its default), a SIGTERM ends the pool's workers before
+    the process dies of it: killed at once, the parent left its workers mid-handshake (a ``ConnectionResetError``
+    traceback each) and the resource tracker warning about leaked semaphores. The process still ends by SIGTERM,
+    re-raised once the pool is shut down, as its sender expects."""
+    if (threading.current_thread() is not threading.main_thread()
+            or signal.getsignal(signal.SIGTERM) is not signal.SIG_DFL):
+        yield  # another handler, or ignored: not ours to change
+        return
+
+    def terminated(signum: int, frame: Any) -> None:
+        raise _Terminated
+
+    signal.signal(signal.SIGTERM, terminated)
+    try:
+        yield
+    except _Terminated:
+        signal.signal(signal.SIGTERM, signal.SIG_DFL)
+        signal.raise_signal(signal.SIGTERM)  # dies here, as it would have without the pool
+        raise
+    finally:
+        signal.signal(signal.SIGTERM, signal.SIG_DFL)
+
+
 def _processes(fn: Callable[..., Any], jobs: Sequence[tuple], workers: int, done: Callable[[int, Any], None]) -> None:
+    with _sigterm_ends_the_pool():
+        _pool(fn, jobs, workers, done)
+
+
+def _pool(fn: Callable[..., Any], jobs: Sequence[tuple], workers: int, done: Callable[[int, Any], None]) -> None:
     pool = ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn"),
                                initializer=_die_with_parent, initargs=(os.getpid(),))
     try:
@@ -116,7 +150,8 @@ def _processes(fn: Callable[..., Any], jobs: Sequence[tuple], workers: int, done
                         "out-of-memory killer, or crashed); the jobs finished before were kept: rerun to resume, "
                         "with fewer --workers if memory ran out") from None
                 done(pending.pop(future), result)
-    except KeyboardInterrupt:  # Ctrl-C: the workers never see it (blocked); end their jobs now, not at their end
+    except (KeyboardInterrupt, _Terminated):  # Ctrl-C (the workers never see it: blocked) or SIGTERM: end their
+        # jobs now, not at their end
         for process in list((getattr(pool, "_processes", None) or {}).values()):
             process.terminate()
         raise
