@@ -318,8 +318,8 @@ def test_a_benchmark_out_that_is_a_device_is_refused_before_any_work(tmp_path, c
 
 
 def test_eval_bench_reads_every_given_table_before_timing(tmp_path, capsys, monkeypatch, dubins_table):
-    """eval.bench --table FIFO (the horizon-10 table): refused before any controller is timed (it was read after
-    the horizon-15 rows: 19 s and 635 MB), naming what is there."""
+    """eval.bench --table FIFO (the horizon-10 table): refused before any table is built or controller timed (it
+    was read after the horizon-15 table's build and rows: 19 s and 635 MB), naming what is there."""
     import eval.bench.controllers as bench
     from cuniform_torch import write_table
 
@@ -331,6 +331,10 @@ def test_eval_bench_reads_every_given_table_before_timing(tmp_path, capsys, monk
                   timeout=60.0) == 2
     err = capsys.readouterr().err
     assert err.strip() == f"error: {fifo}: no table file there (a FIFO (named pipe))", err
+    missing = tmp_path / "t15-missing.npz"  # a default to build: not before the given --table is read
+    assert _quick(lambda _fifo: bench.main(["--table15", str(missing), "--table", str(fifo), "--samples", "2"]),
+                  fifo, timeout=60.0) == 2
+    assert not missing.exists()  # it built the horizon-15 table first (a 400 MB peak before the refusal)
 
 
 # ------------------------------------------------------------------------------------------ a rebuilt table set
