@@ -38,6 +38,7 @@ readers) is measured once and reported beside it. A case of a file under 10 MB w
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import hashlib
 import io
@@ -82,6 +83,8 @@ class Case:
     detail: str = ""
     peak_mb: float = 0.0
     seconds: float = 0.0
+    lost: list[str] = dataclasses.field(default_factory=list)  # files that existed before and changed or went
+    left: list[str] = dataclasses.field(default_factory=list)  # processes of the case alive after it ended
     extra: dict[str, Any] = dataclasses.field(default_factory=dict)
 
 
@@ -211,10 +214,114 @@ def _readers() -> dict[str, tuple[Callable[[Path], Any], tuple[type, ...]]]:
         settings, records = EpisodeStore(p).load()
         return fingerprint({"settings": settings, "records": records})
 
+    def bench_append(p: Path) -> str:  # what a run does to its folder: open it with its settings, add a record
+        import warnings
+
+        store = EpisodeStore(p)
+        with warnings.catch_warnings(record=True) as said:  # what a run says (the attack ignores warnings)
+            warnings.simplefilter("always")
+            store.open(BENCH_SETTINGS)
+        for w in said:
+            print(f"warning: {w.message}", file=sys.stderr)
+        store.append({**BENCH_RECORD, "key": "gaps/5/mppi_1.0/16/0", "task_id": 5})
+        settings, records = store.load()
+        return fingerprint({"settings": settings, "records": records})
+
     return {"table": (table, (TableError,)), "table_policy": (table_policy, (TableError,)),
             "table_set": (table_set, (TableError,)), "policy": (policy, (PolicyCheckpointError,)),
             "map_policy": (map_policy, (MapCheckpointError,)), "map_dataset": (map_dataset, (MapDatasetError,)),
-            "local_map": (local_map, (MapError,)), "bench": (bench, (StoreError,))}
+            "local_map": (local_map, (MapError,)), "bench": (bench, (StoreError,)),
+            "bench_append": (bench_append, (StoreError,))}
+
+
+# --------------------------------------------------------------------------------------------------- lost, left
+
+SYSTEM_FILES = ("/dev/null", "/dev/zero", "/dev/urandom", "/dev/full", "/dev/stdout")
+"""watched in every case: a write through a link (or a rename over one) must never replace them"""
+CASE_VAR = "CUNIFORM_ATTACK_CASE"
+"""set in each case's child: every process the case starts inherits it, so one left running is found in /proc"""
+
+
+def _entry_state(path: str, st: os.stat_result) -> tuple:
+    import stat as st_
+
+    if st_.S_ISLNK(st.st_mode):
+        return ("link", os.readlink(path))
+    if st_.S_ISREG(st.st_mode):
+        if st.st_size > 64 << 20:  # a huge (sparse) case file: its size and time, not its bytes
+            return ("file", st.st_size, st.st_mtime_ns)
+        h = hashlib.sha256()
+        with open(path, "rb") as fh:
+            for block in iter(lambda: fh.read(1 << 20), b""):
+                h.update(block)
+        return ("file", st.st_size, h.hexdigest())
+    if st_.S_ISDIR(st.st_mode):
+        return ("folder",)
+    return ("special", st_.S_IFMT(st.st_mode), st.st_rdev)
+
+
+def snapshot(paths: list[Path]) -> dict[str, tuple]:
+    """Every file, folder and link under ``paths`` (links not followed, special files by kind): what a case may
+    not change."""
+    out: dict[str, tuple] = {}
+    todo = [str(p) for p in paths] + list(SYSTEM_FILES)
+    while todo:
+        path = todo.pop()
+        try:
+            st = os.lstat(path)
+            out[path] = _entry_state(path, st)
+        except OSError:
+            continue
+        if out[path] == ("folder",):
+            try:
+                todo += [os.path.join(path, name) for name in os.listdir(path)]
+            except OSError:
+                pass
+    return out
+
+
+def lost_since(before: dict[str, tuple]) -> list[str]:
+    """What existed in ``before`` and is now changed or gone (a new file is not a loss)."""
+    now = snapshot([])  # the system files
+    lost = []
+    for path, state in before.items():
+        try:
+            current = now.get(path) or _entry_state(path, os.lstat(path))
+        except OSError:
+            current = None
+        if current != state:
+            lost.append(f"{path}: {'gone' if current is None else 'changed'}")
+    return lost
+
+
+def _pids() -> set[int]:
+    return {int(e) for e in os.listdir("/proc") if e.isdigit()}
+
+
+def left_processes(token: str, before: set[int], grace: float = 1.0) -> list[str]:
+    """Processes started since ``before`` whose environment holds ``CASE_VAR=token``, alive ``grace`` s after the
+    case ended (a pool's workers notice a dead parent within 0.25 s); each is then SIGKILLed."""
+    needle = f"{CASE_VAR}={token}".encode()
+    deadline = time.time() + grace
+    while True:
+        found = []
+        for pid in _pids() - before:
+            try:
+                with open(f"/proc/{pid}/environ", "rb") as fh:
+                    env = fh.read().split(b"\0")
+                with open(f"/proc/{pid}/stat", "rb") as fh:
+                    zombie = fh.read().rsplit(b")", 1)[1].split()[0] == b"Z"
+            except OSError:
+                continue
+            if needle in env and not zombie:
+                found.append(pid)
+        if not found or time.time() > deadline:
+            break
+        time.sleep(0.05)
+    for pid in found:
+        with contextlib.suppress(ProcessLookupError):
+            os.kill(pid, signal.SIGKILL)
+    return [str(pid) for pid in found]
 
 
 # --------------------------------------------------------------------------------------------------- the forked child
@@ -245,17 +352,23 @@ def _child_start(workdir: Path) -> int:
     return _status("VmRSS")
 
 
+_LEFT: list[str] = []
+"""the processes the last :func:`_fork` left running"""
+
+
 def _fork(run: Callable[[], int], workdir: Path, timeout: float) -> tuple[str, int, float, float]:
     """Run ``run()`` in a forked child (its return value: the exit code); ``(how, code, peak_mb, seconds)`` where
-    how is "exit", "signal" or "timeout"."""
+    how is "exit", "signal" or "timeout". The processes it left running are in :data:`_LEFT`."""
     workdir.mkdir(parents=True, exist_ok=True)
     t0 = time.time()
     sys.stdout.flush()
     sys.stderr.flush()
+    token, before = f"{os.getpid()}-{time.time_ns()}", _pids()
     pid = os.fork()
     if pid == 0:  # the child
         code = 70
         try:
+            os.environ[CASE_VAR] = token  # inherited by every process the case starts
             rss0 = _child_start(workdir)
             try:
                 code = run()
@@ -275,9 +388,11 @@ def _fork(run: Callable[[], int], workdir: Path, timeout: float) -> tuple[str, i
         if time.time() > deadline:
             os.kill(pid, signal.SIGKILL)
             os.wait4(pid, 0)
+            _LEFT[:] = left_processes(token, before)
             return "timeout", -9, _peak(workdir), time.time() - t0
         time.sleep(0.005)
     seconds = time.time() - t0
+    _LEFT[:] = left_processes(token, before)
     if os.WIFSIGNALED(status):
         return "signal", -os.WTERMSIG(status), _peak(workdir), seconds
     return "exit", os.WEXITSTATUS(status), _peak(workdir), seconds
@@ -290,9 +405,12 @@ def _peak(workdir: Path) -> float:
         return float("nan")
 
 
-def run_reader_case(case: Case, readers: dict, original: dict[str, str], workdir: Path, timeout: float) -> None:
-    """Read ``case.target`` with its reader in a forked child and classify the outcome (module docstring)."""
+def run_reader_case(case: Case, readers: dict, original: dict[str, str], workdir: Path, timeout: float,
+                    watch: list[Path] | None = None) -> None:
+    """Read ``case.target`` with its reader in a forked child and classify the outcome (module docstring); what
+    changed under the target or ``watch`` (other than by a writing reader in its own target) is ``lost``."""
     read, errors = readers[case.reader]
+    before = snapshot([*(watch or []), *([] if case.reader in WRITING_READERS else [Path(case.target)])])
     result = workdir / "result.json"
     marker = workdir.parent / "marker"
     if marker.exists():
@@ -312,6 +430,7 @@ def run_reader_case(case: Case, readers: dict, original: dict[str, str], workdir
         return 0
 
     how, code, case.peak_mb, case.seconds = _fork(child, workdir, timeout)
+    case.left, case.lost = list(_LEFT), lost_since(before)
     stderr = (workdir / "stderr").read_text(errors="replace")[-2000:]
     ran = marker.exists()
     if how != "exit" or not result.exists():
@@ -337,7 +456,7 @@ def run_reader_case(case: Case, readers: dict, original: dict[str, str], workdir
             said = [ln for ln in stderr.splitlines() if ln.strip()]
             if out["fp"] == original.get(case.reader):
                 case.outcome = "harmless accepted"
-            elif len(said) == 1 and case.target in said[0] and "left out" in said[0]:
+            elif len(said) == 1 and case.target in said[0] and any(w in said[0] for w in LEFT_OUT_WORDS):
                 case.outcome = "left out, said"
             else:
                 case.outcome = "silent wrong"
@@ -347,12 +466,14 @@ def run_reader_case(case: Case, readers: dict, original: dict[str, str], workdir
         case.detail = "the payload's marker file exists; " + case.detail
 
 
-def run_command_case(case: Case, workdir: Path, timeout: float, real: bool = False) -> None:
+def run_command_case(case: Case, workdir: Path, timeout: float, real: bool = False,
+                     watch: list[Path] | None = None) -> None:
     """Run ``python -m <case.argv>`` (forked: the module run as ``__main__``; ``real``: a fresh interpreter) in an
-    empty folder and classify its exit code and stderr."""
+    empty folder and classify its exit code and stderr; what changed under ``watch`` is ``lost``."""
     import runpy
 
     name, *args = case.argv or []
+    before = snapshot(watch or [])
     cwd = workdir / "cwd"
     shutil.rmtree(cwd, ignore_errors=True)
     cwd.mkdir(parents=True)
@@ -380,6 +501,8 @@ def run_command_case(case: Case, workdir: Path, timeout: float, real: bool = Fal
 
         how, code, case.peak_mb, case.seconds = _fork(child, workdir, timeout)
         stderr = (workdir / "stderr").read_text(errors="replace")
+        case.left = list(_LEFT)
+    case.lost = lost_since(before)
     lines = [ln for ln in stderr.splitlines() if ln.strip()]
     case.extra["rc"] = code
     built = [a for a in args if "/missing_" in a and Path(a).exists()]
@@ -864,6 +987,7 @@ def _folder_cases(name: str, folder: Path, original: Path, reader: str,
                   muts: list[tuple[str, Callable[[Path], None]]]) -> list[Case]:
     """Each mutation applied to its own copy of the folder ``original``."""
     cases = []
+    folder.mkdir(parents=True, exist_ok=True)
     for i, (label, change) in enumerate(muts):
         dst = folder / f"{i:04d}"
         shutil.copytree(original, dst, symlinks=True)
@@ -1310,25 +1434,36 @@ def table_set_family(work: Path, quick: bool) -> Family:
                   _folder_cases("table set (folder)", folder, original, "table_set", muts))
 
 
+BENCH_SETTINGS = dict(suite="gaps", seed=0, sensing_range=3.0, horizon=6, lambda_=0.5, collision_penalty=1e6,
+                      cost_resolution=0.01,
+                      robot=dict(system="dubins", params=dict(speed=0.5, dt=0.2), radius=0.2, horizon=6),
+                      time_limit=30.0, barn_file=None,
+                      sources=dict(table="0123456789abcdef", coverage_table=None, policy=None), gap_widths=[0.6, 1.2])
+"""the benchmark family's settings.json"""
+BENCH_RECORD = dict(key="gaps/0/mppi_1.0/16/0", suite="gaps", task_id=0, method="mppi_1.0", budget=16, seed=7,
+                    repeat=0, outcome="goal", success=True, time=3.2, path_length=1.6, steps=16, cycles=16,
+                    cycle_hist={"120": 16}, wall_s=0.4, path=[[0.0, 0.0], [0.1, 0.0]])
+"""a record of the benchmark family"""
+LEFT_OUT_WORDS = ("left out", "dropping an incomplete last line")
+"""how a reader says what it left out (a reader: ``left out``; a run opening its folder drops a cut-short last line,
+whose episode it then runs again)"""
+WRITING_READERS = {"bench_append"}
+"""readers that write into what they are given: the original is probed on a copy of its own"""
+
+
 def bench_family(work: Path, quick: bool) -> Family:
     from eval.navigate.store import EpisodeStore
 
     folder = work / "bench"
     folder.mkdir()
     original = folder / "original"
-    robot = dict(system="dubins", params=dict(speed=0.5, dt=0.2), radius=0.2, horizon=6)
-    settings = dict(suite="gaps", seed=0, sensing_range=3.0, horizon=6, lambda_=0.5, collision_penalty=1e6,
-                    cost_resolution=0.01, robot=robot, time_limit=30.0, barn_file=None,
-                    sources=dict(table="0123456789abcdef", coverage_table=None, policy=None),
-                    gap_widths=[0.6, 1.2])
+    settings = BENCH_SETTINGS
     store = EpisodeStore(original)
     store.open(settings)
 
     def record(task: int, method: str = "mppi_1.0", outcome: str = "goal") -> dict:
-        return dict(key=f"gaps/{task}/{method}/16/0", suite="gaps", task_id=task, method=method, budget=16,
-                    seed=7 + task, repeat=0, outcome=outcome, success=outcome == "goal", time=3.2,
-                    path_length=1.6, steps=16, cycles=16, cycle_hist={"120": 16}, wall_s=0.4,
-                    path=[[0.0, 0.0], [0.1, 0.0]])
+        return {**BENCH_RECORD, "key": f"gaps/{task}/{method}/16/0", "task_id": task, "method": method,
+                "seed": 7 + task, "outcome": outcome, "success": outcome == "goal"}
 
     records = [record(0), record(1, outcome="collision"), record(0, method="cu_table")]
     for r in records:
@@ -1380,8 +1515,9 @@ def bench_family(work: Path, quick: bool) -> Family:
         ("episodes.jsonl links to /dev/null", lambda dst: _replace_by_special(dst / "episodes.jsonl", "/dev/null")),
         ("an unknown file in the folder", lambda dst: (dst / "notes.txt").write_text("hello")),
     ]
-    return Family("benchmark folder", ["bench"], original,
-                  _folder_cases("benchmark folder", folder, original, "bench", muts))
+    return Family("benchmark folder", ["bench", "bench_append"], original,
+                  [case for reader in ("bench", "bench_append")
+                   for case in _folder_cases("benchmark folder", folder / reader, original, reader, muts)])
 
 
 FAMILIES: dict[str, Callable[[Path, bool], Family]] = {
@@ -1454,6 +1590,202 @@ def entry_cases(work: Path, quick: bool) -> list[Case]:
     return cases
 
 
+# --------------------------------------------------------------------------------------------------- issue 38's calls
+
+def run_call_case(case: Case, call: Callable[[], Any], errors: tuple[type, ...], match: str | None, workdir: Path,
+                  timeout: float, watch: list[Path]) -> None:
+    """``call()`` in a forked child: raising one of ``errors`` (whose message matches ``match``) is a clear error,
+    another exception a traceback, returning a silent wrong (every call here is one that must be refused)."""
+    import re
+
+    result = workdir / "result.json"
+    if result.exists():
+        result.unlink()
+    before = snapshot(watch)
+
+    def child() -> int:
+        try:
+            call()
+            out = {"status": "accepted"}
+        except BaseException as exc:  # noqa: BLE001 - classified by the parent
+            out = {"status": "raised", "type": f"{type(exc).__module__}.{type(exc).__qualname__}",
+                   "family": isinstance(exc, errors) and (match is None or re.search(match, str(exc)) is not None),
+                   "message": str(exc)[:3000]}
+        result.write_text(json.dumps(out))
+        return 0
+
+    how, code, case.peak_mb, case.seconds = _fork(child, workdir, timeout)
+    case.left, case.lost = list(_LEFT), lost_since(before)
+    if how != "exit" or not result.exists():
+        case.outcome, case.detail = "crash/hang", f"{how} {code}"
+        return
+    out = json.loads(result.read_text())
+    if out["status"] == "accepted":
+        case.outcome, case.detail = "silent wrong", "accepted"
+    elif out["family"]:
+        case.outcome, case.detail = "clear error", out["message"].splitlines()[0][:300]
+    else:
+        case.outcome, case.detail = "traceback", f"{out['type']}: {out['message'][:300]}"
+
+
+def _parametrized(test: Any) -> list[tuple]:
+    """The argument tuples of a test's ``pytest.mark.parametrize`` (its table of cases)."""
+    (mark,) = [m for m in getattr(test, "pytestmark", []) if m.name == "parametrize"]
+    names = mark.args[0] if isinstance(mark.args[0], (list, tuple)) else mark.args[0].split(",")
+    rows = [v.values if type(v).__name__ == "ParameterSet" else v for v in mark.args[1]]
+    return [tuple(v) if len(names) > 1 else (v,) for v in rows]
+
+
+def issue38_calls(work: Path, quick: bool) -> list[tuple[Case, Callable[[], Any], tuple[type, ...], str | None]]:
+    """Issue 38's runaway counts, edited cards, misbehaving user systems and gymnasium actions, as calls; the user
+    systems and the gymnasium actions are the tables of tests/test_user_step_probe.py and tests/test_gym_env.py."""
+    import torch
+
+    import cuniform_torch.maps.pretrained as pretrained
+    from cuniform_torch import MPPI
+    from cuniform_torch.envs.environment import Environment
+    from cuniform_torch.envs.sim import simulate
+    from cuniform_torch.maps import load_map_policy
+    from cuniform_torch.policies.table_set import MAX_SET_TABLES, load_table_set
+    from cuniform_torch.systems import make_system
+    from cuniform_torch.tables.file import TableError
+
+    sys.path.insert(0, str(REPO / "tests"))
+    import test_user_step_probe as probe
+
+    folder = work / "calls"
+    folder.mkdir()
+    calls: list[tuple[Case, Callable[[], Any], tuple[type, ...], str | None]] = []
+
+    def add(family: str, label: str, call: Callable[[], Any], errors: tuple[type, ...], match: str | None = None,
+            target: Path | None = None) -> None:
+        size = _tree_size(target) if target is not None else 0
+        calls.append((Case(family, label, str(target or ""), "call", size=size), call, errors, match))
+
+    def index(name: str, entries: list[dict]) -> Path:
+        dst = folder / name
+        dst.mkdir()
+        (dst / "tables.json").write_text(json.dumps({"format": "cuniform-table-set/1", "system": "random_walk_1d",
+                                                     "tables": entries}))
+        return dst
+
+    counts = "runaway counts"
+    big = index("index-too-many", [{"file": f"start_{i:06d}.npz", "start": [float(i)]}
+                                   for i in range(MAX_SET_TABLES + 1)])
+    add(counts, f"tables.json of {MAX_SET_TABLES + 1:,} entries", lambda: load_table_set(big), (TableError,),
+        "more than the", big)
+    dup = index("index-one-member-20000-times", [{"file": "start_0000.npz", "start": [float(i)]}
+                                                  for i in range(20_000)])
+    (dup / "start_0000.npz").write_bytes(b"not read")
+    add(counts, "tables.json listing one member 20,000 times", lambda: load_table_set(dup), (TableError,),
+        "listed more than once", dup)
+    long_name = index("index-long-name", [{"file": "a" * 300 + ".npz", "start": [0.0]}])
+    add(counts, "a 300-character member name", lambda: load_table_set(long_name), (TableError,), "not usable",
+        long_name)
+
+    class Zero:
+        def command(self, state: Any) -> Any:
+            return state.new_zeros(1)
+
+    def runaway() -> Any:
+        return simulate(system=make_system("dubins"), controller=Zero(), x0=torch.zeros(3), env=Environment([]),
+                        goal=(50.0, 50.0), goal_tolerance=0.1, time_limit=1e9)
+
+    add(counts, "simulate(time_limit=1e9), an unreachable goal", runaway, (ValueError,), "more than the limit")
+
+    cards = "shipped policy card"
+    shipped = "unicycle-0.5"
+
+    def shelf(name: str, edit: Callable[[Path], None]) -> Path:
+        dst = folder / name
+        dst.mkdir()
+        for path in pretrained.PRETRAINED_DIR.glob(f"{shipped}*"):
+            shutil.copy(path, dst / path.name)
+        edit(dst)
+        return dst
+
+    def card_edit(**robot: Any) -> Callable[[Path], None]:
+        def edit(dst: Path) -> None:
+            path = dst / f"{shipped}.json"
+            card = json.loads(path.read_text())
+            for key, value in robot.items():
+                (card["robot"] if key in card["robot"] else card["robot"]["params"])[key] = value
+            path.write_text(json.dumps(card, indent=2))
+        return edit
+
+    def sparse(dst: Path) -> None:
+        with open(dst / f"{shipped}.map_policy.pt", "r+b") as fh:
+            fh.truncate(2 << 30)
+
+    def load_from(dst: Path) -> Callable[[], Any]:
+        def load() -> Any:
+            pretrained.PRETRAINED_DIR = dst  # the child's own copy of the module: the original is untouched
+            return load_map_policy(shipped)
+        return load
+
+    for label, edit in (("the card's speed edited to 0.6", card_edit(speed=0.6)),
+                        ("the card's radius edited to 0.5", card_edit(radius=0.5)),
+                        ("the card's horizon edited to 12", card_edit(horizon=12)),
+                        ("the weights file 2 GB (sparse)", sparse)):
+        dst = shelf(f"card-{len(calls)}", edit)
+        add(cards, label, load_from(dst), (pretrained.PretrainedError,), None, dst)
+
+    systems = "user System"
+    for label, system, error, match in probe.CASES:
+        def make(system: Any = system) -> Any:
+            return MPPI(system, probe._cost, num_samples=16, horizon=4, seed=0)
+        add(systems, f"MPPI of a system whose {label}", make, (error,), match)
+
+    try:
+        sys.path.insert(0, str(REPO / "tests"))
+        import test_gym_env as gym_tests
+
+        from eval.navigate.gym_env import NavigationEnv, make_env
+    except ImportError:  # gymnasium is an extra
+        return calls
+    gym = "gymnasium environment"
+
+    def stepped(action: Any) -> Callable[[], Any]:
+        def step() -> Any:
+            env = make_env("gaps", index=0)
+            env.reset(seed=0)
+            return env.step(action)
+        return step
+
+    for action, message in _parametrized(gym_tests.test_bad_action_raises):
+        add(gym, f"step({action!r})", stepped(action), (ValueError,), message)
+    for (options,) in _parametrized(gym_tests.test_unknown_reset_options_are_refused):
+        def reset(options: Any = options) -> Any:
+            return make_env("gaps", index=0).reset(options=options)
+        add(gym, f"reset(options={options!r})", reset, (ValueError,), "reset options may hold")
+    assert NavigationEnv is not None
+    return calls
+
+
+def issue38_commands(work: Path) -> tuple[list[Case], list[Path]]:
+    """Commands of issue 38 that must be refused before any work: a --starts grid of a million members, a benchmark
+    run into a folder whose records link into another folder or to /dev/null; ``(cases, folders to watch)``."""
+    from eval.navigate.store import EpisodeStore
+
+    folder = work / "commands"
+    other = folder / "other-benchmark"
+    store = EpisodeStore(other)
+    store.open(BENCH_SETTINGS)
+    store.append(BENCH_RECORD)
+    cases = [Case("commands", "precompute.build --starts of 1,000,000 members",
+                  argv=["precompute.build", "--system", "random_walk_1d", "--horizon", "3", "--quiet", "--starts",
+                        "0=-1:1:1000000", "--out", str(folder / "huge-set")])]
+    for label, target in (("links into another benchmark folder", other / "episodes.jsonl"),
+                          ("links to /dev/null", Path("/dev/null"))):
+        out = folder / f"bench-{len(cases)}"
+        out.mkdir()
+        (out / "episodes.jsonl").symlink_to(target)
+        cases.append(Case("commands", f"eval.navigate --out FOLDER whose episodes.jsonl {label}",
+                          argv=["eval.navigate", "--suite", "gaps", "--tasks", "1", "--methods", "mppi_1.0",
+                                "--budgets", "16", "--quiet", "--cache", str(folder / "cache"), "--out", str(out)]))
+    return cases, [other, *(folder / f"bench-{i}" for i in (1, 2))]
+
+
 # --------------------------------------------------------------------------------------------------- the run
 
 def baseline_mb() -> float:
@@ -1467,14 +1799,19 @@ def baseline_mb() -> float:
 
 
 def summarize(cases: list[Case]) -> dict[str, dict[str, Any]]:
+    """Per family: cases tried, per outcome, cases that lost a file (``lost``) or left a process (``left
+    processes``), and the largest peak (MB over the case's own start)."""
+    empty = {"tried": 0, **{o: 0 for o in OUTCOMES}, "lost": 0, "left processes": 0, "max_peak_mb": 0.0}
     rows: dict[str, dict[str, Any]] = {}
     for c in cases:
-        row = rows.setdefault(c.family, {"tried": 0, **{o: 0 for o in OUTCOMES}, "max_peak_mb": 0.0})
+        row = rows.setdefault(c.family, dict(empty))
         row["tried"] += 1
         row[c.outcome] += 1
+        row["lost"] += bool(c.lost)
+        row["left processes"] += bool(c.left)
         if not math.isnan(c.peak_mb):
             row["max_peak_mb"] = max(row["max_peak_mb"], round(c.peak_mb, 1))
-    total = {"tried": 0, **{o: 0 for o in OUTCOMES}, "max_peak_mb": 0.0}
+    total = dict(empty)
     for row in rows.values():
         for k in total:
             total[k] = max(total[k], row[k]) if k == "max_peak_mb" else total[k] + row[k]
@@ -1482,30 +1819,43 @@ def summarize(cases: list[Case]) -> dict[str, dict[str, Any]]:
     return rows
 
 
+COLUMNS = ["tried", "clear error", "silent wrong", "traceback", "code ran", "crash/hang", "lost", "left processes",
+           "harmless accepted", "left out, said", "max_peak_mb"]
+HEADS = ["tried", "clear error", "silent wrong", "traceback", "code ran", "hang/crash", "lost", "left procs",
+         "harmless acc.", "left out,said", "peak MB"]
+
+
 def print_table(rows: dict[str, dict[str, Any]]) -> None:
-    cols = ["tried", "clear error", "silent wrong", "traceback", "code ran", "crash/hang", "harmless accepted",
-            "left out, said", "max_peak_mb"]
-    heads = ["tried", "clear error", "silent wrong", "traceback", "code ran", "crash/hang", "harmless acc.",
-             "left out,said", "peak MB"]
     width = max(len(k) for k in rows) + 2
-    print(f"{'family':<{width}}" + "".join(f"{h:>14}" for h in heads))
+    print(f"{'family':<{width}}" + "".join(f"{h:>14}" for h in HEADS))
     for name, row in rows.items():
         if name == "TOTAL":
-            print("-" * (width + 14 * len(cols)))
-        print(f"{name:<{width}}" + "".join(f"{row[c]:>14}" for c in cols))
+            print("-" * (width + 14 * len(COLUMNS)))
+        print(f"{name:<{width}}" + "".join(f"{row[c]:>14}" for c in COLUMNS))
+
+
+def markdown_table(rows: dict[str, dict[str, Any]]) -> str:
+    """The summary as a markdown table (the docs' copy); peak MB is each case's own, over the RSS it started with."""
+    heads = [h.replace("peak MB", "peak MB over start") for h in HEADS]
+    lines = ["| family | " + " | ".join(heads) + " |", "|---|" + "---:|" * len(heads)]
+    for name, row in rows.items():
+        cells = [f"{row[c]:.0f}" if c == "max_peak_mb" else str(row[c]) for c in COLUMNS]
+        lines.append(f"| {'**total**' if name == 'TOTAL' else name} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
 
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python .ci/attack.py", description=__doc__.split("\n\n")[0])
     p.add_argument("--quick", action="store_true", help="a smaller sample of every class (a few minutes)")
     p.add_argument("--out", type=Path, default=None, help="write every case and the summary as JSON here")
-    p.add_argument("--families", default=",".join([*FAMILIES, "entry"]),
-                   help=f"comma-separated subset of {', '.join([*FAMILIES, 'entry'])}")
+    p.add_argument("--families", default=",".join([*FAMILIES, "issue38", "entry"]),
+                   help=f"comma-separated subset of {', '.join([*FAMILIES, 'issue38', 'entry'])}")
     p.add_argument("--timeout", type=float, default=None, help="seconds per case (default 60, quick 30)")
     p.add_argument("--keep", action="store_true", help="keep the folder of mutated files")
+    p.add_argument("--markdown", action="store_true", help="print the summary as a markdown table too")
     args = p.parse_args(argv)
     chosen = [f.strip() for f in args.families.split(",") if f.strip()]
-    unknown = sorted(set(chosen) - {*FAMILIES, "entry"})
+    unknown = sorted(set(chosen) - {*FAMILIES, "issue38", "entry"})
     if unknown:
         p.error(f"--families: unknown {', '.join(unknown)}")
     timeout = args.timeout or (30.0 if args.quick else 60.0)
@@ -1529,23 +1879,44 @@ def main(argv: list[str] | None = None) -> int:
             fam = FAMILIES[key](work, args.quick)
             original: dict[str, str] = {}
             for reader in fam.readers:
-                readers[reader][0](fam.target)  # warm-up in this process (lazy imports, JIT): children inherit it
-                probe = Case(fam.name, "original", str(fam.target), reader)
+                target = fam.target
+                if reader in WRITING_READERS:  # probed on copies: the original stays what the cases compare with
+                    target = work / key / f"probe-{reader}"
+                    shutil.copytree(fam.target, target, symlinks=True)
+                    readers[reader][0](target)  # warm-up
+                    shutil.rmtree(target)
+                    shutil.copytree(fam.target, target, symlinks=True)
+                else:
+                    readers[reader][0](target)  # warm-up in this process (lazy imports, JIT): children inherit it
+                probe = Case(fam.name, "original", str(target), reader)
                 run_reader_case(probe, readers, {}, work / key / "run", timeout)
                 if probe.outcome != "silent wrong":  # no fingerprint to compare with: the original must read
                     raise SystemExit(f"error: the original {fam.name} does not read with {reader}: {probe.detail}")
                 original[reader] = probe.extra["fp"]
             built = time.time() - t0
-            for case in fam.cases:
-                run_reader_case(case, readers, original, work / key / "run", timeout)
+            for case in fam.cases:  # the original watched too: a case's links may lead into it
+                run_reader_case(case, readers, original, work / key / "run", timeout, watch=[fam.target])
             all_cases += fam.cases
             print(f"{fam.name}: {len(fam.cases)} cases in {time.time() - t0:.0f} s (originals and copies made in "
                   f"{built:.0f} s)", flush=True)
+        if "issue38" in chosen:
+            t0 = time.time()
+            calls = issue38_calls(work, args.quick)
+            for case, call, errors, match in calls:
+                run_call_case(case, call, errors, match, work / "calls" / "run", timeout,
+                              watch=[Path(case.target)] if case.target else [])
+            commands, watched = issue38_commands(work)
+            for case in commands:
+                run_command_case(case, work / "commands" / "run", timeout, watch=watched)
+            all_cases += [c for c, *_ in calls] + commands
+            print(f"issue 38 calls and commands: {len(calls) + len(commands)} cases in {time.time() - t0:.0f} s",
+                  flush=True)
         if "entry" in chosen:
             t0 = time.time()
             cases = entry_cases(work, args.quick)
-            for case in cases:
-                run_command_case(case, work / "entry" / "run", timeout)
+            fixtures = [p for p in (work / "entry").iterdir() if p.name not in ("run", "real")]
+            for case in cases:  # the folders, links and FIFOs the flags name: never written through or replaced
+                run_command_case(case, work / "entry" / "run", timeout, watch=fixtures)
             if not args.quick:  # the forked runs against real interpreters: one case per command
                 seen: set[str] = set()
                 for case in cases:
@@ -1567,23 +1938,30 @@ def main(argv: list[str] | None = None) -> int:
     rows = summarize(all_cases)
     print()
     print_table(rows)
+    if args.markdown:
+        print()
+        print(markdown_table(rows))
     if SKIPPED:
         print("not tried, as the contract allows them (valid files of other content): " +
               ", ".join(f"{k}: {v}" for k, v in SKIPPED.items()))
-    bad = [c for c in all_cases if c.outcome in BAD]
-    big = [c for c in all_cases if c.argv is None and c.size < SMALL_FILE and c.peak_mb > PEAK_LIMIT_MB]
+    bad = [c for c in all_cases if c.outcome in BAD or c.lost or c.left]
+    special = ("a FIFO", "a link to /dev/")  # an entry case's input that is a special file
+    big = [c for c in all_cases if c.peak_mb > PEAK_LIMIT_MB and (
+        (c.argv is None and c.size < SMALL_FILE) or any(w in c.mutation for w in special))]
     unnamed = [c for c in all_cases if c.outcome == "clear error" and c.extra.get("names_file") is False]
     disagree = [c for c in all_cases if "forked_outcome" in c.extra and c.extra["forked_outcome"] != c.outcome]
     said = [c for c in all_cases if c.outcome == "left out, said"]
-    for title, group in (("silent wrong / traceback / code ran / crash or hang", bad),
+    for title, group in (("silent wrong / traceback / code ran / crash or hang / lost / left processes", bad),
                          ("left out and said on stderr (not failures; listed to be seen)", said),
-                         (f"peak over {PEAK_LIMIT_MB} MB for a file under 10 MB", big),
+                         (f"peak over {PEAK_LIMIT_MB} MB for a file under 10 MB or a special file", big),
                          ("clear errors that do not name the file or folder", unnamed),
                          ("real python -m runs classified otherwise than their forked runs", disagree)):
         if group:
             print(f"\n{title} ({len(group)}):")
             for c in group:
-                print(f"  [{c.family}] {c.mutation} ({c.reader or 'cli'}): {c.outcome}: {c.detail}")
+                print(f"  [{c.family}] {c.mutation} ({c.reader or 'cli'}): {c.outcome}: {c.detail}"
+                      + (f"; lost: {', '.join(c.lost[:3])}" if c.lost else "")
+                      + (f"; left processes: {', '.join(c.left)}" if c.left else ""))
     seconds = time.time() - t_start
     print(f"\n{len(all_cases)} cases in {seconds:.0f} s; baseline {base:.0f} MB")
     if args.out is not None:

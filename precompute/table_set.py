@@ -225,10 +225,48 @@ def _build_set(template: TableJob, starts: np.ndarray, out: Path, workers: int, 
     return out
 
 
+def _cached_set_differs(template: TableJob, starts: np.ndarray, folder: Path) -> str | None:
+    """What makes the complete set in ``folder`` another set than ``template`` from ``starts`` would build (its
+    index's system, parameters or method; a member's start, file or build settings, each checked as a rerun of
+    :func:`build_table_set` checks it), or None."""
+    index = json.loads(read_capped_text(folder / INDEX, MAX_JSON_BYTES, "the table-set index"))
+    params = json.loads(json.dumps(template.system.params(), default=list))
+    for key, want in (("system", template.system.name), ("method", template.method)):
+        if index.get(key) != want:
+            return f"{INDEX} {key}: {index.get(key)!r} there, {want!r} now"
+    old = index.get("params") if isinstance(index.get("params"), dict) else {}
+    keys = sorted(k for k in set(old) | set(params) if old.get(k) != params.get(k))
+    if keys:
+        return "; ".join(f"{INDEX} {k}: {old.get(k)!r} there, {params.get(k)!r} now" for k in keys[:3])
+    for i, (entry, start) in enumerate(zip(index["tables"], np.asarray(starts, dtype=np.float64))):
+        path = folder / f"start_{i:04d}.npz"
+        if entry.get("file") != path.name:
+            return f"{INDEX} member {i}: file {entry.get('file')!r} there, {path.name!r} now"
+        if not np.array_equal(np.asarray(entry.get("start"), dtype=float), start):
+            return f"{path.name}: start {entry.get('start')} there, {start.tolist()} now"
+        try:
+            table = read_table(path, graph=False)
+        except (TableError, OSError) as exc:
+            return f"{path.name} does not read: {exc}"
+        if table.start is None or not np.array_equal(table.start, start):
+            return f"{path.name}: start {None if table.start is None else table.start.tolist()} there, {start.tolist()} now"
+        differ = _settings_differ(table, template)
+        if differ is not None:
+            return f"{path.name}: {differ}"
+    return None
+
+
 def ensure_table_set(template: TableJob, starts: np.ndarray, folder: Path, workers: int = 1,
                      ray_address: str | None = None) -> Path:
-    """``folder``, built first by :func:`build_table_set` when it is not a complete set of ``len(starts)``."""
+    """``folder``, built first by :func:`build_table_set` when it is not a complete set of ``len(starts)``. A
+    complete set there is checked first as a rerun checks its members (its index's system, parameters and method;
+    each member's start and build settings): one that another template or other starts built is a ValueError
+    naming what differs, never used in their place."""
     if set_complete(folder, len(starts)):
+        differ = _cached_set_differs(template, starts, Path(folder))
+        if differ is not None:
+            raise ValueError(f"the table set {folder} was built with other settings ({differ}); delete {folder} "
+                             "to build it anew, or give another folder")
         return Path(folder)
     build_table_set(template, starts, folder, workers, ray_address)
     if not set_complete(folder, len(starts)):

@@ -1,7 +1,8 @@
 """numba's disk cache of the compiled loops can only help (:mod:`cuniform_torch.common.compiled`): a damaged cache
-(a truncated index ``.nbi`` or data file ``.nbc``) or no writable cache folder at all is one
-``CompiledCacheWarning`` naming the folder and what to do, and the loop is compiled in memory: the same answer,
-no traceback. Each case runs in a fresh process with its own cache folder (``NUMBA_CACHE_DIR``), never the
+(a truncated index ``.nbi`` or data file ``.nbc``) is one ``CompiledCacheWarning`` naming the damaged files it
+removed, and the loop is compiled and saved afresh (the next run loads it again); where they cannot be removed, or
+no cache folder is writable at all, one warning saying what to do and the loop is compiled in memory: the same
+answer, no traceback. Each case runs in a fresh process with its own cache folder (``NUMBA_CACHE_DIR``), never the
 install's ``__pycache__``."""
 
 from __future__ import annotations
@@ -43,7 +44,7 @@ def _warnings(stderr: str) -> list[str]:
 
 
 @pytest.mark.parametrize("suffix", [".nbi", ".nbc"])
-def test_a_truncated_cache_file_is_compiled_in_memory_with_one_warning(tmp_path, suffix):
+def test_a_truncated_cache_file_is_removed_and_compiled_afresh_with_one_warning(tmp_path, suffix):
     cache = tmp_path / "numba-cache"
     first = _run({"NUMBA_CACHE_DIR": str(cache)})
     assert first.returncode == 0 and "hit [True, False]" in first.stdout, first.stderr
@@ -61,7 +62,30 @@ def test_a_truncated_cache_file_is_compiled_in_memory_with_one_warning(tmp_path,
     assert "Traceback" not in again.stderr
     lines = _warnings(again.stderr)
     assert len(lines) == 1, again.stderr
-    assert str(damaged[0].parent) in lines[0] and "could not be read" in lines[0] and "Delete that folder" in lines[0]
+    assert str(damaged[0].parent) in lines[0] and "could not be read" in lines[0], lines
+    assert "removed its damaged files" in lines[0] and damaged[0].name in lines[0], lines
+    repaired = _run({"NUMBA_CACHE_DIR": str(cache)})  # repaired on disk: loaded again, no warning
+    assert repaired.returncode == 0 and "cache hits 1" in repaired.stdout, repaired.stdout + repaired.stderr
+    assert not _warnings(repaired.stderr), repaired.stderr
+
+
+def test_a_damaged_cache_that_cannot_be_removed_is_set_aside_with_one_warning(tmp_path):
+    """Where the damaged files' folder is not writable (a read-only install; simulated here by ``os.access``, since
+    root may write anywhere) the loop is compiled in memory in every run, and the warning says what to do."""
+    cache = tmp_path / "numba-cache"
+    assert _run({"NUMBA_CACHE_DIR": str(cache)}).returncode == 0
+    (index,) = cache.rglob("contains_loops.any_contains-*.nbi")
+    index.write_bytes(index.read_bytes()[:10])
+    read_only = ("import os\n_access = os.access\n"
+                 "os.access = lambda p, mode, **kw: False if mode & os.W_OK else _access(p, mode, **kw)\n")
+    env = dict(os.environ, PYTHONPATH=str(ROOT), NUMBA_CACHE_DIR=str(cache))
+    for _ in range(2):
+        run = subprocess.run([sys.executable, "-c", read_only + USE_A_LOOP], cwd=ROOT, env=env, capture_output=True,
+                             text=True, timeout=300)
+        assert run.returncode == 0 and "hit [True, False]" in run.stdout and "cache hits 0" in run.stdout, run.stderr
+        lines = _warnings(run.stderr)
+        assert len(lines) == 1 and "Delete that folder" in lines[0] and "removed" not in lines[0], run.stderr
+    assert index.stat().st_size == 10  # left as it was
 
 
 def test_no_writable_cache_folder_compiles_in_memory_with_one_warning(tmp_path):
@@ -102,3 +126,6 @@ def test_a_data_file_of_another_loop_is_not_run(tmp_path):
     assert "heading 0.75" in again.stdout and "hit [True, False]" in again.stdout and "Traceback" not in again.stderr
     lines = _warnings(again.stderr)
     assert lines and all("holds the code of" in line for line in lines), again.stderr
+    repaired = run()  # both loops' files were removed and saved afresh: loaded again, no warning
+    assert repaired.returncode == 0 and "heading 0.75" in repaired.stdout and "cache hits 1" in repaired.stdout
+    assert not _warnings(repaired.stderr), repaired.stderr

@@ -231,6 +231,19 @@ def test_a_benchmark_folder_whose_records_link_elsewhere_is_refused_never_writte
     assert stat.S_ISCHR(os.stat("/dev/null").st_mode)
 
 
+@pytest.mark.parametrize("kind", ["symlink loop", "file"])
+def test_a_benchmark_folder_that_cannot_be_made_is_one_store_error(tmp_path, kind):
+    """EpisodeStore.open of a folder path that is a symlink loop or a regular file (the attack's appending reader:
+    a raw FileExistsError before)."""
+    folder = tmp_path / "bench"
+    if kind == "file":
+        folder.write_text("not a folder")
+    else:
+        folder.symlink_to(folder.name)
+    with pytest.raises(StoreError, match=f"{folder}: cannot be used as a benchmark folder"):
+        EpisodeStore(folder).open(bench_settings())
+
+
 def test_benchmark_settings_linked_elsewhere_are_refused(tmp_path):
     other = _store(tmp_path / "other")
     store = EpisodeStore(tmp_path / "run")
@@ -269,6 +282,61 @@ def test_build_to_a_device_is_one_line_and_leaves_it_a_device(tmp_path, capsys):
     assert out.is_symlink() and not (tmp_path / "null.report.json").exists()
 
 
+@pytest.mark.parametrize("where", ["file", "set index", "set member"])
+def test_the_benchmark_digests_its_inputs_from_regular_files_only(tmp_path, where):
+    """eval.navigate's digest of an input (``_file_digest``: the settings record, ``eval.navigate.replay``'s check of
+    a given --table) opens regular files only: a FIFO is one FileKindError naming it (it hung in ``open``)."""
+    from eval.navigate.run import _file_digest
+
+    if where == "file":
+        target = fifo = tmp_path / "table.npz"
+    else:
+        target = tmp_path / "set"
+        target.mkdir()
+        (target / "tables.json").write_text("{}")
+        (target / "start_0000.npz").write_bytes(b"a member")
+        fifo = target / ("tables.json" if where == "set index" else "start_0001.npz")
+        fifo.unlink(missing_ok=True)
+    os.mkfifo(fifo)
+    with pytest.raises(FileKindError, match=f"{fifo}: an input file of the benchmark is a FIFO"):
+        _quick(lambda _fifo: _file_digest(target), fifo, timeout=10.0)  # fifo: what _quick unblocks
+
+
+def test_a_benchmark_out_that_is_a_device_is_refused_before_any_work(tmp_path, capsys, monkeypatch):
+    """eval.navigate --out LINK->/dev/null: one line naming the device before the tasks are made (it made them,
+    then said only "File exists"; under load the attack run saw it still at work after 30 s)."""
+    import eval.navigate.run as nav_run
+
+    out = tmp_path / "null"
+    out.symlink_to("/dev/null")
+    monkeypatch.setattr(nav_run, "make_tasks", lambda *a, **k: pytest.fail("work started before --out was checked"))
+    assert nav_run.main(["--suite", "gaps", "--tasks", "1", "--methods", "mppi_1.0", "--budgets", "16",
+                         "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and f"--out {out} is a character device (through a symlink)" in err, err
+    assert out.is_symlink() and stat.S_ISCHR(os.stat("/dev/null").st_mode)
+
+
+def test_eval_bench_reads_every_given_table_before_timing(tmp_path, capsys, monkeypatch, dubins_table):
+    """eval.bench --table FIFO (the horizon-10 table): refused before any table is built or controller timed (it
+    was read after the horizon-15 table's build and rows: 19 s and 635 MB), naming what is there."""
+    import eval.bench.controllers as bench
+    from cuniform_torch import write_table
+
+    good = tmp_path / "t15.npz"
+    write_table(good, dubins_table)
+    fifo = _fifo(tmp_path / "t10.npz")
+    monkeypatch.setattr(bench, "MPPI", lambda *a, **k: pytest.fail("a controller was timed before --table was read"))
+    assert _quick(lambda _fifo: bench.main(["--table15", str(good), "--table", str(fifo), "--samples", "2"]), fifo,
+                  timeout=60.0) == 2
+    err = capsys.readouterr().err
+    assert err.strip() == f"error: {fifo}: no table file there (a FIFO (named pipe))", err
+    missing = tmp_path / "t15-missing.npz"  # a default to build: not before the given --table is read
+    assert _quick(lambda _fifo: bench.main(["--table15", str(missing), "--table", str(fifo), "--samples", "2"]),
+                  fifo, timeout=60.0) == 2
+    assert not missing.exists()  # it built the horizon-15 table first (a 400 MB peak before the refusal)
+
+
 # ------------------------------------------------------------------------------------------ a rebuilt table set
 
 @pytest.mark.parametrize("change, said", [(["--horizon", "5"], "horizon: 4 there, 5 now"),
@@ -291,6 +359,29 @@ def test_a_table_set_rebuilt_with_other_settings_is_refused_not_kept_stale(tmp_p
     assert {p.name: p.read_bytes() for p in tmp_path.glob("start_*.npz")} == members
     assert main(base) == 0  # the same settings still resume
     assert json.loads((tmp_path / "tables.json").read_text())["tables"][0]["file"] == "start_0000.npz"
+
+
+@pytest.mark.parametrize("change, said", [(["--horizon", "5"], "horizon: 4 there, 5 now"),
+                                          (["--param", "dt=2"], "dt: 1"),
+                                          (["--starts", "0=-1:1.5:3"], "start_0001.npz: start [0.0] there, [0.25] now"),
+                                          (["--points", "random"], "points: 'centers' there, 'random' now")])
+def test_a_cached_table_set_of_other_settings_is_refused_not_used(tmp_path, change, said):
+    """ensure_table_set (the caches of eval.start_aware and eval.mountain_car) checks a complete set like a rebuild
+    does: a set in the folder built with other settings or starts is one ValueError, never handed back as theirs."""
+    from precompute.build import parse_job
+    from precompute.table_set import ensure_table_set
+
+    base = ["--system", "random_walk_1d", "--horizon", "4", "--quiet", "--starts", "0=-1:1:3", "--out", str(tmp_path)]
+    template, spec = parse_job(base)
+    assert ensure_table_set(template, spec["starts"], tmp_path) == tmp_path
+    files = {p.name: p.stat().st_mtime_ns for p in tmp_path.iterdir()}
+    assert ensure_table_set(template, spec["starts"], tmp_path) == tmp_path  # the same settings: used as it is
+    other, other_spec = parse_job([*base, *change])
+    with pytest.raises(ValueError, match="built with other settings") as info:
+        ensure_table_set(other, other_spec["starts"], tmp_path)
+    message = str(info.value)
+    assert said in message and "delete" in message and "\n" not in message, message
+    assert {p.name: p.stat().st_mtime_ns for p in tmp_path.iterdir()} == files  # nothing rebuilt or rewritten
 
 
 # ------------------------------------------------------------------------------------------ runaway counts

@@ -11,19 +11,22 @@ from its cache (``__pycache__`` next to the module, else numba's cache folder in
   to make the function (``RuntimeError: cannot cache function ...: no locator available``). Here the loop is made
   without a disk cache instead (compiled in memory in every process).
 * **the cache is damaged** (a truncated index ``*.nbi`` or data file ``*.nbc``): loading it raised
-  ``UnpicklingError`` at the first call. Here that cache is set aside for the process (not read, not written) and
-  the loop is compiled in memory.
+  ``UnpicklingError`` at the first call. Here the damaged loop's index and data files are removed when their folder
+  is writable (one warning naming them), and the loop is compiled and saved afresh: the next run loads it from
+  disk again. Where they cannot be removed (a read-only install), that cache is set aside for the process (not
+  read, not written) and the loop is compiled in memory, in every run, with one warning saying what to do.
 
-Each is one :class:`CompiledCacheWarning` (once per cache folder, or once for the missing folder) naming the file or
-folder and what to do. A data file that unpickles cleanly but holds another loop's code (two ``.nbc`` files
-swapped) is refused the same way when its function name or argument types differ from the loop's; numba records
-no digest of a data file, so one with the same name and types but other code (edited by hand) is not caught. Deleting the ``__pycache__`` folder named in a warning (or setting ``NUMBA_CACHE_DIR``) rebuilds
-the cache.
+Each is one :class:`CompiledCacheWarning` (once per repaired loop, once per cache folder set aside, or once for the
+missing folder) naming the files or folder. A data file that unpickles cleanly but holds another loop's code (two
+``.nbc`` files swapped) is refused the same way when its function name or argument types differ from the loop's;
+numba records no digest of a data file, so one with the same name and types but other code (edited by hand) is not
+caught. Deleting the ``__pycache__`` folder named in a warning (or setting ``NUMBA_CACHE_DIR``) rebuilds the cache.
 """
 
 from __future__ import annotations
 
 import os
+import re
 import threading
 import warnings
 from collections.abc import Callable
@@ -88,6 +91,34 @@ class _GuardedCache:
         cache_file = getattr(self._inner, "_cache_file", None)
         return str(getattr(cache_file, "_index_path", None) or getattr(self._inner, "cache_path", "?"))
 
+    def _repair(self, exc: BaseException) -> bool:
+        """Remove this loop's index and data files (``<base>.nbi``, ``<base>.<n>.nbc``) after a failed load, when
+        their folder is writable, so that the compile which follows saves a fresh cache; True if removed (one
+        warning naming them), False where they cannot be (the caller then sets the cache aside)."""
+        cache_file = getattr(self._inner, "_cache_file", None)
+        folder = getattr(cache_file, "_cache_path", None)
+        index_name = getattr(cache_file, "_index_name", None)
+        if not folder or not index_name or not index_name.endswith(".nbi") or not os.access(folder, os.W_OK | os.X_OK):
+            return False
+        base = index_name[: -len(".nbi")]
+        ours = re.compile(rf"{re.escape(base)}(?:\.nbi|\.\d+\.nbc)")  # this loop's files, not its neighbours'
+        removed = []
+        try:
+            for entry in os.scandir(folder):
+                if ours.fullmatch(entry.name):
+                    try:
+                        os.unlink(entry.path)
+                    except FileNotFoundError:  # another process repairing it at the same time
+                        continue
+                    removed.append(entry.name)
+        except OSError:
+            return False
+        _warn_once(f"repaired {folder}/{base}", self._index_path(),
+                   f"numba's cache of the compiled loop {self._module}.{self._name} in {folder} could not be read "
+                   f"({type(exc).__name__}: {exc}); removed its damaged files ({', '.join(sorted(removed)) or 'none left'}) "
+                   "and compiling it again, saved there for the next run")
+        return True
+
     def _give_up(self, doing: str, exc: BaseException) -> None:
         self._inner.disable()
         path = self._index_path()
@@ -104,8 +135,9 @@ class _GuardedCache:
                 self._check_loaded(cres, sig)
             return cres
         except Exception as exc:  # a damaged index or data file: unpickling, rebuilding, reading, another loop's
-            self._give_up("read", exc)
-            return None
+            if not self._repair(exc):
+                self._give_up("read", exc)
+            return None  # a cache miss: the dispatcher compiles (and, once repaired, saves afresh)
 
     def _check_loaded(self, cres: Any, sig: Any) -> None:
         """ValueError unless the loaded code is this function's, for ``sig`` (a data file of another loop, put in

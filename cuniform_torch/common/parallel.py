@@ -12,11 +12,13 @@ job.
 
 from __future__ import annotations
 
+import contextlib
 import multiprocessing
 import os
+import signal
 import threading
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from concurrent.futures.process import BrokenProcessPool
 from typing import Any
@@ -81,11 +83,62 @@ def _die_with_parent(parent: int) -> None:
     threading.Thread(target=_watch_parent, args=(parent,), name="die-with-parent", daemon=True).start()
 
 
+@contextlib.contextmanager
+def _sigint_blocked() -> Iterator[None]:
+    """SIGINT blocked in this thread while the block runs (a Ctrl-C meanwhile is delivered after it). Processes
+    started meanwhile inherit the blocked mask across exec and never see a Ctrl-C: the terminal sends it to the whole
+    process group, and each spawned worker printed its own KeyboardInterrupt traceback (most often from importing
+    the main module); the parent alone handles it and ends them (:func:`_processes`)."""
+    if threading.current_thread() is not threading.main_thread() or not hasattr(signal, "pthread_sigmask"):
+        yield  # Python runs signal handlers in the main thread only: no Ctrl-C to keep from workers started here
+        return
+    old = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+    try:
+        yield
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, old)
+
+
+class _Terminated(BaseException):
+    """SIGTERM arrived while a pool ran (:func:`_sigterm_ends_the_pool`)."""
+
+
+@contextlib.contextmanager
+def _sigterm_ends_the_pool() -> Iterator[None]:
+    """While the block runs (in the main thread, SIGTERM at its default), a SIGTERM ends the pool's workers before
+    the process dies of it: killed at once, the parent left its workers mid-handshake (a ``ConnectionResetError``
+    traceback each) and the resource tracker warning about leaked semaphores. The process still ends by SIGTERM,
+    re-raised once the pool is shut down, as its sender expects."""
+    if (threading.current_thread() is not threading.main_thread()
+            or signal.getsignal(signal.SIGTERM) is not signal.SIG_DFL):
+        yield  # another handler, or ignored: not ours to change
+        return
+
+    def terminated(signum: int, frame: Any) -> None:
+        raise _Terminated
+
+    signal.signal(signal.SIGTERM, terminated)
+    try:
+        yield
+    except _Terminated:
+        signal.signal(signal.SIGTERM, signal.SIG_DFL)
+        signal.raise_signal(signal.SIGTERM)  # dies here, as it would have without the pool
+        raise
+    finally:
+        signal.signal(signal.SIGTERM, signal.SIG_DFL)
+
+
 def _processes(fn: Callable[..., Any], jobs: Sequence[tuple], workers: int, done: Callable[[int, Any], None]) -> None:
+    with _sigterm_ends_the_pool():
+        _pool(fn, jobs, workers, done)
+
+
+def _pool(fn: Callable[..., Any], jobs: Sequence[tuple], workers: int, done: Callable[[int, Any], None]) -> None:
     pool = ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn"),
                                initializer=_die_with_parent, initargs=(os.getpid(),))
     try:
-        pending = {pool.submit(fn, *job): i for i, job in enumerate(jobs)}
+        with _sigint_blocked():  # the workers start (at the first submit) with Ctrl-C blocked
+            pending = {pool.submit(fn, *job): i for i, job in enumerate(jobs)}
         while pending:
             finished, _ = wait(pending, return_when=FIRST_COMPLETED)
             for future in finished:
@@ -97,6 +150,11 @@ def _processes(fn: Callable[..., Any], jobs: Sequence[tuple], workers: int, done
                         "out-of-memory killer, or crashed); the jobs finished before were kept: rerun to resume, "
                         "with fewer --workers if memory ran out") from None
                 done(pending.pop(future), result)
+    except (KeyboardInterrupt, _Terminated):  # Ctrl-C (the workers never see it: blocked) or SIGTERM: end their
+        # jobs now, not at their end
+        for process in list((getattr(pool, "_processes", None) or {}).values()):
+            process.terminate()
+        raise
     finally:  # on an error or Ctrl-C: drop the queued jobs, keep what was done
         pool.shutdown(wait=True, cancel_futures=True)
 

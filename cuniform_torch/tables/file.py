@@ -20,7 +20,7 @@ import numpy as np
 import torch
 
 from cuniform_torch.common.digest import DIGEST_KEY, DigestError, check_digest, content_digest
-from cuniform_torch.common.fileio import write_npz
+from cuniform_torch.common.fileio import file_kind, write_npz
 from cuniform_torch.common.npz import NpzError, npy_header
 from cuniform_torch.systems import MAX_ACTIONS, MAX_HORIZON, System, system_from_json, system_to_json
 from cuniform_torch.tables.checks import KNOWN_METHODS, TableError, validate_table
@@ -192,8 +192,12 @@ def read_table(path: str | os.PathLike, *, check_system: bool = True, graph: boo
     one-line note on stderr.
     """
     path = Path(path)
-    if not path.is_file():
-        raise TableError(f"{path}: no table file there")
+    if not path.is_file():  # what is there instead, when something is: a FIFO or a device is never opened
+        try:
+            there = f" ({file_kind(os.stat(path).st_mode)}{' through a symlink' if path.is_symlink() else ''})"
+        except OSError:
+            there = ""
+        raise TableError(f"{path}: no table file there{there}")
     try:
         with zipfile.ZipFile(path) as zf:
             arrays = _read_members(zf, path, graph)

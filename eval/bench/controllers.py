@@ -17,6 +17,7 @@ Writes JSON to ``--json`` (default out/bench.json).
 
 from __future__ import annotations
 
+import os
 import statistics
 import time
 from collections.abc import Callable
@@ -138,6 +139,10 @@ def main(argv=None) -> int:
         return ((state[:, :2] - goal) ** 2).sum(dim=1)
 
     state = torch.tensor([0.0, 0.0, 0.3], device=device)
+    wanted = [args.table15] + ([args.table] if not args.rollout_only and 10 in args.horizons else [])
+    for path in wanted:  # every table there read before any build or timing: a bad --table is refused at once (a
+        if os.path.lexists(path):  # FIFO --table was read after the horizon-15 table's build and rows: 19 s, 635 MB)
+            load_table(path, device=device)
     tables = {15: _table(args.table15, 15)}
     if not args.rollout_only and 10 in args.horizons:
         tables[10] = _table(args.table, 10)

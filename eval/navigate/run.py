@@ -36,6 +36,7 @@ from cuniform_torch.cli import (
     add_dataclass_args,
     add_no_limit_arg,
     add_system_module_arg,
+    check_output_folder,
     check_work,
     cli_main,
     dataclass_from_args,
@@ -47,7 +48,7 @@ from cuniform_torch.cli import (
     positive_int,
     refuse_flags,
 )
-from cuniform_torch.common.fileio import exclusive_lock
+from cuniform_torch.common.fileio import exclusive_lock, open_regular
 from cuniform_torch.envs.worlds.robot import NAV_ROBOT, RobotPreset, preset_dict
 from cuniform_torch.envs.worlds.suites import NavTask
 from cuniform_torch.envs.worlds.tasks import SPLITS, SUITES, TIME_LIMITS, make_tasks
@@ -145,7 +146,10 @@ def _check(cfg: NavConfig) -> None:
 
 
 def _file_digest(path: Path | None) -> str | None:
-    """A short sha256 of a file, or of a table set's index and tables."""
+    """A short sha256 of a file, or of a table set's index and tables. Each is opened as a regular file
+    (:func:`~cuniform_torch.common.fileio.open_regular`) and read in blocks: a FIFO, a device or a link to one is one
+    FileKindError (a ValueError) naming it, never a hang (``eval.navigate.replay --table FIFO`` hung here) or an
+    endless read."""
     if path is None:
         return None
     import hashlib
@@ -154,7 +158,9 @@ def _file_digest(path: Path | None) -> str | None:
     files = [path / "tables.json", *sorted(path.glob("*.npz"))] if path.is_dir() else [path]
     h = hashlib.sha256()
     for f in files:
-        h.update(f.read_bytes())
+        with open_regular(f, "an input file of the benchmark") as fh:
+            for block in iter(lambda: fh.read(1 << 20), b""):
+                h.update(block)
     return h.hexdigest()[:16]
 
 
@@ -382,8 +388,9 @@ def make_parser() -> ArgumentParser:
 
 
 def _check_flags(p: ArgumentParser, args, cfg: NavConfig, out: Path) -> None:
-    """The flags that do not apply to ``cfg``'s suite, a run too large, and ``--paths`` on a folder whose episodes
-    were kept without their paths: refused before any work (:func:`cuniform_torch.cli.refuse_flags`)."""
+    """The flags that do not apply to ``cfg``'s suite, a run too large, an ``--out`` that cannot be a folder (a
+    device, a FIFO, a file), and ``--paths`` on a folder whose episodes were kept without their paths: refused
+    before any work (:func:`cuniform_torch.cli.refuse_flags`)."""
     if cfg.suite != "barn":
         refuse_flags(p, args, ["barn_file", "barn_worlds"], f"to --suite {cfg.suite} (BARN maps: --suite barn)")
     if cfg.suite not in ("forest", "clutter"):
@@ -392,6 +399,7 @@ def _check_flags(p: ArgumentParser, args, cfg: NavConfig, out: Path) -> None:
     counts = {"tasks": cfg.tasks, "repeats": cfg.repeats, "budgets": len(cfg.budgets),
               "methods": len(cfg.methods) if cfg.methods is not None else None}
     check_work({k: v for k, v in counts.items() if v is not None}, "episodes", args.no_limit)
+    check_output_folder(out, "--out")  # a link to /dev/null: one line now, not "File exists" after the tasks
     if cfg.paths:
         store = EpisodeStore(out)
         if store.records_file.is_file():

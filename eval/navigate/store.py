@@ -259,7 +259,11 @@ class EpisodeStore:
         problem = check_settings(settings)
         if problem is not None:  # a settings_record out of step with SETTINGS: a bug, said before any write
             raise ValueError(f"the run's settings for {self.settings_file}: {problem}")
-        self.folder.mkdir(parents=True, exist_ok=True)
+        try:
+            self.folder.mkdir(parents=True, exist_ok=True)
+        except OSError as err:  # a symlink loop, a file in the way: FileExistsError / NotADirectoryError, raw before
+            raise StoreError(f"{self.folder}: cannot be used as a benchmark folder ({err.strerror or err}); use "
+                             "another --out") from None
         self._check_own_files()
         if self.settings_file.exists():
             old = self.read_settings()
