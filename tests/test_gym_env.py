@@ -55,10 +55,12 @@ def run_gym(env: NavigationEnv, controller, **reset) -> tuple[dict, list[float],
     obs, info = env.reset(**reset)
     rewards: list[float] = []
     terminated = truncated = False
+    assert env.observation_space.contains(obs)
     while not (terminated or truncated):
-        u = controller.command(torch.as_tensor(obs["state"])).numpy()
-        obs, reward, terminated, truncated, info = env.step(u)
+        u = controller.command(torch.as_tensor(obs["state"])).numpy()  # rad/s -> the normalised action
+        obs, reward, terminated, truncated, info = env.step(env.to_action(u))
         rewards.append(reward)
+        assert env.observation_space.contains(obs), {k: v for k, v in obs.items() if k in ("state", "goal")}
     return obs, rewards, terminated, truncated, info
 
 
@@ -68,10 +70,30 @@ def run_sim(task, controller):
                     task.time_limit)
 
 
-def test_check_env_passes(tasks):
+@pytest.mark.parametrize("make", [
+    lambda t: NavigationEnv(t["forest"]), lambda t: NavigationEnv([t["gaps"], t["empty"]]),
+    lambda t: make_env("gaps", index=None), lambda t: make_env("barn", index=0),
+    lambda t: NavigationEnv(t["gaps"], system=NAV_ROBOT.__class__(system="ks_speed", params={}).make_system()),
+    lambda t: (register_envs(), gymnasium.make(ENV_ID, suite="forest", index=0))[1],
+    lambda t: (register_envs(), gymnasium.make(ENV_ID, tasks=t["gaps"]))[1],
+], ids=["forest", "two-tasks", "gaps-all", "barn", "ks_speed", "make-suite", "make-tasks"])
+def test_check_env_passes_without_warnings(tasks, make):
+    """gymnasium's advice (a [-1, 1] action box, finite observation bounds) is followed: any warning fails."""
+    env = make(tasks)
     with warnings.catch_warnings():
-        warnings.simplefilter("ignore")  # advice only: unbounded Box, an action range that is not [-1, 1]
-        check_env(NavigationEnv(tasks["forest"]), skip_render_check=True)
+        warnings.simplefilter("error")
+        check_env(env.unwrapped, skip_render_check=True)  # a made env: gymnasium asks for the unwrapped one
+    assert env.action_space.low.tolist() == [-1.0] * env.action_space.shape[0]
+    assert np.isfinite(env.observation_space["state"].low).all() and np.isfinite(env.observation_space["state"].high).all()
+
+
+def test_observation_stays_inside_its_space_when_the_robot_leaves_the_bounds(tasks):
+    """The last state of a run out of the workspace is one step outside it: still inside the state box."""
+    task = tasks["empty"]
+    away = (task.start[0] - 100.0, task.start[1])  # turn around and drive out behind the start
+    obs, _, terminated, _, info = run_gym(NavigationEnv(task), GoalSeeker(away))
+    xmin, ymin, xmax, ymax = task.environment.bounds
+    assert terminated and info["outcome"] == "collision" and not xmin <= obs["state"][0] <= xmax
 
 
 @pytest.mark.parametrize("name, make, expected", [
@@ -145,13 +167,18 @@ def test_bad_action_raises(tasks, action, message):
         env.step(action)
 
 
-def test_actions_are_clipped_to_the_action_set(tasks):
+def test_actions_are_normalised_and_clipped(tasks):
+    """[-1, 1] scales onto the robot's [-1.5, 1.5] rad/s; beyond it is clipped; to_action inverts to_control."""
     hi, lo = NavigationEnv(tasks["gaps"]), NavigationEnv(tasks["gaps"])
-    assert hi.action_space.low.tolist() == [-1.5] and hi.action_space.high.tolist() == [1.5]
+    assert hi.action_space.low.tolist() == [-1.0] and hi.action_space.high.tolist() == [1.0]
+    assert hi.to_control(np.array([-1.0, ])).tolist() == [-1.5] and hi.to_control([0.5]).tolist() == [0.75]
+    assert hi.to_control([9.0]).tolist() == [1.5] and hi.to_action([0.75]).tolist() == [0.5]
     hi.reset(), lo.reset()
     a, *_ = hi.step(np.array([9.0], dtype=np.float32))
-    b, *_ = lo.step(np.array([1.5], dtype=np.float32))
-    assert a["state"].tolist() == b["state"].tolist()
+    b, *_ = lo.step(np.array([1.0], dtype=np.float32))
+    x0 = torch.tensor(tasks["gaps"].start, dtype=torch.float64)
+    turned = NAV_ROBOT.make_system().step(x0[None], x0.new_tensor([[1.5]]))[0]  # full left: 1.5 rad/s
+    assert a["state"].tolist() == b["state"].tolist() == turned.tolist()
 
 
 def test_reset_seed_is_reproducible():

@@ -11,15 +11,29 @@ a non-finite state raises ``ValueError``; the new position is checked against th
 both collides and reaches the goal is a collision. A start within the goal tolerance is already at the goal:
 :meth:`~NavigationEnv.reset` then reports ``info["outcome"] == "goal"`` and the episode has no step.
 
-Observation (a ``Dict``; the robot's centre is a point, every obstacle is already inflated by the robot radius):
+Action: a float32 ``[q]`` in the normalised box ``[-1, 1]`` (gymnasium's advice); :meth:`NavigationEnv.step`
+clips it to ``[-1, 1]`` and scales it affinely onto the box spanned by ``system.action_set()`` (the Dubins robot:
+-1 -> -1.5 rad/s, 0 -> 0, 1 -> 1.5 rad/s). :meth:`~NavigationEnv.to_action` and :meth:`~NavigationEnv.to_control`
+convert between the two.
 
-* ``"state"``: float64 ``[d]``, the simulated state (m, m, rad, ...), exactly;
-* ``"goal"``: float64 ``[2]``, the goal (m);
-* ``"bounds"``: float64 ``[4]``, (xmin, ymin, xmax, ymax) the centre must stay inside (m);
+Observation (a ``Dict``; the robot's centre is a point, every obstacle is already inflated by the robot radius).
+Every Box has finite bounds that the contents provably stay inside, derived from the tasks at construction
+(nothing is clipped): W is the union of the tasks' inflated workspace bounds (``task.environment.bounds``).
+
+* ``"state"``: float64 ``[d]``, the simulated state (m, m, rad, ...), exactly. Space: x, y in W widened by
+  one step's travel (|v| dt: the episode ends at the first step that leaves W, so the last state is at most one
+  step outside it), the heading in ``[-pi, pi]`` (the systems wrap it; a start heading outside widens it), a
+  speed in ``[min_speed, max_speed]``. A system without ``speed`` / ``max_speed`` leaves x, y and any further
+  dimension unbounded (then check_env warns);
+* ``"goal"``: float64 ``[2]``, the goal (m); space: W and the tasks' goals;
+* ``"bounds"``: float64 ``[4]``, (xmin, ymin, xmax, ymax) the centre must stay inside (m); space: W;
 * ``"obstacles"``: float64 ``[C, 3]``, the sensed inflated circles (x, y, radius) in the environment's order,
-  then zero rows; ``"obstacle_mask"``: int8 ``[C]``, 1 for a real row;
+  then zero rows; ``"obstacle_mask"``: int8 ``[C]``, 1 for a real row. Space: per column, the least and the
+  greatest value over every task's circles (a sensed circle is one of its task's circles), W's for x and y
+  and 0 (the padding); the radius's top at least 1 m (no circle at all would leave a degenerate ``[0, 0]``);
 * ``"rects"``: float64 ``[R, 4]``, the sensed inflated rectangles (xmin, ymin, xmax, ymax), then zero rows;
-  ``"rect_mask"``: int8 ``[R]``. (The suites' walls inflate to two rects and four corner circles each, see
+  ``"rect_mask"``: int8 ``[R]``. Space: per column, the least and the greatest over every task's rects, W's
+  x or y and 0. (The suites' walls inflate to two rects and four corner circles each, see
   :func:`cuniform_torch.envs.worlds.geometry.inflate`; the circles go to ``"obstacles"``.)
 
 Reward per step: progress toward the goal (previous xy distance - new xy distance, m), plus
@@ -113,6 +127,23 @@ def _slots(value: Any, what: str) -> int:
     return int(value)
 
 
+def _speed_range(system: Any) -> tuple[float, float] | None:
+    """(least, greatest) signed speed (m/s) of a built-in ``(x, y, heading[, speed])`` system: ``(-speed, speed)``
+    of a fixed-speed one (dubins, ks), ``(min_speed, max_speed)`` of ks_speed; None when it declares neither."""
+    lo, hi = getattr(system, "min_speed", None), getattr(system, "max_speed", None)
+    if lo is None or hi is None:
+        speed = getattr(system, "speed", None)
+        lo, hi = (None, None) if speed is None else (-abs(speed), abs(speed))
+    ok = all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in (lo, hi))
+    return (float(lo), float(hi)) if ok else None
+
+
+def _max_travel(system: Any) -> float | None:
+    """The most the centre moves in one step (m): |v| dt with the speed's bound, plus 1e-6 m against rounding."""
+    speeds = _speed_range(system)
+    return None if speeds is None else max(abs(speeds[0]), abs(speeds[1])) * float(system.dt) + 1e-6
+
+
 def _check_system(system: Any) -> None:
     """The closed loop needs ``step``, ``dt``, ``periodic`` (d >= 3: x, y, heading) and ``action_set``."""
     for name in ("step", "action_set"):
@@ -133,10 +164,17 @@ class NavigationEnv(gymnasium.Env):
     """Drive ``system`` (default ``NAV_ROBOT.make_system()``) through one :class:`~cuniform_torch.envs.worlds.suites.NavTask`, or
     one of ``tasks`` per :meth:`reset` (``options={"task_index": k}``, else drawn from the reset's seed).
 
-    The action is a float ``[q]`` (the Dubins robot: turn rate, rad/s); it is **clipped** to the box spanned by
-    ``system.action_set()`` (its per-dimension min and max) before the step. A state of more than 3 dimensions
+    The action is a float ``[q]`` in ``[-1, 1]`` (normalised; values outside are **clipped** to it), scaled onto
+    the box spanned by ``system.action_set()`` (its per-dimension min and max: the Dubins robot's turn rate,
+    -1.5 to 1.5 rad/s) before the step; :meth:`to_action` turns a control (rad/s) into the action. A state of more than 3 dimensions
     starts at ``(*task.start, 0, ...)``. ``max_circles`` / ``max_rects``: observation slots (module docstring);
-    a task with more obstacles than slots is refused. ``render_mode="rgb_array"`` draws with matplotlib (Agg).
+    a task with more obstacles than slots, or without workspace bounds, is refused.
+
+    :param tasks: one task or a non-empty list of them (one per reset)
+    :param system: the robot, ``(x, y, heading, ...)`` states; default ``NAV_ROBOT.make_system()``
+    :param max_circles: circle slots C of the observation
+    :param max_rects: rectangle slots R of the observation
+    :param render_mode: None or ``"rgb_array"`` ``render_mode="rgb_array"`` draws with matplotlib (Agg).
     """
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": 5}
@@ -153,31 +191,77 @@ class NavigationEnv(gymnasium.Env):
         self._check_slots()
         actions = self.system.action_set(dtype=_DTYPE, device="cpu")  # [A, q]
         self._low, self._high = actions.min(dim=0).values, actions.max(dim=0).values  # [q] each, float64
+        self._mid, self._half = (self._low + self._high) / 2, (self._high - self._low) / 2  # [q]: -1 -> low, 1 -> high
         self.dt = float(self.system.dt)
-        self.action_space = spaces.Box(self._low.numpy().astype(np.float32), self._high.numpy().astype(np.float32),
-                                       dtype=np.float32)
+        q = self._low.shape[0]
+        self.action_space = spaces.Box(-1.0, 1.0, shape=(q,), dtype=np.float32)
         self.observation_space = self._make_observation_space(len(self.system.periodic))
         self._x: torch.Tensor | None = None
 
     def _check_slots(self) -> None:
-        """Every task's full environment (what can ever be sensed) must fit the observation's slots."""
+        """Every task's full environment (what can ever be sensed) must fit the observation's slots and have
+        bounds (the observation's boxes are finite)."""
         for k, task in enumerate(self.tasks):
+            if task.environment.bounds is None:
+                raise ValueError(f"NavigationEnv: task {k}'s environment has no bounds; the observation needs "
+                                 "finite workspace bounds (give the task's Environment bounds)")
             circles, rects = _count_shapes(task.environment, f"NavigationEnv: task {k}")
             if circles > self.max_circles or rects > self.max_rects:
                 raise ValueError(f"NavigationEnv: task {k} has {circles} circles and {rects} rects; the observation "
                                  f"holds max_circles={self.max_circles}, max_rects={self.max_rects} (raise them)")
 
     def _make_observation_space(self, d: int) -> spaces.Dict:
-        inf = np.inf
+        """Finite boxes every observation stays inside (module docstring: how each is derived)."""
+        ws = np.array([t.environment.bounds for t in self.tasks], dtype=np.float64)  # [N, 4]
+        w_lo, w_hi = ws[:, :2].min(axis=0), ws[:, 2:].max(axis=0)  # [2] each: W
+        goals = np.array([t.goal for t in self.tasks], dtype=np.float64)  # [N, 2]
+        goal_lo, goal_hi = np.minimum(w_lo, goals.min(axis=0)), np.maximum(w_hi, goals.max(axis=0))
+        starts = np.array([t.start for t in self.tasks], dtype=np.float64)  # [N, 3]
+        state_lo, state_hi = np.full(d, -np.inf), np.full(d, np.inf)
+        travel = _max_travel(self.system)
+        if travel is not None:  # the state leaves W by at most one step (that step ends the episode)
+            state_lo[:2] = np.minimum(w_lo, starts[:, :2].min(axis=0)) - travel
+            state_hi[:2] = np.maximum(w_hi, starts[:, :2].max(axis=0)) + travel
+        state_lo[2], state_hi[2] = min(-math.pi, starts[:, 2].min()), max(math.pi, starts[:, 2].max())
+        speeds = _speed_range(self.system)
+        if d == 4 and speeds is not None:  # (x, y, heading, speed): clipped to [min_speed, max_speed] each step
+            state_lo[3], state_hi[3] = speeds
+        circles = np.zeros((1, 3))  # [1 + M, 3]: the zero padding row, then every circle of every task
+        rects = np.zeros((1, 4))
+        for task in self.tasks:
+            tables = _padded_tables(task.environment, self.max_circles, self.max_rects)
+            circles = np.concatenate([circles, tables["obstacles"][tables["obstacle_mask"] == 1]])
+            rects = np.concatenate([rects, tables["rects"][tables["rect_mask"] == 1]])
+        x_lo, x_hi = np.array([*w_lo, *w_lo]), np.array([*w_hi, *w_hi])  # [4]: (x, y, x, y) of W
+        c_lo, c_hi = np.minimum(circles.min(axis=0), [*w_lo, 0.0]), np.maximum(circles.max(axis=0), [*w_hi, 0.0])
+        r_lo, r_hi = np.minimum(rects.min(axis=0), x_lo), np.maximum(rects.max(axis=0), x_hi)
+        c_hi[2] = max(c_hi[2], 1.0)  # no circles in any task: radius [0, 1] m, not a degenerate [0, 0]
+
+        def box(lo: Any, hi: Any, shape: tuple[int, ...]) -> spaces.Box:
+            return spaces.Box(np.broadcast_to(np.asarray(lo, dtype=np.float64), shape).copy(),
+                              np.broadcast_to(np.asarray(hi, dtype=np.float64), shape).copy(), dtype=np.float64)
+
         return spaces.Dict(dict(
-            state=spaces.Box(-inf, inf, shape=(d,), dtype=np.float64),
-            goal=spaces.Box(-inf, inf, shape=(2,), dtype=np.float64),
-            bounds=spaces.Box(-inf, inf, shape=(4,), dtype=np.float64),
-            obstacles=spaces.Box(-inf, inf, shape=(self.max_circles, 3), dtype=np.float64),
+            state=box(state_lo, state_hi, (d,)),
+            goal=box(goal_lo, goal_hi, (2,)),
+            bounds=box(x_lo, x_hi, (4,)),
+            obstacles=box(c_lo, c_hi, (self.max_circles, 3)),
             obstacle_mask=spaces.MultiBinary(self.max_circles),
-            rects=spaces.Box(-inf, inf, shape=(self.max_rects, 4), dtype=np.float64),
+            rects=box(r_lo, r_hi, (self.max_rects, 4)),
             rect_mask=spaces.MultiBinary(self.max_rects),
         ))
+
+    def to_action(self, control: Any) -> np.ndarray:
+        """``control [q]`` in the system's units (rad/s) -> the normalised float64 action ``[q]`` (``[-1, 1]`` inside
+        the action set's box); the inverse of :meth:`to_control` there."""
+        u = torch.as_tensor(np.asarray(control, dtype=np.float64))
+        a = torch.where(self._half > 0, (u - self._mid) / torch.where(self._half > 0, self._half, 1.0), 0.0)
+        return a.numpy()
+
+    def to_control(self, action: Any) -> np.ndarray:
+        """Normalised ``action [q]`` -> the float64 control ``[q]`` :meth:`step` applies (clipped to ``[-1, 1]``,
+        scaled onto the action set's box)."""
+        return self._action(action).numpy()
 
     # -------------------------------------------------------------------------------------------- episode
 
@@ -214,7 +298,8 @@ class NavigationEnv(gymnasium.Env):
         return self._observation(), self._info()
 
     def _action(self, action: Any) -> torch.Tensor:
-        """``action [q]`` (array-like) -> the clipped float64 control ``[q]``; a bad shape or value raises."""
+        """Normalised ``action [q]`` (array-like) -> the float64 control ``[q]``: clipped to ``[-1, 1]``, then
+        scaled onto ``[low, high]`` (and clamped there against rounding); a bad shape, type or value raises."""
         q = self._low.shape[0]
         try:
             raw = np.asarray(action)
@@ -228,6 +313,7 @@ class NavigationEnv(gymnasium.Env):
             raise ValueError(f"NavigationEnv: the action must have shape ({q},), got {tuple(u.shape)}")
         if not bool(torch.isfinite(u).all()):
             raise ValueError(f"NavigationEnv: the action must be finite, got {u.tolist()}")
+        u = self._mid + self._half * u.clamp(-1.0, 1.0)
         return torch.minimum(torch.maximum(u, self._low), self._high)
 
     def step(self, action: Any) -> tuple[dict, float, bool, bool, dict]:
