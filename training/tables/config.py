@@ -18,8 +18,8 @@ DEFAULT_EPOCHS = 100
 """epochs of a default run on a table of at most :data:`DEFAULT_CELL_PASSES` / 100 cells"""
 DEFAULT_CELL_PASSES = 6_800_000
 """cells x epochs a default run makes at most: a larger table gets fewer epochs (each epoch already makes more
-optimiser steps), never fewer than 20. The paper-scale table (168,933 cells) gets 41 epochs, about 3.5 minutes on
-a 2-core CPU, at KL 0.06 (docs/results/distillation.md); 100 epochs there would take about 8 minutes."""
+optimiser steps), never fewer than 20. The paper-scale table (168,933 cells) gets 41 epochs, 236 s on a 2-core CPU,
+at KL 0.055 (docs/results/distillation.md); 100 epochs there would take about 8 minutes."""
 
 
 @dataclass
