@@ -10,7 +10,9 @@ actions of the member nearest to the state and rolls them out from the state (th
 from __future__ import annotations
 
 import warnings
+from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
+from typing import Any, cast
 
 import torch
 from torch import Tensor
@@ -86,6 +88,9 @@ class BankProposal(OneRobotCall):
         """the exception of the latest failed background refresh"""
         self._pending: Future | None = None
         self._executor: ThreadPoolExecutor | None = None
+        self.draw_bank: Callable[[torch.Generator], tuple[Tensor, Tensor]] = self.draw_rollouts
+        """``generator -> (states, actions)``, what a refresh calls: :meth:`draw_rollouts`; an attribute, not a
+        method, so that a soak run or a test can swap it on one bank (fault injection)"""
         self.resample(generator)
         if self.background:
             self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix=BANK_THREAD_PREFIX)
@@ -95,7 +100,7 @@ class BankProposal(OneRobotCall):
         """Whether the background worker is up (False after :meth:`close`)."""
         return self._executor is not None
 
-    def draw_bank(self, generator: torch.Generator) -> tuple[Tensor, Tensor]:
+    def draw_rollouts(self, generator: torch.Generator) -> tuple[Tensor, Tensor]:
         """``bank_size`` fresh rollouts at the origin: ``[M, T+1, d]``, ``[M, T, q]`` (not put in use); with a
         table set, per member from its start at the origin pose: ``[S, M, T+1, d]``, ``[S, M, T, q]``."""
         check_generator(generator, self.device)
@@ -118,7 +123,7 @@ class BankProposal(OneRobotCall):
         idx = torch.stack([torch.randperm(self.bank_size, generator=g, device=self.device)[: self.num_samples]
                            for g in streams.generators])  # [B, K]: a permutation per robot, from its stream
         if self.member_starts is not None:  # the nearest member's actions, rolled out from the state itself
-            members = self.source.policy.nearest(states)[0].tolist()  # stateless: a background draw may run for_start
+            members = cast(Any, self.source.policy).nearest(states)[0].tolist()  # stateless: a background draw may run for_start
             actions = torch.stack([self.bank_actions[m][i] for m, i in zip(members, idx)])  # [B, K, T, q]
             b, k, t, q = actions.shape
             return (rollout_actions(self.system, states.repeat_interleave(k, dim=0), actions.view(b * k, t, q))

@@ -102,6 +102,8 @@ class MPPI(MPPICore):
         the state's type and dtype (default: on for a dynamics function, off for a System)
     """
 
+    proposal: GaussianProposal  # what _proposal builds (MPPICore types it as any proposal)
+
     def __init__(self, system: System | DynamicsFn, cost_fn: CostFn | None = None, num_samples: int = 1000,
                  horizon: int = 15, lambda_: float | str = 0.567, noise_std: float | Tensor | None = None,
                  terminal_cost: Callable[[Tensor], Tensor] | None = None, device: torch.device | str = "cpu",

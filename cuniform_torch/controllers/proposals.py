@@ -313,7 +313,7 @@ class NormalLogNormalProposal(GaussianProposal):
 
 # ------------------------------------------------------------------------------------------ policy
 
-def _as_policy(policy: object, device: torch.device | None) -> Policy:
+def _as_policy(policy: object, device: torch.device) -> Policy:
     """A Policy object, or a distilled-policy checkpoint dict (``torch.load(path, weights_only=True)``), loaded by
     :func:`~cuniform_torch.policies.checkpoint.load_policy` (which knows the format)."""
     if isinstance(policy, dict):
@@ -344,9 +344,10 @@ class PolicyProposal(OneRobotCall):
         traits = PolicyTraits.of(self.policy)
         if traits.device is not None and not same_device(traits.device, self.device):
             raise ValueError(f"the policy is on {traits.device} but device={self.device} was asked for")
-        self.system = getattr(self.policy, "system", None)
-        if self.system is None:
+        system = getattr(self.policy, "system", None)
+        if system is None:
             raise ValueError(f"{type(self.policy).__name__} has no system: a proposal needs the policy's dynamics")
+        self.system: System = system
         horizon = horizon if horizon is not None else traits.horizon
         if horizon is None:
             raise ValueError("horizon is required for a policy without a table horizon")
@@ -365,8 +366,8 @@ class PolicyProposal(OneRobotCall):
         self._for_starts = sensed if callable(sensed) else None
         """a policy set for B starts at once (``for_starts``: a map policy sensing around each robot), called here,
         before the rollout (the rollout itself senses nothing): one rollout of its answer"""
-        self._inner_plan = (RolloutPlan.of(self.system, self.policy.policy)
-                            if self._for_starts is not None else None)  # type: ignore[attr-defined]
+        self._inner_plan = (RolloutPlan.of(self.system, cast(Any, self.policy).policy)  # the sensing wrapper's
+                            if self._for_starts is not None else None)                # inner map policy
         self._per_start = (not self._members and self._for_starts is None
                            and callable(getattr(self.policy, "for_start", None)))
         """a policy set per start (``for_start`` only): each robot is rolled out on its own"""

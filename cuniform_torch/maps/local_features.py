@@ -32,6 +32,10 @@ PROBES: tuple[tuple[float, float], ...] = ((0.0, 0.0), (0.25, 0.0), (0.5, 0.0), 
 class LocalFeatures(nn.Module):
     """``occupancy [B, H, W]`` -> feature map ``[B, C, H, W]``; :meth:`sample` reads it at states' probes."""
 
+    probes: Tensor  # buffers, declared so they read back as Tensor
+    _to_unit: Tensor
+    _origin: Tensor
+
     def __init__(self, spec: PatchSpec, channels: int):
         super().__init__()
         c = channels

@@ -167,6 +167,12 @@ class MapPolicy(CountsFallbacks, nn.Module):
     # declared so that nn.Module's __getattr__ (Tensor | Module) does not hide their types
     config: MapPolicyConfig
     actions: Tensor
+    inv_scale: Tensor
+    _linear_index: Tensor
+    _angle_index: Tensor
+    _box_half: Tensor
+    _box_cell: Tensor
+    _uniform: Tensor
 
     def __init__(self, config: MapPolicyConfig, system: System, actions: Tensor):
         super().__init__()
@@ -261,6 +267,7 @@ class MapPolicy(CountsFallbacks, nn.Module):
         if self.local is not None:
             if local_map is None:
                 raise ValueError("a policy with local features needs local_map (encode_local of the patches)")
+            assert self.inp_l is not None  # built with self.local
             h = h + self.inp_l(self.local.sample(local_map, x.to(self.dtype), which))
         return self.body(h)
 
@@ -296,6 +303,7 @@ class MapPolicy(CountsFallbacks, nn.Module):
             w_state = torch.cat((w[:, :n_lin] * self.inv_scale.index_select(0, self._linear_index), w[:, n_lin:-1]),
                                 dim=1)
             if self.local is not None:  # the sampled features are more columns of the same addmm
+                assert self.inp_l is not None  # built with self.local
                 self._local_map = self.encode_local(occupied).detach()  # [B, C, H, W]
                 w_state = torch.cat((w_state, self.inp_l.weight), dim=1)
             self._w_state = w_state.T.contiguous().detach()  # [F-1, Hd]
@@ -318,6 +326,7 @@ class MapPolicy(CountsFallbacks, nn.Module):
         maps, N must be a multiple of B (robot-major groups)."""
         if self._map_bias is None:
             raise ValueError("no map set: call set_map(patch) before looking up actions")
+        assert self._w_state is not None  # set_maps sets it with the map bias
         check_query(x, t, self.horizon, self.config.state_dim, self.dtype, self.device)
         maps, n = self._map_bias.shape[0], x.shape[0]
         if n % maps:
@@ -368,6 +377,7 @@ class MapPolicy(CountsFallbacks, nn.Module):
         if not (self.compiled and self.maps_set == 1 and x0.ndim == 1 and type(system) is Dubins and on_cpu
                 and x0.dtype == self.dtype and kernels.usable(x0.device, self.dtype)):
             return None
+        assert self._map_bias is not None and self._w_state is not None  # maps_set == 1: set_maps set both
         local = self.local
         geometry = dict(dt=system.dt, speed=system.speed, origin_x=self.patch_spec.origin[0],
                         origin_y=self.patch_spec.origin[1], resolution=self.patch_spec.resolution,

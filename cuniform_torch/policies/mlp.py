@@ -198,6 +198,9 @@ class MLPPolicy(CountsFallbacks, nn.Module):
     # declared so that nn.Module's __getattr__ (Tensor | Module) does not hide their types
     config: MLPConfig
     actions: Tensor
+    inv_scale: Tensor
+    _box_half: Tensor
+    _box_cell: Tensor
 
     reads_start = False
     """whether the network reads start features after the state's (:class:`~cuniform_torch.policies.start_mlp.StartMLPPolicy`)"""
@@ -309,6 +312,7 @@ class MLPPolicy(CountsFallbacks, nn.Module):
     def _support_codes_exact(self, x: Tensor, t: int) -> Tensor:
         index = self._support_index
         if index is None or index.entry_code.device != x.device:
+            assert self.support is not None  # support_codes reads the exact support only when there is one
             index = self._support_index = self.support.index(self._grid, self.fallback is Fallback.NEAREST,
                                                              self.dtype, x.device)
         entry = lookup_entries(index, x, t)  # [N] int32

@@ -105,6 +105,8 @@ class StartMLPPolicy(MLPPolicy):
 
     reads_start = True
 
+    _start: Tensor  # a buffer, declared so that nn.Module's __getattr__ (Tensor | Module) does not hide its type
+
     def __init__(self, config: MLPConfig, system: System, actions: Tensor, region: StartRegion,
                  support: MLPSupport | None = None, fallback: str | Fallback = Fallback.NEAREST):
         if config.frequencies:
@@ -184,6 +186,7 @@ class StartMLPPolicy(MLPPolicy):
         layer's output; and the later linear layers as ``(weight.T, bias)``. Rebuilt when the weights or the
         start change (their version counters)."""
         first = self.net[0]
+        assert isinstance(first, torch.nn.Linear)  # the network starts with a linear layer (MLPPolicy builds it)
         key = (tuple((p._version, p.data_ptr()) for p in self.net.parameters()), self._start._version,
                self._start.data_ptr())
         if self._fold_key != key:
@@ -201,6 +204,7 @@ class StartMLPPolicy(MLPPolicy):
                         if isinstance(m, torch.nn.Linear)]  # [in, out], [out] of the layers after the first
                 offset = torch.tensor([math.pi / 2] * na + [0.0] * na, dtype=w.dtype, device=w.device) if na else None
             self._folded_layer, self._fold_key = (wx, offset, wcs, bias, bias.unbind(0), rest), key
+        assert self._folded_layer is not None  # built with its key above
         return self._folded_layer
 
     def _weights(self, x: Tensor, t: int) -> Tensor:

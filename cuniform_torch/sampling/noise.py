@@ -115,7 +115,8 @@ class NormalLogNormalSampler(GaussianSampler):
     def noise(self, n: int, generator: torch.Generator | None) -> Tensor:
         check_generator(generator, self.nominal.device)
         q = self.nominal.shape[1]
-        kw = dict(generator=generator, dtype=self.nominal.dtype, device=self.nominal.device)
-        normal = torch.randn((n, q), **kw).mul_(self.std)
-        lognormal = torch.randn((n, q), **kw).mul_(self.sigma).add_(self.mu).exp_()
+        dtype, device = self.nominal.dtype, self.nominal.device
+        normal = torch.randn((n, q), generator=generator, dtype=dtype, device=device).mul_(self.std)
+        lognormal = torch.randn((n, q), generator=generator, dtype=dtype, device=device)
+        lognormal = lognormal.mul_(self.sigma).add_(self.mu).exp_()
         return normal.mul_(lognormal)

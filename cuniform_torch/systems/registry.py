@@ -261,11 +261,11 @@ def system_from_json(text: str, *, trust_factory: str | Callable[..., Any] | Non
     trusted = trust_factory if isinstance(trust_factory, str) else _definition_path(factory)
     if named is not None and trusted is not None and named != trusted:
         raise UnknownSystemError(f"system {name!r}: the file names factory {named!r}, not the trusted {trusted!r}")
-    registered = _REGISTRY.get(name)
-    if registered is not None and registered is not factory and not _same_definition(registered, factory):
+    prior = _REGISTRY.get(name)
+    if prior is not None and prior is not factory and not _same_definition(prior, factory):
         raise ValueError(f"system {name!r} is registered with another factory than the trusted {trusted or factory!r}")
     system = _checked_dt(_build(name, factory, params), dt)
-    if registered is None:
+    if prior is None:
         register_system(name, factory)
     return system, horizon
 

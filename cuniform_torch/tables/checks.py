@@ -83,8 +83,8 @@ def validate_table(table: Any, source: str = "table", check_system: bool = True,
     level_sums = np.add.reduceat(table.cell_probs, lo[:-1])
     if np.any(np.abs(level_sums - 1.0) > _LEVEL_SUM_TOL):
         fail(f"cell_probs must sum to 1 in every level; sums {np.round(level_sums, 6).tolist()[:12]}")
-    sizes = np.diff(lo)
-    if not np.array_equal(table.flow_target, sizes[:-1] * sizes[1:]):
+    level_sizes = np.diff(lo)
+    if not np.array_equal(table.flow_target, level_sizes[:-1] * level_sizes[1:]):
         fail("flow_target must be n_t * n_{t+1} for every step")
     if np.any(table.flow_value < 0) or np.any(table.flow_value > table.flow_target):
         fail("flow_value must lie in [0, flow_target]")
@@ -226,7 +226,8 @@ def _validate_propagation(table: Any, fail) -> None:
     lo, stored = table.level_offsets, table.cell_probs
     src, act, dst = table.transitions[:, 0], table.transitions[:, 1], table.transitions[:, 2]
     mass = stored[src] * table.action_probs[src, act].astype(np.float64) * table.transition_frac  # [K]
-    prop = np.bincount(dst, weights=mass, minlength=len(stored))  # [C]: level 0 receives none
+    # [C]: level 0 receives none; float64 (weighted bincount), the stubs type it as an int array
+    prop: np.ndarray = np.bincount(dst, weights=mass, minlength=len(stored))
     sums = np.add.reduceat(prop, lo[:-1])[1:]  # [T]: levels 1..T
     if np.any(~(sums > 0)):
         t = int(np.flatnonzero(~(sums > 0))[0]) + 1

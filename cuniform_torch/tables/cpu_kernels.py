@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import functools
 import math
+from typing import Any
 
 import numpy as np
 import torch
@@ -45,7 +46,8 @@ def unmet(index: TableIndex) -> list[str]:
     return [why for ok, why in (
         (index.actions.device.type == "cpu", f"the policy is on {index.actions.device}, not a CPU"),
         (index.actions.dtype == torch.float32, f"the policy is {index.actions.dtype}, not float32"),
-        (index.lookup is Lookup.DENSE or index.hash.dtype == torch.int32, "the lookup is an int64 hash"),
+        (index.lookup is Lookup.DENSE or (index.hash is not None and index.hash.dtype == torch.int32),
+         "the lookup is an int64 hash"),
         (index.keys.key_dtype == torch.float32, "the table's key box needs float64 keys"),
         (available(), "numba is not installed (pip install numba)"),
     ) if not ok]
@@ -66,10 +68,13 @@ class NumbaKernel:
         self.level_base = index.level_base.numpy()
         self.alias = (a.threshold.numpy(), a.outcome.numpy(), index.entry_code.numpy())
         self.find_is_dense = index.lookup is Lookup.DENSE
+        self.find: tuple[Any, ...]  # the dense array, or the hash's constants and arrays: step's arguments
         if self.find_is_dense:
+            assert index.dense is not None  # DENSE builds it
             self.find = (index.dense.numpy(),)
         else:
             h = index.hash
+            assert h is not None and index.slot_entry is not None  # HASH builds both
             self.find = (h.multiplier, h.bucket_shift, h.bucket_mask, h.slot_shift, h.disp.numpy(),
                          h.slot_hash.numpy(), index.slot_entry.numpy())
         self.step = _kernels()[0 if index.lookup is Lookup.DENSE else 1]

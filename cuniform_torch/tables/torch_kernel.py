@@ -28,7 +28,7 @@ def lookup_entries(index: TableIndex, x: Tensor, t: int | Tensor) -> Tensor:
     one hash probe and a gather from its slot to the entry.
     """
     keys = index.keys
-    key = None
+    key: Tensor | None = None
     for dim, col in enumerate(keys.columns):
         c = torch.add(col.shift, x[:, dim], alpha=col.scale).clamp_(col.low, col.high).round_()  # [N] cell in the box
         if c.dtype != keys.key_dtype:  # a key box beyond 2^24 cells: exact keys need float64
@@ -36,10 +36,12 @@ def lookup_entries(index: TableIndex, x: Tensor, t: int | Tensor) -> Tensor:
         if col.period:  # c mod K = c - K floor((c + 0.5) / K)
             c = c.add_(torch.add(col.half, c, alpha=col.inv_period).floor_(), alpha=-col.period)
         key = c if key is None else c.add_(key, alpha=col.span)  # [N]
+    assert key is not None  # a key box has one column per state dimension, d >= 1
     base = index.level_base[t]  # 0-d
     if index.dense is not None:  # key -> index of level + key; a NaN key (INT_MIN) is clamped onto the sentinel
         top = index.dense.shape[0] - 1
         return index.dense.index_select(0, key.to(base.dtype).add_(base).clamp_(0, top))  # [N] int32 entry
+    assert index.hash is not None and index.slot_entry is not None  # not dense: HASH built both
     h = torch.add(base, key.to(base.dtype), alpha=index.hash.multiplier)  # [N] hash of level + cell key
     slot = index.hash.slots(h)  # [N]
     miss = index.hash.slot_hash.index_select(0, slot) != h  # [N]

@@ -166,7 +166,7 @@ def pack_maps(maps: Sequence[BarnMap]) -> dict[str, np.ndarray]:
         "map_ids": np.array([m.map_id for m in maps], dtype=np.int64),
         "centers": np.concatenate([np.asarray(m.centers, np.float32).reshape(-1, 2) for m in maps]),
         "offsets": np.concatenate([[0], np.cumsum(counts)]).astype(np.int64),
-        "radius": np.float32(first.radius),
+        "radius": np.asarray(first.radius, dtype=np.float32),  # [] (0-d, as np.load gives it back)
         "paths": np.concatenate([np.asarray(m.path, np.float32).reshape(-1, 2) for m in maps]),
         "path_offsets": np.concatenate([[0], np.cumsum(pcounts)]).astype(np.int64),
         "start": np.array(first.start, dtype=np.float32),

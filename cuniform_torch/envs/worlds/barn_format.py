@@ -61,9 +61,9 @@ def validate_barn(arrays: Mapping[str, np.ndarray], source: str = "<arrays>") ->
         if a[key].ndim != 2 or a[key].shape[1] != 2:
             raise format_error(source, key, f"must have shape {shape}, got {list(a[key].shape)}")
     fixed = {"radius": (), "start": (3,), "goal": (2,)}
-    for key, shape in fixed.items():
-        if a[key].shape != shape:
-            raise format_error(source, key, f"must have shape {list(shape)}, got {list(a[key].shape)}")
+    for key, dims in fixed.items():
+        if a[key].shape != dims:
+            raise format_error(source, key, f"must have shape {list(dims)}, got {list(a[key].shape)}")
     ids = a["map_ids"]
     if ids.ndim != 1:
         raise format_error(source, "map_ids", f"must have shape [K], got {list(ids.shape)}")

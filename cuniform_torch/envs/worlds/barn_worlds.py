@@ -124,11 +124,11 @@ def convert_worlds(
         paths.append(_read_path(path_file) if path_file.is_file() else np.zeros((0, 2), np.float32))
     if len(radii) != 1:
         raise BarnFormatError(f"{folder_or_files}: the worlds use different cylinder radii {sorted(radii)}")
-    arrays = {
+    arrays: dict[str, np.ndarray] = {
         "map_ids": np.asarray(ids, dtype=np.int64),
         "centers": np.concatenate(centers).astype(np.float32),
         "offsets": np.concatenate([[0], np.cumsum([len(c) for c in centers])]).astype(np.int64),
-        "radius": np.float32(radii.pop()),
+        "radius": np.asarray(radii.pop(), dtype=np.float32),  # [] (0-d, as np.load gives it back)
         "paths": np.concatenate(paths).astype(np.float32),
         "path_offsets": np.concatenate([[0], np.cumsum([len(p) for p in paths])]).astype(np.int64),
         "start": np.asarray(start, dtype=np.float32),

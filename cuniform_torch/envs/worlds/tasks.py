@@ -16,7 +16,7 @@ from __future__ import annotations
 import dataclasses
 import os
 from collections.abc import Sequence
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 
@@ -29,7 +29,7 @@ __all__ = ["SUITES", "CLUTTER", "SPLITS", "split_of", "BARN_BOUNDS", "GAP_OFFSET
 
 SUITES = ("barn", "forest", "gaps", "clutter")
 """the suites of ``python -m eval.navigate``"""
-CLUTTER = {"num_discs": (90, 120), "disc_radius": 0.5}
+CLUTTER: dict[str, Any] = {"num_discs": (90, 120), "disc_radius": 0.5}
 """the ``clutter`` suite: the forest's corridor and rules with 90-120 discs of radius 0.5 m, 24% of the corridor
 on average (the forest's 10-30 discs of 1 m: 18%), 46% once inflated by the robot's 0.2 m (overlaps counted
 twice; the forest's: 26%); chosen, before any map-conditioned run, as dense enough that the best Gaussian baseline
@@ -39,7 +39,7 @@ SPLITS = ("all", "train", "test")
 """task splits (:func:`split_of`): ``all`` keeps every task"""
 BARN_BOUNDS = (-6.0, -1.5, 1.5, 15.0)
 """raw workspace bounds of every BARN task (m): the map (x in [-4.5, 0], y in [0, 9.6]) and its goal, with room"""
-DEFAULT_COUNTS = {"barn": None, "forest": 50, "gaps": 9, "clutter": 50}
+DEFAULT_COUNTS: dict[str, int | None] = {"barn": None, "forest": 50, "gaps": 9, "clutter": 50}
 """tasks per suite by default (None: every map of the file); 9 gaps: 3 widths x :data:`GAP_OFFSETS`"""
 TIME_LIMITS = {"barn": 100.0, "forest": 120.0, "gaps": 30.0, "clutter": 120.0}
 """s per episode: BARN's is the Challenge's; the forest's 120 s is 1.8x the straight drive at 0.5 m/s (33 m);
@@ -65,7 +65,9 @@ def barn_task(m: BarnMap, robot_radius: float, goal_tolerance: float = 1.0, time
     walls = np.zeros((0, 4))
     return NavTask(suite="barn", task_id=int(m.map_id), discs=discs, walls=walls, bounds=BARN_BOUNDS,
                    robot_radius=float(robot_radius), environment=inflate(discs, walls, BARN_BOUNDS, robot_radius),
-                   start=tuple(float(v) for v in start), goal=tuple(float(v) for v in goal),
+                   # the signature promises 3 and 2 values; a generator's tuple loses the length
+                   start=cast("tuple[float, float, float]", tuple(float(v) for v in start)),
+                   goal=cast("tuple[float, float]", tuple(float(v) for v in goal)),
                    goal_tolerance=float(goal_tolerance), time_limit=float(time_limit), sensing_range=None,
                    params=dict(goal_tolerance=goal_tolerance, time_limit=time_limit))
 
@@ -100,15 +102,18 @@ def make_tasks(suite: str, robot_radius: float, count: int | None = None, seed: 
         raise SuiteError(f"the number of tasks must be an integer >= 1, got {count!r}")
     if split not in SPLITS:
         raise SuiteError(f"unknown split {split!r}; choose from {', '.join(SPLITS)}")
-    limit = {} if not time_limits or suite not in time_limits else {"time_limit": float(time_limits[suite])}
+    limit: dict[str, Any] = {} if not time_limits or suite not in time_limits else {
+        "time_limit": float(time_limits[suite])}
     if suite == "barn":
         tasks = barn_tasks(robot_radius, barn_file, None if split != "all" else count, **limit)
         if split != "all":
             tasks = [t for t in tasks if split_of(t.task_id) == split][:count]
     elif suite in ("forest", "clutter"):
+        assert count is not None  # only BARN's default count is None (every map)
         seeds = [s for s in range(seed, seed + 5 * count + 5) if split in ("all", split_of(s))][:count]
         tasks = [_forest_task(suite, s, robot_radius, sensing_range, limit) for s in seeds]
     else:
+        assert count is not None  # only BARN's default count is None (every map)
         tasks = [] if split == "train" else make_suite("gaps", count, offsets=GAP_OFFSETS, robot_radius=robot_radius,
                                                        **limit)
     if not tasks:
@@ -119,7 +124,7 @@ def make_tasks(suite: str, robot_radius: float, count: int | None = None, seed: 
 
 
 def _forest_task(suite: str, seed: int, robot_radius: float, sensing_range: float | None,
-                 limit: dict[str, float]) -> NavTask:
+                 limit: dict[str, Any]) -> NavTask:
     """The forest or clutter task of ``seed`` (not validated)."""
     shape = CLUTTER if suite == "clutter" else {}
     return dataclasses.replace(forest(seed, robot_radius=robot_radius, sensing_range=sensing_range, **shape, **limit),
@@ -141,7 +146,8 @@ def make_task(suite: str, task_id: int, robot_radius: float, seed: int = 0,
     if isinstance(task_id, bool) or not isinstance(task_id, (int, np.integer)):
         raise SuiteError(f"a task id must be an integer, got {task_id!r}")
     task_id = int(task_id)
-    limit = {} if not time_limits or suite not in time_limits else {"time_limit": float(time_limits[suite])}
+    limit: dict[str, Any] = {} if not time_limits or suite not in time_limits else {
+        "time_limit": float(time_limits[suite])}
     if suite == "barn":
         maps = {m.map_id: m for m in load_barn(barn_file)}
         if task_id not in maps:
@@ -154,6 +160,7 @@ def make_task(suite: str, task_id: int, robot_radius: float, seed: int = 0,
         task = _forest_task(suite, task_id, robot_radius, sensing_range, limit)
     else:
         count = DEFAULT_COUNTS["gaps"] if count is None else count
+        assert count is not None  # the gaps' default is a number
         if not 0 <= task_id < count:
             raise SuiteError(f"gaps: task {task_id} is not in a sweep of {count} tasks (0..{count - 1})")
         task = make_suite("gaps", count, offsets=GAP_OFFSETS, robot_radius=robot_radius, **limit)[task_id]
