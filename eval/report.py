@@ -213,8 +213,8 @@ def main(argv=None) -> int:
 
 def _report(args) -> int:
     """Every stage of the report (see the module docstring)."""
-    if args.quick:  # a few episodes each: starting worker processes (about 3 s each) would cost more than they save
-        args.workers = 1
+    # --quick: a few episodes each, so starting worker processes (about 3 s each) would cost more than they save
+    workers = 1 if args.quick else args.workers
     paths = OutputPaths(args.out / "quick", quick=True) if args.quick else OutputPaths(args.out)
     runs = args.runs / "quick" if args.quick else args.runs
     stages = Stages(force=args.force)
@@ -244,7 +244,7 @@ def _report(args) -> int:
             # --quick: the 2 s tables drive the controllers (horizon 10 instead of 15)
             cfg = replace(module.QUICK, horizon=10) if args.quick else replace(module.CONFIG(), include_mlp=not args.no_mlp)
             name = module.__name__.split(".")[-1]
-            closed[name] = experiment(module, cfg, cl_sources, progress=not args.quick, workers=args.workers)
+            closed[name] = experiment(module, cfg, cl_sources, progress=not args.quick, workers=workers)
             closed_md.append(module.markdown(closed[name]))
             closed_figs += module.figures(closed[name], paths.figures)
 
@@ -253,7 +253,7 @@ def _report(args) -> int:
 
         nav = stages.stage("navigation (short)", lambda: navigate.short_run(paths.root / "navigate", args.quick,
                                                                              progress=not args.quick,
-                                                                             workers=args.workers))
+                                                                             workers=workers))
         closed_md.append(navigate.render(nav))
 
     def make_figures() -> dict:
