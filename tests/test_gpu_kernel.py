@@ -7,6 +7,7 @@ import pytest
 import torch
 
 from cuniform_torch import TablePolicy, rollout
+from cuniform_torch.sampling.rollout import RolloutPlan
 from cuniform_torch.systems.models import Dubins
 from cuniform_torch.tables import gpu_kernels
 
@@ -66,8 +67,10 @@ def test_on_cuda_the_default_kernel_is_the_fused_one_and_draws_what_the_torch_op
     assert fused.kernel.value == "triton"
     ops = TablePolicy(table, device="cuda", kernel="torch")
     x0 = torch.tensor([1.0, -2.0, 0.7], device="cuda")
-    s1, a1 = rollout(fused.system, fused, x0, 4000, 6, torch.Generator("cuda").manual_seed(0))
-    s2, a2 = rollout(ops.system, ops, x0, 4000, 6, torch.Generator("cuda").manual_seed(0))
+    # the same uniforms for both (one [T, N] draw and T draws of [N] are different Philox streams on CUDA)
+    uniforms = torch.rand((6, 4000), generator=torch.Generator("cuda").manual_seed(0), device="cuda")
+    s1, a1 = RolloutPlan.of(fused.system, fused).run(fused.system, fused, x0, 4000, 6, None, uniforms)
+    s2, a2 = RolloutPlan.of(ops.system, ops).run(ops.system, ops, x0, 4000, 6, None, uniforms)
     same = (a1 == a2).all(dim=(1, 2))
     assert same.float().mean() > 0.999  # a state within float rounding of a cell boundary may pick another cell
     assert (s1[same] - s2[same]).abs().max() < 1e-4
