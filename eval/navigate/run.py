@@ -64,7 +64,7 @@ from eval.navigate.store import EpisodeStore
 __all__ = ["NavConfig", "NAV_TYPES", "REPEATS", "SHORT", "QUICK", "make_jobs", "run", "short_run", "render", "result",
            "success_pivot", "write_outputs", "main", "controller_seed"]
 
-REPEATS = {"barn": 1, "forest": 1, "gaps": 5, "clutter": 1}
+REPEATS = {"barn": 1, "forest": 1, "gaps": 5, "clutter": 1, "moving": 1, "sudden": 1}
 """controller seeds per task by default: the gap suite has few tasks (9 widths), so each runs 5 times"""
 
 
@@ -73,7 +73,7 @@ class NavConfig:
     """One benchmark run (every field is a flag)."""
 
     suite: str = "barn"
-    """barn, forest, gaps or clutter"""
+    """barn, forest, gaps, clutter, moving (discs crossing at constant velocity) or sudden (an obstacle sensed late)"""
     tasks: int | None = None
     """how many tasks (BARN: the first maps of the file; forest: seeds from --seed; gaps: widths 0.6..1.2 m);
     default: every BARN map, 50 forests, 9 gaps"""
@@ -125,7 +125,10 @@ def _check(cfg: NavConfig) -> None:
         raise ValueError(f"unknown suite {cfg.suite!r}; choose from {', '.join(SUITES)}")
     if cfg.split not in SPLITS:
         raise ValueError(f"unknown split {cfg.split!r}; choose from {', '.join(SPLITS)}")
-    parse_methods(cfg.methods, benchmark=NAVIGATE, closed_loop=True)
+    chosen = [m.key for m in parse_methods(cfg.methods, benchmark=NAVIGATE, closed_loop=True)]
+    if cfg.suite in ("moving", "sudden") and "cfu_mppi" in chosen:
+        raise ValueError(f"cfu_mppi cannot drive the {cfg.suite} suite: its map policy senses a still world from the "
+                         "start (moving discs and late obstacles are not in it); leave it out of --methods")
     if not cfg.budgets:
         raise ValueError("give at least one budget (--budgets)")
     bad = [k for k in cfg.budgets if isinstance(k, bool) or not isinstance(k, int) or k < 2]
