@@ -199,3 +199,26 @@ def test_the_benchmark_tells_the_cost_when_the_obstacle_appears(tmp_path):
     never = replace(task, environment=Environment([replace(task.environment.obstacles[0], appear_time=math.inf)],
                                                   bounds=task.environment.bounds))
     assert run_nav_episode(NavJob(never, "mppi_1.0", 64, seed=3), ctx)["outcome"] == "collision"
+
+
+def test_the_benchmark_refuses_what_cannot_see_time():
+    from eval.navigate.run import NavConfig, _check
+
+    for suite in ("moving", "sudden"):
+        with pytest.raises(ValueError, match="cfu_mppi cannot drive"):
+            _check(NavConfig(suite=suite, methods=("mppi_1.0", "cfu_mppi")))
+        with pytest.raises(ValueError, match="--cost-to-go cannot serve"):
+            _check(NavConfig(suite=suite, methods=("mppi_1.0",), cost_to_go=True))
+    _check(NavConfig(suite="moving", methods=("mppi_1.0", "cu_table")))
+
+
+def test_moving_and_sudden_are_scored_against_their_still_obstacles():
+    """The moving suite's reference is the corridor's length (the discs left out); the sudden one's goes around
+    its disc, so it is longer than the 4 m straight line."""
+    from eval.navigate.score import reference_lengths
+
+    settings = {"seed": 0, "robot": {"radius": 0.2}}
+    lengths, note = reference_lengths({**settings, "suite": "moving"}, [0, 1])
+    assert note == "" and all(17.8 <= v <= 18.0 * 1.08 for v in lengths.values()), lengths
+    lengths, note = reference_lengths({**settings, "suite": "sudden"}, [0, 7])
+    assert note == "" and all(4.0 < v < 4.0 * 1.5 for v in lengths.values()), lengths

@@ -129,6 +129,10 @@ def _check(cfg: NavConfig) -> None:
     if cfg.suite in ("moving", "sudden") and "cfu_mppi" in chosen:
         raise ValueError(f"cfu_mppi cannot drive the {cfg.suite} suite: its map policy senses a still world from the "
                          "start (moving discs and late obstacles are not in it); leave it out of --methods")
+    if cfg.suite in ("moving", "sudden") and cfg.cost_to_go:
+        raise ValueError(f"--cost-to-go cannot serve the {cfg.suite} suite: its planner sees a still world with every "
+                         "obstacle from the start (it would miss the moving discs and know a sudden obstacle before it "
+                         "appears); leave it out")
     if not cfg.budgets:
         raise ValueError("give at least one budget (--budgets)")
     bad = [k for k in cfg.budgets if isinstance(k, bool) or not isinstance(k, int) or k < 2]
