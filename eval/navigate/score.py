@@ -80,7 +80,6 @@ def geodesic_length(task: Any, resolution: float = GEODESIC_RESOLUTION) -> float
     import torch
 
     from cuniform_torch.envs import Environment
-
     from eval.navigate.cost_to_go import UNREACHABLE, CostToGo
 
     to_go = CostToGo(task.bounds, task.goal, resolution)

@@ -31,6 +31,7 @@ import math
 from typing import Any
 
 import numpy as np
+import torch
 
 from cuniform_torch.envs import Environment, MovingDiscs
 from cuniform_torch.envs.worlds.geometry import SuiteError, inflate, reachable
@@ -132,7 +133,7 @@ def moving(seed: int, length: float = 20.0, width: float = 6.0, num_discs: tuple
             rows = np.concatenate((rows, cand[far]))[:n]
         velocity = rows[:, 3:5]  # [n, 2]
         centre0 = np.stack((rows[:, 0], np.zeros(n)), axis=1) - velocity * rows[:, 1:2]  # [n, 2] at t = 0
-        raw = MovingDiscs(centre0, velocity, rows[:, 2])
+        raw = MovingDiscs(torch.from_numpy(centre0), torch.from_numpy(velocity.copy()), torch.from_numpy(rows[:, 2].copy()))
         environment = Environment(static.obstacles, bounds=static.bounds, moving=raw.inflated(r))
         task = NavTask(
             suite="moving", task_id=seed, discs=np.zeros((0, 3)), walls=walls, bounds=bounds, robot_radius=r,
