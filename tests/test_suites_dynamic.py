@@ -222,3 +222,15 @@ def test_moving_and_sudden_are_scored_against_their_still_obstacles():
     assert note == "" and all(17.8 <= v <= 18.0 * 1.08 for v in lengths.values()), lengths
     lengths, note = reference_lengths({**settings, "suite": "sudden"}, [0, 7])
     assert note == "" and all(4.0 < v < 4.0 * 1.5 for v in lengths.values()), lengths
+
+
+@pytest.mark.parametrize("suite", ["moving", "sudden"])
+def test_the_gym_environment_refuses_a_world_that_changes(suite):
+    pytest.importorskip("gymnasium")
+    from eval.navigate.gym_env import make_env
+
+    index = 1 if suite == "sudden" else 0  # sudden task 0 is its disc visible from the start: a still world
+    if suite == "sudden":
+        make_env(suite, index=0)
+    with pytest.raises(ValueError, match="still world known from the start"):
+        make_env(suite, index=index)
