@@ -83,13 +83,14 @@ class MovingDiscs:
         """``xy [..., 2]`` occupied at times ``t`` (a number, or a tensor broadcastable to ``[...]``) -> ``bool
         [...]``: inside some disc at that time (closed discs, like :class:`~cuniform_torch.envs.Circle`). Pure
         tensor ops in ``xy``'s dtype and on its device."""
-        if not isinstance(t, Tensor):
-            t = torch.tensor(_time(t, "MovingDiscs.contains"), dtype=xy.dtype, device=xy.device)
         start, velocity, radius = self._on(xy)
         if start.shape[0] == 0:
             return torch.zeros(xy.shape[:-1], dtype=torch.bool, device=xy.device)
-        t = t.to(dtype=xy.dtype)
-        tt = torch.broadcast_to(t, torch.broadcast_shapes(t.shape, xy.shape[:-1]))[..., None]  # [..., 1]
+        if isinstance(t, Tensor):
+            t = t.to(dtype=xy.dtype)
+            tt: Tensor | float = torch.broadcast_to(t, torch.broadcast_shapes(t.shape, xy.shape[:-1]))[..., None]
+        else:  # a Python number stays a scalar: no tensor made from it (a copy to the device per call)
+            tt = _time(t, "MovingDiscs.contains")
         dx = xy[..., 0, None] - (start[:, 0] + velocity[:, 0] * tt)  # [..., M]
         dy = xy[..., 1, None] - (start[:, 1] + velocity[:, 1] * tt)  # [..., M]
         return (dx * dx + dy * dy <= radius * radius).any(dim=-1)

@@ -1,4 +1,5 @@
-"""Closed-loop navigation benchmark: every method at every sample budget on the BARN, forest and gap suites.
+"""Closed-loop navigation benchmark: every method at every sample budget on the BARN, forest, gap, moving-disc and
+sudden-obstacle suites.
 
     python -m eval.navigate --suite barn --budgets 256 1024 --workers 2
 
@@ -75,8 +76,9 @@ class NavConfig:
     suite: str = "barn"
     """barn, forest, gaps, clutter, moving (discs crossing at constant velocity) or sudden (an obstacle sensed late)"""
     tasks: int | None = None
-    """how many tasks (BARN: the first maps of the file; forest: seeds from --seed; gaps: widths 0.6..1.2 m);
-    default: every BARN map, 50 forests, 9 gaps"""
+    """how many tasks (BARN: the first maps of the file; forest, clutter, moving: seeds from --seed; gaps: widths
+    0.6..1.2 m; sudden: 5 appearance times per obstacle position); default: every BARN map, 50 forests, 9 gaps,
+    50 moving, 100 sudden"""
     budgets: tuple[int, ...] = (256, 1024)
     """K, trajectories per control cycle (each >= 2)"""
     methods: tuple[str, ...] | None = None
