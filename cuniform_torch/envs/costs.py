@@ -153,12 +153,12 @@ class NavigationCost:
     stop_at_goal: bool = False
     """end the collision term, like the goal term, at the rollout's first arrival at the goal (that state still
     counts); False charges collisions over the whole horizon"""
-    dt: float | None = None
-    """s: the rollout's step; needed when ``env`` has moving discs (step ``k`` is at ``time + k dt``)"""
     goal_distance: Callable[[Tensor], Tensor] | None = None
     """a cost-to-go ``xy [N, T, 2] -> [N, T]`` (m) whose square replaces the squared straight-line distance in the
     goal term (e.g. a planner's geodesic distance around the obstacles); arrival is still judged on the straight
     line; None: the straight line"""
+    dt: float | None = None
+    """s: the rollout's step; needed when ``env`` has moving discs (step ``k`` is at ``time + k dt``)"""
 
     def __post_init__(self) -> None:
         if not isinstance(self.env, Environment):
