@@ -20,6 +20,10 @@ obstacle. Here, per rollout:
 
 ``goal_distance`` (a cost-to-go, e.g. a planner's geodesic distance) replaces the straight-line distance in the
 goal term.
+
+Moving discs (an environment with ``moving``): the state at step ``k`` of a rollout is tested against the discs
+where they are at ``time + k dt`` (``dt``, the rollout's step, is then required): the discs' constant-velocity
+motion predicted along the rollout (:mod:`cuniform_torch.envs.moving`).
 """
 
 from __future__ import annotations
@@ -106,11 +110,24 @@ def _before_arrival(reached: Tensor, inclusive: bool = False) -> Tensor:
     return (arrivals - reached.to(torch.int32) if inclusive else arrivals) == 0
 
 
-def collision_mask(states: Tensor, env: Environment, time: float | None = None) -> Tensor:
+def collision_mask(states: Tensor, env: Environment, time: float | None = None, dt: float | None = None) -> Tensor:
     """``states [N, T+1, d]`` -> ``bool [N]``: whether any state at steps ``1..T`` collides with the obstacles
-    sensed at ``time`` (all of them for ``None``) or leaves ``env.bounds``. The start state is not checked."""
+    sensed at ``time`` (all of them for ``None``) or leaves ``env.bounds``. The start state is not checked. With
+    moving discs, step ``k`` is at ``time + k dt`` (both needed)."""
     _check_states(states, "collision_mask")
-    return env.in_collision(states[:, 1:, :2], time).any(dim=1)  # [N, T] -> [N]
+    at = _step_times(env, states, time, dt, "collision_mask")
+    return env.in_collision(states[:, 1:, :2], time, at=at).any(dim=1)  # [N, T] -> [N]
+
+
+def _step_times(env: Environment, states: Tensor, time: float | None, dt: float | None, who: str) -> Tensor | None:
+    """``[T]``: the times of steps ``1..T`` (``time + k dt``) when ``env`` has moving discs, else None."""
+    if env.moving is None:
+        return None
+    if time is None or dt is None:
+        raise ValueError(f"{who}: the environment has moving discs; give the current time and dt (the rollout's "
+                         "step, s) so each step is tested where the discs are then")
+    steps = torch.arange(1, states.shape[1], device=states.device, dtype=states.dtype)  # [T]
+    return time + dt * steps
 
 
 @dataclass
@@ -140,6 +157,8 @@ class NavigationCost:
     """a cost-to-go ``xy [N, T, 2] -> [N, T]`` (m) whose square replaces the squared straight-line distance in the
     goal term (e.g. a planner's geodesic distance around the obstacles); arrival is still judged on the straight
     line; None: the straight line"""
+    dt: float | None = None
+    """s: the rollout's step; needed when ``env`` has moving discs (step ``k`` is at ``time + k dt``)"""
 
     def __post_init__(self) -> None:
         if not isinstance(self.env, Environment):
@@ -153,6 +172,13 @@ class NavigationCost:
         for flag in ("per_state", "stop_at_goal"):
             if not isinstance(getattr(self, flag), bool):
                 raise ValueError(f"NavigationCost: {flag} must be a bool, got {getattr(self, flag)!r}")
+        if self.dt is not None:
+            dt = self.dt
+            if isinstance(dt, bool) or not isinstance(dt, (int, float)) or not math.isfinite(dt) or dt <= 0:
+                raise ValueError(f"NavigationCost: dt must be a finite number > 0 (s), got {dt!r}")
+            self.dt = float(dt)
+        if self.env.moving is not None and self.dt is None:
+            raise ValueError("NavigationCost: env has moving discs; give dt (the rollout's step, s)")
         self.set_time(self.time)
 
     def set_time(self, t: float | None) -> None:
@@ -179,7 +205,8 @@ class NavigationCost:
             to_go = to_go.to(states.dtype)
             dist2 = to_go * to_go
         cost = torch.where(_before_arrival(reached), dist2, torch.zeros_like(dist2)).sum(dim=1)  # goal_cost's sum
-        hit = self.env.in_collision(states[:, 1:, :2], self.time)  # [N, T]
+        at = _step_times(self.env, states, self.time, self.dt, "NavigationCost")  # [T] or None
+        hit = self.env.in_collision(states[:, 1:, :2], self.time, at=at)  # [N, T]
         if self.stop_at_goal:
             hit = hit & _before_arrival(reached, inclusive=True)
         hit = hit.sum(dim=1) if self.per_state else hit.any(dim=1)  # [N]

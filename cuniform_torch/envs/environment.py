@@ -13,6 +13,7 @@ from dataclasses import dataclass, field
 import torch
 from torch import Tensor
 
+from cuniform_torch.envs.moving import MovingDiscs
 from cuniform_torch.envs.shapes import Circle, Rect, _appear_time, _check_xy
 
 __all__ = ["Environment"]
@@ -29,8 +30,12 @@ class Environment:
     """objects with ``contains(xy [..., 2]) -> bool [...]`` and ``appear_time`` (see :class:`Obstacle`)"""
     bounds: tuple[float, float, float, float] | None = None
     """(xmin, ymin, xmax, ymax) of the workspace, or None for an unbounded plane"""
+    moving: MovingDiscs | None = None
+    """discs at constant velocity, tested at the time a point is occupied (module docstring); None: none"""
 
     def __post_init__(self) -> None:
+        if self.moving is not None and not isinstance(self.moving, MovingDiscs):
+            raise ValueError(f"Environment: moving must be a MovingDiscs or None, got {type(self.moving).__name__}")
         if isinstance(self.obstacles, (str, bytes)) or not isinstance(self.obstacles, (list, tuple)):
             raise ValueError(f"Environment: obstacles must be a list, got {type(self.obstacles).__name__}")
         self.obstacles = list(self.obstacles)
@@ -61,10 +66,16 @@ class Environment:
             raise ValueError(f"Environment: time must be a number or None, got {time!r}")
         return [obs for obs in self.obstacles if obs.appear_time <= time]
 
-    def in_collision(self, xy: Tensor, time: float | None = None) -> Tensor:
-        """``xy [..., 2]`` -> ``bool [...]``: inside an obstacle sensed at ``time`` (all for None), or outside
-        ``bounds``. Non-finite points count as collisions."""
+    def in_collision(self, xy: Tensor, time: float | None = None, at: float | Tensor | None = None) -> Tensor:
+        """``xy [..., 2]`` -> ``bool [...]``: inside an obstacle sensed at ``time`` (all for None), inside a moving
+        disc where it is at time ``at``, or outside ``bounds``. Non-finite points count as collisions.
+
+        ``at``: the time (s) each point is occupied: a number, or a tensor broadcastable to ``[...]`` (a rollout's
+        step times ``[T]`` for points ``[N, T, 2]``); needed when ``moving`` is set, unused otherwise."""
         _check_xy(xy, "Environment.in_collision")
+        if self.moving is not None and at is None:
+            raise ValueError("Environment.in_collision: this environment has moving discs; give at= the time (s) "
+                             "each point is occupied (a number, or a tensor of step times)")
         obstacles = self.visible(time)
         hit = ~torch.isfinite(xy).all(dim=-1)  # [...]
         if self.bounds is not None:
@@ -78,7 +89,19 @@ class Environment:
             hit |= _any_contains(xy, circles, rects)
         for obs in others:
             hit |= obs.contains(xy)
+        if self.moving is not None and len(self.moving):
+            assert at is not None  # refused above
+            hit |= self.moving.contains(xy, at)
         return hit
+
+    def snapshot(self, t: float) -> Environment:
+        """The environment as it is at time ``t`` (s): the same obstacles and bounds, each moving disc a fixed
+        :class:`Circle` where it is then (the last ones, in ``moving``'s order); the environment itself when nothing
+        moves. For the static tools (:func:`~cuniform_torch.envs.worlds.geometry.reachable`, rasters)."""
+        if self.moving is None:
+            return self
+        circles = [Circle((x, y), r) for (x, y), r in zip(self.moving.centres(t).tolist(), self.moving.radius.tolist())]
+        return Environment(list(self.obstacles) + circles, bounds=self.bounds)
 
     def _on_device(self, circles: Tensor, rects: Tensor, xy: Tensor) -> tuple[Tensor, Tensor]:
         """``circles``, ``rects`` (the CPU tables of :meth:`_batched`) on ``xy``'s device in its dtype, cached per

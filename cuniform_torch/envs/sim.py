@@ -7,7 +7,8 @@ obstacles sensed by then), the controller picks ``u = controller.command(x)``, t
 new position is checked against the *true* environment (every obstacle, whatever its ``appear_time``, and the
 bounds), then against the goal, then against the time limit. A step that both collides and reaches the goal
 counts as a collision. Collisions are checked at the simulated states only, not along the segments between
-them (the same discretization the cost uses).
+them (the same discretization the cost uses). Moving discs (an environment with ``moving``) are checked where
+they are at the new state's time, ``(k + 1) dt`` after ``k`` earlier steps.
 """
 
 from __future__ import annotations
@@ -120,7 +121,7 @@ def simulate(
     tol = _positive(goal_tolerance, "goal_tolerance", allow_zero=True)
     limit = _positive(time_limit, "time_limit")
     dt = _positive(system.dt, "system.dt")
-    if bool(env.in_collision(x0[:2])):
+    if bool(env.in_collision(x0[:2], at=0.0)):
         raise ValueError(f"simulate: the start state {x0.tolist()} is in collision (or outside the bounds)")
 
     goal_t = x0.new_tensor((gx, gy))  # [2]
@@ -157,7 +158,7 @@ def simulate(
         length = length + torch.linalg.vector_norm(x_new[:2] - x[:2])
         flags = torch.stack((
             ~torch.isfinite(x_new).all() | ~torch.isfinite(u).all(),
-            env.in_collision(x_new[:2]),
+            env.in_collision(x_new[:2], at=steps * dt),  # steps counts x_new: it is at steps * dt
             torch.linalg.vector_norm(x_new[:2] - goal_t) <= tol,
         )).tolist()  # one host sync per cycle
         if flags[0]:

@@ -19,6 +19,11 @@ the goal). The obstacles it sees:
   a cost evaluation costs one gather instead of one test per cylinder;
 * otherwise the task's inflated environment as it is.
 
+The cost is told the time before every control cycle (:func:`cuniform_torch.envs.simulate`'s ``cost``): an
+obstacle with an ``appear_time`` (the sudden suite) enters it then, and moving discs (the moving suite) are
+tested where they will be at each rollout step's time (``dt``: the robot's step), their true constant-velocity
+motion (:mod:`cuniform_torch.envs.worlds.dynamic`).
+
 Collisions are always judged on the exact inflated geometry (:func:`cuniform_torch.envs.simulate`).
 """
 
@@ -139,7 +144,7 @@ def rasterize(environment: Environment, resolution: float) -> Environment:
             _mark_boxes(occupied, order[start:stop], lo, hi, circles, rects, xs, ys, margin)
             start = stop
     grid = OccupancyGrid(torch.from_numpy(occupied), origin=(xmin, ymin), resolution=h)
-    return Environment([grid], bounds=environment.bounds)
+    return Environment([grid], bounds=environment.bounds, moving=environment.moving)
 
 
 _RASTER_CHUNK = 1 << 22
@@ -239,20 +244,20 @@ def run_nav_episode(job: NavJob, ctx: NavContext, trace: list | None = None) -> 
     torch.set_num_threads(1)
     task, method = job.task, methods_of(NAVIGATE)[job.method]
     sources = _sources(ctx)
+    system = sources.system
     to_go = CostToGo(task.bounds, task.goal, ctx.cost_to_go) if ctx.cost_to_go is not None else None
     cost = NavigationCost(_cost_environment(task, ctx), task.goal, goal_tolerance=task.goal_tolerance,
                           collision_penalty=ctx.collision_penalty, per_state=True, stop_at_goal=True,
-                          goal_distance=to_go)
+                          goal_distance=to_go, dt=float(system.dt))
     t0 = time.perf_counter()
     world = sensed_world(task) if method.source == "map_policy" else None
     inner = make_controller(method, sources, cost, job.budget, ctx.horizon, job.seed, lambda_=ctx.lambda_,
                             world=world, max_range=task.sensing_range)
-    system = sources.system
     ctrl = _TimedSensingController(inner, cost, task, trace, dt=float(system.dt),
                                    collision_penalty=ctx.collision_penalty, to_go=to_go)
     x0 = torch.zeros(len(system.periodic), dtype=torch.float32)
     x0[:3] = torch.tensor(task.start, dtype=torch.float32)
-    res = simulate(system, ctrl, x0, task.environment, task.goal, task.goal_tolerance, task.time_limit,
+    res = simulate(system, ctrl, x0, task.environment, task.goal, task.goal_tolerance, task.time_limit, cost=cost,
                    record=ctx.record_path)
     rec = dict(key=job.key, suite=task.suite, task_id=task.task_id, method=job.method, budget=job.budget,
                seed=job.seed, repeat=job.repeat, outcome=res.outcome, success=res.success,

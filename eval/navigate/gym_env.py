@@ -202,6 +202,10 @@ class NavigationEnv(gymnasium.Env):
         """Every task's full environment (what can ever be sensed) must fit the observation's slots and have
         bounds (the observation's boxes are finite)."""
         for k, task in enumerate(self.tasks):
+            if task.environment.moving is not None or any(o.appear_time > 0 for o in task.environment.obstacles):
+                raise ValueError(f"NavigationEnv: task {k} ({task.suite} {task.task_id}) has moving discs or an obstacle "
+                                 "that appears late; the observation is a still world known from the start (the "
+                                 "benchmark, python -m eval.navigate, runs those suites)")
             if task.environment.bounds is None:
                 raise ValueError(f"NavigationEnv: task {k}'s environment has no bounds; the observation needs "
                                  "finite workspace bounds (give the task's Environment bounds)")

@@ -1,4 +1,5 @@
-"""Closed-loop navigation benchmark: every method at every sample budget on the BARN, forest and gap suites.
+"""Closed-loop navigation benchmark: every method at every sample budget on the BARN, forest, gap, moving-disc and
+sudden-obstacle suites.
 
     python -m eval.navigate --suite barn --budgets 256 1024 --workers 2
 
@@ -64,7 +65,7 @@ from eval.navigate.store import EpisodeStore
 __all__ = ["NavConfig", "NAV_TYPES", "REPEATS", "SHORT", "QUICK", "make_jobs", "run", "short_run", "render", "result",
            "success_pivot", "write_outputs", "main", "controller_seed"]
 
-REPEATS = {"barn": 1, "forest": 1, "gaps": 5, "clutter": 1}
+REPEATS = {"barn": 1, "forest": 1, "gaps": 5, "clutter": 1, "moving": 1, "sudden": 1}
 """controller seeds per task by default: the gap suite has few tasks (9 widths), so each runs 5 times"""
 
 
@@ -73,10 +74,11 @@ class NavConfig:
     """One benchmark run (every field is a flag)."""
 
     suite: str = "barn"
-    """barn, forest, gaps or clutter"""
+    """barn, forest, gaps, clutter, moving (discs crossing at constant velocity) or sudden (an obstacle sensed late)"""
     tasks: int | None = None
-    """how many tasks (BARN: the first maps of the file; forest: seeds from --seed; gaps: widths 0.6..1.2 m);
-    default: every BARN map, 50 forests, 9 gaps"""
+    """how many tasks (BARN: the first maps of the file; forest, clutter, moving: seeds from --seed; gaps: widths
+    0.6..1.2 m; sudden: 5 appearance times per obstacle position); default: every BARN map, 50 forests, 9 gaps,
+    50 moving, 100 sudden"""
     budgets: tuple[int, ...] = (256, 1024)
     """K, trajectories per control cycle (each >= 2)"""
     methods: tuple[str, ...] | None = None
@@ -125,7 +127,14 @@ def _check(cfg: NavConfig) -> None:
         raise ValueError(f"unknown suite {cfg.suite!r}; choose from {', '.join(SUITES)}")
     if cfg.split not in SPLITS:
         raise ValueError(f"unknown split {cfg.split!r}; choose from {', '.join(SPLITS)}")
-    parse_methods(cfg.methods, benchmark=NAVIGATE, closed_loop=True)
+    chosen = [m.key for m in parse_methods(cfg.methods, benchmark=NAVIGATE, closed_loop=True)]
+    if cfg.suite in ("moving", "sudden") and "cfu_mppi" in chosen:
+        raise ValueError(f"cfu_mppi cannot drive the {cfg.suite} suite: its map policy senses a still world from the "
+                         "start (moving discs and late obstacles are not in it); leave it out of --methods")
+    if cfg.suite in ("moving", "sudden") and cfg.cost_to_go:
+        raise ValueError(f"--cost-to-go cannot serve the {cfg.suite} suite: its planner sees a still world with every "
+                         "obstacle from the start (it would miss the moving discs and know a sudden obstacle before it "
+                         "appears); leave it out")
     if not cfg.budgets:
         raise ValueError("give at least one budget (--budgets)")
     bad = [k for k in cfg.budgets if isinstance(k, bool) or not isinstance(k, int) or k < 2]

@@ -109,7 +109,8 @@ def clearance(environment: Environment, xy: np.ndarray) -> np.ndarray:
 
 def sensed(environment: Environment, xy: torch.Tensor, sensing_range: float) -> Environment:
     """The obstacles of ``environment`` whose nearest point is within ``sensing_range`` of ``xy [2]`` (those
-    containing ``xy`` included), in their original order, with the same bounds.
+    containing ``xy`` included), in their original order, with the same bounds and the same moving discs (all of
+    them: they are sensed as they are, whatever the range).
 
     Pure; one vectorized distance computation over all obstacles (Circle and Rect only). The runner calls it
     once per control cycle; on a :class:`NavTask` use :meth:`NavTask.sensed_environment`, which corrects the
@@ -120,9 +121,10 @@ def sensed(environment: Environment, xy: torch.Tensor, sensing_range: float) -> 
     if p.shape != (2,) or not bool(torch.isfinite(p).all()):
         raise SuiteError(f"sensed: xy must be a finite point (x, y), got {xy!r}")
     if not environment.obstacles:
-        return Environment([], bounds=environment.bounds)
+        return Environment([], bounds=environment.bounds, moving=environment.moving)
     near = _distances(environment, p.numpy()[None])[0] <= sensing_range  # [K]
-    return Environment([o for o, keep in zip(environment.obstacles, near.tolist()) if keep], bounds=environment.bounds)
+    return Environment([o for o, keep in zip(environment.obstacles, near.tolist()) if keep], bounds=environment.bounds,
+                       moving=environment.moving)
 
 
 def reachable(environment: Environment, start: tuple[float, float], goal: tuple[float, float],

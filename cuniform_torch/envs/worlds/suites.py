@@ -31,7 +31,7 @@ import numpy as np
 import torch
 
 from cuniform_torch.common.options import Option, option_label
-from cuniform_torch.envs import Environment
+from cuniform_torch.envs import Environment, MovingDiscs
 from cuniform_torch.envs.worlds.geometry import SuiteError, inflate, reachable, sensed
 
 __all__ = ["NavTask", "SuiteError", "Suite", "forest", "gaps", "make_suite", "validate_task", "MAX_ATTEMPTS",
@@ -56,9 +56,9 @@ class NavTask:
     """One navigation task: raw geometry, the inflated environment, start, goal and limits."""
 
     suite: str
-    """``"forest"`` or ``"gaps"``"""
+    """``"forest"``, ``"gaps"``, ``"clutter"``, ``"barn"``, ``"moving"`` or ``"sudden"``"""
     task_id: int
-    """forest: the seed; gaps: the index in its sweep"""
+    """forest, moving: the seed; gaps: the index in its sweep; sudden: position x appearance times + appearance"""
     discs: np.ndarray
     """float64 ``[M, 3]``: (x, y, radius) of each raw disc (m); ``[0, 3]`` for none"""
     walls: np.ndarray
@@ -84,6 +84,9 @@ class NavTask:
     """forest: which draw of the seed was kept (0 unless earlier draws were unreachable); gaps: 0"""
     params: dict = field(default_factory=dict)
     """the generator's keyword arguments, for the record"""
+    moving: MovingDiscs | None = None
+    """the raw discs that move (:func:`cuniform_torch.envs.worlds.dynamic.moving`), not inflated; ``environment``
+    holds them inflated by ``robot_radius`` in its ``moving``; None: nothing moves"""
 
     def sensed_environment(self, xy: torch.Tensor) -> Environment:
         """``xy [2]`` -> the inflated obstacles the robot senses at ``xy``: those whose *raw* surface is within
@@ -112,15 +115,16 @@ def _int(value: Any, what: str, who: str) -> int:
 
 def validate_task(task: NavTask, resolution: float = 0.1, check_reachable: bool = True) -> None:
     """Raise :class:`SuiteError` if the start or goal is in collision on ``task.environment`` (obstacles or
-    bounds) or, with ``check_reachable``, if :func:`reachable` fails."""
+    bounds; moving discs where they are at t = 0) or, with ``check_reachable``, if :func:`reachable` fails on the
+    environment as it is at t = 0."""
     who = f"{task.suite} task {task.task_id}"
     pts = torch.tensor([task.start[:2], task.goal], dtype=torch.float64)  # [2, 2]
-    hit = task.environment.in_collision(pts).tolist()
+    hit = task.environment.in_collision(pts, at=0.0).tolist()  # moving discs where they are at the start
     for name, p, bad in zip(("start", "goal"), (task.start, task.goal), hit):
         if bad:
             raise SuiteError(f"{who}: the {name} {tuple(p)} is in collision (inflated by robot_radius "
                              f"{task.robot_radius}) or outside the bounds")
-    if check_reachable and not reachable(task.environment, task.start[:2], task.goal, resolution):
+    if check_reachable and not reachable(task.environment.snapshot(0.0), task.start[:2], task.goal, resolution):
         raise SuiteError(f"{who}: the goal {task.goal} is not reachable from the start {task.start[:2]} "
                          f"(flood fill at {resolution} m)")
 

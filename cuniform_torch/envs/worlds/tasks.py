@@ -6,7 +6,8 @@ within 100 s. The walls of a BARN map are cylinders too (three sides; the top is
 workspace bounds are only a generous box around the map and the goal that keeps a lost robot from wandering
 off: (-6, -1.5) to (1.5, 15) m.
 
-:func:`make_tasks` makes any suite's tasks (``barn``, ``forest``, ``gaps``) and checks each one the same way
+:func:`make_tasks` makes any suite's tasks (``barn``, ``forest``, ``gaps``, ``clutter``, and the suites where
+time matters, ``moving`` and ``sudden``: :mod:`cuniform_torch.envs.worlds.dynamic`) and checks each one the same way
 (:func:`cuniform_torch.envs.worlds.suites.validate_task`): a start or goal in collision, or a goal that a certified flood fill cannot
 reach, is a :class:`~cuniform_torch.envs.worlds.suites.SuiteError` naming the task, raised before any episode runs.
 """
@@ -21,13 +22,14 @@ from typing import Any, cast
 import numpy as np
 
 from cuniform_torch.envs.worlds.barn import CHALLENGE_GOAL, CHALLENGE_START, BarnMap, load_barn
+from cuniform_torch.envs.worlds.dynamic import SUDDEN_APPEAR, moving, sudden, sudden_position
 from cuniform_torch.envs.worlds.geometry import inflate
 from cuniform_torch.envs.worlds.suites import NavTask, SuiteError, forest, make_suite, validate_task
 
 __all__ = ["SUITES", "CLUTTER", "SPLITS", "split_of", "BARN_BOUNDS", "GAP_OFFSETS", "RESOLUTIONS", "TIME_LIMITS",
            "barn_task", "barn_tasks", "make_tasks", "make_task", "DEFAULT_COUNTS"]
 
-SUITES = ("barn", "forest", "gaps", "clutter")
+SUITES = ("barn", "forest", "gaps", "clutter", "moving", "sudden")
 """the suites of ``python -m eval.navigate``"""
 CLUTTER: dict[str, Any] = {"num_discs": (90, 120), "disc_radius": 0.5}
 """the ``clutter`` suite: the forest's corridor and rules with 90-120 discs of radius 0.5 m, 24% of the corridor
@@ -39,19 +41,22 @@ SPLITS = ("all", "train", "test")
 """task splits (:func:`split_of`): ``all`` keeps every task"""
 BARN_BOUNDS = (-6.0, -1.5, 1.5, 15.0)
 """raw workspace bounds of every BARN task (m): the map (x in [-4.5, 0], y in [0, 9.6]) and its goal, with room"""
-DEFAULT_COUNTS: dict[str, int | None] = {"barn": None, "forest": 50, "gaps": 9, "clutter": 50}
-"""tasks per suite by default (None: every map of the file); 9 gaps: 3 widths x :data:`GAP_OFFSETS`"""
-TIME_LIMITS = {"barn": 100.0, "forest": 120.0, "gaps": 30.0, "clutter": 120.0}
+DEFAULT_COUNTS: dict[str, int | None] = {"barn": None, "forest": 50, "gaps": 9, "clutter": 50, "moving": 50,
+                                          "sudden": 20 * len(SUDDEN_APPEAR)}
+"""tasks per suite by default (None: every map of the file); 9 gaps: 3 widths x :data:`GAP_OFFSETS`; sudden: 20
+obstacle positions (the paper's) x the appearance times"""
+TIME_LIMITS = {"barn": 100.0, "forest": 120.0, "gaps": 30.0, "clutter": 120.0, "moving": 60.0, "sudden": 20.0}
 """s per episode: BARN's is the Challenge's; the forest's 120 s is 1.8x the straight drive at 0.5 m/s (33 m);
-the gaps' 30 s is 2.5x theirs (6 m)"""
+the gaps' 30 s is 2.5x theirs (6 m); moving's 60 s 1.7x its 18 m; sudden's 20 s 2.5x its 4 m"""
 GAP_OFFSETS = (0.0, 0.75, 1.5)
 """m: where the gap sits off the start-goal line (an offset gap puts a wall between the robot and its goal)"""
-RESOLUTIONS = {"barn": 0.05, "forest": 0.1, "gaps": 0.02, "clutter": 0.05}
+RESOLUTIONS = {"barn": 0.05, "forest": 0.1, "gaps": 0.02, "clutter": 0.05, "moving": 0.1, "sudden": 0.05}
 """m: flood-fill cell per suite (the gap suite's narrowest free band is 0.2 m wide for a 0.2 m robot)"""
 
 
 def split_of(key: int) -> str:
-    """The split of the map with ``key`` (a BARN map id, a forest seed): test when ``key % 5 == 0``, else train.
+    """The split of the map with ``key`` (a BARN map id, a forest or moving seed, a sudden obstacle's position):
+    test when ``key % 5 == 0``, else train.
     The map-table farm (:mod:`precompute.maps.worlds`) trains on the train split only, so a benchmark run on
     ``--split test`` drives on maps no map-conditioned policy has seen."""
     return "test" if key % 5 == 0 else "train"
@@ -87,9 +92,11 @@ def make_tasks(suite: str, robot_radius: float, count: int | None = None, seed: 
                split: str = "all") -> list[NavTask]:
     """The tasks of ``suite`` for a robot of ``robot_radius``, each validated (module docstring).
 
-    ``count``: tasks (None: :data:`DEFAULT_COUNTS`); ``seed``: the first forest seed; ``split``: keep only the
-    maps of that split (:func:`split_of` of the BARN map id or forest seed: the first ``count`` of them from
-    ``seed`` on; the gap sweep is no farm map, so all of it is ``test`` and none ``train``); ``barn_file``: another
+    ``count``: tasks (None: :data:`DEFAULT_COUNTS`); ``seed``: the first forest / moving seed, the sudden
+    offsets' seed; ``split``: keep only the maps of that split (:func:`split_of` of the BARN map id, the forest or
+    moving seed, the sudden obstacle's position, so every appearance time of a position is in the same split: the
+    first ``count`` of them from ``seed`` / position 0 on; the gap sweep is no farm map, so all of it is ``test``
+    and none ``train``); ``barn_file``: another
     BARN file in the shipped format; ``sensing_range``: the forest's (None: all obstacles known);
     ``resolution``: of the reachability flood fill (m; None: :data:`RESOLUTIONS`); ``time_limits``: per suite, overriding the suites'
     own (s; default :data:`TIME_LIMITS`, the benchmark's).
@@ -108,10 +115,16 @@ def make_tasks(suite: str, robot_radius: float, count: int | None = None, seed: 
         tasks = barn_tasks(robot_radius, barn_file, None if split != "all" else count, **limit)
         if split != "all":
             tasks = [t for t in tasks if split_of(t.task_id) == split][:count]
-    elif suite in ("forest", "clutter"):
+    elif suite in ("forest", "clutter", "moving"):
         assert count is not None  # only BARN's default count is None (every map)
         seeds = [s for s in range(seed, seed + 5 * count + 5) if split in ("all", split_of(s))][:count]
-        tasks = [_forest_task(suite, s, robot_radius, sensing_range, limit) for s in seeds]
+        tasks = [_seeded_task(suite, s, robot_radius, sensing_range, limit) for s in seeds]
+    elif suite == "sudden":
+        assert count is not None
+        n = len(SUDDEN_APPEAR)
+        positions = [p for p in range(5 * (count // n + 1) + 5) if split in ("all", split_of(p))]
+        ids = [p * n + a for p in positions for a in range(n)][:count]
+        tasks = [sudden(*sudden_position(i), seed=seed, robot_radius=robot_radius, **limit) for i in ids]
     else:
         assert count is not None  # only BARN's default count is None (every map)
         tasks = [] if split == "train" else make_suite("gaps", count, offsets=GAP_OFFSETS, robot_radius=robot_radius,
@@ -123,9 +136,11 @@ def make_tasks(suite: str, robot_radius: float, count: int | None = None, seed: 
     return tasks
 
 
-def _forest_task(suite: str, seed: int, robot_radius: float, sensing_range: float | None,
+def _seeded_task(suite: str, seed: int, robot_radius: float, sensing_range: float | None,
                  limit: dict[str, Any]) -> NavTask:
-    """The forest or clutter task of ``seed`` (not validated)."""
+    """The forest, clutter or moving task of ``seed`` (not validated)."""
+    if suite == "moving":
+        return moving(seed, robot_radius=robot_radius, **limit)
     shape = CLUTTER if suite == "clutter" else {}
     return dataclasses.replace(forest(seed, robot_radius=robot_radius, sensing_range=sensing_range, **shape, **limit),
                                suite=suite)
@@ -137,8 +152,9 @@ def make_task(suite: str, task_id: int, robot_radius: float, seed: int = 0,
               resolution: float | None = None) -> NavTask:
     """The one task ``task_id`` of ``suite``, the same as :func:`make_tasks` makes, validated the same way.
 
-    ``task_id``: forest / clutter: the seed (one of a run from ``seed`` on, so >= ``seed``); BARN: the map id in
-    ``barn_file``; gaps: the index in the sweep of ``count`` tasks (None: :data:`DEFAULT_COUNTS`; the sweep's
+    ``task_id``: forest / clutter / moving: the seed (one of a run from ``seed`` on, so >= ``seed``); BARN: the map
+    id in ``barn_file``; sudden: :func:`~cuniform_torch.envs.worlds.dynamic.sudden_id`; gaps: the index in the
+    sweep of ``count`` tasks (None: :data:`DEFAULT_COUNTS`; the sweep's
     widths depend on it, so give the run's). The other arguments are :func:`make_tasks`' (only this task is
     validated; a BARN file is read whole, the gap sweep's few walls are all made)."""
     if suite not in SUITES:
@@ -154,10 +170,14 @@ def make_task(suite: str, task_id: int, robot_radius: float, seed: int = 0,
             raise SuiteError(f"barn: no map {task_id} in {barn_file or 'the shipped BARN file'} (it holds "
                              f"{len(maps)} maps, ids {min(maps)}..{max(maps)})")
         task = barn_task(maps[task_id], robot_radius, **limit)
-    elif suite in ("forest", "clutter"):
+    elif suite in ("forest", "clutter", "moving"):
         if task_id < seed:
             raise SuiteError(f"{suite}: task {task_id} is a seed below the run's first seed {seed}")
-        task = _forest_task(suite, task_id, robot_radius, sensing_range, limit)
+        task = _seeded_task(suite, task_id, robot_radius, sensing_range, limit)
+    elif suite == "sudden":
+        if task_id < 0:
+            raise SuiteError(f"sudden: a task id must be >= 0, got {task_id}")
+        task = sudden(*sudden_position(task_id), seed=seed, robot_radius=robot_radius, **limit)
     else:
         count = DEFAULT_COUNTS["gaps"] if count is None else count
         assert count is not None  # the gaps' default is a number
@@ -171,4 +191,5 @@ def make_task(suite: str, task_id: int, robot_radius: float, seed: int = 0,
 def task_summary(tasks: Sequence[NavTask]) -> dict[str, Any]:
     """A short JSON description of a task list (ids, obstacle counts), for the benchmark's record."""
     return dict(count=len(tasks), task_ids=[t.task_id for t in tasks],
-                obstacles=[int(t.discs.shape[0] + t.walls.shape[0]) for t in tasks])
+                obstacles=[int(t.discs.shape[0] + t.walls.shape[0] + (len(t.moving) if t.moving is not None else 0))
+                           for t in tasks])
