@@ -35,8 +35,10 @@ from typing import TypeVar
 
 from cuniform_torch.cli import OUT, cli_main
 from precompute.build_args import (
+    COMMANDS,
     COVERAGE_ONLY,
     MAXFLOW_ONLY,
+    SetOptions,
     job_config,
     legacy_argv,
     make_parser,
@@ -49,19 +51,22 @@ from precompute.system_args import parse_params
 from precompute.table_set import MAX_SET_MEMBERS, build_table_set, ensure_table_set, parse_starts
 
 __all__ = ["main", "parse_job", "with_threads", "TableJob", "build_table_file", "build_table_set", "ensure_table_set",
-           "make_parser", "MAXFLOW_ONLY", "COVERAGE_ONLY", "parse_params"]
+           "make_parser", "MAXFLOW_ONLY", "COVERAGE_ONLY", "parse_params", "COMMANDS", "SetOptions", "job_config",
+           "legacy_argv"]
 
 T = TypeVar("T")
 
 
 @cli_main(interrupted="interrupted: no table written")
 def main(argv: Sequence[str] | None = None) -> int:
-    """Build a table (or, with ``--starts``, a table set) from the flags ``argv``: 0, or 2 after one
-    ``error: ...`` line, or 130 on Ctrl-C."""
+    """Build a table (or a table set) from the flags ``argv`` (default: the command line): 0, or 2 after one
+    ``error: ...`` line, or 130 on Ctrl-C. The old spelling on the command line prints its new one first (a note on
+    stderr); called with ``argv``, it is translated quietly."""
+    command_line = argv is None
     argv = sys.argv[1:] if argv is None else list(argv)
     args = parse_build_args(argv)
     _, note = legacy_argv(argv)
-    if note is not None:
+    if note is not None and command_line:
         print(note, file=sys.stderr)
     if args.print_config:
         job, table_set = _job_of(args)

@@ -217,7 +217,7 @@ def _add_flags(parser: argparse.ArgumentParser, command: str) -> None:
                                  "level sets without the cells within --radius of its obstacles (SE(2)-invariant "
                                  "systems)")
         add_dataclass_args(parser, BuildConfig, only=("radius",), metavars={"radius": "R"},
-                           help={"radius": "the robot's radius (m) the map's obstacles are inflated by (default: 0)"})
+                           help={"radius": "the robot's radius (m) the map's obstacles are inflated by"})
     if command == "set":
         docs = field_docs(SetOptions)
         parser.add_argument("--starts", default=argparse.SUPPRESS, metavar="SPEC", help=docs["starts"] + " (required)")
@@ -465,7 +465,8 @@ def job_config(args: argparse.Namespace, job: TableJob, table_set: dict) -> dict
 def _name(args: argparse.Namespace, dest: str) -> str:
     """How the user gave ``dest``: its flag, or its config key."""
     key = getattr(args, "config_keys", {}).get(dest)
-    return f"config key {key}" if key else flag_name({"max_memory_gb": "max_memory"}.get(dest, dest))
+    return f"config key {key}" if key else {"max_memory_gb": "--max-memory", "report": "--no-report"}.get(
+        dest, flag_name(dest))
 
 
 def check_flags(args: argparse.Namespace) -> None:
