@@ -465,7 +465,7 @@ def job_config(args: argparse.Namespace, job: TableJob, table_set: dict) -> dict
 def _name(args: argparse.Namespace, dest: str) -> str:
     """How the user gave ``dest``: its flag, or its config key."""
     key = getattr(args, "config_keys", {}).get(dest)
-    return f"config key {key}" if key else {"max_memory_gb": "--max-memory", "report": "--no-report"}.get(
+    return f"{key} in {args.config}" if key else {"max_memory_gb": "--max-memory", "report": "--no-report"}.get(
         dest, flag_name(dest))
 
 
