@@ -467,6 +467,7 @@ def read_config_file(path: str | os.PathLike, flag: str = "--config") -> dict[st
     """The object in the config file ``path``: JSON, or TOML when it ends in ``.toml`` (data, never code). A file
     that does not parse, or whose top level is not an object, is one CLIError naming the file and the place."""
     import json
+
     import tomllib
 
     path = Path(path)

@@ -280,7 +280,7 @@ def _legacy_value(field: dataclasses.Field, values: list[str], flag: str) -> str
 def legacy_argv(argv: Sequence[str]) -> tuple[list[str], str | None]:
     """``(argv, note)``: the old spelling (no subcommand) translated, and the one-line deprecation note naming the
     new command (None when ``argv`` already starts with a subcommand). The subcommand follows the old mode flags:
-    ``--starts`` -> set, ``--map`` -> safe, ``--method coverage`` -> coverage, else maxflow; each per-system flag
+    ``--starts`` (or ``--workers``, ``--ray``, ``--no-limit``) -> set, ``--map`` (or ``--radius``) -> safe, ``--method coverage`` -> coverage, else maxflow; each per-system flag
     (``--num-actions 3``) becomes ``--param num_actions=3``."""
     argv = list(argv)
     if not argv or argv[0] in COMMANDS or argv[0] in ("-h", "--help"):
@@ -316,7 +316,7 @@ def legacy_argv(argv: Sequence[str]) -> tuple[list[str], str | None]:
         raise CLIError("--map builds one safe table; a table set (--starts) takes no map (see precompute.maps.farm)")
     if "--starts" in given and "--start" in given:
         raise CLIError("give --start (one table) or --starts (a table set), not both")
-    command = ("set" if "--starts" in given else "safe" if "--map" in given
+    command = ("set" if given & {"--starts", "--workers", "--ray", "--no-limit"} else "safe" if given & {"--map", "--radius"}
                else "coverage" if method == "coverage" else "maxflow")
     if command == "set":
         out = [a for a in out if a != "--no-report"]  # a set's members never had a report
@@ -487,9 +487,11 @@ def check_flags(args: argparse.Namespace) -> None:
         raise CLIError(f"{_name(args, 'rollouts')} sets the report's rollouts, but {_name(args, 'report')} skips "
                        "the report")
     if args.command == "set" and not hasattr(args, "starts"):
-        raise CLIError("set needs --starts SPEC (or set.starts in the --config file)")
+        raise CLIError("set needs --starts SPEC, the starts of its tables (or set.starts in the --config file): give "
+                       "--starts too")
     if args.command == "safe" and not hasattr(args, "map_file"):
-        raise CLIError("safe needs --map FILE (or map in the --config file)")
+        raise CLIError("safe needs --map FILE, the local map whose obstacles --radius inflates (or map in the --config "
+                       "file): give --map too")
 
 
 def parse_build_args(argv: Sequence[str]) -> argparse.Namespace:

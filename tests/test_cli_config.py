@@ -117,9 +117,8 @@ def _entry_points():
     from precompute import build
     from precompute.coverage.method import CoverageConfig
     from precompute.flow.builder import BuildConfig
-    from training import distill
-
     from precompute.one_table import TableJob
+    from training import distill
 
     out = [("precompute.build", build.make_parser(), (BuildConfig, CoverageConfig, TableJob, build.SetOptions)),
            ("training.distill", distill.make_parser(), (distill.DistillConfig,))]
