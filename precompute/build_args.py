@@ -270,8 +270,11 @@ def _legacy_value(field: dataclasses.Field, values: list[str], flag: str) -> str
     (text,) = values
     if isinstance(default, bool):
         return json.dumps(text.lower() in ("1", "true", "yes"))
-    if isinstance(default, int):
-        return json.dumps(number(text, int))
+    if isinstance(default, int):  # the old flags' check: the systems' integer parameters are counts
+        try:
+            return json.dumps(positive_int(text))
+        except argparse.ArgumentTypeError as exc:
+            raise CLIError(f"argument {flag}: {exc}") from None
     if isinstance(default, str):
         return json.dumps(text)
     return json.dumps(number(text, float))
