@@ -9,7 +9,8 @@ Shapes: N states, d state dimensions, A actions, q action dimensions, C table ce
   (:mod:`~cuniform_torch.tables.halo`), a dense or hash index of their keys (``lookup=``, :class:`Lookup`), per-entry
   probability rows, fallback codes and alias tables (:mod:`~cuniform_torch.tables.alias`);
 * a **kernel** that reads it (``kernel=``, :class:`Kernel`): :mod:`~cuniform_torch.tables.torch_kernel` (pure tensor ops,
-  any device) or :mod:`~cuniform_torch.tables.cpu_kernels` (the same arithmetic as one compiled CPU loop).
+  any device), :mod:`~cuniform_torch.tables.cpu_kernels` (the same arithmetic as one compiled CPU loop) or, on a
+  CUDA device, :mod:`~cuniform_torch.tables.gpu_kernels` (a Dubins table's whole rollout as one Triton kernel).
 
 The policy checks its input, draws the uniforms, runs the kernel and keeps the counters.
 
@@ -30,6 +31,7 @@ policy (:class:`~cuniform_torch.sampling.rollout.StartMismatchWarning`), with th
 from __future__ import annotations
 
 import os
+import warnings
 from collections.abc import Callable
 from typing import Any
 
@@ -42,7 +44,7 @@ from cuniform_torch.sampling.fallback_counts import CountsFallbacks, FallbackCou
 from cuniform_torch.sampling.rollout import StartWatch, check_generator, check_states
 from cuniform_torch.systems import System
 from cuniform_torch.systems.models import Dubins
-from cuniform_torch.tables import cpu_kernels
+from cuniform_torch.tables import cpu_kernels, gpu_kernels
 from cuniform_torch.tables.file import Table, read_table
 from cuniform_torch.tables.lookup import Lookup, TableIndex, build_index
 from cuniform_torch.tables.torch_kernel import lookup_and_draw, lookup_entries
@@ -64,11 +66,15 @@ class Kernel(Option):
     """What runs :meth:`TablePolicy.sample`'s per-step lookup and draw."""
 
     AUTO = "auto"
-    """numba where it applies (see :data:`NUMBA`), else torch"""
+    """numba where it applies (see :data:`NUMBA`); on a CUDA device, Triton's fused rollout where it applies (see
+    :data:`TRITON`); else torch"""
     TORCH = "torch"
     """about 24 small tensor ops per step, on any device (``compile=True`` wraps them in ``torch.compile``)"""
     NUMBA = "numba"
     """one compiled CPU loop (:mod:`~cuniform_torch.tables.cpu_kernels`): float32 on a CPU, dense or int32-hash lookup"""
+    TRITON = "triton"
+    """a Dubins table's whole rollout as one GPU kernel (:mod:`~cuniform_torch.tables.gpu_kernels`): float32 on a
+    CUDA device, dense lookup; single lookups (``sample``, ``action_probs``) run the torch ops"""
 
 
 class TablePolicy(CountsFallbacks):
@@ -113,9 +119,11 @@ class TablePolicy(CountsFallbacks):
         self.num_halo = self.index.num_entries - self.num_cells
         build_start = None if getattr(table, "start", None) is None else torch.from_numpy(table.start)
         self._start_watch = StartWatch(f"table policy ({self.system.name})", self.system, build_start)
-        self.kernel = self._choose_kernel(Kernel.parse(kernel), compile)
+        asked = Kernel.parse(kernel)
+        self.kernel = self._choose_kernel(asked, compile)
         # the numba kernel compiles (or loads from numba's disk cache) now, not in the first control cycle
         self._numba = cpu_kernels.NumbaKernel(self.index) if self.kernel is Kernel.NUMBA else None
+        self._triton = self._make_triton(asked) if self.kernel is Kernel.TRITON else None
         self._torch_step = torch.compile(lookup_and_draw, dynamic=False) if compile else lookup_and_draw
         self.compiled = True
         """roll out a Dubins system in one compiled call (:meth:`fused_rollout`) when the numba kernel runs"""
@@ -129,12 +137,33 @@ class TablePolicy(CountsFallbacks):
         ``auto``, when every condition holds; else torch."""
         if kernel is Kernel.TORCH:
             return kernel
-        unmet = cpu_kernels.unmet(self.index) + (["compile=True asks for the torch kernel"] if compile else [])
-        if unmet:
-            if kernel is Kernel.NUMBA:
-                raise ValueError(f"kernel='numba' cannot be used: {'; '.join(unmet)}")
-            return Kernel.TORCH
-        return Kernel.NUMBA
+        asked_torch = ["compile=True asks for the torch kernel"] if compile else []
+        unmet = cpu_kernels.unmet(self.index) + asked_torch
+        unmet_gpu = gpu_kernels.unmet(self.index) + asked_torch
+        if kernel is Kernel.NUMBA and unmet:
+            raise ValueError(f"kernel='numba' cannot be used: {'; '.join(unmet)}")
+        if kernel is Kernel.TRITON and unmet_gpu:
+            raise ValueError(f"kernel='triton' cannot be used: {'; '.join(unmet_gpu)}")
+        if kernel is not Kernel.AUTO:
+            return kernel
+        if not unmet:
+            return Kernel.NUMBA
+        return Kernel.TRITON if self.device.type == "cuda" and not unmet_gpu else Kernel.TORCH
+
+    def _make_triton(self, asked: Kernel) -> gpu_kernels.TritonRollout | None:
+        """The fused GPU rollout (compiled now). Where Triton fails to compile it (a toolchain that does not match
+        the driver, say), ``kernel='triton'`` is a RuntimeError and ``auto`` warns once and runs the torch ops."""
+        try:
+            return gpu_kernels.TritonRollout(self.index)
+        except Exception as exc:  # noqa: BLE001 - any compiler failure: the torch ops compute the same
+            if asked is Kernel.TRITON:
+                raise RuntimeError(f"kernel='triton': the Triton rollout did not compile ({type(exc).__name__}: "
+                                   f"{exc}); use kernel='torch'") from exc
+            warnings.warn(f"the Triton table rollout did not compile ({type(exc).__name__}: {exc}); the table "
+                          f"policy runs the torch ops instead (kernel='torch' says so without trying)",
+                          RuntimeWarning, stacklevel=3)
+            self.kernel = Kernel.TORCH
+            return None
 
     @property
     def start_relative(self) -> bool:
@@ -201,19 +230,27 @@ class TablePolicy(CountsFallbacks):
                       generator: torch.Generator | None,
                       uniforms: Tensor | None = None) -> tuple[Tensor, Tensor] | None:
         """The rollout's own loop, when it has one (:func:`~cuniform_torch.sampling.rollout.rollout` asks): with the
-        numba kernel (a CPU, float32) on a :class:`~cuniform_torch.systems.models.Dubins` system (its own speed and
-        time step; states ``(x, y, heading)`` only, so every start's rollouts in its own frame start at the origin),
-        the start-frame states ``[T+1, 3, N]`` (time-major) and actions ``[N, T, q]`` of one compiled call: the
-        step-by-step path's lookups and draws, to float rounding of the step. ``uniforms [T, N]`` in ``[0, 1)``
-        are the draws (else ``torch.rand((T, N))`` from ``generator``: the step-by-step path's stream). Else None.
+        numba kernel (a CPU, float32) or the Triton kernel (a CUDA device, float32) on a
+        :class:`~cuniform_torch.systems.models.Dubins` system (its own speed and time step; states
+        ``(x, y, heading)`` only, so every start's rollouts in its own frame start at the origin), the start-frame
+        states ``[T+1, 3, N]`` (time-major) and actions ``[N, T, q]`` of one compiled call: the step-by-step
+        path's lookups and draws, to float rounding of the step. ``uniforms [T, N]`` in ``[0, 1)`` are the draws
+        (else ``torch.rand((T, N))`` from ``generator``: the step-by-step path's stream). Else None.
         ``compiled = False`` turns it off."""
-        if not (self.compiled and self._numba is not None and type(system) is Dubins and self._dim == 3
-                and (generator is None or generator.device.type == "cpu")):
+        fused = self._numba or self._triton
+        if not (self.compiled and fused is not None and type(system) is Dubins and self._dim == 3
+                and (generator is None or generator.device.type == self.device.type)):
             return None
         if uniforms is None:
-            uniforms = torch.rand((horizon, num_samples), generator=generator, dtype=torch.float32)
-        states, actions, total = self._numba.dubins_rollout(uniforms, system.dt, system.speed)
-        self.counts.add(num_samples * horizon, total)
+            uniforms = torch.rand((horizon, num_samples), generator=generator, dtype=torch.float32,
+                                  device=self.device)
+        if self._numba is not None:
+            states, actions, total = self._numba.dubins_rollout(uniforms, system.dt, system.speed)
+            self.counts.add(num_samples * horizon, total)
+        else:
+            assert self._triton is not None
+            states, actions, code = self._triton(uniforms, system.dt, system.speed)
+            self.counts.add(num_samples * horizon, code)
         return states, actions
 
     def _draw_scaled(self, x: Tensor, t: int, r: Tensor) -> Tensor:

@@ -115,6 +115,9 @@ def open_loop(system: System, start: Tensor, actions: Tensor) -> Tensor:
     n, horizon = actions.shape[0], actions.shape[1]
     d = start.shape[-1]
     x = start.expand(n, d) if start.ndim == 1 else start  # [N, d]
+    scan = _own_scan(system)
+    if scan is not None:  # the whole horizon in a dozen ops: no per-step launches on a GPU, fewer passes on a CPU
+        return scan(x, actions)
     column_major_ok = steps_column_major(system)
     if column_major_ok:
         x = x.T.contiguous().T  # column-major [N, d]: every column a step reads is contiguous (faster)
@@ -150,6 +153,16 @@ def _step_declares(system: System, flag: str) -> bool:
         if "step" in vars(klass):
             return vars(klass).get(flag, False) is True
     return False
+
+
+def _own_scan(system: System) -> Callable[[Tensor, Tensor], Tensor] | None:
+    """The system's ``scan(start [N, d], actions [N, T, q]) -> [N, T+1, d]`` (the open-loop states in closed form)
+    when the class that defines the ``step`` in use defines it too (a subclass that changes ``step`` keeps the
+    step loop), else None."""
+    for klass in type(system).__mro__:
+        if "step" in vars(klass):
+            return getattr(system, "scan") if callable(vars(klass).get("scan")) else None
+    return None
 
 
 def _steps_into(system: System) -> bool:

@@ -254,5 +254,24 @@ class Dubins:
         out, theta, apart = _next_state(x, u, 3, out)  # [N, 3], [N]
         return _move(x, _turn(x, u[:, 0], self.dt, theta), self.speed, self.dt, out, apart)
 
+    def scan(self, start: Tensor, actions: Tensor) -> Tensor:
+        """The states of ``step`` applied along open-loop ``actions [N, T, 1]`` from ``start [N, 3]``, in closed
+        form: ``[N, T+1, 3]`` (start included), equal to the step loop's to float rounding.
+
+        Headings are the running sum of ``rate dt`` (wrapped once, not per step) and positions the running sum of
+        ``speed (cos, sin)(heading) dt``: about a dozen tensor ops for any horizon instead of nine per step, which
+        is what a GPU, where every op is a kernel launch, needs (:func:`~cuniform_torch.sampling.rollout.open_loop`
+        uses it off the CPU)."""
+        c_dt, c_pi, c_two_pi = _scalars(actions.dtype, self.dt, math.pi, 2.0 * math.pi)
+        heading = torch.cumsum(actions[:, :, 0] * c_dt, dim=1).add_(start[:, 2:3])  # [N, T], unwrapped
+        heading = torch.remainder(heading.add_(c_pi), c_two_pi).sub_(c_pi)  # wrap_angle's arithmetic
+        states = actions.new_empty((actions.shape[0], actions.shape[1] + 1, 3))  # [N, T+1, 3]
+        states[:, 0] = start
+        states[:, 1:, 2] = heading
+        trig = torch.stack((torch.cos(heading), torch.sin(heading)), dim=2)  # [N, T, 2]
+        trig.mul_(_scalars(actions.dtype, self.speed)[0]).mul_(c_dt)  # rounded as speed * cos * dt
+        torch.cumsum(trig, dim=1, out=states[:, 1:, :2]).add_(start[:, None, :2])
+        return states
+
     def params(self) -> dict[str, Any]:
         return _params(self)

@@ -64,6 +64,9 @@ def make_parser() -> ArgumentParser:
     p.add_argument("--cost", choices=("navigation", "goal"), default="navigation",
                    help="navigation: goal distance and collisions with the map's cylinders (default); goal: the "
                         "squared goal distance only (the simple cost of GPU bars such as MPPI-Generic's)")
+    p.add_argument("--table-kernel", choices=("auto", "torch", "numba", "triton"), default="auto",
+                   help="the table policy's kernel (TablePolicy's kernel=): auto picks numba on a CPU and the fused "
+                        "Triton rollout on CUDA; torch runs the tensor ops (default auto)")
     p.add_argument("--cache", type=Path, default=Path("out/nav-cache"),
                    help="where the robot's table is built once and cached")
     p.add_argument("--json", type=Path, default=Path("out/bench_family.json"))
@@ -102,7 +105,8 @@ def build(args) -> tuple[dict[tuple[str, int, int], Callable[[], object]], dict]
     needs_table = {"cuniform", "cumppi", "cumppi_pipe", "mix_cu_mppi"} & set(args.methods)
     table = None
     if needs_table and min(args.horizon) <= NAV_ROBOT.horizon:
-        table = TablePolicy(read_table(ensure_table(NAV_ROBOT, Path(args.cache))), device=device)
+        table = TablePolicy(read_table(ensure_table(NAV_ROBOT, Path(args.cache))), device=device,
+                            **({} if args.table_kernel == "auto" else {"kernel": args.table_kernel}))
     kw = _batch_kw(b)
     fns: dict[tuple[str, int, int], Callable[[], object]] = {}
     def make(name: str, k: int, t: int):
@@ -155,7 +159,7 @@ def build(args) -> tuple[dict[tuple[str, int, int], Callable[[], object]], dict]
                 if ctrl is not None:
                     fns[(name, k, t)] = lambda ctrl=ctrl: ctrl.command(state)
     info = {"map": int(world.map_id), "robots": b, "device": str(device), "threads": torch.get_num_threads(),
-            "cost": args.cost}
+            "cost": args.cost, "table_kernel": None if table is None else table.kernel.value}
     return fns, info
 
 
@@ -205,7 +209,8 @@ def main(argv: list[str] | None = None) -> int:
     medians = time_round_robin(fns, args.repeats, args.warmup, torch.device(args.device))
     load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
     print(f"# per-command ms, median of {args.repeats} round-robin rounds; {info['robots']} robot(s) per command, "
-          f"{args.device}, {info['threads']} thread(s), BARN map {info['map']}, {args.cost} cost, load {load:.2f}")
+          f"{args.device}, {info['threads']} thread(s), BARN map {info['map']}, {args.cost} cost, load {load:.2f}"
+          + (f", table kernel {info['table_kernel']}" if info.get("table_kernel") else ""))
     names = list(dict.fromkeys(key[0] for key in medians))
     print(f"{'T':>4} {'K':>6} " + " ".join(f"{m:>13}" for m in names))
     rows = []
