@@ -284,10 +284,10 @@ def legacy_argv(argv: Sequence[str]) -> tuple[list[str], str | None]:
     """``(argv, note)``: the old spelling (no subcommand) translated, and the one-line deprecation note naming the
     new command (None when ``argv`` already starts with a subcommand). The subcommand follows the old mode flags:
     ``--starts`` (or ``--workers``, ``--ray``, ``--no-limit``) -> set, ``--map`` (or ``--radius``) -> safe, ``--method coverage`` -> coverage, else maxflow; each per-system flag
-    (``--num-actions 3``) becomes ``--param num_actions=3``."""
+    (``--num-actions 3``) becomes ``--param num_actions=3``; no flags at all is ``maxflow`` (the old default build)."""
     argv = list(argv)
-    if not argv or argv[0] in COMMANDS or argv[0] in ("-h", "--help"):
-        return argv, None
+    if argv and (not argv[0].startswith("-") or argv[0] in ("-h", "--help")):
+        return argv, None  # a subcommand (or a misspelt one, which argparse names with the valid choices)
     fields = _system_fields()
     flags = {flag_name(n): n for n in fields}
     out: list[str] = []
@@ -388,7 +388,7 @@ def apply_config(args: argparse.Namespace, data: dict[str, Any]) -> None:
     import_system_modules(modules)
     args.system_module = [*modules, *args.system_module]
     if "system" in data:
-        system = dict(config_fields_raw(data["system"], f"{where}system"))
+        system = dict(_section(data["system"], f"{where}system"))
         name = system.pop("name", None)
         if not isinstance(name, str):
             raise CLIError(f"{where}system.name must be a string (a registered system, or module:factory)")
@@ -426,7 +426,7 @@ def apply_config(args: argparse.Namespace, data: dict[str, Any]) -> None:
         args.method = method
 
 
-def config_fields_raw(data: Any, where: str) -> dict[str, Any]:
+def _section(data: Any, where: str) -> dict[str, Any]:
     """A config section that must be an object, as a dict (its values checked later, by their owner)."""
     if not isinstance(data, dict):
         raise CLIError(f"{where} must be an object (a table of keys), got {type(data).__name__}")

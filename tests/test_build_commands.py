@@ -205,6 +205,13 @@ def test_an_old_per_system_flag_and_its_param_give_the_same_table(tmp_path, caps
     (["--map", "m.npz", "--radius", "0.1", "--num-actions=7"], ["safe", "--map", "m.npz", "--radius", "0.1",
                                                                 "--param", "num_actions=7"]),
     (["maxflow", "--horizon", "3"], ["maxflow", "--horizon", "3"]),
+    ([], ["maxflow"]),
+    (["flow", "--horizon", "3"], ["flow", "--horizon", "3"]),  # a misspelt subcommand: argparse names the choices
 ])
 def test_the_old_mode_flags_name_the_subcommand(old, new):
     assert legacy_argv(old)[0] == new
+
+
+def test_a_misspelt_subcommand_lists_the_subcommands(capsys):
+    assert _call(build.main, ["flow", "--horizon", "3"]) == 2
+    _one_error(capsys, "invalid choice: 'flow'", "maxflow", "coverage", "set", "safe")
