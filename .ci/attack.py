@@ -1773,7 +1773,7 @@ def issue38_commands(work: Path) -> tuple[list[Case], list[Path]]:
     store.open(BENCH_SETTINGS)
     store.append(BENCH_RECORD)
     cases = [Case("commands", "precompute.build --starts of 1,000,000 members",
-                  argv=["precompute.build", "--system", "random_walk_1d", "--horizon", "3", "--quiet", "--starts",
+                  argv=["precompute.build", "set", "--system", "random_walk_1d", "--horizon", "3", "--quiet", "--starts",
                         "0=-1:1:1000000", "--out", str(folder / "huge-set")])]
     for label, target in (("links into another benchmark folder", other / "episodes.jsonl"),
                           ("links to /dev/null", Path("/dev/null"))):

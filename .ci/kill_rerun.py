@@ -289,7 +289,7 @@ def _setup_none(inputs: Path, token: str) -> list[Path]:
 
 
 def _setup_table(inputs: Path, token: str) -> list[Path]:
-    _must(["precompute.build", "--system", "dubins", "--horizon", "5", "--no-report", "--quiet", "--out",
+    _must(["precompute.build", "maxflow", "--system", "dubins", "--horizon", "5", "--no-report", "--quiet", "--out",
            str(inputs / "table.npz")], inputs, token)
     return [inputs]
 
@@ -319,8 +319,8 @@ def _resume_when_saved(state: str) -> Callable[[Path], list[str]]:
 COMMANDS = {
     "build": Command(
         "build", "precompute.build --starts (4 members, --workers 2)", _setup_none,
-        lambda inputs: ["precompute.build", "--system", "ks_speed", "--horizon", "4", "--starts", "3=0:1:4",
-                        "--workers", "2", "--no-report", "--quiet", "--out", "out"],
+        lambda inputs: ["precompute.build", "set", "--system", "ks_speed", "--horizon", "4", "--starts", "3=0:1:4",
+                        "--workers", "2", "--quiet", "--out", "out"],
         fp_table_set),
     "distill": Command(
         "distill", "training.distill (400 epochs, hidden 16)", _setup_table,

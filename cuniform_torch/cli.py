@@ -55,7 +55,8 @@ __all__ = ["EXIT_ERROR", "EXIT_INTERRUPTED", "CLIError", "ArgumentParser", "cli_
            "OUT", "RUNS", "field_docs", "add_dataclass_args", "dataclass_from_args", "given_fields", "flag_name",
            "MAX_HORIZON", "MAX_COUNT", "MAX_WORK", "device_arg", "int_in", "float_in", "positive_int",
            "non_negative_int", "threads_arg", "horizon_arg", "positive_float", "refuse_flags",
-           "add_no_limit_arg", "check_work"]
+           "add_no_limit_arg", "check_work", "config_value", "config_fields", "config_json",
+           "read_config_file"]
 
 EXIT_ERROR = 2
 EXIT_INTERRUPTED = 130
@@ -353,6 +354,134 @@ def dataclass_from_args(cls: type, args: argparse.Namespace, base: Any = None, *
     if base is None:
         return cls(**values)
     return dataclasses.replace(base, **values)
+
+
+# ------------------------------------------------------------------------------------------ config files
+
+def _type_name(kind: Any) -> str:
+    inner, optional = _unwrap(kind)
+    item = _sequence_item(inner)
+    if item is not None:
+        name = f"a list of {_type_name(item)}"
+    elif isinstance(inner, type) and issubclass(inner, enum.Enum):
+        name = "one of " + ", ".join(repr(m.value) for m in inner)
+    elif inner is Path:
+        name = "a path (string)"
+    elif isinstance(inner, type):
+        name = {"int": "an integer", "float": "a number", "str": "a string", "bool": "true or false"}.get(
+            inner.__name__, inner.__name__)
+    else:
+        name = str(inner)
+    return f"{name} or null" if optional else name
+
+
+def config_value(kind: Any, value: Any, key: str) -> Any:
+    """``value`` read from a config file (JSON / TOML types) as a field annotated ``kind``: ``int`` (not a bool),
+    ``float`` (an integer is widened), ``str``, ``bool``, ``Path``, an ``Enum`` (by value), ``list[X]`` /
+    ``tuple[X, ...]`` (from a list), ``X | None``; any other annotation is taken as it is. CLIError naming ``key``
+    and the expected type otherwise (never a silent conversion of, say, ``"5"`` to 5)."""
+    inner, optional = _unwrap(kind)
+    if value is None:
+        if optional:
+            return None
+        raise CLIError(f"{key} is null; give {_type_name(kind)}")
+    item = _sequence_item(inner)
+    ok: bool
+    if item is not None:
+        if isinstance(value, list):
+            items = [config_value(item, v, f"{key}[{i}]") for i, v in enumerate(value)]
+            return tuple(items) if typing.get_origin(inner) is tuple else items
+        ok = False
+    elif inner is bool:
+        ok = isinstance(value, bool)
+    elif inner is int:
+        ok = isinstance(value, int) and not isinstance(value, bool)
+    elif inner is float:
+        if isinstance(value, (int, float)) and not isinstance(value, bool):
+            return float(value)
+        ok = False
+    elif inner is str:
+        ok = isinstance(value, str)
+    elif inner is Path:
+        if isinstance(value, str):
+            return Path(value)
+        ok = False
+    elif isinstance(inner, type) and issubclass(inner, enum.Enum):
+        members = {m.value: m for m in inner}
+        if isinstance(value, str) and value in members:
+            return members[value]
+        ok = False
+    else:
+        ok = True
+    if not ok:
+        raise CLIError(f"{key} must be {_type_name(kind)}, got {json_dumps_short(value)}")
+    return value
+
+
+def json_dumps_short(value: Any) -> str:
+    """``value`` as JSON, cut to 60 characters (for a message)."""
+    import json
+
+    text = json.dumps(value, default=str)
+    return text if len(text) <= 60 else text[:57] + "..."
+
+
+def config_fields(cls: type, data: Any, where: str, allowed: Iterable[str] | None = None,
+                  why: Mapping[str, str] | None = None) -> dict[str, Any]:
+    """The fields of the dataclass ``cls`` that the config section ``data`` (a mapping read from a file) gives,
+    each checked and converted by :func:`config_value`. ``allowed``: the field names this section may set (default:
+    every init field); a key outside them is refused by name, with ``why[key]`` when it is a field that does not
+    apply here. ``where`` prefixes every key in a message (``"config c.json: build."``)."""
+    if not isinstance(data, Mapping):
+        raise CLIError(f"{where.rstrip('.')} must be an object (a table of keys), got {json_dumps_short(data)}")
+    hints = typing.get_type_hints(cls)
+    fields = [f.name for f in dataclasses.fields(cls) if f.init]
+    names = fields if allowed is None else [n for n in fields if n in set(allowed)]
+    why = dict(why or {})
+    out = {}
+    for key, value in data.items():
+        if key not in names:
+            if key in why:
+                raise CLIError(f"{where}{key} {why[key]}; remove it")
+            raise CLIError(f"{where}{key} is not a known key; the known keys here: {', '.join(names)}")
+        out[key] = config_value(hints[key], value, f"{where}{key}")
+    return out
+
+
+def config_json(value: Any) -> Any:
+    """A config value as JSON data: enums by value, tuples as lists, paths as strings, dataclasses as objects."""
+    if isinstance(value, enum.Enum):
+        return value.value
+    if isinstance(value, (list, tuple)):
+        return [config_json(v) for v in value]
+    if isinstance(value, Mapping):
+        return {str(k): config_json(v) for k, v in value.items()}
+    if isinstance(value, Path):
+        return str(value)
+    if dataclasses.is_dataclass(value) and not isinstance(value, type):
+        return {f.name: config_json(getattr(value, f.name)) for f in dataclasses.fields(value) if f.init}
+    return value
+
+
+def read_config_file(path: str | os.PathLike, flag: str = "--config") -> dict[str, Any]:
+    """The object in the config file ``path``: JSON, or TOML when it ends in ``.toml`` (data, never code). A file
+    that does not parse, or whose top level is not an object, is one CLIError naming the file and the place."""
+    import json
+
+    import tomllib
+
+    path = Path(path)
+    text = path.read_text(encoding="utf-8")  # a missing file: OSError, one line through cli_main
+    try:
+        data = tomllib.loads(text) if path.suffix == ".toml" else json.loads(text)
+    except json.JSONDecodeError as exc:
+        raise CLIError(f"{flag} {path} is not valid JSON ({exc.msg} at line {exc.lineno} column {exc.colno}); "
+                       "a config is what --print-config writes") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise CLIError(f"{flag} {path} is not valid TOML ({exc})") from None
+    if not isinstance(data, dict):
+        raise CLIError(f"{flag} {path}: the file must hold one object (keys and values), got {type(data).__name__}")
+    return data
 
 
 # ------------------------------------------------------------------------------------------ flag values

@@ -11,22 +11,22 @@ from typing import Any
 from cuniform_torch.cli import CLIError, import_system_modules, out_of_memory_message
 from cuniform_torch.systems import _REGISTRY, check_system, is_builtin, load_factory, make_system, resolve_system
 
-__all__ = ["load_user_systems", "make_cli_system", "parse_params"]
+__all__ = ["load_user_systems", "make_cli_system", "parse_params", "register_factory"]
 
 
 def load_user_systems(argv: Sequence[str] | None) -> None:
-    """Import every ``--system-module`` and resolve a ``--system module:factory`` (registering it), so that the
-    full parser lists the user systems' flags. ValueError when a module or factory cannot be loaded."""
+    """Import every ``--system-module`` and resolve a ``--system module:factory`` (registering it), before the
+    flags are parsed. ValueError when a module or factory cannot be loaded."""
     pre = argparse.ArgumentParser(add_help=False)
     pre.add_argument("--system", default="dubins")
     pre.add_argument("--system-module", action="append", default=[])
     known, _ = pre.parse_known_args(argv)
     import_system_modules(known.system_module)
     if ":" in known.system:
-        _register_factory(known.system)
+        register_factory(known.system)
 
 
-def _register_factory(spec: str) -> None:
+def register_factory(spec: str) -> None:
     """``resolve_system`` of a ``--system module:factory`` the user typed, after checking that the factory builds
     a System: what goes wrong (a missing module, ``os:getpid``, a factory that raises) is a CLIError."""
     try:

@@ -216,7 +216,7 @@ def test_interrupted_write_leaves_no_partial_file(tmp_path, dubins_table, monkey
 
 def test_cli_builds_table_and_report(tmp_path, capsys):
     out = tmp_path / "walk.npz"
-    code = build_cli.main(["--system", "random_walk_1d", "--horizon", "4", "--out", str(out), "--quiet"])
+    code = build_cli.main(["maxflow", "--system", "random_walk_1d", "--horizon", "4", "--out", str(out), "--quiet"])
     assert code == 0
     table = read_table(out)
     assert table.level_sizes == [1, 5, 9, 13, 17]
@@ -227,10 +227,10 @@ def test_cli_builds_table_and_report(tmp_path, capsys):
     assert load_table(out).num_actions == 5
 
 
-def test_cli_system_parameters_are_flags(tmp_path):
+def test_cli_system_parameters_are_params(tmp_path):
     out = tmp_path / "d.npz"
-    code = build_cli.main(["--system", "dubins", "--horizon", "3", "--num-actions", "7", "--cell-size", "0.1", "0.1",
-                           "0.1571", "--out", str(out), "--quiet", "--no-report"])
+    code = build_cli.main(["maxflow", "--system", "dubins", "--horizon", "3", "--param", "num_actions=7", "--param",
+                           "cell_size=[0.1, 0.1, 0.1571]", "--out", str(out), "--quiet", "--no-report"])
     assert code == 0
     table = read_table(out)
     system = table.make_system()
@@ -240,7 +240,7 @@ def test_cli_system_parameters_are_flags(tmp_path):
 
 def test_cli_resume_continues_from_checkpoints(tmp_path, monkeypatch, capsys):
     out = tmp_path / "d.npz"
-    args = ["--system", "dubins", "--horizon", "5", "--out", str(out), "--quiet", "--no-report"]
+    args = ["maxflow", "--system", "dubins", "--horizon", "5", "--out", str(out), "--quiet", "--no-report"]
     import precompute.flow.builder as builder
 
     real = builder._solve_step
@@ -272,8 +272,9 @@ def test_the_build_runs_on_one_thread_and_gives_the_caller_its_own_back(tmp_path
     before = torch.get_num_threads()
     seen = []
     monkeypatch.setattr(build_cli, "_run", lambda args, argv=(): seen.append(torch.get_num_threads()) or 0)
-    assert build_cli.main(["--horizon", "2", "--out", str(tmp_path / "t.npz"), "--quiet"]) == 0
+    assert build_cli.main(["maxflow", "--horizon", "2", "--out", str(tmp_path / "t.npz"), "--quiet"]) == 0
     assert seen == [1] and torch.get_num_threads() == before and calls == [1, before]
     calls.clear()
-    assert build_cli.main(["--horizon", "2", "--out", str(tmp_path / "t.npz"), "--quiet", "--threads", "0"]) == 0
+    assert build_cli.main(["maxflow", "--horizon", "2", "--out", str(tmp_path / "t.npz"), "--quiet", "--threads",
+                           "0"]) == 0
     assert calls == [before]  # 0: torch's choice, left alone

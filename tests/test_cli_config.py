@@ -93,6 +93,20 @@ def test_only_exclude_help_and_bad_names():
 
 # ------------------------------------------------------------------------------------------ no drifting defaults
 
+def command_parsers(parser: argparse.ArgumentParser) -> dict[str, argparse.ArgumentParser]:
+    """``{"": parser}`` and, for a command with subcommands (``precompute.build maxflow``), each subcommand's."""
+    out = {"": parser}
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            out.update(action.choices)
+    return out
+
+
+def all_actions(parser: argparse.ArgumentParser) -> list[argparse.Action]:
+    """The actions of ``parser`` and of its subcommands' parsers."""
+    return [a for p in command_parsers(parser).values() for a in p._actions]
+
+
 DERIVED = {"precompute.build": ("horizon",)}
 """flags whose default is not the dataclass's by design: the build's ``--horizon`` is the system's
 ``default_horizon`` (the help says so)"""
@@ -103,9 +117,10 @@ def _entry_points():
     from precompute import build
     from precompute.coverage.method import CoverageConfig
     from precompute.flow.builder import BuildConfig
+    from precompute.one_table import TableJob
     from training import distill
 
-    out = [("precompute.build", build.make_parser(), (BuildConfig, CoverageConfig)),
+    out = [("precompute.build", build.make_parser(), (BuildConfig, CoverageConfig, TableJob, build.SetOptions)),
            ("training.distill", distill.make_parser(), (distill.DistillConfig,))]
     for name in EVAL_EXPERIMENTS:
         module = importlib.import_module(name)
@@ -125,8 +140,10 @@ def check_no_drift(parser: argparse.ArgumentParser, configs, derived=()) -> list
     for cls in configs:
         defaults = {f.name: (f.default_factory() if f.default_factory is not dataclasses.MISSING else f.default)
                     for f in dataclasses.fields(cls)}
-        for action in parser._actions:
+        for action in all_actions(parser):
             if action.dest not in defaults or action.dest in ("help", "system_module", *derived):
+                continue
+            if defaults[action.dest] is dataclasses.MISSING:  # a required field (TableJob.out): no default to drift
                 continue
             if action.default is not argparse.SUPPRESS:
                 problems.append(f"{action.option_strings[0]}: parser default {action.default!r} beside "
@@ -151,7 +168,7 @@ def test_a_planted_second_default_is_found():
     from precompute.coverage.method import CoverageConfig
 
     parser = build.make_parser()
-    for action in parser._actions:
+    for action in command_parsers(parser)["coverage"]._actions:
         if action.dest == "steps":
             action.default = 200  # as `add_argument("--steps", type=int, default=200)` would
     (problem,) = check_no_drift(parser, (CoverageConfig,), derived=("horizon",))
@@ -167,7 +184,9 @@ def test_entry_points_parse_to_the_dataclass_defaults(tmp_path):
     table.write_bytes(b"")
     cfg = distill.parse_args(["--tables", str(table), "--out", str(tmp_path / "p.pt"), "--logdir", str(tmp_path)])
     assert cfg == distill.DistillConfig(tables=[str(table)], out=str(tmp_path / "p.pt"), logdir=str(tmp_path))
-    assert dataclass_from_args(BuildConfig, build.make_parser().parse_args([]), horizon=10) == BuildConfig()
+    for command in build.COMMANDS:
+        args = build.make_parser().parse_args([command])
+        assert dataclass_from_args(BuildConfig, args, horizon=10) == BuildConfig(), command
     for name in EVAL_EXPERIMENTS:
         module = importlib.import_module(name)
         assert module.config_from_args(module.make_parser().parse_args([])) == module.CONFIG(), name
@@ -178,7 +197,7 @@ def test_build_coverage_method_with_its_progress_bar(tmp_path, capsys):
     from precompute import build
 
     out = tmp_path / "c.npz"
-    assert build.main(["--system", "random_walk_1d", "--method", "coverage", "--horizon", "2", "--steps", "3",
+    assert build.main(["coverage", "--system", "random_walk_1d", "--horizon", "2", "--steps", "3",
                        "--target-samples", "50", "--out", str(out), "--no-report"]) == 0
     printed = capsys.readouterr().out
     assert "target N=50" in printed and "levels, then ascent" in printed and out.exists()

@@ -63,8 +63,9 @@ def _one_error(capsys, *needles: str) -> str:
     return err
 
 
-def _build(out: Path, *extra: str) -> list[str]:
-    return ["--system", "random_walk_1d", "--horizon", "2", "--out", str(out), "--quiet", "--no-report", *extra]
+def _build(out: Path, *extra: str, command: str = "maxflow") -> list[str]:
+    report = ["--no-report"] if command != "set" else []
+    return [command, "--system", "random_walk_1d", "--horizon", "2", "--out", str(out), "--quiet", *report, *extra]
 
 
 @pytest.fixture(scope="module")
@@ -96,11 +97,10 @@ def test_build_unwritable_out_fails_before_building(tmp_path, capsys):
 
 def test_build_huge_num_actions(tmp_path, capsys):
     out = tmp_path / "d.npz"
-    with pytest.raises(SystemExit) as info:  # refused as the flags parse, before anything is allocated
-        build.main(["--system", "dubins", "--horizon", "2", "--num-actions", str(10**12), "--out", str(out),
-                    "--quiet", "--no-report"])
-    assert info.value.code == 2
-    _one_error(capsys, "--num-actions")
+    # refused by the system's own check, before anything is allocated
+    assert build.main(["maxflow", "--system", "dubins", "--horizon", "2", "--param", f"num_actions={10**12}",
+                       "--out", str(out), "--quiet", "--no-report"]) == 2
+    _one_error(capsys, "num_actions", str(10**12))
     assert not out.exists()
 
 
@@ -140,17 +140,25 @@ def test_build_full_disk_on_a_checkpoint_names_the_file(tmp_path, capsys, monkey
     assert not [p for p in (tmp_path / "t.npz.partial").iterdir() if p.suffix == ".tmp"]
 
 
-@pytest.mark.parametrize("extra, flags", [
-    (["--method", "coverage", "--steps", "2", "--resume"], ["--resume", "--method coverage"]),
-    (["--method", "coverage", "--steps", "2", "--points", "lattice"], ["--points", "--method coverage"]),
-    (["--points-per-cell", "5"], ["--points-per-cell", "--points centers"]),
-    (["--points", "lattice", "--points-per-cell", "4"], ["--points-per-cell", "--points lattice"]),
-    (["--steps", "10"], ["--steps", "--method maxflow"]),
-    (["--rollouts", "10"], ["--rollouts", "--no-report"]),
+@pytest.mark.parametrize("command, extra, flags", [
+    ("coverage", ["--steps", "2", "--resume"], ["--resume is not a flag of coverage", "maxflow"]),
+    ("coverage", ["--steps", "2", "--points", "lattice"], ["--points is not a flag of coverage"]),
+    ("maxflow", ["--points-per-cell", "5"], ["--points-per-cell", "--points centers"]),
+    ("maxflow", ["--points", "lattice", "--points-per-cell", "4"], ["--points-per-cell", "--points lattice"]),
+    ("maxflow", ["--steps", "10"], ["--steps is not a flag of maxflow", "coverage"]),
+    ("maxflow", ["--rollouts", "10"], ["--rollouts", "--no-report"]),
+    ("maxflow", ["--num-actions", "3"], ["--num-actions is a system parameter", "--param num_actions="]),
+    ("set", ["--starts", "0=-1:1:2", "--steps", "3"], ["--steps", "coverage method only", "--method coverage"]),
+    ("set", ["--starts", "0=-1:1:2", "--method", "coverage", "--resume"], ["--resume", "maxflow method only"]),
+    ("set", [], ["set needs --starts"]),
+    ("safe", [], ["safe needs --map"]),
+    ("maxflow", ["--starts", "0=-1:1:2"], ["--starts is not a flag of maxflow", "set"]),
+    (None, ["--method", "coverage", "--steps", "2", "--resume"], ["--resume is not a flag of coverage"]),  # old
 ])
-def test_build_conflicting_flags_are_refused(tmp_path, capsys, extra, flags):
+def test_build_conflicting_flags_are_refused(tmp_path, capsys, command, extra, flags):
     out = tmp_path / "t.npz"
-    assert build.main(_build(out, *extra)) == 2
+    argv = _build(out, *extra, command=command or "maxflow")
+    assert _call(build.main, argv if command else argv[1:]) == 2
     _one_error(capsys, *flags)
     assert not out.exists()
 
@@ -166,8 +174,8 @@ def _interrupted_build(out: Path, monkeypatch, *extra: str) -> None:
         return real(*a, **k)
 
     monkeypatch.setattr(builder, "_solve_step", interrupting)
-    assert build.main(["--system", "dubins", "--horizon", "3", "--out", str(out), "--quiet", "--no-report",
-                       *extra]) == 130
+    assert build.main(["maxflow", "--system", "dubins", "--horizon", "3", "--out", str(out), "--quiet",
+                       "--no-report", *extra]) == 130
     monkeypatch.setattr(builder, "_solve_step", real)
 
 
@@ -179,14 +187,14 @@ def test_build_ctrl_c_is_one_line(tmp_path, capsys, monkeypatch):
 
 @pytest.mark.parametrize("changed, message", [
     (["--horizon", "4"], "--horizon was 3, now 4"),
-    (["--num-actions", "7"], "--num-actions was 5, now 7"),
+    (["--param", "num_actions=7"], "--num-actions was 5, now 7"),
     (["--points", "lattice"], "--points was 'centers', now 'lattice'"),
 ])
 def test_build_resume_with_changed_settings_is_refused(tmp_path, capsys, monkeypatch, changed, message):
     out = tmp_path / "d.npz"
     _interrupted_build(out, monkeypatch)
     capsys.readouterr()
-    argv = ["--system", "dubins", "--horizon", "3", "--out", str(out), "--quiet", "--no-report", "--resume"]
+    argv = ["maxflow", "--system", "dubins", "--horizon", "3", "--out", str(out), "--quiet", "--no-report", "--resume"]
     assert build.main(argv + changed) == 2  # later flags win: the changed value
     _one_error(capsys, message, "--resume")
     assert not out.exists()
@@ -363,7 +371,7 @@ def test_distill_reads_a_user_table_after_system_module(tmp_path, capsys, monkey
     (tmp_path / f"{module}.py").write_text(USER_MODULE)
     monkeypatch.syspath_prepend(str(tmp_path))
     table = tmp_path / "hop.npz"
-    assert build.main(["--system-module", module, "--system", "cli_hopper", "--horizon", "2", "--out", str(table),
+    assert build.main(["maxflow", "--system-module", module, "--system", "cli_hopper", "--horizon", "2", "--out", str(table),
                        "--quiet", "--no-report"]) == 0
     try:
         sys.modules.pop(module, None)  # as a fresh process: neither the module nor its system are known
@@ -398,7 +406,7 @@ def test_eval_json_that_is_a_folder_fails_before_the_experiment(walk_path, tmp_p
 
 def test_bench_maxflow_on_a_table_without_a_graph(tmp_path, capsys):
     out = tmp_path / "cov.npz"
-    assert build.main(_build(out, "--method", "coverage", "--steps", "2")) == 0
+    assert build.main(_build(out, "--steps", "2", command="coverage")) == 0
     assert _call(bench_maxflow.main, ["--table", str(out)]) == 2
     _one_error(capsys, "no flow graph")
 

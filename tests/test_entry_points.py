@@ -27,6 +27,7 @@ from pathlib import Path
 
 import pytest
 import torch
+from test_cli_config import command_parsers
 from test_cli_errors import _one_error
 from test_docs import cli_modules, command_module
 
@@ -115,15 +116,17 @@ def cases() -> list:
     mp = pytest.MonkeyPatch()
     try:
         for name in COMMANDS:
-            for action in parser_of(name, mp)._actions:
-                for option in action.option_strings:
-                    values = bad_values(option)
-                    if option != "--device" and values and not _option_is_int(action):
-                        continue  # e.g. eval.navigate's --starts SPEC: not a count
-                    for value in values:
-                        marks = [pytest.mark.xfail(reason=OWNED_ELSEWHERE[name], strict=True)] \
-                            if name in OWNED_ELSEWHERE else []
-                        out.append(pytest.param(name, option, value, id=f"{name} {option} {value}", marks=marks))
+            for sub, parser in command_parsers(parser_of(name, mp)).items():  # each subcommand's flags too
+                for action in parser._actions:
+                    for option in action.option_strings:
+                        values = bad_values(option)
+                        if option != "--device" and values and not _option_is_int(action):
+                            continue  # e.g. eval.navigate's --starts SPEC: not a count
+                        for value in values:
+                            marks = [pytest.mark.xfail(reason=OWNED_ELSEWHERE[name], strict=True)] \
+                                if name in OWNED_ELSEWHERE else []
+                            argv = [sub, option, value] if sub else [option, value]
+                            out.append(pytest.param(name, argv, id=f"{name} {' '.join(argv)}", marks=marks))
     finally:
         mp.undo()
     return out
@@ -148,15 +151,19 @@ def test_every_command_is_found_and_wrapped():
 
 
 def test_the_cases_cover_the_reported_flags():
-    ids = {(c.values[0], c.values[1]) for c in CASES}
+    ids = {(c.values[0], c.values[1][-2]) for c in CASES}
     for name in ("eval.paper.cluttered", "eval.paper.coverage", "eval.paper.sudden_obstacle", "eval.paper.uniformity",
                  "eval.bench.soak_bank", "eval.bench"):
         assert (name, "--device") in ids, name
     assert ("eval.navigate", "--horizon") in ids and ("training.maps.timing", "--threads") in ids
+    argvs = {tuple(c.values[1][:-1]) for c in CASES if c.values[0] == "precompute.build"}
+    assert {("maxflow", "--rollouts"), ("coverage", "--seed"), ("set", "--workers"), ("safe", "--horizon"),
+            ("set", "--threads")} <= argvs, argvs  # the subcommands' flags are tried
 
 
-@pytest.mark.parametrize("name, option, value", CASES)
-def test_a_bad_value_is_refused_as_it_parses(name, option, value, monkeypatch, tmp_path, capsys):
+@pytest.mark.parametrize("name, argv", CASES)
+def test_a_bad_value_is_refused_as_it_parses(name, argv, monkeypatch, tmp_path, capsys):
+    option, value = argv[-2:]
     if value.startswith("cuda") and torch.cuda.device_count() > int(value.split(":")[1]):
         pytest.skip("this machine has that CUDA device")
     real_parse_args = argparse.ArgumentParser.parse_args
@@ -168,9 +175,9 @@ def test_a_bad_value_is_refused_as_it_parses(name, option, value, monkeypatch, t
     monkeypatch.setattr(argparse.ArgumentParser, "parse_args", parse_then_stop)
     monkeypatch.chdir(tmp_path)  # nothing lands in the checkout
     try:
-        code = _exit_code(entry_module(name).main, [option, value])
+        code = _exit_code(entry_module(name).main, argv)
     except _Parsed:
-        pytest.fail(f"python -m {name} {option} {value}: the value parsed")
+        pytest.fail(f"python -m {name} {' '.join(argv)}: the value parsed")
     assert code == cli.EXIT_ERROR
     _one_error(capsys, option)
 
