@@ -16,8 +16,8 @@ Load a table (or a distilled policy), roll it out, or control with one of the MP
   :func:`simulate`.
 
 Everything else stays importable from its sub-package, each with a short ``__all__``: ``cuniform_torch.systems``,
-``.grid``, ``.tables``, ``.policies``, ``.sampling``, ``.controllers``, ``.maps``, ``.envs`` (``.envs.worlds``:
-the benchmark worlds) and the modules ``.metrics`` (coverage, uniformity) and ``.cli``. Coming from pytorch_mppi:
+``.grid``, ``.tables``, ``.policies``, ``.sampling``, ``.controllers``, ``.maps``, ``.envs`` and the module
+``.metrics`` (coverage, uniformity). Coming from pytorch_mppi:
 ``MPPI`` takes a dynamics function with pytorch_mppi's keywords, and ``cuniform_torch.pytorch_mppi`` is a drop-in
 (its ``MPPI`` and ``MPPI_Batched``, pytorch_mppi's signatures).
 """

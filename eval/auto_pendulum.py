@@ -40,7 +40,6 @@ from typing import Any
 import numpy as np
 import torch
 
-from cuniform_torch.cli import OUT, ArgumentParser, check_output_file, cli_main, int_in, positive_int
 from cuniform_torch.common.fileio import write_json
 from cuniform_torch.controllers.mppi import MPPI
 from cuniform_torch.grid.cells import Grid
@@ -48,6 +47,7 @@ from cuniform_torch.metrics import level_uniformity, noise_floor
 from cuniform_torch.policies.table import TablePolicy, UniformPolicy
 from cuniform_torch.sampling.rollout import StartMismatchWarning, rollout
 from eval.bench.pendulum import pendulum_dynamics, reward, trajectory_cost
+from precompute.cli import OUT, ArgumentParser, check_output_file, cli_main, int_in, positive_int
 from precompute.flow.builder import BuildConfig, build_table
 
 __all__ = ["Pendulum", "REGION", "closed_loop", "honesty", "main"]

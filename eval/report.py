@@ -34,15 +34,6 @@ from pathlib import Path
 
 import torch
 
-from cuniform_torch.cli import (
-    ArgumentParser,
-    add_system_module_arg,
-    check_output_folder,
-    cli_main,
-    device_arg,
-    import_system_modules,
-    int_in,
-)
 from cuniform_torch.common.fileio import MAX_JSON_BYTES, read_capped_text, write_bytes, write_json
 from eval.common import config
 from eval.common.figures import coverage_vs_samples, trajectory_fans, uniformity_per_level
@@ -51,6 +42,15 @@ from eval.common.paths import DEFAULT, RUNS_EVAL, OutputPaths
 from eval.paper import coverage as coverage_experiment
 from eval.paper import uniformity
 from eval.paper.tensorboard import log_tensorboard
+from precompute.cli import (
+    ArgumentParser,
+    add_system_module_arg,
+    check_output_folder,
+    cli_main,
+    device_arg,
+    import_system_modules,
+    int_in,
+)
 
 __all__ = ["Stages", "build_inputs", "machine", "write_markdown", "main"]
 

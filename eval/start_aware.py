@@ -29,7 +29,13 @@ import numpy as np
 import torch
 
 from cuniform_torch import TablePolicy, load_table, rollout
-from cuniform_torch.cli import (
+from cuniform_torch.common.fileio import write_json
+from cuniform_torch.metrics import coverage
+from cuniform_torch.policies.table_set import TableSetPolicy
+from cuniform_torch.sampling import StartMismatchWarning
+from cuniform_torch.systems import System, make_system, resolve_system
+from precompute.build import ensure_table_set, parse_job, parse_params
+from precompute.cli import (
     MAX_COUNT,
     ArgumentParser,
     add_system_module_arg,
@@ -40,12 +46,6 @@ from cuniform_torch.cli import (
     int_in,
     positive_int,
 )
-from cuniform_torch.common.fileio import write_json
-from cuniform_torch.metrics import coverage
-from cuniform_torch.policies.table_set import TableSetPolicy
-from cuniform_torch.sampling import StartMismatchWarning
-from cuniform_torch.systems import System, make_system, resolve_system
-from precompute.build import ensure_table_set, parse_job, parse_params
 from precompute.flow.builder import BuildConfig, build_table
 from precompute.table_set import parse_starts
 

@@ -14,7 +14,7 @@ interrupt, ``--resume`` continues from there and writes a byte-identical table (
 the settings changed). ``<out>.lock`` keeps a second build to the same ``--out`` from starting.
 
 Errors (bad or conflicting flags, a bad config key, an unusable ``--out``, a full disk, ...) are one line
-``error: ...`` and exit code 2; Ctrl-C is one line and exit code 130 (see :mod:`cuniform_torch.cli`).
+``error: ...`` and exit code 2; Ctrl-C is one line and exit code 130 (see :mod:`precompute.cli`).
 
 User systems: ``--system-module my_robots`` imports a module that calls ``register_system``, and
 ``--system my_robots:Unicycle`` imports and registers a factory directly; their parameters are ``--param`` too.
@@ -33,7 +33,6 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import TypeVar
 
-from cuniform_torch.cli import OUT, cli_main
 from precompute.build_args import (
     COMMANDS,
     COVERAGE_ONLY,
@@ -46,6 +45,7 @@ from precompute.build_args import (
     system_of,
     table_job,
 )
+from precompute.cli import OUT, cli_main
 from precompute.one_table import TableJob, build_table_file
 from precompute.system_args import parse_params
 from precompute.table_set import MAX_SET_MEMBERS, build_table_set, ensure_table_set, parse_starts

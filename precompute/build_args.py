@@ -29,7 +29,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, NoReturn
 
-from cuniform_torch.cli import (
+from cuniform_torch.systems import _REGISTRY, DEFAULT_HORIZON, System, known_systems, resolve_system, system_horizon
+from precompute.cli import (
     OUT,
     ArgumentParser,
     CLIError,
@@ -49,7 +50,6 @@ from cuniform_torch.cli import (
     read_config_file,
     threads_arg,
 )
-from cuniform_torch.systems import _REGISTRY, DEFAULT_HORIZON, System, known_systems, resolve_system, system_horizon
 from precompute.flow.builder import BuildConfig
 from precompute.levels.safe_map import map_overrides
 from precompute.levels.sets import PointMode

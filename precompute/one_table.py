@@ -14,10 +14,10 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from cuniform_torch.cli import CLIError, check_output_file
 from cuniform_torch.common.fileio import exclusive_lock, write_json
 from cuniform_torch.systems import System
 from cuniform_torch.tables.file import write_table
+from precompute.cli import CLIError, check_output_file
 from precompute.coverage.method import CoverageConfig
 from precompute.flow.builder import BuildConfig, SizeGuide, available_memory_bytes, build_table, check_resume
 from precompute.report import format_report, uniformity_report

@@ -1,6 +1,6 @@
 """Ctrl-C while a ``python -m`` command is still importing: one line ``interrupted`` and exit 130.
 
-A command's ``main`` is wrapped by :func:`cuniform_torch.cli.cli_main`, but its imports (torch alone takes
+A command's ``main`` is wrapped by :func:`precompute.cli.cli_main`, but its imports (torch alone takes
 seconds) run before ``main``; a Ctrl-C there would print Python's ``KeyboardInterrupt`` traceback. The command
 packages (``training``, ``eval``) call :func:`exit_on_ctrl_c` from their ``__init__`` when the process is run as
 ``python -m`` (``sys.argv[0] == "-m"`` while Python locates the module, before the module's own imports), so the
@@ -23,7 +23,7 @@ from types import FrameType
 __all__ = ["EXIT_INTERRUPTED", "exit_on_ctrl_c", "install_when_run_as_command"]
 
 EXIT_INTERRUPTED = 130
-"""the exit code of Ctrl-C (128 + SIGINT), :data:`cuniform_torch.cli.EXIT_INTERRUPTED`"""
+"""the exit code of Ctrl-C (128 + SIGINT), :data:`precompute.cli.EXIT_INTERRUPTED`"""
 
 
 def exit_on_ctrl_c(signum: int, frame: FrameType | None) -> None:
@@ -32,7 +32,7 @@ def exit_on_ctrl_c(signum: int, frame: FrameType | None) -> None:
     os._exit(EXIT_INTERRUPTED)
 
 
-exit_on_ctrl_c.exit_on_ctrl_c = True  # how cuniform_torch.cli.cli_main recognises it (it cannot import this module)
+exit_on_ctrl_c.exit_on_ctrl_c = True  # how precompute.cli.cli_main recognises it
 
 
 def install_when_run_as_command() -> None:

@@ -8,8 +8,8 @@ import json
 from collections.abc import Sequence
 from typing import Any
 
-from cuniform_torch.cli import CLIError, import_system_modules, out_of_memory_message
 from cuniform_torch.systems import _REGISTRY, check_system, is_builtin, load_factory, make_system, resolve_system
+from precompute.cli import CLIError, import_system_modules, out_of_memory_message
 
 __all__ = ["load_user_systems", "make_cli_system", "parse_params", "register_factory"]
 

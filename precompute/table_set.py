@@ -26,12 +26,12 @@ from typing import Any
 
 import numpy as np
 
-from cuniform_torch.cli import CLIError
 from cuniform_torch.common.fileio import MAX_JSON_BYTES, exclusive_lock, read_capped_text, write_json
-from cuniform_torch.common.parallel import run_jobs
 from cuniform_torch.systems import _REGISTRY, System, factory_path, is_builtin, load_factory, register_system
 from cuniform_torch.tables.file import Table, TableError, read_table, system_to_json
+from precompute.cli import CLIError
 from precompute.one_table import TableJob, build_table_file
+from precompute.parallel import run_jobs
 
 __all__ = ["SET_FORMAT", "parse_starts", "build_table_set", "ensure_table_set", "set_complete", "INDEX",
            "MAX_SET_MEMBERS"]

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-from cuniform_torch.envs.worlds.barn import (
+from precompute.worlds.barn import (
     CHALLENGE_GOAL,
     CHALLENGE_START,
     FILE_GOAL,
@@ -52,7 +52,7 @@ def _write_raw(path: Path, arrays: dict) -> Path:
 
 def test_shipped_file_is_package_data():
     import importlib.resources
-    files = importlib.resources.files("cuniform_torch.envs.worlds") / "data"
+    files = importlib.resources.files("precompute.worlds") / "data"
     for name in ("barn_train.npz", "README.md", "LICENSE-the-barn-challenge"):
         assert (files / name).is_file(), name
 

@@ -11,7 +11,6 @@ import numpy as np
 import pytest
 
 from cuniform_torch.envs import Environment, Rect
-from cuniform_torch.envs.worlds.barn import CHALLENGE_GOAL, CHALLENGE_START, load_barn
 from eval.navigate.budget import judge_folder, render
 from eval.navigate.cycle_hist import cycle_histogram
 from eval.navigate.score import (
@@ -24,6 +23,7 @@ from eval.navigate.score import (
     score_summary,
 )
 from eval.navigate.store import EpisodeStore
+from precompute.worlds.barn import CHALLENGE_GOAL, CHALLENGE_START, load_barn
 
 
 @pytest.mark.parametrize("success, time, length, want", [

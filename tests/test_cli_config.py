@@ -1,4 +1,4 @@
-"""One config -> CLI path: flags made from config dataclasses (cuniform_torch.cli.add_dataclass_args), and no CLI
+"""One config -> CLI path: flags made from config dataclasses (precompute.cli.add_dataclass_args), and no CLI
 default that can drift from its dataclass default (every entry point's config flags are checked)."""
 
 from __future__ import annotations
@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 
-from cuniform_torch.cli import ArgumentParser, add_dataclass_args, dataclass_from_args, field_docs, given_fields
+from precompute.cli import ArgumentParser, add_dataclass_args, dataclass_from_args, field_docs, given_fields
 
 
 class Color(enum.Enum):
@@ -134,7 +134,7 @@ EVAL_EXPERIMENTS = ("eval.paper.coverage", "eval.paper.uniformity", "eval.paper.
 def check_no_drift(parser: argparse.ArgumentParser, configs, derived=()) -> list[str]:
     """Problems: a flag of a config field with a parser default of its own (a second copy of the default), or
     whose help names another default than the dataclass's (a None default is explained by the help's words)."""
-    from cuniform_torch.cli import _show  # the helper's own rendering of a default
+    from precompute.cli import _show  # the helper's own rendering of a default
 
     problems = []
     for cls in configs:

@@ -414,7 +414,7 @@ def test_bench_maxflow_on_a_table_without_a_graph(tmp_path, capsys):
 # ------------------------------------------------------------------------------------------ the wrapper
 
 def test_a_bug_keeps_its_traceback():
-    from cuniform_torch.cli import cli_main
+    from precompute.cli import cli_main
 
     @cli_main()
     def main(argv=None) -> int:

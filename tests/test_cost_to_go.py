@@ -13,9 +13,9 @@ import torch
 from test_nav_replay import ROBOT
 
 from cuniform_torch.envs import Environment, NavigationCost, Rect
-from cuniform_torch.envs.worlds.tasks import make_tasks
 from eval.navigate.cost_to_go import UNREACHABLE, CostToGo, geodesic_distance
 from eval.navigate.episode import NavContext, NavJob, run_nav_episode
+from precompute.worlds.tasks import make_tasks
 
 BOX = (0.0, 0.0, 10.0, 10.0)
 GOAL = (9.05, 5.05)

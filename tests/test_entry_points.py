@@ -7,7 +7,7 @@ Each entry point's parser is introspected (its ``make_parser()``, else the parse
 ``parse_args``) and every flag it has among the bad-input classes below is tried, in-process: argv = the bad flag
 alone. A bad value must stop the parse (the parse is stopped right after it succeeds, so nothing runs when a value
 is wrongly accepted). The checks that come after parsing (flags that do not apply to the chosen mode, counts that
-multiply past :data:`cuniform_torch.cli.MAX_WORK`, an ``--entries`` past the data set) are tried on the commands
+multiply past :data:`precompute.cli.MAX_WORK`, an ``--entries`` past the data set) are tried on the commands
 that have them. Ctrl-C runs each command in a subprocess, interrupted at a known point during its imports
 (``CUNIFORM_IMPORT_PAUSE``, :mod:`precompute.startup`).
 """
@@ -31,7 +31,7 @@ from test_cli_config import command_parsers
 from test_cli_errors import _one_error
 from test_docs import cli_modules, command_module
 
-from cuniform_torch import cli
+from precompute import cli
 
 REPO = Path(__file__).resolve().parents[1]
 

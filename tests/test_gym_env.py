@@ -15,10 +15,10 @@ gymnasium = pytest.importorskip("gymnasium")
 from gymnasium.utils.env_checker import check_env  # noqa: E402
 
 from cuniform_torch.envs import Circle, simulate  # noqa: E402
-from cuniform_torch.envs.worlds.robot import NAV_ROBOT  # noqa: E402
-from cuniform_torch.envs.worlds.suites import forest, gaps  # noqa: E402
 from eval.navigate import gym_env  # noqa: E402
 from eval.navigate.gym_env import ENV_ID, NavigationEnv, make_env, register_envs  # noqa: E402
+from precompute.worlds.robot import NAV_ROBOT  # noqa: E402
+from precompute.worlds.suites import forest, gaps  # noqa: E402
 
 
 class Constant:

@@ -29,7 +29,7 @@ def job(seconds):
 
 PARENT = """
 import os, sys, time
-from cuniform_torch.common.parallel import run_jobs
+from precompute.parallel import run_jobs
 import slow_job
 os.environ["SLOW_IMPORT"] = sys.argv[1]  # the spawned workers' import of slow_job takes this long
 print("ready", flush=True)

@@ -7,9 +7,9 @@ from dataclasses import replace
 
 import torch
 
-from cuniform_torch.envs.worlds.robot import NAV_ROBOT
 from eval.navigate import robot_files
 from eval.navigate.robot_files import BUILD_SECONDS, ensure_table, expected_time
+from precompute.worlds.robot import NAV_ROBOT
 
 ROBOT = replace(NAV_ROBOT, horizon=6)  # a 6-step table builds in well under a second
 

@@ -9,10 +9,10 @@ import json
 import pytest
 from test_nav_replay import ROBOT, bench  # noqa: F401  (the tiny benchmark folder fixture)
 
-from cuniform_torch.envs.worlds.tasks import make_task
 from eval.navigate.episode import NavContext
 from eval.navigate.failures import classify, main, probe_free_share
 from eval.navigate.robot_files import ensure_table
+from precompute.worlds.tasks import make_task
 
 
 @pytest.fixture(scope="module")

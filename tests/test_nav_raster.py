@@ -10,9 +10,9 @@ import pytest
 
 import eval.navigate.episode as episode
 from cuniform_torch.envs import Circle, Environment, Rect
-from cuniform_torch.envs.worlds.barn import load_barn
-from cuniform_torch.envs.worlds.geometry import clearance
-from cuniform_torch.envs.worlds.tasks import barn_task
+from precompute.worlds.barn import load_barn
+from precompute.worlds.geometry import clearance
+from precompute.worlds.tasks import barn_task
 
 
 def _brute_force(environment: Environment, h: float) -> np.ndarray:

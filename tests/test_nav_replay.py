@@ -11,15 +11,15 @@ import pytest
 from test_cli_errors import _one_error
 from test_navigate import Straight  # a controller without plan(): it always drives straight
 
-from cuniform_torch.envs.worlds.robot import NAV_ROBOT
-from cuniform_torch.envs.worlds.suites import SuiteError
-from cuniform_torch.envs.worlds.tasks import make_task, make_tasks
 from cuniform_torch.sampling import GaussianSampler
 from eval.common.methods import METHODS, NAVIGATE, Method
 from eval.navigate.episode import NavContext, NavJob, run_nav_episode
 from eval.navigate.replay import compare_records, main, replay_episode
 from eval.navigate.robot_files import ensure_table
 from eval.navigate.run import NavConfig, run
+from precompute.worlds.robot import NAV_ROBOT
+from precompute.worlds.suites import SuiteError
+from precompute.worlds.tasks import make_task, make_tasks
 
 ROBOT = replace(NAV_ROBOT, horizon=6)  # a 6-step table builds in about a second
 SAME = ("key", "outcome", "success", "time", "path_length", "steps", "cycles", "seed")  # not the wall times

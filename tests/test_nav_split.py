@@ -2,10 +2,10 @@
 
 import pytest
 
-from cuniform_torch.envs.worlds.suites import SuiteError
-from cuniform_torch.envs.worlds.tasks import make_tasks, split_of
 from eval.navigate.run import NavConfig, _check
 from precompute.maps.worlds import suite_worlds
+from precompute.worlds.suites import SuiteError
+from precompute.worlds.tasks import make_tasks, split_of
 
 
 def test_forest_test_split_is_every_fifth_seed_from_seed():
@@ -36,8 +36,8 @@ def test_bad_split_and_empty_split_are_clear_errors():
 
 
 def test_clutter_suite_is_the_forest_corridor_denser():
-    from cuniform_torch.envs.worlds.suites import make_suite
-    from cuniform_torch.envs.worlds.tasks import CLUTTER
+    from precompute.worlds.suites import make_suite
+    from precompute.worlds.tasks import CLUTTER
 
     tasks = make_tasks("clutter", 0.2, 3, split="test")
     assert [t.task_id for t in tasks] == [0, 5, 10] and {t.suite for t in tasks} == {"clutter"}
@@ -53,8 +53,8 @@ def test_clutter_suite_is_the_forest_corridor_denser():
 
 
 def test_farm_builds_clutter_worlds_of_the_benchmark_density():
-    from cuniform_torch.envs.worlds.tasks import CLUTTER
     from precompute.maps.worlds import world_of
+    from precompute.worlds.tasks import CLUTTER
 
     w = world_of("clutter", 3, 0.2)
     assert w.source == "clutter:seed=3" and CLUTTER["num_discs"][0] <= len(w.discs) <= CLUTTER["num_discs"][1]

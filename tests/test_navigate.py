@@ -9,18 +9,18 @@ import numpy as np
 import pytest
 import torch
 
-from cuniform_torch.common.parallel import ray_available
 from cuniform_torch.envs import Environment
-from cuniform_torch.envs.worlds.barn import load_barn, pack_maps, write_barn
-from cuniform_torch.envs.worlds.geometry import clearance
-from cuniform_torch.envs.worlds.robot import NAV_ROBOT, preset_dict
-from cuniform_torch.envs.worlds.suites import SuiteError, forest, gaps
-from cuniform_torch.envs.worlds.tasks import barn_task, make_tasks
 from cuniform_torch.sampling import GaussianSampler
 from eval.common.methods import METHODS, NAVIGATE, Method
 from eval.navigate.episode import NavContext, NavJob, rasterize, run_nav_episode
 from eval.navigate.robot_files import ensure_table
 from eval.navigate.run import NavConfig, controller_seed, main, make_jobs, run
+from precompute.parallel import ray_available
+from precompute.worlds.barn import load_barn, pack_maps, write_barn
+from precompute.worlds.geometry import clearance
+from precompute.worlds.robot import NAV_ROBOT, preset_dict
+from precompute.worlds.suites import SuiteError, forest, gaps
+from precompute.worlds.tasks import barn_task, make_tasks
 
 ROBOT = replace(NAV_ROBOT, horizon=6)  # a 6-step table builds in about a second
 OUTCOME_FIELDS = ("key", "outcome", "success", "steps", "time", "path_length", "seed")
@@ -310,8 +310,8 @@ def test_cfu_mppi_runs_from_a_given_map_policy_and_needs_one(tmp_path, cache):
 def test_cfu_mppi_senses_the_raw_obstacles_not_the_inflated_ones(monkeypatch, tmp_path, cache):
     """The farm's patches are raw occupancy (its tables inflate by the radius): a policy fed the inflated world
     would see every obstacle 0.2 m too large, a map unlike any it was trained on."""
-    from cuniform_torch.envs.worlds.tasks import make_tasks
     from eval.navigate import episode as nav_episode
+    from precompute.worlds.tasks import make_tasks
 
     task = make_tasks("forest", ROBOT.radius, 1)[0]
     seen = {}
@@ -336,9 +336,9 @@ def test_cfu_mppi_senses_the_raw_obstacles_not_the_inflated_ones(monkeypatch, tm
 
 
 def test_a_gap_sweep_of_other_widths_is_refused_since_its_task_ids_mean_other_gaps(tmp_path):
-    from cuniform_torch.envs.worlds.tasks import make_tasks
     from eval.navigate.run import settings_record
     from eval.navigate.store import EpisodeStore, StoreError
+    from precompute.worlds.tasks import make_tasks
 
     sweep = {n: make_tasks("gaps", 0.2, count=n) for n in (2, 3, 4, 7)}
     assert sweep[4][3].params["width"] != sweep[7][3].params["width"]  # why: the same key, another gap

@@ -1,5 +1,5 @@
 """run_jobs' worker processes die with their parent: a parent killed hard (kill -9) leaves no orphaned worker nor
-multiprocessing resource tracker behind (cuniform_torch.common.parallel)."""
+multiprocessing resource tracker behind (precompute.parallel)."""
 
 from __future__ import annotations
 
@@ -23,7 +23,7 @@ def nap(folder, seconds):
     time.sleep(seconds)
 '''
 
-PARENT = ("import sys, job; from cuniform_torch.common.parallel import run_jobs; "
+PARENT = ("import sys, job; from precompute.parallel import run_jobs; "
           "run_jobs(job.nap, [(sys.argv[1], 300)] * 2, workers=2)")
 
 

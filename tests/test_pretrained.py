@@ -14,11 +14,11 @@ import torch
 import cuniform_torch.maps.pretrained as pretrained
 from cuniform_torch.controllers.cfu import CFUMPPI
 from cuniform_torch.envs import OccupancyGrid
-from cuniform_torch.envs.worlds.robot import NAV_ROBOT, preset_dict
 from cuniform_torch.maps import MapPolicy, MapPolicyConfig, load_map_policy, map_policy_checkpoint, save_map_policy
 from cuniform_torch.maps.pretrained import CARD_FORMAT, PretrainedError, pretrained_path
 from cuniform_torch.systems import system_to_json
 from eval.navigate.run import map_policy_for
+from precompute.worlds.robot import NAV_ROBOT, preset_dict
 
 SHIPPED = "unicycle-0.5"
 

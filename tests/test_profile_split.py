@@ -8,10 +8,10 @@ import time
 import pytest
 import torch
 
-from cuniform_torch.cli import CLIError
 from cuniform_torch.controllers.mppi import MPPI
 from cuniform_torch.systems import make_system
 from eval.bench.profile_split import split
+from precompute.cli import CLIError
 
 
 def simulate(controller, commands: int) -> None:  # named as the simulator loop the split looks for

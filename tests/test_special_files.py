@@ -17,7 +17,6 @@ from pathlib import Path
 
 import pytest
 
-from cuniform_torch.cli import CLIError, check_output_file, check_output_folder
 from cuniform_torch.common.fileio import (
     FileKindError,
     FileTooLargeError,
@@ -27,6 +26,7 @@ from cuniform_torch.common.fileio import (
     write_json,
 )
 from eval.navigate.store import EpisodeStore, StoreError
+from precompute.cli import CLIError, check_output_file, check_output_folder
 from tests.test_bench_records import bench_record, bench_settings
 
 pytestmark = pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="POSIX special files")
@@ -111,8 +111,8 @@ def test_an_atomic_write_never_replaces_a_special_file(tmp_path):
 
 @pytest.mark.parametrize("target", ["fifo", "/dev/zero"])
 def test_a_barn_file_that_is_a_special_file_is_refused(tmp_path, target):
-    from cuniform_torch.envs.worlds.barn import load_barn
-    from cuniform_torch.envs.worlds.barn_format import BarnFormatError
+    from precompute.worlds.barn import load_barn
+    from precompute.worlds.barn_format import BarnFormatError
 
     path = tmp_path / "barn.npz"
     if target == "fifo":
@@ -124,8 +124,8 @@ def test_a_barn_file_that_is_a_special_file_is_refused(tmp_path, target):
 
 
 def test_a_world_file_and_a_training_state_that_are_fifos_are_refused(tmp_path):
-    from cuniform_torch.envs.worlds.barn_format import BarnFormatError
-    from cuniform_torch.envs.worlds.barn_worlds import _parse_world
+    from precompute.worlds.barn_format import BarnFormatError
+    from precompute.worlds.barn_worlds import _parse_world
     from training.tables.train_state import UsageError, load_train_state
 
     world = _fifo(tmp_path / "world_0.world")
@@ -490,8 +490,8 @@ def test_a_second_run_on_a_cold_cache_waits_for_the_first_and_uses_its_table(tmp
     import time
 
     from cuniform_torch.common import fileio
-    from cuniform_torch.envs.worlds.robot import NAV_ROBOT
     from eval.navigate import robot_files
+    from precompute.worlds.robot import NAV_ROBOT
 
     monkeypatch.setattr(robot_files, "WAIT_POLL_S", 0.05)
     path = robot_files.table_file(NAV_ROBOT, tmp_path)
@@ -518,8 +518,8 @@ def test_a_second_run_on_a_cold_cache_waits_for_the_first_and_uses_its_table(tmp
 # ------------------------------------------------------------------------------------------ a worker killed
 
 def test_a_worker_that_dies_is_one_clear_error_not_a_broken_pool_traceback():
-    from cuniform_torch.cli import error_message
-    from cuniform_torch.common.parallel import WorkerDiedError, run_jobs
+    from precompute.cli import error_message
+    from precompute.parallel import WorkerDiedError, run_jobs
 
     with pytest.raises(WorkerDiedError) as err:
         run_jobs(os.abort, [(), ()], workers=2)  # each worker dies by a signal, as the OOM killer's SIGKILL does

@@ -1,4 +1,4 @@
-"""cuniform_torch.envs.worlds.suites: seeded forest and gap maps as data; inflation, sensing and reachability against slow references."""
+"""precompute.worlds.suites: seeded forest and gap maps as data; inflation, sensing and reachability against slow references."""
 
 from __future__ import annotations
 
@@ -10,9 +10,9 @@ import pytest
 import torch
 
 from cuniform_torch.envs import Circle, simulate
-from cuniform_torch.envs.worlds.geometry import inflate, reachable, sensed
-from cuniform_torch.envs.worlds.suites import GAP_WIDTHS, SuiteError, forest, gaps, make_suite, validate_task
 from cuniform_torch.systems import Dubins
+from precompute.worlds.geometry import inflate, reachable, sensed
+from precompute.worlds.suites import GAP_WIDTHS, SuiteError, forest, gaps, make_suite, validate_task
 
 SEEDS = range(12)
 

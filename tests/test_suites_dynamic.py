@@ -1,4 +1,4 @@
-"""The suites where time matters (cuniform_torch.envs.worlds.dynamic): moving discs and the sudden obstacle.
+"""The suites where time matters (precompute.worlds.dynamic): moving discs and the sudden obstacle.
 
 Seeded generators, a disc's position at a time, collisions judged at each step's true time (the simulator's and the
 cost's), splits, and the benchmark's runner telling the cost the time.
@@ -14,10 +14,10 @@ import pytest
 import torch
 
 from cuniform_torch.envs import Environment, MovingDiscs, NavigationCost, collision_mask, simulate
-from cuniform_torch.envs.worlds.dynamic import SUDDEN_APPEAR, moving, sudden, sudden_id, sudden_position
-from cuniform_torch.envs.worlds.robot import NAV_ROBOT
-from cuniform_torch.envs.worlds.suites import SuiteError
-from cuniform_torch.envs.worlds.tasks import make_task, make_tasks, split_of
+from precompute.worlds.dynamic import SUDDEN_APPEAR, moving, sudden, sudden_id, sudden_position
+from precompute.worlds.robot import NAV_ROBOT
+from precompute.worlds.suites import SuiteError
+from precompute.worlds.tasks import make_task, make_tasks, split_of
 
 DT = 0.2
 

@@ -31,17 +31,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from cuniform_torch.cli import (
-    OUT,
-    ArgumentParser,
-    add_dataclass_args,
-    cli_main,
-    dataclass_from_args,
-    horizon_arg,
-    int_in,
-    positive_float,
-    positive_int,
-)
 from cuniform_torch.common.fileio import write_json
 from cuniform_torch.controllers.mppi import CUMPPI, CUniformMPPI
 from cuniform_torch.policies.checkpoint import load_policy
@@ -52,6 +41,17 @@ from cuniform_torch.tables.file import read_table
 from precompute.auto import AutoConfig, Choice, build_auto_set, choose, format_choice, parse_region
 from precompute.build import with_threads
 from precompute.build_args import system_of
+from precompute.cli import (
+    OUT,
+    ArgumentParser,
+    add_dataclass_args,
+    cli_main,
+    dataclass_from_args,
+    horizon_arg,
+    int_in,
+    positive_float,
+    positive_int,
+)
 from precompute.system_args import load_user_systems
 from training.tables.config import DistillConfig
 

@@ -32,7 +32,7 @@ dimensions, A actions, G (table, level) groups.
 
 ``main(argv)`` returns 0, or 2 after printing one line ``error: ...`` (bad flags, unreadable tables, an output
 path that cannot be written, checked before training starts, a full disk, a refused resume, another run holding
-``<out>.lock``), or 130 after one line on Ctrl-C (see :mod:`cuniform_torch.cli`).
+``<out>.lock``), or 130 after one line on Ctrl-C (see :mod:`precompute.cli`).
 """
 
 from __future__ import annotations
@@ -49,7 +49,13 @@ from typing import Any
 
 import torch
 
-from cuniform_torch.cli import (
+from cuniform_torch.common.fileio import exclusive_lock
+from cuniform_torch.grid.cells import Grid
+from cuniform_torch.policies.checkpoint import file_sha256, policy_checkpoint, save_policy
+from cuniform_torch.policies.mlp import MAX_FREQUENCIES, MLPConfig, MLPPolicy, default_feature_scale
+from cuniform_torch.policies.table import TablePolicy
+from cuniform_torch.tables.file import Table, read_table
+from precompute.cli import (
     OUT,
     ArgumentParser,
     add_dataclass_args,
@@ -66,12 +72,6 @@ from cuniform_torch.cli import (
     positive_int,
     threads_arg,
 )
-from cuniform_torch.common.fileio import exclusive_lock
-from cuniform_torch.grid.cells import Grid
-from cuniform_torch.policies.checkpoint import file_sha256, policy_checkpoint, save_policy
-from cuniform_torch.policies.mlp import MAX_FREQUENCIES, MLPConfig, MLPPolicy, default_feature_scale
-from cuniform_torch.policies.table import TablePolicy
-from cuniform_torch.tables.file import Table, read_table
 from training.sets.distill import distill_set
 from training.tables.config import DistillConfig, with_epochs
 from training.tables.evaluate import compare, kl_per_level, sizes
@@ -97,7 +97,7 @@ class _Parser(ArgumentParser):
 
 
 def make_parser() -> ArgumentParser:
-    """A flag per :class:`DistillConfig` field (:func:`cuniform_torch.cli.add_dataclass_args`: its type, its
+    """A flag per :class:`DistillConfig` field (:func:`precompute.cli.add_dataclass_args`: its type, its
     docstring and its default, which lives only in the dataclass)."""
     parser = _Parser(prog="python -m training.distill", description=__doc__.splitlines()[0])
     add_dataclass_args(parser, DistillConfig, exclude=("system_module",), required=("tables",), arg_types={

@@ -1,1 +1,1 @@
-"""Low-level pieces every part of the library shares: argument checks, string options, tensor and device checks, atomic file writing, SE(2) frames, job pools."""
+"""Low-level pieces every part of the library shares: argument checks, string options, tensor and device checks, atomic file writing, SE(2) frames."""

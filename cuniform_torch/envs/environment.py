@@ -97,7 +97,7 @@ class Environment:
     def snapshot(self, t: float) -> Environment:
         """The environment as it is at time ``t`` (s): the same obstacles and bounds, each moving disc a fixed
         :class:`Circle` where it is then (the last ones, in ``moving``'s order); the environment itself when nothing
-        moves. For the static tools (:func:`~cuniform_torch.envs.worlds.geometry.reachable`, rasters)."""
+        moves. For the static tools (:func:`~precompute.worlds.geometry.reachable`, rasters)."""
         if self.moving is None:
             return self
         circles = [Circle((x, y), r) for (x, y), r in zip(self.moving.centres(t).tolist(), self.moving.radius.tolist())]

@@ -26,7 +26,11 @@ from pathlib import Path
 import torch
 
 from cuniform_torch import CUMPPI, MPPI, CUniformMPPI, Dubins, LogMPPI, load_table, rollout, write_table
-from cuniform_torch.cli import (
+from cuniform_torch.common.fileio import write_json
+from cuniform_torch.policies.table import Kernel
+from cuniform_torch.sampling import GaussianSampler
+from eval.common.paths import DEFAULT
+from precompute.cli import (
     MAX_COUNT,
     ArgumentParser,
     check_output_file,
@@ -39,10 +43,6 @@ from cuniform_torch.cli import (
     refuse_flags,
     threads_arg,
 )
-from cuniform_torch.common.fileio import write_json
-from cuniform_torch.policies.table import Kernel
-from cuniform_torch.sampling import GaussianSampler
-from eval.common.paths import DEFAULT
 
 
 def _timer(fn: Callable[[], object], repeats: int, warmup: int, device: torch.device) -> float:

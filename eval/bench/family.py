@@ -31,7 +31,8 @@ from pathlib import Path
 
 import torch
 
-from cuniform_torch.cli import (
+from cuniform_torch.common.fileio import write_json
+from precompute.cli import (
     ArgumentParser,
     check_output_file,
     cli_main,
@@ -41,7 +42,6 @@ from cuniform_torch.cli import (
     positive_int,
     threads_arg,
 )
-from cuniform_torch.common.fileio import write_json
 
 METHODS = ("mppi", "log_mppi", "mppi_pink", "mppi_lowpass", "smppi", "kmppi", "cuniform", "cumppi", "cumppi_pipe",
            "mix_cu_mppi", "cfu_mppi", "pytorch_mppi")
@@ -83,9 +83,9 @@ def build(args) -> tuple[dict[tuple[str, int, int], Callable[[], object]], dict]
     from cuniform_torch import CFUMPPI, CUMPPI, MPPI, CUniformMPPI, LogMPPI, TablePolicy, read_table
     from cuniform_torch.controllers import ColoredMPPI, CUniformMixtureMPPI, KernelMPPI, LowPassMPPI, SmoothMPPI
     from cuniform_torch.envs import NavigationCost
-    from cuniform_torch.envs.worlds.barn import load_barn
-    from cuniform_torch.envs.worlds.robot import NAV_ROBOT
     from eval.navigate.robot_files import ensure_table
+    from precompute.worlds.barn import load_barn
+    from precompute.worlds.robot import NAV_ROBOT
 
     device = torch.device(args.device)
     system = NAV_ROBOT.make_system()

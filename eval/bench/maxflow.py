@@ -14,7 +14,10 @@ import sys
 import time
 from pathlib import Path
 
-from cuniform_torch.cli import (
+from cuniform_torch.common.fileio import write_json
+from cuniform_torch.tables.file import read_table
+from eval.common.paths import DEFAULT
+from precompute.cli import (
     ArgumentParser,
     CLIError,
     add_system_module_arg,
@@ -24,9 +27,6 @@ from cuniform_torch.cli import (
     non_negative_int,
     positive_int,
 )
-from cuniform_torch.common.fileio import write_json
-from cuniform_torch.tables.file import read_table
-from eval.common.paths import DEFAULT
 from precompute.flow.maxflow import maxflow_value_networkx, solve_maxflow
 
 

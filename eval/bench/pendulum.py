@@ -22,7 +22,8 @@ from pathlib import Path
 
 import torch
 
-from cuniform_torch.cli import (
+from cuniform_torch.common.fileio import write_json
+from precompute.cli import (
     ArgumentParser,
     check_output_file,
     cli_main,
@@ -31,7 +32,6 @@ from cuniform_torch.cli import (
     positive_int,
     threads_arg,
 )
-from cuniform_torch.common.fileio import write_json
 
 G, MASS, LENGTH, DT, MAX_SPEED, MAX_TORQUE = 10.0, 1.0, 1.0, 0.05, 8.0, 2.0
 

@@ -26,8 +26,8 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
-from cuniform_torch.cli import ArgumentParser, CLIError, cli_main
 from cuniform_torch.common.fileio import check_regular
+from precompute.cli import ArgumentParser, CLIError, cli_main
 
 __all__ = ["split", "main"]
 

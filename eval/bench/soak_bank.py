@@ -26,7 +26,9 @@ import torch
 from tqdm import tqdm
 
 from cuniform_torch import CUniformMPPI, Dubins, load_table
-from cuniform_torch.cli import (
+from cuniform_torch.common.fileio import write_json
+from cuniform_torch.controllers.mppi import BankRefreshWarning
+from precompute.cli import (
     MAX_COUNT,
     ArgumentParser,
     add_system_module_arg,
@@ -39,8 +41,6 @@ from cuniform_torch.cli import (
     positive_int,
     refuse_flags,
 )
-from cuniform_torch.common.fileio import write_json
-from cuniform_torch.controllers.mppi import BankRefreshWarning
 
 THREAD_PREFIX = "cuniform-bank"
 

@@ -26,8 +26,8 @@ from pathlib import Path
 
 import torch
 
-from cuniform_torch.cli import ArgumentParser, check_output_file, cli_main, non_negative_int, positive_int
 from cuniform_torch.common.fileio import write_json
+from precompute.cli import ArgumentParser, check_output_file, cli_main, non_negative_int, positive_int
 
 HERE = Path(__file__).parent
 SCRIPTS = {"pytorch_mppi": "pendulum_user_pytorch_mppi", "cuniform": "pendulum_user_cuniform"}

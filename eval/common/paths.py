@@ -1,6 +1,6 @@
 """Where the evaluation reads and writes: every ``out/...`` and ``runs/...`` default of ``eval`` in one place.
 
-:class:`OutputPaths` names the files under one output folder (``out/`` by default, ``cuniform_torch.cli.OUT``):
+:class:`OutputPaths` names the files under one output folder (``out/`` by default, ``precompute.cli.OUT``):
 the tables and the distilled policy the experiments read, their JSON results, the figures and the report.
 ``python -m eval.report --out DIR`` uses ``OutputPaths(DIR)`` (``--quick``: ``OutputPaths(DIR / "quick",
 quick=True)``); every experiment's ``--table`` / ``--coverage-table`` / ``--policy`` defaults to
@@ -12,7 +12,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
-from cuniform_torch.cli import OUT, RUNS
+from precompute.cli import OUT, RUNS
 
 __all__ = ["OutputPaths", "DEFAULT", "RUNS_EVAL"]
 

@@ -142,7 +142,7 @@ def run_episode(method: str, seed: int, budget: int, horizon: int, repeat: int, 
 
 
 def episode_job(method: str, seed: int, config: dict[str, Any]) -> dict[str, Any]:
-    """:func:`run_episode` as a picklable job of :func:`cuniform_torch.common.parallel.run_jobs`."""
+    """:func:`run_episode` as a picklable job of :func:`precompute.parallel.run_jobs`."""
     return run_episode(method, seed, config["budget"], config["horizon"], config["repeat"], config["max_steps"],
                        config.get("set_dir"), config.get("threads", 0))
 

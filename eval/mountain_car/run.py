@@ -22,7 +22,20 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from cuniform_torch.cli import (
+from cuniform_torch.common.fileio import MAX_JSON_BYTES, read_capped_text, write_json
+from eval.common.stats import wilson_interval
+from eval.mountain_car.episode import (
+    GYM_MISSING,
+    LAMBDA,
+    METHODS,
+    NOISE_STD,
+    SET_METHODS,
+    episode_job,
+    have_gymnasium,
+    have_pytorch_mppi,
+)
+from eval.mountain_car.table_set import ensure_set, parse_grid
+from precompute.cli import (
     MAX_COUNT,
     OUT,
     ArgumentParser,
@@ -36,20 +49,7 @@ from cuniform_torch.cli import (
     positive_int,
     refuse_flags,
 )
-from cuniform_torch.common.fileio import MAX_JSON_BYTES, read_capped_text, write_json
-from cuniform_torch.common.parallel import run_jobs
-from eval.common.stats import wilson_interval
-from eval.mountain_car.episode import (
-    GYM_MISSING,
-    LAMBDA,
-    METHODS,
-    NOISE_STD,
-    SET_METHODS,
-    episode_job,
-    have_gymnasium,
-    have_pytorch_mppi,
-)
-from eval.mountain_car.table_set import ensure_set, parse_grid
+from precompute.parallel import run_jobs
 
 __all__ = ["main", "make_parser", "summarize"]
 

@@ -10,9 +10,9 @@ import re
 from pathlib import Path
 from typing import Any
 
-from cuniform_torch.cli import CLIError
 from cuniform_torch.common.fileio import write_json
 from cuniform_torch.systems.classic import MOUNTAIN_CAR, MountainCar
+from precompute.cli import CLIError
 
 __all__ = ["parse_grid", "set_spec", "set_folder", "ensure_set"]
 

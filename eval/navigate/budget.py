@@ -40,13 +40,13 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-from cuniform_torch.cli import ArgumentParser, check_output_file, cli_main, positive_float
 from cuniform_torch.common.fileio import write_bytes
 from eval.common.markdown import table
 from eval.common.methods import NAVIGATE, gaussian_baselines, methods_of
 from eval.navigate.score import episode_scores, score_summary
 from eval.navigate.stats import _best_baseline, _by_episode, _compare, fmt_rate, fmt_score, summarize
 from eval.navigate.store import EpisodeStore
+from precompute.cli import ArgumentParser, check_output_file, cli_main, positive_float
 
 __all__ = ["DEFAULT_BUDGETS_MS", "FIT_QUANTILE", "cells", "pick_k", "budget_rows", "pareto_front", "threads_note",
            "judge", "judge_folder", "render", "budget_figure", "main"]

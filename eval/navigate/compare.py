@@ -18,10 +18,10 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
-from cuniform_torch.cli import ArgumentParser, cli_main
 from eval.common.stats import wilson_interval
 from eval.navigate.replay import load_folder
 from eval.navigate.stats import _by_episode, _compare
+from precompute.cli import ArgumentParser, cli_main
 
 __all__ = ["parse_cell", "compare_cells", "main"]
 

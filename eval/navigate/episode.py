@@ -11,7 +11,7 @@ goal + ``collision_penalty`` for every colliding rollout state, both ending at t
 the goal). The obstacles it sees:
 
 * a task with a sensing range (forest): the obstacles sensed at the robot's position, updated before every
-  control cycle (:meth:`cuniform_torch.envs.worlds.suites.NavTask.sensed_environment`);
+  control cycle (:meth:`precompute.worlds.suites.NavTask.sensed_environment`);
 * a static map with more than :data:`RASTER_MIN_OBSTACLES` obstacles (BARN: 181-365 cylinders): the inflated
   map rasterized once into an :class:`~cuniform_torch.envs.OccupancyGrid` of ``cost_resolution`` cells, a
   cell occupied when any of its points may be inside an obstacle (its centre's clearance is below half the
@@ -22,7 +22,7 @@ the goal). The obstacles it sees:
 The cost is told the time before every control cycle (:func:`cuniform_torch.envs.simulate`'s ``cost``): an
 obstacle with an ``appear_time`` (the sudden suite) enters it then, and moving discs (the moving suite) are
 tested where they will be at each rollout step's time (``dt``: the robot's step), their true constant-velocity
-motion (:mod:`cuniform_torch.envs.worlds.dynamic`).
+motion (:mod:`precompute.worlds.dynamic`).
 
 Collisions are always judged on the exact inflated geometry (:func:`cuniform_torch.envs.simulate`).
 """
@@ -40,11 +40,11 @@ import numpy as np
 import torch
 
 from cuniform_torch.envs import Environment, NavigationCost, OccupancyGrid, simulate
-from cuniform_torch.envs.worlds.geometry import inflate, obstacle_tables
-from cuniform_torch.envs.worlds.suites import NavTask
 from eval.common.methods import NAVIGATE, Sources, make_controller, methods_of
 from eval.navigate.cost_to_go import CostToGo
 from eval.navigate.stats import cycle_histogram
+from precompute.worlds.geometry import inflate, obstacle_tables
+from precompute.worlds.suites import NavTask
 
 __all__ = ["NavJob", "NavContext", "run_nav_episode", "rasterize", "episode_key", "RASTER_MIN_OBSTACLES"]
 
@@ -115,7 +115,7 @@ def rasterize(environment: Environment, resolution: float) -> Environment:
 
     Each obstacle marks the cells of its own bounding box widened by the margin (all obstacles of a kind at once,
     in boxes padded to the largest), with the distance arithmetic of
-    :func:`~cuniform_torch.envs.worlds.geometry.clearance`: the same raster as testing every cell against every
+    :func:`~precompute.worlds.geometry.clearance`: the same raster as testing every cell against every
     obstacle, for the cells near an obstacle only (a BARN map: ~1 M distances instead of ~150 M)."""
     if environment.bounds is None:
         raise ValueError("rasterize: the environment needs bounds")

@@ -7,15 +7,15 @@ interrupted run loses at most the episodes in flight. A progress bar counts epis
 
 Serial (``workers=1``, no Ray), ``workers=N`` spawned processes (each caching the files it loaded), or Ray tasks
 (``ray_address``: ``"local"``, ``"auto"``, ``"ray://host:10001"``; the cluster's nodes need this package):
-:func:`cuniform_torch.common.parallel.run_jobs`.
+:func:`precompute.parallel.run_jobs`.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 
-from cuniform_torch.common.parallel import RAY_MISSING, ray_available, run_jobs
 from eval.navigate.episode import NavContext, NavJob, run_nav_episode
+from precompute.parallel import RAY_MISSING, ray_available, run_jobs
 
 __all__ = ["execute"]
 

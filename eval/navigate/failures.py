@@ -29,11 +29,11 @@ from pathlib import Path
 import torch
 
 from cuniform_torch import CUniformMPPI
-from cuniform_torch.cli import MAX_COUNT, ArgumentParser, check_output_file, cli_main, int_in, positive_int
 from cuniform_torch.common.fileio import write_json
 from cuniform_torch.envs import NavigationCost
 from eval.navigate.episode import NavContext, _cost_environment, _sources
 from eval.navigate.replay import compare_records, load_folder, replay_episode, summarize
+from precompute.cli import MAX_COUNT, ArgumentParser, check_output_file, cli_main, int_in, positive_int
 
 __all__ = ["FailureKind", "classify", "probe_free_share", "failure_table", "main"]
 

@@ -13,9 +13,9 @@ import sys
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
-from cuniform_torch.cli import ArgumentParser, check_output_file, cli_main
 from cuniform_torch.common.fileio import MAX_JSON_BYTES, read_capped_text
 from eval.common.figures import method_style, plt, save_figure
+from precompute.cli import ArgumentParser, check_output_file, cli_main
 
 __all__ = ["TB_METRICS", "success_figure", "write_tensorboard", "main"]
 

@@ -34,7 +34,7 @@ Every Box has finite bounds that the contents provably stay inside, derived from
 * ``"rects"``: float64 ``[R, 4]``, the sensed inflated rectangles (xmin, ymin, xmax, ymax), then zero rows;
   ``"rect_mask"``: int8 ``[R]``. Space: per column, the least and the greatest over every task's rects, W's
   x or y and 0. (The suites' walls inflate to two rects and four corner circles each, see
-  :func:`cuniform_torch.envs.worlds.geometry.inflate`; the circles go to ``"obstacles"``.)
+  :func:`precompute.worlds.geometry.inflate`; the circles go to ``"obstacles"``.)
 
 Reward per step: progress toward the goal (previous xy distance - new xy distance, m), plus
 :data:`GOAL_REWARD` on reaching the goal, minus :data:`COLLISION_PENALTY` on a collision (no goal bonus then).
@@ -62,9 +62,9 @@ except ImportError as err:  # gymnasium is the optional extra "gym"
     raise ImportError("the gymnasium environment needs gymnasium: pip install -e '.[gym]'") from err
 
 from cuniform_torch.envs import COLLISION, GOAL, TIMEOUT, Circle, Environment, Rect
-from cuniform_torch.envs.worlds.robot import NAV_ROBOT
-from cuniform_torch.envs.worlds.suites import NavTask, make_suite
-from cuniform_torch.envs.worlds.tasks import DEFAULT_COUNTS, make_tasks
+from precompute.worlds.robot import NAV_ROBOT
+from precompute.worlds.suites import NavTask, make_suite
+from precompute.worlds.tasks import DEFAULT_COUNTS, make_tasks
 
 __all__ = ["NavigationEnv", "register_envs", "make_env", "ENV_ID", "MAX_CIRCLES", "MAX_RECTS", "GOAL_REWARD",
            "COLLISION_PENALTY"]
@@ -161,7 +161,7 @@ def _check_system(system: Any) -> None:
 # ------------------------------------------------------------------------------------------------ environment
 
 class NavigationEnv(gymnasium.Env):
-    """Drive ``system`` (default ``NAV_ROBOT.make_system()``) through one :class:`~cuniform_torch.envs.worlds.suites.NavTask`, or
+    """Drive ``system`` (default ``NAV_ROBOT.make_system()``) through one :class:`~precompute.worlds.suites.NavTask`, or
     one of ``tasks`` per :meth:`reset` (``options={"task_index": k}``, else drawn from the reset's seed).
 
     The action is a float ``[q]`` in ``[-1, 1]`` (normalised; values outside are **clipped** to it), scaled onto
@@ -419,10 +419,10 @@ def make_env(suite: str, index: int | None = 0, count: int | None = None, seed: 
     """A :class:`NavigationEnv` on task ``index`` of a suite (``index=None``: all ``count`` tasks, one per
     reset).
 
-    Without ``suite_params``: the benchmark's own tasks (:func:`cuniform_torch.envs.worlds.tasks.make_tasks`: ``barn``, ``forest``
+    Without ``suite_params``: the benchmark's own tasks (:func:`precompute.worlds.tasks.make_tasks`: ``barn``, ``forest``
     or ``gaps``, the benchmark robot's radius and time limits); ``count`` defaults to ``index + 1`` (BARN: the
     first maps; forest: task ``index`` is seed ``seed + index``), for gaps to the benchmark's 9 tasks, so that
-    gap task ``index`` is the benchmark's. With ``suite_params``: ``cuniform_torch.envs.worlds.suites.make_suite(suite, count, seed,
+    gap task ``index`` is the benchmark's. With ``suite_params``: ``precompute.worlds.suites.make_suite(suite, count, seed,
     **suite_params)`` (forest or gaps with other parameters)."""
     if index is not None and (isinstance(index, bool) or not isinstance(index, (int, np.integer)) or index < 0):
         raise ValueError(f"make_env: index must be an integer >= 0 or None, got {index!r}")

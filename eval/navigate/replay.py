@@ -4,7 +4,7 @@
 
 Reads ``DIR/settings.json`` and the record ``KEY`` of ``DIR/episodes.jsonl`` (:mod:`eval.navigate.store`; read only,
 so a benchmark still writing the folder is not disturbed), rebuilds the one task
-(:func:`cuniform_torch.envs.worlds.tasks.make_task`) and the robot, checks that the source files (the same flags and defaults as
+(:func:`precompute.worlds.tasks.make_task`) and the robot, checks that the source files (the same flags and defaults as
 ``eval.navigate.run``'s) are the ones the run used (their digests in ``settings["sources"]``), and re-runs the episode
 (episodes are deterministic) with a per-command trace (:func:`eval.navigate.episode.run_nav_episode`'s ``trace``):
 the share of the controller's proposals that are collision-free (cost < the collision penalty) and the lowest
@@ -22,14 +22,14 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from cuniform_torch.cli import ArgumentParser, add_system_module_arg, check_output_file, cli_main, import_system_modules
 from cuniform_torch.common.fileio import write_json
-from cuniform_torch.envs.worlds.robot import RobotPreset
-from cuniform_torch.envs.worlds.suites import NavTask
-from cuniform_torch.envs.worlds.tasks import make_task
 from eval.navigate.episode import NavContext, NavJob, run_nav_episode
 from eval.navigate.run import NavConfig, _file_digest, _sources
 from eval.navigate.store import EpisodeStore
+from precompute.cli import ArgumentParser, add_system_module_arg, check_output_file, cli_main, import_system_modules
+from precompute.worlds.robot import RobotPreset
+from precompute.worlds.suites import NavTask
+from precompute.worlds.tasks import make_task
 
 __all__ = ["load_folder", "load_episode", "replay_episode", "compare_records", "summarize", "plot_replay", "main"]
 
@@ -76,7 +76,7 @@ def _gap_count(settings: dict, records: dict[str, dict]) -> int:
     widths = settings.get("gap_widths")
     if not widths:
         return 1 + max(r["task_id"] for r in records.values())
-    from cuniform_torch.envs.worlds.tasks import GAP_OFFSETS
+    from precompute.worlds.tasks import GAP_OFFSETS
 
     return max(len(widths) * len(GAP_OFFSETS) - len(GAP_OFFSETS) + 1, 1 + max(r["task_id"] for r in records.values()))
 

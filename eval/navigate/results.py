@@ -10,10 +10,10 @@ from pathlib import Path
 from typing import Any
 
 from cuniform_torch.common.fileio import write_bytes, write_json
-from cuniform_torch.envs.worlds.suites import NavTask
-from cuniform_torch.envs.worlds.tasks import task_summary
 from eval.common.methods import NAVIGATE, gaussian_baselines, methods_of
 from eval.navigate.stats import markdown, paired_comparisons, summarize
+from precompute.worlds.suites import NavTask
+from precompute.worlds.tasks import task_summary
 
 __all__ = ["result", "write_outputs", "render", "success_pivot"]
 

@@ -20,7 +20,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 from cuniform_torch.common.fileio import FileLockedError
-from cuniform_torch.envs.worlds.robot import NAV_ROBOT, RobotPreset
+from precompute.worlds.robot import NAV_ROBOT, RobotPreset
 
 __all__ = ["table_file", "policy_file", "ensure_table", "ensure_policy", "expected_time", "announce", "BUILD_SECONDS",
            "DISTILL_EPOCHS"]

@@ -30,7 +30,16 @@ from typing import Any
 
 import numpy as np
 
-from cuniform_torch.cli import (
+from cuniform_torch.common.fileio import exclusive_lock, open_regular
+from eval.common import config
+from eval.common.methods import NAVIGATE, methods_of, parse_methods
+from eval.navigate.cost_to_go import RESOLUTION as COST_TO_GO_RESOLUTION
+from eval.navigate.episode import NavContext, NavJob
+from eval.navigate.execute import execute
+from eval.navigate.results import render, result, success_pivot, write_outputs
+from eval.navigate.robot_files import ensure_policy, ensure_table
+from eval.navigate.store import EpisodeStore
+from precompute.cli import (
     MAX_COUNT,
     ArgumentParser,
     CLIError,
@@ -49,18 +58,9 @@ from cuniform_torch.cli import (
     positive_int,
     refuse_flags,
 )
-from cuniform_torch.common.fileio import exclusive_lock, open_regular
-from cuniform_torch.envs.worlds.robot import NAV_ROBOT, RobotPreset, preset_dict
-from cuniform_torch.envs.worlds.suites import NavTask
-from cuniform_torch.envs.worlds.tasks import SPLITS, SUITES, TIME_LIMITS, make_tasks
-from eval.common import config
-from eval.common.methods import NAVIGATE, methods_of, parse_methods
-from eval.navigate.cost_to_go import RESOLUTION as COST_TO_GO_RESOLUTION
-from eval.navigate.episode import NavContext, NavJob
-from eval.navigate.execute import execute
-from eval.navigate.results import render, result, success_pivot, write_outputs
-from eval.navigate.robot_files import ensure_policy, ensure_table
-from eval.navigate.store import EpisodeStore
+from precompute.worlds.robot import NAV_ROBOT, RobotPreset, preset_dict
+from precompute.worlds.suites import NavTask
+from precompute.worlds.tasks import SPLITS, SUITES, TIME_LIMITS, make_tasks
 
 __all__ = ["NavConfig", "NAV_TYPES", "REPEATS", "SHORT", "QUICK", "make_jobs", "run", "short_run", "render", "result",
            "success_pivot", "write_outputs", "main", "controller_seed"]
@@ -358,7 +358,7 @@ NAV_TYPES = {"tasks": positive_int, "budgets": int_in(2, MAX_COUNT, note=" (CU-M
              "repeats": positive_int, "seed": int_in(0, 2**31 - 1), "horizon": horizon_arg, "workers": int_in(1, 1024),
              "sensing_range": positive_float, "lambda_": positive_float, "collision_penalty": positive_float,
              "cost_resolution": positive_float}
-"""the :class:`NavConfig` flags' values, checked as they parse (:mod:`cuniform_torch.cli`)"""
+"""the :class:`NavConfig` flags' values, checked as they parse (:mod:`precompute.cli`)"""
 
 
 def make_parser() -> ArgumentParser:
@@ -373,7 +373,7 @@ def make_parser() -> ArgumentParser:
     p.add_argument("--cache", type=Path, default=Path("out/navigate/cache"),
                    help="where the robot's tables are built and kept (default: out/navigate/cache)")
     p.add_argument("--barn-file", type=Path, default=None,
-                   help="BARN maps in the shipped format (cuniform_torch/envs/worlds/barn.py); --suite barn only")
+                   help="BARN maps in the shipped format (precompute/worlds/barn.py); --suite barn only")
     p.add_argument("--barn-worlds", type=Path, default=None,
                    help="a folder of BARN Gazebo world_<id>.world files (or one file), converted to --out/barn.npz; "
                         "--suite barn only")
@@ -399,7 +399,7 @@ def make_parser() -> ArgumentParser:
 def _check_flags(p: ArgumentParser, args, cfg: NavConfig, out: Path) -> None:
     """The flags that do not apply to ``cfg``'s suite, a run too large, an ``--out`` that cannot be a folder (a
     device, a FIFO, a file), and ``--paths`` on a folder whose episodes were kept without their paths: refused
-    before any work (:func:`cuniform_torch.cli.refuse_flags`)."""
+    before any work (:func:`precompute.cli.refuse_flags`)."""
     if cfg.suite != "barn":
         refuse_flags(p, args, ["barn_file", "barn_worlds"], f"to --suite {cfg.suite} (BARN maps: --suite barn)")
     if cfg.suite not in ("forest", "clutter"):
@@ -453,7 +453,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.barn_worlds is not None:
         if barn_file is not None:
             raise ValueError("give --barn-file or --barn-worlds, not both")
-        from cuniform_torch.envs.worlds.barn import convert_worlds, write_barn
+        from precompute.worlds.barn import convert_worlds, write_barn
 
         barn_file = out / "barn.npz"
         write_barn(barn_file, convert_worlds(args.barn_worlds))

@@ -105,7 +105,7 @@ def _digest(path: Path) -> str:
 
 
 def _barn_lengths(settings: Mapping[str, Any], ids: set[int], barn_file: Path | None) -> tuple[dict[int, float], str]:
-    from cuniform_torch.envs.worlds.barn import CHALLENGE_GOAL, CHALLENGE_START, load_barn
+    from precompute.worlds.barn import CHALLENGE_GOAL, CHALLENGE_START, load_barn
 
     recorded = settings.get("barn_file")
     if recorded is not None and (barn_file is None or _digest(barn_file) != recorded):
@@ -135,8 +135,8 @@ def _read_cache(path: Path) -> dict[int, float]:
 
 def _geodesic_lengths(settings: Mapping[str, Any], ids: set[int], cache: Path | None,
                       resolution: float) -> tuple[dict[int, float], str]:
-    from cuniform_torch.envs.worlds.suites import SuiteError
-    from cuniform_torch.envs.worlds.tasks import make_task
+    from precompute.worlds.suites import SuiteError
+    from precompute.worlds.tasks import make_task
 
     path = _cache_file(cache, settings, resolution) if cache is not None else None
     lengths = _read_cache(path) if path is not None else {}

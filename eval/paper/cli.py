@@ -5,10 +5,10 @@ An experiment module (``eval.paper.coverage``, ``eval.paper.uniformity``, ``eval
 ``eval.paper.cluttered``) defines ``CONFIG`` (its config dataclass), ``QUICK`` (the ``--quick`` preset), ``run(cfg,
 sources, progress)``, ``markdown(result)`` (and ``figures(result, folder)`` with ``--figures``), then gets its
 ``make_parser``, ``config_from_args`` and ``main`` from :func:`entry_points`; its flags are ``CONFIG``'s fields
-(:func:`cuniform_torch.cli.add_dataclass_args`, so each default lives once, in the dataclass), their values checked
+(:func:`precompute.cli.add_dataclass_args`, so each default lives once, in the dataclass), their values checked
 as they parse (:data:`OPEN_LOOP_TYPES`, :data:`CLOSED_LOOP_TYPES`). A closed-loop module also defines
 ``episode_counts(cfg)``, the scenario counts that multiply into episodes: a run of more than
-:data:`cuniform_torch.cli.MAX_WORK` needs ``--no-limit``. Errors and exit codes are :mod:`cuniform_torch.cli`'s:
+:data:`precompute.cli.MAX_WORK` needs ``--no-limit``. Errors and exit codes are :mod:`precompute.cli`'s:
 every ``main`` is decorated with ``cli_main``.
 """
 
@@ -22,7 +22,10 @@ from pathlib import Path
 from types import ModuleType
 from typing import Any
 
-from cuniform_torch.cli import (
+from cuniform_torch.common.fileio import write_json
+from eval.common.methods import Sources
+from eval.common.paths import DEFAULT
+from precompute.cli import (
     ArgumentParser,
     add_dataclass_args,
     add_no_limit_arg,
@@ -40,16 +43,13 @@ from cuniform_torch.cli import (
     positive_float,
     positive_int,
 )
-from cuniform_torch.common.fileio import write_json
-from eval.common.methods import Sources
-from eval.common.paths import DEFAULT
 
 __all__ = ["add_source_args", "add_output_args", "OPEN_LOOP_TYPES", "CLOSED_LOOP_TYPES", "open_loop_flags",
            "add_closed_loop_args", "check_episodes", "make_parser", "config_from_args", "config_from_json", "prepare",
            "sources_from_args", "write_result", "main", "entry_points"]
 
 OPEN_LOOP_TYPES = {"samples": positive_int, "seeds": positive_int, "merge_resolution": int_in(1, 1024)}
-"""the open-loop configs' counts, checked as the flags parse (:mod:`cuniform_torch.cli`)"""
+"""the open-loop configs' counts, checked as the flags parse (:mod:`precompute.cli`)"""
 CLOSED_LOOP_TYPES = {"samples": int_in(2, 1_000_000), "seed": int_in(0, 2**31 - 1), "horizon": horizon_arg,
                      "positions": positive_int, "starts": positive_int, "seeds_per_start": positive_int,
                      "appear": float_in(0.0, 3600.0), "goal_tolerance": positive_float}
@@ -100,7 +100,7 @@ CLOSED_LOOP_HELP = {
 def add_closed_loop_args(p: argparse.ArgumentParser, cls: type, only: tuple[str, ...] = (), **kwargs) -> None:
     """The closed-loop experiments' flags: the :class:`ControllerSettings` fields a user sets (``--methods``,
     ``--samples``, ``--seed``, ``--horizon``, ``--mlp``, ``--collisions-after-goal``), the experiment's own
-    fields ``only`` (``kwargs``: :func:`~cuniform_torch.cli.add_dataclass_args`' for them), sources (3 s tables),
+    fields ``only`` (``kwargs``: :func:`~precompute.cli.add_dataclass_args`' for them), sources (3 s tables),
     ``--json``, ``--figures``, ``--quick`` and ``--quiet``."""
     add_source_args(p, closed_loop=True)
     shared = ("methods", "samples", "seed", "horizon", "include_mlp", "stop_at_goal")
@@ -119,7 +119,7 @@ def add_closed_loop_args(p: argparse.ArgumentParser, cls: type, only: tuple[str,
 
 def check_episodes(cfg: Any, scenarios: dict[str, int], no_limit: bool) -> None:
     """CLIError when ``scenarios`` (``{"positions": 20, "appearance times": 5}``) x the budgets (x the methods
-    given; per method without ``--methods``) is more episodes than :data:`cuniform_torch.cli.MAX_WORK` (without
+    given; per method without ``--methods``) is more episodes than :data:`precompute.cli.MAX_WORK` (without
     ``--no-limit``)."""
     counts = {**scenarios, "budgets": len(cfg.samples)}
     if cfg.methods is not None:

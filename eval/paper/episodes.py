@@ -23,10 +23,10 @@ from pathlib import Path
 
 import torch
 
-from cuniform_torch.common.parallel import run_jobs
 from cuniform_torch.envs import Environment, NavigationCost, simulate
 from eval.common import config
 from eval.common.methods import METHODS, PAPER, Method, Sources, make_controller, parse_methods
+from precompute.parallel import run_jobs
 
 __all__ = ["ControllerSettings", "Episode", "OUTCOMES", "SLOW_NOTE", "usable_methods", "run_episode", "run_episodes"]
 
@@ -166,7 +166,7 @@ def run_episodes(episodes: Sequence[Episode], sources: Sources, settings: Contro
     over the horizon) or once per colliding rollout, both cost terms ending at a rollout's first arrival at the
     goal (``stop_at_goal``; False: collisions after it count too).
 
-    ``workers`` > 1 runs the episodes in that many spawned processes (:func:`~cuniform_torch.common.parallel.run_jobs`),
+    ``workers`` > 1 runs the episodes in that many spawned processes (:func:`~precompute.parallel.run_jobs`),
     each on one torch thread (CPU sources only); an episode's record does not depend on where it ran (each has its
     own controller seed) apart from ``wall_s``.
 

@@ -4,7 +4,7 @@
 For each of ``--count`` maps of the suite's ``--split`` (:mod:`precompute.maps.worlds`: which maps, the split
 rule, the start poses), ``--poses-per-map`` free start poses are drawn; around each, the local map patch
 (default 72 x 72 cells of 0.05 m centred on the robot, in its frame) is cropped and a safe table built for the
-benchmark robot (:data:`cuniform_torch.envs.worlds.robot.NAV_ROBOT`; ``--system``, ``--param``, ``--horizon``, ``--radius``
+benchmark robot (:data:`precompute.worlds.robot.NAV_ROBOT`; ``--system``, ``--param``, ``--horizon``, ``--radius``
 override it). A pose whose table cannot be built (its start cell in an inflated obstacle of the patch, or a
 level with no free cell: boxed in) is replaced by the next free candidate.
 
@@ -28,7 +28,9 @@ from typing import Any
 
 import numpy as np
 
-from cuniform_torch.cli import (
+from cuniform_torch.common.fileio import MAX_JSON_BYTES, exclusive_lock, read_capped_text, write_json
+from cuniform_torch.systems import make_system, resolve_system, system_from_json
+from precompute.cli import (
     ArgumentParser,
     CLIError,
     add_dataclass_args,
@@ -42,14 +44,12 @@ from cuniform_torch.cli import (
     positive_float,
     positive_int,
 )
-from cuniform_torch.common.fileio import MAX_JSON_BYTES, exclusive_lock, read_capped_text, write_json
-from cuniform_torch.common.parallel import run_jobs
-from cuniform_torch.systems import make_system, resolve_system, system_from_json
 from precompute.coverage.method import CoverageConfig
 from precompute.levels.safe_map import LocalMap, MapError, check_map_system
 from precompute.levels.viability import SAFE_RULE
 from precompute.maps.dataset import dataset_header, entry_arrays, file_sha256, write_shard
 from precompute.maps.worlds import FARM_SUITES, SPLITS, candidate_poses, crop_patch, suite_worlds, world_of
+from precompute.parallel import run_jobs
 
 __all__ = ["main", "FarmConfig", "build_farm", "build_shard", "MAX_TRIES"]
 
@@ -59,7 +59,7 @@ MAX_TRIES = 2000
 
 
 def make_parser() -> argparse.ArgumentParser:
-    from cuniform_torch.envs.worlds.robot import NAV_ROBOT
+    from precompute.worlds.robot import NAV_ROBOT
 
     parser = ArgumentParser(prog="python -m precompute.maps.farm",
                             description="Build a data set of safe C-Uniform tables over local map patches.")
@@ -90,8 +90,8 @@ def make_parser() -> argparse.ArgumentParser:
 
 
 def _system(args: argparse.Namespace):
-    from cuniform_torch.envs.worlds.robot import NAV_ROBOT
     from precompute.build import parse_params
+    from precompute.worlds.robot import NAV_ROBOT
 
     name = resolve_system(args.system)
     params = dict(NAV_ROBOT.params) if name == NAV_ROBOT.system else {}
@@ -206,7 +206,7 @@ class FarmConfig:
     out: Path
     """the data set folder"""
     system: Any = None
-    """the robot's system (None: the benchmark robot's, :data:`~cuniform_torch.envs.worlds.robot.NAV_ROBOT`)"""
+    """the robot's system (None: the benchmark robot's, :data:`~precompute.worlds.robot.NAV_ROBOT`)"""
     poses_per_map: int = 1
     seed: int = 0
     horizon: int = 15
@@ -224,7 +224,7 @@ class FarmConfig:
 def build_farm(cfg: FarmConfig) -> Path:
     """Build (or resume) the data set ``cfg`` describes; its folder. A clear error (CLIError / ValueError) for bad
     settings or a folder of another data set; Ctrl-C keeps the finished shards."""
-    from cuniform_torch.envs.worlds.robot import NAV_ROBOT
+    from precompute.worlds.robot import NAV_ROBOT
 
     if cfg.suite not in FARM_SUITES or cfg.split not in SPLITS or cfg.method not in ("maxflow", "coverage"):
         raise CLIError(f"farm: suite {cfg.suite!r} (of {', '.join(FARM_SUITES)}), split {cfg.split!r} (of "

@@ -4,13 +4,13 @@ Shapes: M discs, W wall rectangles, H x W patch cells, P candidate poses.
 
 Maps by suite (each has an integer key; the source string names it):
 
-* ``barn``: the shipped BARN maps (``cuniform_torch/envs/worlds/data/barn_train.npz``), key = the BARN world id, ``barn:<id>``.
-* ``forest``: :func:`cuniform_torch.envs.worlds.suites.forest` of seed = key, every obstacle known, ``forest:seed=<key>``.
-* ``clutter``: the same with the benchmark's clutter density (:data:`cuniform_torch.envs.worlds.tasks.CLUTTER`), ``clutter:seed=<key>``.
-* ``gaps``: :func:`cuniform_torch.envs.worlds.suites.gaps` with width uniform in [0.6, 1.2] m and offset uniform in [-1.5, 1.5] m drawn
+* ``barn``: the shipped BARN maps (``precompute/worlds/data/barn_train.npz``), key = the BARN world id, ``barn:<id>``.
+* ``forest``: :func:`precompute.worlds.suites.forest` of seed = key, every obstacle known, ``forest:seed=<key>``.
+* ``clutter``: the same with the benchmark's clutter density (:data:`precompute.worlds.tasks.CLUTTER`), ``clutter:seed=<key>``.
+* ``gaps``: :func:`precompute.worlds.suites.gaps` with width uniform in [0.6, 1.2] m and offset uniform in [-1.5, 1.5] m drawn
   from ``numpy.random.default_rng(key)``, ``gaps:seed=<key>``.
 
-Split rule: a map is in the test split when its key is divisible by 5 (:func:`cuniform_torch.envs.worlds.tasks.split_of`, the
+Split rule: a map is in the test split when its key is divisible by 5 (:func:`precompute.worlds.tasks.split_of`, the
 benchmark's ``--split``), else in train, for
 every suite and every ``--seed``, so the two splits never share a map. ``--seed`` picks which maps of the split
 (BARN: a seeded permutation of the split's maps; forest, clutter, gaps: keys drawn from ``default_rng(seed)``) and the
@@ -24,10 +24,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from cuniform_torch.envs.worlds.barn import load_barn
-from cuniform_torch.envs.worlds.geometry import clearance, inflate
-from cuniform_torch.envs.worlds.suites import forest, gaps
-from cuniform_torch.envs.worlds.tasks import CLUTTER, split_of
+from precompute.worlds.barn import load_barn
+from precompute.worlds.geometry import clearance, inflate
+from precompute.worlds.suites import forest, gaps
+from precompute.worlds.tasks import CLUTTER, split_of
 
 __all__ = ["FARM_SUITES", "SPLITS", "World", "split_of", "suite_worlds", "world_of", "crop_patch", "candidate_poses"]
 

@@ -24,7 +24,11 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from cuniform_torch.cli import (
+from cuniform_torch.envs import OccupancyGrid
+from cuniform_torch.grid.cells import CellSet, Grid
+from cuniform_torch.policies.table import TablePolicy
+from cuniform_torch.sampling.rollout import rollout
+from precompute.cli import (
     ArgumentParser,
     add_system_module_arg,
     check_output_file,
@@ -34,10 +38,6 @@ from cuniform_torch.cli import (
     non_negative_int,
     positive_int,
 )
-from cuniform_torch.envs import OccupancyGrid
-from cuniform_torch.grid.cells import CellSet, Grid
-from cuniform_torch.policies.table import TablePolicy
-from cuniform_torch.sampling.rollout import rollout
 from training.maps.evaluate import add_input_args, check_entries, load_inputs
 
 __all__ = ["free_coverage", "mean_interval", "make_parser", "main"]

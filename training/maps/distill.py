@@ -30,7 +30,9 @@ import torch
 from torch.utils.tensorboard import SummaryWriter
 from tqdm import tqdm
 
-from cuniform_torch.cli import (
+from cuniform_torch.common.fileio import MAX_JSON_BYTES, exclusive_lock, read_capped_text
+from cuniform_torch.maps.checkpoint import map_policy_checkpoint, save_map_policy
+from precompute.cli import (
     OUT,
     RUNS,
     ArgumentParser,
@@ -47,8 +49,6 @@ from cuniform_torch.cli import (
     positive_int,
     threads_arg,
 )
-from cuniform_torch.common.fileio import MAX_JSON_BYTES, exclusive_lock, read_capped_text
-from cuniform_torch.maps.checkpoint import map_policy_checkpoint, save_map_policy
 from training.maps.data import load_map_data
 from training.maps.train import Trainer, make_policy, split_entries
 from training.tables.loop import log_hyperparameters
@@ -114,7 +114,7 @@ MAP_DISTILL_TYPES = {**{name: int_in(1, 65536) for name in ("hidden", "layers", 
                      "epochs": positive_int, "batch_size": positive_int, "jitter": int_in(0, 1000),
                      "local_features": int_in(0, 65536), "lr": positive_float, "seed": non_negative_int,
                      "device": device_arg, "threads": threads_arg}
-"""the :class:`MapDistillConfig` flags' values, checked as they parse (:mod:`cuniform_torch.cli`)"""
+"""the :class:`MapDistillConfig` flags' values, checked as they parse (:mod:`precompute.cli`)"""
 
 
 def make_parser() -> ArgumentParser:

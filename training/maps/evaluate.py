@@ -19,7 +19,14 @@ from collections.abc import Sequence
 import numpy as np
 import torch
 
-from cuniform_torch.cli import (
+from cuniform_torch.envs import OccupancyGrid
+from cuniform_torch.maps.checkpoint import load_map_policy
+from cuniform_torch.maps.policy import MapPolicy
+from cuniform_torch.maps.sensing import patch_centres
+from cuniform_torch.policies.table import TablePolicy
+from cuniform_torch.sampling.rollout import rollout
+from cuniform_torch.tables.file import Table, read_table
+from precompute.cli import (
     ArgumentParser,
     CLIError,
     check_output_file,
@@ -28,13 +35,6 @@ from cuniform_torch.cli import (
     non_negative_int,
     positive_int,
 )
-from cuniform_torch.envs import OccupancyGrid
-from cuniform_torch.maps.checkpoint import load_map_policy
-from cuniform_torch.maps.policy import MapPolicy
-from cuniform_torch.maps.sensing import patch_centres
-from cuniform_torch.policies.table import TablePolicy
-from cuniform_torch.sampling.rollout import rollout
-from cuniform_torch.tables.file import Table, read_table
 from precompute.maps.dataset import MapDataset, read_map_dataset
 
 

@@ -24,12 +24,12 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from cuniform_torch.cli import ArgumentParser, CLIError, cli_main, int_in
 from cuniform_torch.common.fileio import MAX_JSON_BYTES, read_capped_text, write_json
-from cuniform_torch.envs.worlds.robot import NAV_ROBOT, RobotPreset, preset_dict
 from cuniform_torch.maps.checkpoint import load_map_policy
 from cuniform_torch.maps.pretrained import CARD_FORMAT, PRETRAINED_DIR
+from precompute.cli import ArgumentParser, CLIError, cli_main, int_in
 from precompute.maps.farm import FarmConfig, build_farm
+from precompute.worlds.robot import NAV_ROBOT, RobotPreset, preset_dict
 from training.maps.data import dataset_digest
 from training.maps.distill import MapDistillConfig, distill_maps
 

@@ -1,6 +1,6 @@
 """Per-command time of CFU-MPPI against MPPI, side by side:  python -m training.maps.timing [--checkpoint FILE]
 
-The benchmark robot (``cuniform_torch.envs.worlds.robot.NAV_ROBOT``: Dubins at 0.5 m/s, dt 0.2 s, 7 turn rates in [-1.5, 1.5]
+The benchmark robot (``precompute.worlds.robot.NAV_ROBOT``: Dubins at 0.5 m/s, dt 0.2 s, 7 turn rates in [-1.5, 1.5]
 rad/s, horizon 15) drives through a seeded random forest (a 20 m x 20 m OccupancyGrid of 0.05 m cells) towards
 a goal. Per K three controllers take turns, one command each, so that they share the machine's load: MPPI, and
 CFU-MPPI twice (each command senses the 72 x 72 patch of 0.05 m around the pose, encodes it once, rolls out the
@@ -23,7 +23,16 @@ from collections.abc import Sequence
 
 import torch
 
-from cuniform_torch.cli import (
+from cuniform_torch.controllers.cfu import CFUMPPI
+from cuniform_torch.controllers.mppi import MPPI
+from cuniform_torch.envs import OccupancyGrid
+from cuniform_torch.maps.checkpoint import load_map_policy
+from cuniform_torch.maps.encoder import PatchSpec
+from cuniform_torch.maps.policy import MapPolicy, MapPolicyConfig
+from cuniform_torch.maps.sensing import local_map
+from cuniform_torch.sampling.rollout import rollout
+from cuniform_torch.systems import make_system
+from precompute.cli import (
     MAX_COUNT,
     ArgumentParser,
     check_output_file,
@@ -34,15 +43,6 @@ from cuniform_torch.cli import (
     refuse_flags,
     threads_arg,
 )
-from cuniform_torch.controllers.cfu import CFUMPPI
-from cuniform_torch.controllers.mppi import MPPI
-from cuniform_torch.envs import OccupancyGrid
-from cuniform_torch.maps.checkpoint import load_map_policy
-from cuniform_torch.maps.encoder import PatchSpec
-from cuniform_torch.maps.policy import MapPolicy, MapPolicyConfig
-from cuniform_torch.maps.sensing import local_map
-from cuniform_torch.sampling.rollout import rollout
-from cuniform_torch.systems import make_system
 
 ROBOT = dict(speed=0.5, dt=0.2, max_omega=1.5, num_actions=7, cell_size=[0.05, 0.05, 2 * math.pi / 36])
 HORIZON = 15

@@ -42,7 +42,6 @@ from typing import Any
 import numpy as np
 import torch
 
-from cuniform_torch.cli import ArgumentParser, check_output_file, cli_main, int_in, non_negative_int, positive_int
 from cuniform_torch.common.fileio import MAX_JSON_BYTES, read_capped_text, write_json
 from cuniform_torch.controllers.mppi import CUniformMPPI
 from cuniform_torch.policies.checkpoint import load_policy
@@ -50,6 +49,7 @@ from cuniform_torch.policies.start_mlp import StartMLPPolicy
 from cuniform_torch.policies.table import UniformPolicy
 from cuniform_torch.policies.table_set import SET_INDEX, TableSetPolicy, load_table_set
 from cuniform_torch.tables.file import Table, TableError, read_table
+from precompute.cli import ArgumentParser, check_output_file, cli_main, int_in, non_negative_int, positive_int
 from training.tables.evaluate import cell_centres, coverage_comparison, policy_log_probs
 from training.tables.train_state import UsageError
 

@@ -10,7 +10,7 @@ import dataclasses
 import math
 from dataclasses import dataclass, field
 
-from cuniform_torch.cli import RUNS
+from precompute.cli import RUNS
 
 __all__ = ["DistillConfig", "DEFAULT_EPOCHS", "DEFAULT_CELL_PASSES", "with_epochs"]
 

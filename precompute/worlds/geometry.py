@@ -29,7 +29,7 @@ __all__ = ["SuiteError", "inflate", "clearance", "obstacle_tables", "sensed", "r
 
 class SuiteError(ValueError):
     """A suite that cannot be made: bad parameters or geometry, a start or goal in collision, an unreachable
-    goal (raised here and by :mod:`cuniform_torch.envs.worlds.suites`)."""
+    goal (raised here and by :mod:`precompute.worlds.suites`)."""
 
 
 def _positive(value, what: str, who: str) -> float:

@@ -2,7 +2,7 @@
 
 Shapes used in this module: K maps, M cylinder rows (all maps), P reference-path points (all maps).
 
-The shipped file ``cuniform_torch/envs/worlds/data/barn_train.npz`` (see ``cuniform_torch/envs/worlds/data/README.md``) holds 150 of the 300 BARN worlds
+The shipped file ``precompute/worlds/data/barn_train.npz`` (see ``precompute/worlds/data/README.md``) holds 150 of the 300 BARN worlds
 (ids 0, 2, ..., 298). Its keys:
 
 * ``map_ids`` int ``[K]``, unique;
@@ -24,7 +24,7 @@ The shipped ``start`` / ``goal`` are (-2, 3, 1.57) / (-2, 13); the BARN Challeng
 ``INIT_POSITION = [-2.25, 3, 1.57]`` and the goal 10 m ahead, (-2.25, 13) (:data:`CHALLENGE_START`,
 :data:`CHALLENGE_GOAL`).
 
-The format's checks are :mod:`cuniform_torch.envs.worlds.barn_format`, the Gazebo converter :mod:`cuniform_torch.envs.worlds.barn_worlds`; their names are
+The format's checks are :mod:`precompute.worlds.barn_format`, the Gazebo converter :mod:`precompute.worlds.barn_worlds`; their names are
 importable from here too.
 """
 
@@ -43,8 +43,8 @@ import numpy as np
 
 from cuniform_torch.common.fileio import check_regular, write_npz
 from cuniform_torch.envs import Circle, Environment
-from cuniform_torch.envs.worlds.barn_format import KEYS, BarnFormatError, format_error, validate_barn
-from cuniform_torch.envs.worlds.barn_worlds import FILE_GOAL, FILE_START, convert_worlds
+from precompute.worlds.barn_format import KEYS, BarnFormatError, format_error, validate_barn
+from precompute.worlds.barn_worlds import FILE_GOAL, FILE_START, convert_worlds
 
 __all__ = [
     "BarnMap", "BarnFormatError", "load_barn", "convert_worlds", "write_barn", "validate_barn",
@@ -58,8 +58,8 @@ CHALLENGE_GOAL = (-2.25, 13.0)
 
 
 def default_path() -> Path:
-    """The shipped ``cuniform_torch/envs/worlds/data/barn_train.npz``."""
-    return Path(str(importlib.resources.files("cuniform_torch.envs.worlds") / "data" / "barn_train.npz"))
+    """The shipped ``precompute/worlds/data/barn_train.npz``."""
+    return Path(str(importlib.resources.files("precompute.worlds") / "data" / "barn_train.npz"))
 
 
 @dataclass(frozen=True, eq=False)
@@ -124,7 +124,7 @@ def _unique_rows(rows: np.ndarray) -> np.ndarray:
 
 
 def load_barn(path: str | os.PathLike | None = None) -> list[BarnMap]:
-    """The maps of a BARN map file (default: the shipped ``cuniform_torch/envs/worlds/data/barn_train.npz``), in file order.
+    """The maps of a BARN map file (default: the shipped ``precompute/worlds/data/barn_train.npz``), in file order.
 
     Raises :class:`BarnFormatError` (a ``ValueError``) naming the file and the key for any format problem,
     ``FileNotFoundError`` for a missing file. Exact duplicate cylinders of a map are dropped (see the module

@@ -2,7 +2,7 @@
 
 Shapes used in this module: M moving discs.
 
-:func:`moving` (DynaBARN-like): a corridor with walls like :func:`~cuniform_torch.envs.worlds.suites.forest`'s, no
+:func:`moving` (DynaBARN-like): a corridor with walls like :func:`~precompute.worlds.suites.forest`'s, no
 static discs, and ``M`` discs that cross it in straight lines at constant velocity
 (:class:`~cuniform_torch.envs.MovingDiscs`: each position a pure function of time). Each disc crosses the
 corridor's centre line at a point ``x_c`` at a time ``t_c`` drawn around the moment a robot driving straight at
@@ -18,7 +18,7 @@ way at a seeded lateral offset, sensed only from its ``appear_time`` (:class:`~c
 task per (position, appearance time).
 
 Both are checked when made, like every suite: the start and goal are free at t = 0 and the goal is reachable at
-t = 0 (:func:`~cuniform_torch.envs.worlds.suites.validate_task`). A moving task is checked more: no disc's line
+t = 0 (:func:`~precompute.worlds.suites.validate_task`). A moving task is checked more: no disc's line
 ever comes within ``start_clearance`` of the start or goal (so neither is ever hit), and the corridor is open
 (certified flood fill) in the snapshots at ``0, check_every, 2 check_every, ...`` s up to the time limit; a draw
 that fails is redrawn (``NavTask.attempt``). Open snapshots do not prove that a robot of this speed can get
@@ -34,8 +34,8 @@ import numpy as np
 import torch
 
 from cuniform_torch.envs import Environment, MovingDiscs
-from cuniform_torch.envs.worlds.geometry import SuiteError, inflate, reachable
-from cuniform_torch.envs.worlds.suites import MAX_ATTEMPTS, NavTask, _int, _num, validate_task
+from precompute.worlds.geometry import SuiteError, inflate, reachable
+from precompute.worlds.suites import MAX_ATTEMPTS, NavTask, _int, _num, validate_task
 
 __all__ = ["moving", "sudden", "SUDDEN_APPEAR", "sudden_id", "sudden_position"]
 

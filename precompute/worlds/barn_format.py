@@ -1,6 +1,6 @@
-"""The BARN map file format (:mod:`cuniform_torch.envs.worlds.barn`'s module docstring lists its keys): the keys, the error that a
+"""The BARN map file format (:mod:`precompute.worlds.barn`'s module docstring lists its keys): the keys, the error that a
 file or world not in the format raises, and :func:`validate_barn`, the one check of a set of arrays, used by the
-loader, the writer and the Gazebo converter (:mod:`cuniform_torch.envs.worlds.barn_worlds`) alike.
+loader, the writer and the Gazebo converter (:mod:`precompute.worlds.barn_worlds`) alike.
 
 Shapes: K maps, M cylinder rows (all maps), P reference-path points (all maps).
 """

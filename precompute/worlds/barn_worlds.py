@@ -1,5 +1,5 @@
 """BARN Gazebo worlds (``world_<id>.world``, with ``path_<id>.npy`` beside them) -> arrays in the BARN map file
-format (:mod:`cuniform_torch.envs.worlds.barn_format`); :func:`cuniform_torch.envs.worlds.barn.write_barn` writes them.
+format (:mod:`precompute.worlds.barn_format`); :func:`precompute.worlds.barn.write_barn` writes them.
 
 Shapes: M cylinder rows (all maps), P reference-path points (all maps).
 """
@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from cuniform_torch.common.fileio import check_regular, read_capped_bytes
-from cuniform_torch.envs.worlds.barn_format import BarnFormatError, format_error, validate_barn
+from precompute.worlds.barn_format import BarnFormatError, format_error, validate_barn
 
 __all__ = ["convert_worlds", "FILE_START", "FILE_GOAL"]
 

@@ -1,4 +1,4 @@
-"""The navigation benchmark's tasks: the BARN maps as :class:`~cuniform_torch.envs.worlds.suites.NavTask`, and every suite by name.
+"""The navigation benchmark's tasks: the BARN maps as :class:`~precompute.worlds.suites.NavTask`, and every suite by name.
 
 BARN (:func:`barn_tasks`): each map's cylinders become raw discs, inflated by the robot's radius; the start and
 goal are the BARN Challenge's (``run.py``: start (-2.25, 3) heading +y, goal 10 m ahead), reached within 1 m,
@@ -7,9 +7,9 @@ workspace bounds are only a generous box around the map and the goal that keeps 
 off: (-6, -1.5) to (1.5, 15) m.
 
 :func:`make_tasks` makes any suite's tasks (``barn``, ``forest``, ``gaps``, ``clutter``, and the suites where
-time matters, ``moving`` and ``sudden``: :mod:`cuniform_torch.envs.worlds.dynamic`) and checks each one the same way
-(:func:`cuniform_torch.envs.worlds.suites.validate_task`): a start or goal in collision, or a goal that a certified flood fill cannot
-reach, is a :class:`~cuniform_torch.envs.worlds.suites.SuiteError` naming the task, raised before any episode runs.
+time matters, ``moving`` and ``sudden``: :mod:`precompute.worlds.dynamic`) and checks each one the same way
+(:func:`precompute.worlds.suites.validate_task`): a start or goal in collision, or a goal that a certified flood fill cannot
+reach, is a :class:`~precompute.worlds.suites.SuiteError` naming the task, raised before any episode runs.
 """
 
 from __future__ import annotations
@@ -21,10 +21,10 @@ from typing import Any, cast
 
 import numpy as np
 
-from cuniform_torch.envs.worlds.barn import CHALLENGE_GOAL, CHALLENGE_START, BarnMap, load_barn
-from cuniform_torch.envs.worlds.dynamic import SUDDEN_APPEAR, moving, sudden, sudden_position
-from cuniform_torch.envs.worlds.geometry import inflate
-from cuniform_torch.envs.worlds.suites import NavTask, SuiteError, forest, make_suite, validate_task
+from precompute.worlds.barn import CHALLENGE_GOAL, CHALLENGE_START, BarnMap, load_barn
+from precompute.worlds.dynamic import SUDDEN_APPEAR, moving, sudden, sudden_position
+from precompute.worlds.geometry import inflate
+from precompute.worlds.suites import NavTask, SuiteError, forest, make_suite, validate_task
 
 __all__ = ["SUITES", "CLUTTER", "SPLITS", "split_of", "BARN_BOUNDS", "GAP_OFFSETS", "RESOLUTIONS", "TIME_LIMITS",
            "barn_task", "barn_tasks", "make_tasks", "make_task", "DEFAULT_COUNTS"]
@@ -153,7 +153,7 @@ def make_task(suite: str, task_id: int, robot_radius: float, seed: int = 0,
     """The one task ``task_id`` of ``suite``, the same as :func:`make_tasks` makes, validated the same way.
 
     ``task_id``: forest / clutter / moving: the seed (one of a run from ``seed`` on, so >= ``seed``); BARN: the map
-    id in ``barn_file``; sudden: :func:`~cuniform_torch.envs.worlds.dynamic.sudden_id`; gaps: the index in the
+    id in ``barn_file``; sudden: :func:`~precompute.worlds.dynamic.sudden_id`; gaps: the index in the
     sweep of ``count`` tasks (None: :data:`DEFAULT_COUNTS`; the sweep's
     widths depend on it, so give the run's). The other arguments are :func:`make_tasks`' (only this task is
     validated; a BARN file is read whole, the gap sweep's few walls are all made)."""

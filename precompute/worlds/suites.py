@@ -6,17 +6,17 @@ A suite is a list of :class:`NavTask`; the benchmark (:mod:`eval.navigate.run`) 
 task carries both its *raw* geometry (``discs``, ``walls``, ``bounds``: what the robot's body must not touch)
 and ``environment``: the same obstacles **already inflated by** ``robot_radius``, so that the robot's centre
 (a point) collides with ``environment`` exactly when the disc robot touches the raw geometry. The inflation
-is exact (:func:`cuniform_torch.envs.worlds.geometry.inflate`).
+is exact (:func:`precompute.worlds.geometry.inflate`).
 
 Everything is checked when the suite is made, not at run time: a start or goal in collision, a goal that is
 not reachable, or geometry that cannot hold the robot raises :class:`SuiteError` (a ``ValueError``), so such a
 task is never counted as a controller's failure.
 
-Reachability is :func:`cuniform_torch.envs.worlds.geometry.reachable`'s certified flood fill; a passage narrower than about
+Reachability is :func:`precompute.worlds.geometry.reachable`'s certified flood fill; a passage narrower than about
 1.4 resolution cells may be missed (the forest then redraws, see :func:`forest`).
 
 Sensing: :class:`~cuniform_torch.envs.Environment` knows obstacles that appear at a *time*, not within a
-*range*. :func:`cuniform_torch.envs.worlds.geometry.sensed` gives the obstacles within a range of a point; the runner calls it (through
+*range*. :func:`precompute.worlds.geometry.sensed` gives the obstacles within a range of a point; the runner calls it (through
 :meth:`NavTask.sensed_environment`) once per control cycle for a task whose ``sensing_range`` is not None,
 and gives the result to the cost, while collisions are judged on the full ``environment``.
 """
@@ -32,7 +32,7 @@ import torch
 
 from cuniform_torch.common.options import Option, option_label
 from cuniform_torch.envs import Environment, MovingDiscs
-from cuniform_torch.envs.worlds.geometry import SuiteError, inflate, reachable, sensed
+from precompute.worlds.geometry import SuiteError, inflate, reachable, sensed
 
 __all__ = ["NavTask", "SuiteError", "Suite", "forest", "gaps", "make_suite", "validate_task", "MAX_ATTEMPTS",
            "GAP_WIDTHS"]
@@ -85,7 +85,7 @@ class NavTask:
     params: dict = field(default_factory=dict)
     """the generator's keyword arguments, for the record"""
     moving: MovingDiscs | None = None
-    """the raw discs that move (:func:`cuniform_torch.envs.worlds.dynamic.moving`), not inflated; ``environment``
+    """the raw discs that move (:func:`precompute.worlds.dynamic.moving`), not inflated; ``environment``
     holds them inflated by ``robot_radius`` in its ``moving``; None: nothing moves"""
 
     def sensed_environment(self, xy: torch.Tensor) -> Environment:

@@ -569,7 +569,7 @@ non_negative_int = int_in(0, MAX_COUNT)
 """argparse ``type=``: an integer in [0, :data:`MAX_COUNT`] (0 usually meaning "all" or "none")"""
 threads_arg = int_in(0, 4096, note=" (0: torch's choice)")
 """argparse ``type=`` of ``--threads``: torch CPU threads, 0 for torch's choice"""
-horizon_arg = int_in(1, MAX_HORIZON, note=" (cuniform_torch.cli.MAX_HORIZON)")
+horizon_arg = int_in(1, MAX_HORIZON, note=" (precompute.cli.MAX_HORIZON)")
 """argparse ``type=`` of ``--horizon``: steps in [1, :data:`MAX_HORIZON`]"""
 positive_float = float_in(0.0, open_low=True)
 """argparse ``type=``: a finite number > 0"""
