@@ -9,6 +9,7 @@ each module imports on its own.
   package ``a.b`` also runs ``a/b/__init__.py``, so it counts as importing that package too.
 * Inside each package, its sub-packages and top-level modules (each one node) form a DAG too, so the tree stays
   layered (``controllers`` may use ``envs``, never the other way round).
+* The runtime (``cuniform_torch``) imports no ``argparse``: the commands' plumbing lives in ``precompute.cli``.
 
 The checks read the source (``ast``), so they see imports that a run never reaches. The planted-bug tests run the
 same checks on a copy of the tree with one bad import added, so each rule is shown to fail.
@@ -147,6 +148,26 @@ def layer_violations(edges: Edges) -> list[str]:
             if rank[b.split(".")[0]] > rank[a.split(".")[0]]]
 
 
+RUNTIME_REFUSES = ("argparse",)
+"""standard-library modules no runtime module imports: flags are the command layers' (``precompute.cli``)"""
+
+
+def runtime_refused_imports(root: Path = ROOT) -> list[str]:
+    """Every import of :data:`RUNTIME_REFUSES` by a ``cuniform_torch`` module (any form: plain, ``from``, in a
+    function, a literal ``import_module``), as ``module imports name  (file:line)``."""
+    modules = _modules(root)
+    found = []
+    for name, path in modules.items():
+        if name.split(".")[0] != LAYERS[0]:
+            continue
+        here = name if path.name == "__init__.py" else name.rpartition(".")[0]
+        for node in ast.walk(ast.parse(path.read_text(), str(path))):
+            for dotted in _imported_names(node, here, modules):
+                if dotted.split(".")[0] in RUNTIME_REFUSES:
+                    found.append(f"{name} imports {dotted}  ({path.relative_to(root)}:{node.lineno})")  # type: ignore[attr-defined]
+    return found
+
+
 def module_cycles(edges: Edges) -> list[str]:
     """The module import cycles, each with the imports that make it."""
     return [_describe(comp, edges) for comp in strongly_connected(edges)]
@@ -191,6 +212,12 @@ def test_no_import_cycle_between_modules():
 def test_the_sub_packages_of_each_package_form_a_dag():
     cycles = subpackage_cycles(import_graph())
     assert not cycles, "sub-packages that import each other:\n" + "\n".join(cycles)
+
+
+def test_the_runtime_imports_no_argparse():
+    """Issue 35: the command plumbing (flags, exit codes) lives in precompute.cli, not in the runtime."""
+    bad = runtime_refused_imports()
+    assert not bad, "the runtime (cuniform_torch) parses no flags; move this to precompute.cli:\n" + "\n".join(bad)
 
 
 def test_the_graph_sees_each_kind_of_import():
@@ -257,6 +284,15 @@ def test_a_planted_bad_import_is_found(tmp_path, plant):
     if rule == "subpackage":
         assert not module_cycles(edges), "the planted sub-package cycle should not be a module cycle"
     assert any(all(n in report for n in names) for report in found), found
+
+
+@pytest.mark.parametrize("code", ["import argparse", "def _late():\n    from argparse import ArgumentParser  # noqa: F401"])
+def test_a_planted_argparse_import_in_the_runtime_is_found(tmp_path, code):
+    root = _copy_tree(tmp_path)
+    assert not runtime_refused_imports(root)
+    _plant(root, "cuniform_torch.grid.cells", code)
+    found = runtime_refused_imports(root)
+    assert len(found) == 1 and found[0].startswith("cuniform_torch.grid.cells imports argparse"), found
 
 
 # ------------------------------------------------------------------------------------------ at run time
