@@ -202,29 +202,21 @@ def build_coverage_table(system: System, config: CoverageConfig = CoverageConfig
     probs = [torch.softmax(l, dim=1) for l in logits] + [torch.full((len(levels.cells[-1]), A), 1.0 / A, dtype=torch.float64)]
     sizes = np.array([len(c) for c in levels.cells], dtype=np.int64)
     offsets = np.concatenate(([0], np.cumsum(sizes))).astype(np.int64)
+    from precompute.coverage.loops import level_transitions  # numba: compiled (or loaded) on first use
+
     transitions, fracs, trans_counts = [], [], []
     state_mass = torch.ones(1, dtype=torch.float64)
     for t in range(config.horizon):
         sc, succ = levels.state_cell[t], levels.successor[t]  # [M], [M, A]
-        n, m = len(levels.cells[t]), len(levels.cells[t + 1])
         ok = (succ >= 0).reshape(-1)  # all but the pairs a map pruned
-        src = sc.unsqueeze(1).expand_as(succ).reshape(-1)[ok]
-        act = torch.arange(A).repeat(len(sc))[ok]
-        dst = levels.state_cell[t + 1][succ.reshape(-1)[ok]]
-        weight = state_mass.unsqueeze(1).expand_as(succ).reshape(-1)[ok]  # mass of each state before acting
-        key = (src * A + act) * m + dst
-        uniq, inv = torch.unique(key, return_inverse=True)
-        w = torch.zeros(len(uniq), dtype=torch.float64).index_add(0, inv, weight)
-        cnt = torch.zeros(len(uniq), dtype=torch.float64).index_add(0, inv, torch.ones_like(weight))
-        sa, d_ = uniq // m, uniq % m
-        s_, a_ = sa // A, sa % A
-        # fraction of the (cell, action)'s mass landing in each next cell; states without mass count equally
-        tot_w = torch.zeros(n * A, dtype=torch.float64).index_add(0, sa, w)
-        tot_c = torch.zeros(n * A, dtype=torch.float64).index_add(0, sa, cnt)
-        frac = torch.where(tot_w[sa] > 0, w / tot_w[sa].clamp(min=1e-300), cnt / tot_c[sa])
-        transitions.append(torch.stack((s_ + offsets[t], a_, d_ + offsets[t + 1]), 1))
-        fracs.append(frac)
-        trans_counts.append(len(uniq))
+        # each (cell, action, next cell) reached, ascending, with the fraction of the (cell, action)'s mass
+        # landing there (states without mass count equally): one compiled pass over the cells' states
+        src, act, dst, frac = level_transitions(sc.numpy(), succ.reshape(-1).numpy(),
+                                                levels.state_cell[t + 1].numpy(), state_mass.numpy(),
+                                                len(levels.cells[t]), A)
+        transitions.append(torch.from_numpy(np.stack((src + offsets[t], act, dst + offsets[t + 1]), 1)))
+        fracs.append(torch.from_numpy(frac))
+        trans_counts.append(len(src))
         p_state = probs[t][sc]  # [M, A]
         state_mass = torch.zeros(levels.num_states[t + 1], dtype=torch.float64).index_add(
             0, succ.reshape(-1)[ok], (state_mass.unsqueeze(1) * p_state).reshape(-1)[ok])
