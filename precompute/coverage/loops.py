@@ -13,7 +13,7 @@ import numpy as np
 
 from cuniform_torch.common.compiled import njit
 
-__all__ = ["forward_level", "backward_level", "cell_sums"]
+__all__ = ["forward_level", "backward_level", "cell_sums", "level_transitions", "bin_box", "bin_keys"]
 
 
 @njit(nogil=True)
@@ -147,3 +147,30 @@ def level_transitions(state_cell, successor, next_cell, state_mass, num_cells, n
                 frac[k] = bw[j] / max(tot_w, 1e-300) if tot_w > 0 else bc[j] / tot_c
                 k += 1
     return src[:k].copy(), act[:k].copy(), dst[:k].copy(), frac[:k].copy()
+
+
+@njit(nogil=True)
+def bin_box(states, bin_size, lo, hi):
+    """The box ``lo [d]``, ``hi [d]`` (int64, written here) of the bins ``round(states / bin_size)`` of ``states
+    [K, d]`` (float64; rounded half to even, as ``torch.round``)."""
+    d = states.shape[1]
+    for k in range(d):
+        lo[k] = np.iinfo(np.int64).max
+        hi[k] = np.iinfo(np.int64).min
+    for i in range(states.shape[0]):
+        for k in range(d):
+            b = np.int64(np.rint(states[i, k] / bin_size[k]))
+            lo[k] = min(lo[k], b)
+            hi[k] = max(hi[k], b)
+
+
+@njit(nogil=True)
+def bin_keys(states, bin_size, lo, span, keys):
+    """``keys [K]`` (int64, written here): the mixed-radix key of each state's bin in the box ``lo``, ``span`` of
+    :func:`bin_box` (the last dimension fastest)."""
+    d = states.shape[1]
+    for i in range(states.shape[0]):
+        key = np.int64(0)
+        for k in range(d):
+            key = key * span[k] + np.int64(np.rint(states[i, k] / bin_size[k])) - lo[k]
+        keys[i] = key

@@ -37,6 +37,7 @@ import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import cast
 
 import numpy as np
 import torch
@@ -143,7 +144,8 @@ def _converged(history: list[float], tol: float) -> bool:
 def coverage_objective(cell_masses: list[torch.Tensor], config: CoverageConfig) -> torch.Tensor:
     """The ascent's objective from the cell masses ``[n_t]`` of levels 1..T: summed expected coverage of
     ``target_samples`` draws plus the entropy tie-breaker."""
-    objective = sum(expected_coverage(m, config.target_samples) for m in cell_masses)
+    # the sums start at the int 0 (as sum() does), typed as the tensors they become
+    objective = cast(torch.Tensor, sum(expected_coverage(m, config.target_samples) for m in cell_masses))
     if config.entropy_weight:
         objective = objective + config.entropy_weight * sum(normalized_entropy(m) for m in cell_masses if len(m) > 1)
     return objective
