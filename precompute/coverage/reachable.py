@@ -63,7 +63,8 @@ def _merge(nxt: torch.Tensor, cell_size: torch.Tensor, resolution: int,
     keys = np.empty(states.shape[0], np.int64)
     bin_keys(states, size, lo, box.span.numpy(), keys)
     uniq, inverse = torch.unique(torch.from_numpy(keys), return_inverse=True)
-    first = torch.full((len(uniq),), len(keys), dtype=torch.int64).scatter_reduce(0, inverse, pair, reduce="amin")
+    first = torch.empty(len(uniq), dtype=torch.int64).scatter_reduce(0, inverse, pair, reduce="amin",
+                                                                     include_self=False)  # every bin has a state
     return len(uniq), inverse, first
 
 
