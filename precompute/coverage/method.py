@@ -199,29 +199,26 @@ def build_coverage_table(system: System, config: CoverageConfig = CoverageConfig
     logits, history = optimize_coverage(levels, A, config,
                                         None if progress is None else (lambda s, v: progress("optimize", s, v)))
     t2 = time.perf_counter()
-    with torch.no_grad():
-        masses = _propagate(levels, logits)
     probs = [torch.softmax(l, dim=1) for l in logits] + [torch.full((len(levels.cells[-1]), A), 1.0 / A, dtype=torch.float64)]
+    # the exact propagation in float64 (the compiled passes; _propagate's arithmetic in the same order): the cell
+    # masses, and the state masses the transitions are weighted by
+    final = StatePropagator(levels, A, torch.float64)
+    masses = final.forward(probs[:-1])
     sizes = np.array([len(c) for c in levels.cells], dtype=np.int64)
     offsets = np.concatenate(([0], np.cumsum(sizes))).astype(np.int64)
     from precompute.coverage.loops import level_transitions  # numba: compiled (or loaded) on first use
 
     transitions, fracs, trans_counts = [], [], []
-    state_mass = torch.ones(1, dtype=torch.float64)
     for t in range(config.horizon):
         sc, succ = levels.state_cell[t], levels.successor[t]  # [M], [M, A]
-        ok = (succ >= 0).reshape(-1)  # all but the pairs a map pruned
         # each (cell, action, next cell) reached, ascending, with the fraction of the (cell, action)'s mass
         # landing there (states without mass count equally): one compiled pass over the cells' states
         src, act, dst, frac = level_transitions(sc.numpy(), succ.reshape(-1).numpy(),
-                                                levels.state_cell[t + 1].numpy(), state_mass.numpy(),
+                                                levels.state_cell[t + 1].numpy(), final.mass[t],
                                                 len(levels.cells[t]), A)
         transitions.append(torch.from_numpy(np.stack((src + offsets[t], act, dst + offsets[t + 1]), 1)))
         fracs.append(torch.from_numpy(frac))
         trans_counts.append(len(src))
-        p_state = probs[t][sc]  # [M, A]
-        state_mass = torch.zeros(levels.num_states[t + 1], dtype=torch.float64).index_add(
-            0, succ.reshape(-1)[ok], (state_mass.unsqueeze(1) * p_state).reshape(-1)[ok])
     predicted = {str(N): [float(expected_coverage(mm, N)) for mm in masses] for N in (250, 1000, 10000)}
     facts = {
         "seconds": {"enumerate": t1 - t0, "optimize": t2 - t1, "assemble": time.perf_counter() - t2},
