@@ -1,16 +1,20 @@
-"""The C-Uniform files of the navigation benchmark's robot, built on first use and cached.
+"""The C-Uniform files of the navigation benchmark's robot: shipped with the package, else built on first use and
+cached.
 
 The built-in robot (:data:`NAV_ROBOT`) is a differential-drive base driven as a unicycle: a cruise speed of
 0.5 m/s and 7 turn rates evenly in [-1.5, 1.5] rad/s (the library's ``dubins`` system with those parameters),
 dt = 0.2 s, a disc of radius 0.2 m (BARN's narrowest passages are about 0.6-0.7 m wide between cylinder
 surfaces), a controller horizon of 15 steps (3 s, 1.5 m ahead), cells of 0.05 m x 0.05 m x 10 degrees. Its
-max-flow table (81 329 cells) builds in about 8 s on the project's 2-core machine, its coverage table in about
-85 s (:data:`BUILD_SECONDS`); each build says so before it starts (:func:`announce`).
+max-flow table (81 329 cells) and its coverage table (47 514 cells) ship as package data
+(:data:`SHIPPED_DIR`, 1.5 MB and 1.3 MB without the flow graph no policy reads), checked against their manifest
+(size, sha256) before use (:func:`shipped_table`); ``python -m eval.navigate.robot_files --ship`` rebuilds them
+(about 7 s and 27 s on the project's 2-core machine, :data:`BUILD_SECONDS`) and ``--check`` rebuilds and compares.
 
 Any registered system can drive the suites instead (:class:`RobotPreset` with another ``system`` name and
-``params``); it needs ``(x, y, heading, ...)`` states. The files a method needs are built by
+``params``, or another horizon); it needs ``(x, y, heading, ...)`` states. The files a method needs are built by
 :func:`precompute.one_table.build_table_file` (and :func:`training.distill.distill` for the MLP) into a cache folder, named by a
-hash of everything that defines them, so a changed preset builds new files and an unchanged one reuses them.
+hash of everything that defines them, so a changed preset builds new files and an unchanged one reuses them; each
+build says what it builds and how long it takes before it starts (:func:`announce`).
 """
 
 from __future__ import annotations
@@ -23,11 +27,12 @@ import sys
 import tempfile
 import time
 from collections.abc import Callable, Sequence
+from dataclasses import replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import cuniform_torch
-from cuniform_torch.cli import CLIError, cli_main
+from cuniform_torch.cli import CLIError, cli_main, horizon_arg
 from cuniform_torch.common.fileio import FileLockedError, open_regular, read_capped_text, write_json
 from cuniform_torch.envs.worlds.robot import NAV_ROBOT, RobotPreset, preset_dict
 
@@ -39,19 +44,20 @@ __all__ = ["table_file", "policy_file", "ensure_table", "ensure_policy", "expect
            "main"]
 
 BUILD_SECONDS: dict[tuple[str, int], float] = {
-    ("maxflow", 15): 8, ("coverage", 15): 85, ("policy", 15): 230,
-    ("maxflow", 10): 0.4, ("coverage", 10): 4,
-    ("maxflow", 6): 0.1, ("coverage", 6): 0.1,
+    ("maxflow", 15): 7, ("coverage", 15): 27, ("policy", 15): 230,
+    ("maxflow", 10): 0.6, ("coverage", 10): 2.6,
+    ("maxflow", 6): 0.1, ("coverage", 6): 1.8,
 }
 """seconds to build the built-in robot's files (:data:`NAV_ROBOT`'s system and parameters) by ``(method, horizon)``
-(``policy``: the MLP of :func:`ensure_policy`), one torch thread, on the project's 2-core machine (issue 37): the
-tables measured at load about 5 (other jobs running) by ``python -c`` calls of :func:`ensure_table` on an empty
-cache (the 15-step coverage table again at load 2.2-2.5: 57.2 s, against 81.4 s with torch's two threads, the
-code before); the policy (:data:`DISTILL_EPOCHS` = 84 epochs on the 81,329-cell table, one thread): 501 s of wall
-time at load 9-13 (other jobs running) for 225 s of CPU time (``time``: user 203 s + sys 22 s), so about 230 s on
-an idle machine; KL 0.113 at the cell centres, coverage 1.035x / 1.023x the table's at N = 1000 / 10000. The 15-step tables are 12.5 MB
-(max-flow) and 11 MB (coverage): too big to ship as package data beside the map policy, so they are built once,
-announced with these times."""
+(``policy``: the MLP of :func:`ensure_policy`), one torch thread, on the project's 2-core machine when idle: the
+tables' CPU seconds printed by ``python -m eval.navigate.robot_files --time`` (each build written and read back;
+the first coverage build of a process loads the compiled loops), measured at load 4.6-5 (other jobs running: the
+wall-clock times were 0.2 / 3.7 / 1.4 / 4.5 / 14.3 / 46.1 s). The coverage table's first build took 57 s of CPU
+before its passes were compiled (issue 37), 26 s now. The policy (:data:`DISTILL_EPOCHS` = 84 epochs on the
+81,329-cell table, one thread): 501 s of wall time at load 9-13 (other jobs running) for 225 s of CPU time
+(``time``: user 203 s + sys 22 s), so about 230 s on an idle machine; KL 0.113 at the cell centres, coverage
+1.035x / 1.023x the table's at N = 1000 / 10000. The 15-step tables themselves ship (:func:`shipped_table`):
+these times are what ``--ship`` and another robot's builds take."""
 
 DISTILL_EPOCHS = 84
 """epochs of the MLP distilled on first use: what ``training.distill``'s default gives the built-in robot's
@@ -249,26 +255,28 @@ METHODS = ("maxflow", "coverage")
 """the methods whose tables are shipped"""
 
 
-def build_policy_table(robot: RobotPreset, method: str, quiet: bool = True) -> tuple[Any, float]:
-    """Build ``robot``'s table of ``method`` as :func:`ensure_table` does (one torch thread) and keep what a policy
-    reads (the flow graph, audit data no policy reads, left out: :func:`cuniform_torch.tables.file.read_table` with
-    ``graph=False``); returns the :class:`~cuniform_torch.tables.file.Table` and the build's seconds."""
+def build_policy_table(robot: RobotPreset, method: str, quiet: bool = True) -> tuple[Any, float, float]:
+    """Build ``robot``'s table of ``method`` as :func:`ensure_table` does (one torch thread, the file written and
+    read back) and keep what a policy reads (the flow graph, audit data no policy reads, left out:
+    :func:`cuniform_torch.tables.file.read_table` with ``graph=False``); returns the
+    :class:`~cuniform_torch.tables.file.Table` and the build's wall-clock and CPU seconds (on a busy machine the
+    CPU time is what an idle one takes)."""
     from cuniform_torch.tables.file import read_table
     from precompute.build import with_threads
     from precompute.one_table import build_table_file
 
     with tempfile.TemporaryDirectory(prefix="robot-table-") as tmp:
         full = Path(tmp) / "table.npz"
-        start = time.perf_counter()
+        start, cpu = time.perf_counter(), time.process_time()
         with_threads(1, lambda: build_table_file(_job(robot, method, full, quiet)))
-        seconds = time.perf_counter() - start
-        return read_table(full, graph=False), seconds
+        return read_table(full, graph=False), time.perf_counter() - start, time.process_time() - cpu
 
 
 def ship_tables(robot: RobotPreset = NAV_ROBOT, folder: Path = SHIPPED_DIR, methods: Sequence[str] = METHODS,
                 quiet: bool = True) -> dict[str, Any]:
     """Build ``robot``'s tables of ``methods`` (:func:`build_policy_table`), write them into ``folder`` with their
-    manifest (:data:`MANIFEST`: file, sizes, sha256, content digest, the robot and the build's seconds) and return
+    manifest (:data:`MANIFEST`: file, size, sha256, content digest, the robot, the build's wall-clock and CPU
+    seconds and the 1-minute load) and return
     the manifest. Files an older manifest of ``folder`` named and this one does not are removed."""
     from cuniform_torch.tables.file import NOGRAPH_DIGEST_KEY, table_digests, write_table
 
@@ -280,14 +288,15 @@ def ship_tables(robot: RobotPreset = NAV_ROBOT, folder: Path = SHIPPED_DIR, meth
     entries = []
     for method in methods:
         announce(robot, method, f"building the {method} table of the navigation robot to ship", folder)
-        table, seconds = build_policy_table(robot, method, quiet)
+        table, seconds, cpu = build_policy_table(robot, method, quiet)
         path = table_file(robot, folder, method)
         write_table(path, table)
         size, sha = _file_digest(path)
         entries.append({"file": path.name, "method": method, "fingerprint": robot.fingerprint(method),
                         "robot": preset_dict(robot), "bytes": size, "file_sha256": sha,
                         "content_sha256_nograph": str(table_digests(table.to_arrays())[NOGRAPH_DIGEST_KEY]),
-                        "cells": int(table.level_offsets[-1]), "build_seconds": round(seconds, 1)})
+                        "cells": int(table.level_offsets[-1]), "build_seconds": round(seconds, 1),
+                        "build_cpu_seconds": round(cpu, 1), "load": round(os.getloadavg()[0], 1)})
     kept = {e["file"] for e in entries}
     for entry in old["tables"]:
         if entry["file"] not in kept and (folder / entry["file"]).is_file():
@@ -309,9 +318,13 @@ def compare_tables(a: Any, b: Any) -> dict[str, Any]:
             "cell_probs": float(np.abs(a.cell_probs - b.cell_probs).max()) if same else inf}
 
 
-CHECK_TOLERANCE = 1e-4
-"""``--check``: the largest difference of action probabilities between a rebuild and the shipped table that passes
-(a rebuild on another CPU or torch may round the coverage ascent's float32 sums differently)"""
+CHECK_TOLERANCE = 0.05
+"""``--check``: the largest difference of action probabilities between a rebuild and the shipped table that
+passes. On one machine and library versions a rebuild is the same to the bit; elsewhere the coverage ascent's
+float32 sums may round differently, and Adam turns that noise in near-zero gradients into small moves: the
+compiled passes against the torch ones they replaced moved 271 of the 332 598 coverage probabilities by more
+than 1e-3, at most by 0.011, for the same coverage (6306 / 15816 cells at N = 1000 / 10000 against 6306 /
+15817; CHANGELOG)"""
 
 
 def make_parser() -> argparse.ArgumentParser:
@@ -319,14 +332,18 @@ def make_parser() -> argparse.ArgumentParser:
         prog="python -m eval.navigate.robot_files",
         description="The navigation robot's shipped tables (cuniform_torch/maps/robot_tables/): rebuild them "
                     f"(--ship, about {BUILD_SECONDS[('maxflow', 15)] + BUILD_SECONDS[('coverage', 15)]:.0f} s on a "
-                    "2-core CPU) or rebuild and compare them with the shipped ones (--check).")
+                    "2-core CPU), rebuild and compare them with the shipped ones (--check), or time the builds "
+                    "(--time: the measurements of BUILD_SECONDS).")
     mode = parser.add_mutually_exclusive_group(required=True)
     mode.add_argument("--ship", action="store_true", help="build the tables and write them with their manifest")
     mode.add_argument("--check", action="store_true",
                       help=f"build the tables and compare them with the shipped ones (exit 1 when the cells differ "
                            f"or an action probability differs by more than {CHECK_TOLERANCE:g})")
-    parser.add_argument("--out", type=Path, default=SHIPPED_DIR,
-                        help="--ship: the folder to write (default: the package's, %(default)s)")
+    mode.add_argument("--time", action="store_true",
+                      help="build the tables at --horizons (into a temporary folder) and print their wall-clock and "
+                           "CPU seconds and the 1-minute load")
+    parser.add_argument("--out", type=Path, help=f"--ship: the folder to write (default: {SHIPPED_DIR})")
+    parser.add_argument("--horizons", type=horizon_arg, nargs="+", help="--time: the horizons (default: 6 10 15)")
     parser.add_argument("--methods", nargs="+", choices=METHODS, default=list(METHODS), help="the tables")
     parser.add_argument("--quiet", action="store_true", help="no progress bars")
     return parser
@@ -337,14 +354,25 @@ def main(argv: Sequence[str] | None = None) -> int:
     from cuniform_torch.tables.file import read_table
 
     args = make_parser().parse_args(sys.argv[1:] if argv is None else list(argv))
-    if args.check and args.out != SHIPPED_DIR:
+    if args.out is not None and not args.ship:
         raise CLIError("--out applies to --ship (--check compares with the package's shipped tables)")
+    if args.horizons is not None and not args.time:
+        raise CLIError("--horizons applies to --time (--ship and --check build the navigation robot's 15 steps)")
     if args.ship:
-        manifest = ship_tables(NAV_ROBOT, args.out, args.methods, args.quiet)
+        out = args.out or SHIPPED_DIR
+        manifest = ship_tables(NAV_ROBOT, out, args.methods, args.quiet)
         for e in manifest["tables"]:
-            print(f"wrote {args.out / e['file']} ({e['bytes']} bytes, {e['cells']} cells, built in "
-                  f"{e['build_seconds']} s)")
-        print(f"wrote {args.out / MANIFEST}")
+            print(f"wrote {out / e['file']} ({e['bytes']} bytes, {e['cells']} cells, built in "
+                  f"{e['build_seconds']} s, {e['build_cpu_seconds']} s of CPU, load {e['load']})")
+        print(f"wrote {out / MANIFEST}")
+        return 0
+    if args.time:
+        for horizon in args.horizons or (6, 10, 15):
+            robot = replace(NAV_ROBOT, horizon=horizon)
+            for method in args.methods:
+                _, seconds, cpu = build_policy_table(robot, method, args.quiet)
+                print(f"{method} {horizon} steps: {seconds:.1f} s, {cpu:.1f} s of CPU, load "
+                      f"{os.getloadavg()[0]:.1f}", flush=True)
         return 0
     failed = False
     for method in args.methods:
@@ -353,13 +381,13 @@ def main(argv: Sequence[str] | None = None) -> int:
             raise CLIError(f"no shipped {method} table of the navigation robot in {SHIPPED_DIR} (build them: "
                            f"{SHIP_COMMAND})")
         announce(NAV_ROBOT, method, f"rebuilding the {method} table to compare with {path.name}", path)
-        built, seconds = build_policy_table(NAV_ROBOT, method, args.quiet)
+        built, seconds, cpu = build_policy_table(NAV_ROBOT, method, args.quiet)
         diff = compare_tables(built, read_table(path, graph=False))
         ok = diff["same_cells"] and diff["action_probs"] <= CHECK_TOLERANCE
         failed |= not ok
-        print(f"{method}: built in {seconds:.1f} s; same cells {diff['same_cells']}; max |action_probs diff| "
-              f"{diff['action_probs']:.3g}, max |cell_probs diff| {diff['cell_probs']:.3g}: "
-              f"{'ok' if ok else 'DIFFERS'}")
+        print(f"{method}: built in {seconds:.1f} s ({cpu:.1f} s of CPU, load {os.getloadavg()[0]:.1f}); same cells "
+              f"{diff['same_cells']}; max |action_probs diff| {diff['action_probs']:.3g}, max |cell_probs diff| "
+              f"{diff['cell_probs']:.3g}: {'ok' if ok else 'DIFFERS'}")
     return 1 if failed else 0
 
 
