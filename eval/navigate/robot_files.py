@@ -287,7 +287,8 @@ def ship_tables(robot: RobotPreset = NAV_ROBOT, folder: Path = SHIPPED_DIR, meth
     old = _manifest(folder) or {"tables": []}
     entries = []
     for method in methods:
-        announce(robot, method, f"building the {method} table of the navigation robot to ship", folder)
+        print(f"building the {method} table of the navigation robot to ship ({expected_time(robot, method)})",
+              flush=True)
         table, seconds, cpu = build_policy_table(robot, method, quiet)
         path = table_file(robot, folder, method)
         write_table(path, table)
@@ -380,7 +381,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         if path is None:
             raise CLIError(f"no shipped {method} table of the navigation robot in {SHIPPED_DIR} (build them: "
                            f"{SHIP_COMMAND})")
-        announce(NAV_ROBOT, method, f"rebuilding the {method} table to compare with {path.name}", path)
+        print(f"rebuilding the {method} table to compare with {path} ({expected_time(NAV_ROBOT, method)})",
+              flush=True)
         built, seconds, cpu = build_policy_table(NAV_ROBOT, method, args.quiet)
         diff = compare_tables(built, read_table(path, graph=False))
         ok = diff["same_cells"] and diff["action_probs"] <= CHECK_TOLERANCE
