@@ -107,9 +107,11 @@ def test_a_damaged_shipped_table_or_manifest_is_one_clear_error(small_shipped, t
     assert shipped_table(replace(SMALL, horizon=4), "maxflow", small_shipped[0]) is None  # another robot
 
 
-def test_the_check_command_refuses_a_flag_of_the_other_mode(tmp_path, capsys):
+def test_the_command_refuses_a_flag_of_another_mode(tmp_path, capsys):
     assert robot_files.main(["--check", "--out", str(tmp_path)]) == 2
     assert "--out applies to --ship" in capsys.readouterr().err
+    assert robot_files.main(["--ship", "--horizons", "6"]) == 2
+    assert "--horizons applies to --time" in capsys.readouterr().err
 
 
 @pytest.mark.slow

@@ -52,7 +52,8 @@ BUILD_SECONDS: dict[tuple[str, int], float] = {
 (``policy``: the MLP of :func:`ensure_policy`), one torch thread, on the project's 2-core machine when idle: the
 tables' CPU seconds printed by ``python -m eval.navigate.robot_files --time`` (each build written and read back;
 the first coverage build of a process loads the compiled loops), measured at load 4.6-5 (other jobs running: the
-wall-clock times were 0.2 / 3.7 / 1.4 / 4.5 / 14.3 / 46.1 s). The coverage table's first build took 57 s of CPU
+wall-clock times were 0.2 / 3.7 / 1.4 / 4.5 / 14.3 / 46.1 s); at load 1.2-1.3 the 15-step tables took 6.3 s
+and 25.7 s of wall time (``--time --horizons 15``). The coverage table's first build took 57 s of CPU
 before its passes were compiled (issue 37), 26 s now. The policy (:data:`DISTILL_EPOCHS` = 84 epochs on the
 81,329-cell table, one thread): 501 s of wall time at load 9-13 (other jobs running) for 225 s of CPU time
 (``time``: user 203 s + sys 22 s), so about 230 s on an idle machine; KL 0.113 at the cell centres, coverage
