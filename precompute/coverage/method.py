@@ -105,7 +105,9 @@ class CoverageConfig:
 
 
 def _propagate(levels: ReachableLevels, logits: list[torch.Tensor]) -> list[torch.Tensor]:
-    """Cell masses ``[n_t]`` of every level for per-level logits ``[n_t, A]`` (differentiable, logits' dtype)."""
+    """Cell masses ``[n_t]`` of every level for per-level logits ``[n_t, A]`` (differentiable, logits' dtype): the
+    autograd reference the compiled passes of :class:`~precompute.coverage.adjoint.StatePropagator` are tested
+    against (the build uses those)."""
     dtype = logits[0].dtype if logits else torch.float64
     mass = torch.ones(1, dtype=dtype)
     out = []
