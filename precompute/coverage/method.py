@@ -37,6 +37,7 @@ import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import cast
 
 import numpy as np
 import torch
@@ -104,7 +105,9 @@ class CoverageConfig:
 
 
 def _propagate(levels: ReachableLevels, logits: list[torch.Tensor]) -> list[torch.Tensor]:
-    """Cell masses ``[n_t]`` of every level for per-level logits ``[n_t, A]`` (differentiable, logits' dtype)."""
+    """Cell masses ``[n_t]`` of every level for per-level logits ``[n_t, A]`` (differentiable, logits' dtype): the
+    autograd reference the compiled passes of :class:`~precompute.coverage.adjoint.StatePropagator` are tested
+    against (the build uses those)."""
     dtype = logits[0].dtype if logits else torch.float64
     mass = torch.ones(1, dtype=dtype)
     out = []
@@ -143,7 +146,8 @@ def _converged(history: list[float], tol: float) -> bool:
 def coverage_objective(cell_masses: list[torch.Tensor], config: CoverageConfig) -> torch.Tensor:
     """The ascent's objective from the cell masses ``[n_t]`` of levels 1..T: summed expected coverage of
     ``target_samples`` draws plus the entropy tie-breaker."""
-    objective = sum(expected_coverage(m, config.target_samples) for m in cell_masses)
+    # the sums start at the int 0 (as sum() does), typed as the tensors they become
+    objective = cast(torch.Tensor, sum(expected_coverage(m, config.target_samples) for m in cell_masses))
     if config.entropy_weight:
         objective = objective + config.entropy_weight * sum(normalized_entropy(m) for m in cell_masses if len(m) > 1)
     return objective
@@ -197,37 +201,26 @@ def build_coverage_table(system: System, config: CoverageConfig = CoverageConfig
     logits, history = optimize_coverage(levels, A, config,
                                         None if progress is None else (lambda s, v: progress("optimize", s, v)))
     t2 = time.perf_counter()
-    with torch.no_grad():
-        masses = _propagate(levels, logits)
     probs = [torch.softmax(l, dim=1) for l in logits] + [torch.full((len(levels.cells[-1]), A), 1.0 / A, dtype=torch.float64)]
+    # the exact propagation in float64 (the compiled passes; _propagate's arithmetic in the same order): the cell
+    # masses, and the state masses the transitions are weighted by
+    final = StatePropagator(levels, A, torch.float64)
+    masses = final.forward(probs[:-1])
     sizes = np.array([len(c) for c in levels.cells], dtype=np.int64)
     offsets = np.concatenate(([0], np.cumsum(sizes))).astype(np.int64)
+    from precompute.coverage.loops import level_transitions  # numba: compiled (or loaded) on first use
+
     transitions, fracs, trans_counts = [], [], []
-    state_mass = torch.ones(1, dtype=torch.float64)
     for t in range(config.horizon):
         sc, succ = levels.state_cell[t], levels.successor[t]  # [M], [M, A]
-        n, m = len(levels.cells[t]), len(levels.cells[t + 1])
-        ok = (succ >= 0).reshape(-1)  # all but the pairs a map pruned
-        src = sc.unsqueeze(1).expand_as(succ).reshape(-1)[ok]
-        act = torch.arange(A).repeat(len(sc))[ok]
-        dst = levels.state_cell[t + 1][succ.reshape(-1)[ok]]
-        weight = state_mass.unsqueeze(1).expand_as(succ).reshape(-1)[ok]  # mass of each state before acting
-        key = (src * A + act) * m + dst
-        uniq, inv = torch.unique(key, return_inverse=True)
-        w = torch.zeros(len(uniq), dtype=torch.float64).index_add(0, inv, weight)
-        cnt = torch.zeros(len(uniq), dtype=torch.float64).index_add(0, inv, torch.ones_like(weight))
-        sa, d_ = uniq // m, uniq % m
-        s_, a_ = sa // A, sa % A
-        # fraction of the (cell, action)'s mass landing in each next cell; states without mass count equally
-        tot_w = torch.zeros(n * A, dtype=torch.float64).index_add(0, sa, w)
-        tot_c = torch.zeros(n * A, dtype=torch.float64).index_add(0, sa, cnt)
-        frac = torch.where(tot_w[sa] > 0, w / tot_w[sa].clamp(min=1e-300), cnt / tot_c[sa])
-        transitions.append(torch.stack((s_ + offsets[t], a_, d_ + offsets[t + 1]), 1))
-        fracs.append(frac)
-        trans_counts.append(len(uniq))
-        p_state = probs[t][sc]  # [M, A]
-        state_mass = torch.zeros(levels.num_states[t + 1], dtype=torch.float64).index_add(
-            0, succ.reshape(-1)[ok], (state_mass.unsqueeze(1) * p_state).reshape(-1)[ok])
+        # each (cell, action, next cell) reached, ascending, with the fraction of the (cell, action)'s mass
+        # landing there (states without mass count equally): one compiled pass over the cells' states
+        src, act, dst, frac = level_transitions(sc.numpy(), succ.reshape(-1).numpy(),
+                                                levels.state_cell[t + 1].numpy(), final.mass[t],
+                                                len(levels.cells[t]), A)
+        transitions.append(torch.from_numpy(np.stack((src + offsets[t], act, dst + offsets[t + 1]), 1)))
+        fracs.append(torch.from_numpy(frac))
+        trans_counts.append(len(src))
     predicted = {str(N): [float(expected_coverage(mm, N)) for mm in masses] for N in (250, 1000, 10000)}
     facts = {
         "seconds": {"enumerate": t1 - t0, "optimize": t2 - t1, "assemble": time.perf_counter() - t2},

@@ -14,6 +14,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
+import numpy as np
 import torch
 
 from cuniform_torch.grid.cells import CellKeys, Grid
@@ -46,27 +47,37 @@ def _index_cells(cells: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     return keys.unpack(uniq), inverse
 
 
-def _merge(nxt: torch.Tensor, cell_size: torch.Tensor, resolution: int) -> tuple[int, torch.Tensor]:
-    """Merge states ``[K, d]`` per bin of ``cell_size / resolution``: the number of bins and each state's bin."""
-    binned = torch.round(nxt / (cell_size / resolution)).long()
-    box = CellKeys.covering(binned)  # refuses a box too large for int64 keys
-    lo, span = box.lo.tolist(), box.span.tolist()
-    keys = binned[:, 0] - lo[0]
-    for i in range(1, binned.shape[1]):  # mixed radix over d dims; CellKeys.pack's inside test is moot here
-        keys = keys.mul_(span[i]).add_(binned[:, i]).sub_(lo[i])
-    uniq, inverse = torch.unique(keys, return_inverse=True)
-    return len(uniq), inverse
+def _merge(nxt: torch.Tensor, cell_size: torch.Tensor, resolution: int,
+           pair: torch.Tensor) -> tuple[int, torch.Tensor, torch.Tensor]:
+    """Merge states ``[K, d]`` per bin of ``cell_size / resolution``: the number of bins (ascending key order), each
+    state's bin and each bin's smallest ``pair`` (``[K]``, ascending: the index of the state's (state, action)
+    pair), its representative. The bins' keys come from two compiled passes (:mod:`precompute.coverage.loops`:
+    the box, then the keys) instead of five ``[K, d]`` temporaries."""
+    from precompute.coverage.loops import bin_box, bin_keys  # numba: compiled (or loaded) on first use
+
+    states, size = np.ascontiguousarray(nxt.numpy()), (cell_size / resolution).numpy()
+    d = states.shape[1]
+    lo, hi = np.empty(d, np.int64), np.empty(d, np.int64)
+    bin_box(states, size, lo, hi)
+    box = CellKeys.covering(torch.from_numpy(np.stack((lo, hi))))  # refuses a box too large for int64 keys
+    keys = np.empty(states.shape[0], np.int64)
+    bin_keys(states, size, lo, box.span.numpy(), keys)
+    uniq, inverse = torch.unique(torch.from_numpy(keys), return_inverse=True)
+    first = torch.empty(len(uniq), dtype=torch.int64).scatter_reduce(0, inverse, pair, reduce="amin",
+                                                                     include_self=False)  # every bin has a state
+    return len(uniq), inverse, first
 
 
-def _merge_within(nxt: torch.Tensor, cell_size: torch.Tensor, resolution: int,
-                  budget: int) -> tuple[int, torch.Tensor, int]:
+def _merge_within(nxt: torch.Tensor, cell_size: torch.Tensor, resolution: int, budget: int,
+                  pair: torch.Tensor) -> tuple[int, torch.Tensor, torch.Tensor, int]:
     """:func:`_merge` at the finest resolution (``resolution`` cut by a quarter, down to 1) whose bins number at
-    most ``budget`` (0: no budget); returns the bins, each state's bin and the resolution used."""
-    count, inverse = _merge(nxt, cell_size, resolution)
+    most ``budget`` (0: no budget); returns the bins, each state's bin, each bin's smallest pair and the resolution
+    used."""
+    count, inverse, first = _merge(nxt, cell_size, resolution, pair)
     while budget and count > budget and resolution > 1:  # about (3/4)^d fewer bins per cut: few cuts per level
         resolution = min(resolution - 1, resolution * 3 // 4)
-        count, inverse = _merge(nxt, cell_size, resolution)
-    return count, inverse, resolution
+        count, inverse, first = _merge(nxt, cell_size, resolution, pair)
+    return count, inverse, first, resolution
 
 
 def enumerate_reachable(system: System, horizon: int, merge_resolution: int = 32, max_states: int = 20_000_000,
@@ -102,11 +113,11 @@ def enumerate_reachable(system: System, horizon: int, merge_resolution: int = 32
                 raise MapError(f"the map leaves no free cell at level {t + 1}: every state reachable in {t + 1} "
                                f"steps lies within --radius {safe.radius:g} m of an obstacle (the start is boxed in)")
             pair = pair[ok]
-        count, inverse, resolution = _merge_within(nxt[pair], cell_size, resolution, state_budget)
+        count, inverse, first, resolution = _merge_within(nxt if safe is None else nxt[pair], cell_size, resolution,
+                                                          state_budget, pair)
         if count > max_states:
             raise ValueError(f"level {t + 1} has {count} merged states (> max_states={max_states}); "
                              f"lower --merge-resolution or --state-budget")
-        first = torch.full((count,), M * A, dtype=torch.int64).scatter_reduce(0, inverse, pair, reduce="amin")
         x = nxt[first]  # representatives [M', d]
         if safe is not None:
             inverse = torch.full((M * A,), -1, dtype=torch.int64).index_put_((pair,), inverse)
