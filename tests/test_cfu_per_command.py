@@ -60,6 +60,14 @@ def _load(policy: MapPolicy) -> None:
     policy.load_state_dict(_policy(seed=7, local=policy.config.local_features).state_dict())
 
 
+def _one_in_place(policy: MapPolicy) -> None:  # one folded tensor written in place, the rest untouched
+    with torch.no_grad():
+        if policy.inp_l is not None:
+            policy.inp_l.weight.add_(0.5)
+        else:
+            policy.body[-1].bias.add_(torch.arange(5.0))  # not the same for every action: the softmax sees it
+
+
 def _swap(policy: MapPolicy) -> None:  # a parameter replaced by another one
     policy.body[1].weight = torch.nn.Parameter(torch.randn_like(policy.body[1].weight))
 
@@ -69,7 +77,7 @@ def _set_data(policy: MapPolicy) -> None:  # the same parameter holding another 
 
 
 @pytest.mark.parametrize("local", [0, 3])
-@pytest.mark.parametrize("change", [_step, _load, _swap, _set_data])
+@pytest.mark.parametrize("change", [_step, _load, _one_in_place, _swap, _set_data])
 def test_set_maps_sees_new_weights(local, change):
     policy = _policy(local=local)
     x = torch.randn(16, 3) * 0.2  # 8 states per map, inside the box

@@ -309,7 +309,11 @@ class MapPolicy(CountsFallbacks, nn.Module):
         local features are more columns of the same addmm) ``[F-1 (+ P * C), Hd]``, and the body's
         ``(weight^T, bias)``. Remade when a parameter or buffer is another tensor or was written in place
         (training, ``load_state_dict``: each bumps the tensor's version counter)."""
-        key = tuple((id(t), t.data_ptr(), t._version) for t in (*self.parameters(), self.inv_scale))
+        read = [self.inp_x.weight, self.inv_scale] + ([self.inp_l.weight] if self.inp_l is not None else [])
+        for m in self.body:
+            if isinstance(m, nn.Linear):
+                read += [m.weight, m.bias]
+        key = tuple((id(t), t.data_ptr(), t._version) for t in read)  # the tensors folded below
         cached = self._folded
         if cached is not None and cached[0] == key:
             return cached[1]
