@@ -77,3 +77,14 @@ def test_other_obstacles_and_grids_take_the_torch_path():
     env = Environment([Blob((0.0, 0.5), 0.3)])
     assert sensing._sense_compiled(env, _poses(2, 3), sensing.patch_centres(SPEC), None) is None
     _same(env, _poses(2, 3, lo=(-0.5, -0.5), hi=(0.5, 0.5)))
+
+
+def test_a_world_that_changes_is_sensed_anew():
+    world = _mixed()
+    pose = torch.tensor([[0.2, 0.1, 0.4]])
+    before = _same(world, pose)
+    world.obstacles.append(Circle((0.7, 0.1), 0.3))  # a new obstacle ahead
+    added = _same(world, pose)
+    world.bounds = (-1.0, -1.0, 1.0, 1.0)  # a smaller workspace
+    bounded = _same(world, pose)
+    assert int(added.sum()) > int(before.sum()) and int(bounded.sum()) > int(added.sum())

@@ -119,16 +119,35 @@ def _sense_compiled(world: OccupancyGrid | Environment, poses: Tensor, local: Te
     loop = _loop() if not others else None
     if loop is None:
         return None
-    dtype = poses.dtype
     h, w = local.shape[:2]
+    lx, ly, circ, rect, bounds = _loop_tables(world, circles, rects, local)
     poses = poses.detach().contiguous()
-    bounds = (torch.tensor(world.bounds, dtype=dtype) if world.bounds is not None  # compared as the torch path
-              else torch.zeros(0, dtype=dtype))                                   # does: cast to the points' dtype
     seen = torch.empty((poses.shape[0], h * w), dtype=torch.bool)
     loop(poses[:, 0].numpy(), poses[:, 1].numpy(), torch.cos(poses[:, 2]).numpy(), torch.sin(poses[:, 2]).numpy(),
-         local[..., 0].reshape(-1).numpy(), local[..., 1].reshape(-1).numpy(), circles.to(dtype).numpy(),
-         rects.to(dtype).numpy(), bounds.numpy(), seen.numpy())
+         lx, ly, circ, rect, bounds, seen.numpy())
     return seen.view(-1, h, w)
+
+
+_TABLES: dict[tuple, tuple] = {}
+"""the loop's arrays per world's tables, patch centres and dtype (the last few: made once, not per command)"""
+
+
+def _loop_tables(world: Environment, circles: Tensor, rects: Tensor, local: Tensor) -> tuple:
+    """The loop's arrays in the points' dtype: the centres' ``lx, ly [P]``, ``circles [C, 3]``, ``rects [R, 4]``
+    and the bounds ``[4]`` (empty: none; cast to the points' dtype, as the torch path's comparisons cast them),
+    cached while the world's tables (the objects themselves), the centres and the bounds are the same."""
+    key = (id(circles), id(rects), id(local), local.dtype, world.bounds)
+    hit = _TABLES.get(key)
+    if hit is not None and hit[0] is circles and hit[1] is rects and hit[2] is local:
+        return hit[3]
+    dtype = local.dtype
+    bounds = torch.tensor(world.bounds, dtype=dtype) if world.bounds is not None else torch.zeros(0, dtype=dtype)
+    arrays = (local[..., 0].reshape(-1).numpy(), local[..., 1].reshape(-1).numpy(), circles.to(dtype).numpy(),
+              rects.to(dtype).numpy(), bounds.numpy())
+    if len(_TABLES) >= 8:  # a few worlds at a time; an old one is dropped rather than kept alive
+        _TABLES.pop(next(iter(_TABLES)))
+    _TABLES[key] = (circles, rects, local, arrays)
+    return arrays
 
 
 def local_map(world: OccupancyGrid | Environment, pose: Tensor, spec: PatchSpec, max_range: float | None = None,
