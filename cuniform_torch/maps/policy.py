@@ -206,6 +206,8 @@ class MapPolicy(CountsFallbacks, nn.Module):
         self.register_buffer("_angle_index", torch.tensor(self._angle, dtype=torch.long), persistent=False)
         self.register_buffer("_box_half", half[self._linear], persistent=False)  # [d_lin]
         self.register_buffer("_box_cell", torch.tensor(grid.cell_size)[self._linear], persistent=False)
+        self._box_floats = (self._box_half.tolist(), self._box_cell.tolist())
+        """the support box as Python floats (float32 values), for the compiled rollout: no host read per command"""
         self._start_watch = StartWatch(f"map policy ({system.name})", system)
         self.register_buffer("_uniform", torch.full((1, config.num_actions), 1.0 / config.num_actions), persistent=False)
         self._map_bias: Tensor | None = None  # [B, T+1, Hd] per map and level, for the maps last set (set_maps)
@@ -295,6 +297,7 @@ class MapPolicy(CountsFallbacks, nn.Module):
             raise ValueError(f"set_maps takes [B, {', '.join(map(str, self.patch_spec.shape))}] patches, got "
                              f"{list(occupied.shape)}")
         with torch.no_grad():
+            occupied = occupied.to(self.dtype)  # once for both encoders (each converts only what is not yet)
             embedding = self.encode(occupied)  # [B, E]
             level_term, self._w_state, self._layers = self._folded_weights()
             # W_e e + b + w_t t / T per map and level: a lookup is one addmm (summed in this order, as always)
@@ -400,8 +403,8 @@ class MapPolicy(CountsFallbacks, nn.Module):
         local = self.local
         geometry = dict(dt=system.dt, speed=system.speed, origin_x=self.patch_spec.origin[0],
                         origin_y=self.patch_spec.origin[1], resolution=self.patch_spec.resolution,
-                        half_x=float(self._box_half[0]), half_y=float(self._box_half[1]),
-                        cell_x=float(self._box_cell[0]), cell_y=float(self._box_cell[1]))
+                        half_x=self._box_floats[0][0], half_y=self._box_floats[0][1],
+                        cell_x=self._box_floats[1][0], cell_y=self._box_floats[1][1])
         states, actions, near, miss = kernels.rollout_start_frame(
             self._map_bias[0], self._w_state, self._layers, self.actions,
             self._local_map if local is not None else None,
