@@ -2,8 +2,8 @@
 that falls back to compiling in memory, with one warning, when the cache cannot be used.
 
 The loop modules (:mod:`cuniform_torch.tables.lookup_loops`, :mod:`cuniform_torch.sampling.frame_loops`,
-:mod:`cuniform_torch.maps.rollout_loops`, :mod:`cuniform_torch.envs.contains_loops`,
-:mod:`cuniform_torch.systems.dubins_loops`) are imported when a loop is first used; numba then loads each loop
+:mod:`cuniform_torch.maps.rollout_loops`, :mod:`cuniform_torch.maps.sensing_loops`,
+:mod:`cuniform_torch.envs.contains_loops`, :mod:`cuniform_torch.systems.dubins_loops`) are imported when a loop is first used; numba then loads each loop
 from its cache (``__pycache__`` next to the module, else numba's cache folder in the user's home, or
 ``NUMBA_CACHE_DIR``) or compiles and saves it. Two things went wrong there with a raw traceback:
 

@@ -23,7 +23,7 @@ from torch import Tensor
 from cuniform_torch.controllers.mppi import CUMPPI, CostFn
 from cuniform_torch.envs.environment import Environment
 from cuniform_torch.envs.occupancy import OccupancyGrid
-from cuniform_torch.maps import kernels
+from cuniform_torch.maps import kernels, sensing
 from cuniform_torch.maps.checkpoint import load_map_policy
 from cuniform_torch.maps.policy import MapPolicy
 from cuniform_torch.maps.sensing import local_map, sense_patch
@@ -135,6 +135,8 @@ class CFUMPPI(CUMPPI):
             check_policy_robot(policy, system)
         if kernels.usable(policy.device, policy.dtype):
             kernels.warm_up()  # the compiled rollout's loops, now rather than in the first command
+            if isinstance(world, Environment):
+                sensing.warm_up()  # and the sensing loop's
         self.sensed = SensedMapPolicy(policy, world, max_range)
         super().__init__(self.sensed, cost_fn, num_samples, cuniform_fraction, lambda_, noise_std, local, horizon,
                          terminal_cost=terminal_cost, device=policy.device, seed=seed, num_robots=num_robots,

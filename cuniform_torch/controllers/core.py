@@ -368,9 +368,8 @@ class MPPICore:
         out = fn(flat, actions.reshape(b * k, *actions.shape[2:])) if actions is not None else fn(flat[:, -1])
         return _check_costs(out, who, fn, (b * k,), self.dtype, self.device).view(b, k)
 
-    def _evaluate(self, states: Tensor, actions: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-        """Finite costs ``[B, K]`` of the proposals, their weights ``[B, K]`` and the temperature ``[B]`` that
-        weighed them; the user's costs are checked."""
+    def _state_costs(self, states: Tensor, actions: Tensor) -> Tensor:
+        """Finite costs ``[B, K]`` of the proposals (``cost_fn`` + ``terminal_cost``, checked; no action cost)."""
         costs = self._cost(self.cost_fn, self._cost_batched, "cost_fn", states, actions)
         if self.terminal_cost is not None:
             costs = costs + self._cost(self.terminal_cost, self._terminal_batched, "terminal_cost", states, None)
@@ -379,7 +378,12 @@ class MPPICore:
             raise ValueError(f"cost_fn {_callable_name(self.cost_fn)}"
                              f"{'' if self.terminal_cost is None else ' + terminal_cost ' + _callable_name(self.terminal_cost)}"
                              f" returned NaN for all {k} proposals of a robot; expected a [{k}] tensor of costs")
-        costs = _finite_costs(costs)
+        return _finite_costs(costs)
+
+    def _evaluate(self, states: Tensor, actions: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """Finite costs ``[B, K]`` of the proposals, their weights ``[B, K]`` and the temperature ``[B]`` that
+        weighed them; the user's costs are checked."""
+        costs = self._state_costs(states, actions)
         extra = None if self._action_cost is None else self._action_cost(actions)  # [B, K], not over lambda
         if self._fixed_lambda is not None:
             lam = float(self.lambda_)  # type: ignore[arg-type]

@@ -296,6 +296,18 @@ class CUniformMPPI(MPPICore):
         failed (then reported by a :class:`BankRefreshWarning`)."""
         return self.bank is not None and self.bank.wait_for_bank()
 
+    def _best_actions(self, state: Tensor) -> Tensor:
+        """The lowest-cost proposal's action sequence per robot from checked ``state [B, d]``: ``[B, T, q]``, no
+        host sync. CU-MPPI's first stage: what ``self._plan(state).best_actions()`` returns (the same draws,
+        costs and argmin) without the weights, the weighted sequence and the result that it does not read."""
+        if self._action_cost is not None:  # a proposal's own action cost enters the argmin: the whole plan
+            return self._plan(state).best_actions()
+        states, actions = self._batch.propose_batch(state, self.streams)  # [B, K, T+1, d], [B, K, T, q]
+        if self.debug:
+            self._check_proposals(states, actions)
+        best = torch.argmin(self._state_costs(states, actions), dim=1)  # [B]
+        return actions.gather(1, best.view(-1, 1, 1, 1).expand(-1, 1, *actions.shape[2:]))[:, 0]
+
     def propose(self, state: Tensor) -> tuple[Tensor, Tensor]:
         """``num_samples`` C-Uniform proposals from ``state [d]``: ``[K, T+1, d]``, ``[K, T, q]`` (from ``[B, d]``:
         ``[B, K, T+1, d]``, ``[B, K, T, q]``)."""

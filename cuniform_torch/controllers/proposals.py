@@ -169,12 +169,12 @@ class Closeable(Protocol):
 
 
 class Planner(Protocol):
-    """A controller's planning step (what :class:`CompositeProposal` seeds from): ``_plan(states [B, d])`` -> a
-    batched :class:`MPPIResult`, drawing from its ``streams``."""
+    """A controller's first stage (what :class:`CompositeProposal` seeds from): ``_best_actions(states [B, d])``
+    -> each robot's lowest-cost proposal ``[B, T, q]``, drawing from its ``streams``."""
 
     streams: RobotStreams
 
-    def _plan(self, state: Tensor) -> MPPIResult:
+    def _best_actions(self, state: Tensor) -> Tensor:
         ...
 
     def reset(self, robots: Tensor | None = None) -> None:
@@ -458,7 +458,7 @@ class CompositeProposal(OneRobotCall):
         self.num_robots, self.device, self.dtype = local.num_robots, local.device, local.dtype
 
     def propose_batch(self, states: Tensor, streams: RobotStreams) -> tuple[Tensor, Tensor]:
-        self.local.seed(self.first._plan(states).best_actions())  # [B, T, q], no host sync
+        self.local.seed(self.first._best_actions(states))  # [B, T, q], no host sync
         return self.local.propose_batch(states, streams)
 
     def update(self, result: MPPIResult) -> None:

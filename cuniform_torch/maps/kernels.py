@@ -42,7 +42,7 @@ __all__ = ["usable", "warm_up", "rollout_start_frame"]
 def _kernels():
     from cuniform_torch.maps import rollout_loops  # imports numba: only when a loop is used
 
-    return rollout_loops.features, rollout_loops.draw_and_step
+    return rollout_loops.features, rollout_loops.draw_step_features
 
 
 def usable(device: torch.device, dtype: torch.dtype) -> bool:
@@ -76,7 +76,7 @@ def rollout_start_frame(map_bias: Tensor, w_state: Tensor, layers: list[tuple[Te
     network of the map last set; ``local_map [1, C, H, W]`` or None; ``probes [P, 2]``; ``geometry``: ``dt``,
     ``speed``, the patch ``origin_x``, ``origin_y``, ``resolution`` and the support box ``half_x``, ``half_y``,
     ``cell_x``, ``cell_y``."""
-    features, draw_and_step = _kernels()
+    features, draw_step_features = _kernels()
     n, hd, n_actions = num_samples, w_state.shape[1], actions.shape[0]
     if uniforms is None:
         uniforms = torch.rand((horizon, n), generator=generator, dtype=torch.float32)  # [T, N]
@@ -97,12 +97,14 @@ def rollout_start_frame(map_bias: Tensor, w_state: Tensor, layers: list[tuple[Te
     actions_np = actions[:, 0].to(torch.float32).contiguous().numpy()
     pi, two_pi = np.float32(math.pi), np.float32(2.0 * math.pi)
     silu = torch.nn.functional.silu
+    features(0, states_np, feat_np, ok_np, counts, fmap, probes_np, geo)
     for t in range(horizon):
-        features(t, states_np, feat_np, ok_np, counts, fmap, probes_np, geo)
         h = torch.addmm(map_bias[t], feat, w_state, out=hidden[0])  # [N, Hd]
         for k, (weight, bias) in enumerate(layers):
             target = logits if k == len(layers) - 1 else hidden[(k + 1) % 2]
             h = torch.addmm(bias, silu(h, inplace=True), weight, out=target)
-        draw_and_step(t, logits_np, uniforms_np, states_np, picks_np, actions_np, ok_np, geo, pi, two_pi)
+        # step t's draw and Dubins step, then step t + 1's features: one compiled call
+        draw_step_features(t, logits_np, uniforms_np, states_np, picks_np, actions_np, ok_np, geo, pi, two_pi,
+                           feat_np, counts, fmap, probes_np)
     taken = actions.index_select(0, picks.T.reshape(-1)).view(n, horizon, actions.shape[1])  # [N, T, q]
     return states, taken, int(counts[0]), int(counts[1])

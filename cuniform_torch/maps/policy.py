@@ -206,12 +206,16 @@ class MapPolicy(CountsFallbacks, nn.Module):
         self.register_buffer("_angle_index", torch.tensor(self._angle, dtype=torch.long), persistent=False)
         self.register_buffer("_box_half", half[self._linear], persistent=False)  # [d_lin]
         self.register_buffer("_box_cell", torch.tensor(grid.cell_size)[self._linear], persistent=False)
+        self._box_floats = (self._box_half.tolist(), self._box_cell.tolist())
+        """the support box as Python floats (float32 values), for the compiled rollout: no host read per command"""
         self._start_watch = StartWatch(f"map policy ({system.name})", system)
         self.register_buffer("_uniform", torch.full((1, config.num_actions), 1.0 / config.num_actions), persistent=False)
         self._map_bias: Tensor | None = None  # [B, T+1, Hd] per map and level, for the maps last set (set_maps)
         self._w_state: Tensor | None = None  # [F-1 (+ P * C), Hd]
         self._local_map: Tensor | None = None  # [B, C, H, W] for the maps last set (local features only)
         self._layers: list[tuple[Tensor, Tensor]] = []  # the body's (weight^T, bias)
+        self._folded: tuple[tuple, tuple[Tensor, Tensor, list[tuple[Tensor, Tensor]]]] | None = None
+        """the weights' part of ``set_maps`` and the parameters' identities it was made from"""
         self.encodes = 0
         self.compiled = True
         """roll out through :meth:`fused_rollout` where it applies (False: always step by step)"""
@@ -293,23 +297,41 @@ class MapPolicy(CountsFallbacks, nn.Module):
             raise ValueError(f"set_maps takes [B, {', '.join(map(str, self.patch_spec.shape))}] patches, got "
                              f"{list(occupied.shape)}")
         with torch.no_grad():
+            occupied = occupied.to(self.dtype)  # once for both encoders (each converts only what is not yet)
             embedding = self.encode(occupied)  # [B, E]
-            w = self.inp_x.weight  # [Hd, F]: columns x_lin, cos, sin, t
-            n_lin = len(self._linear)
-            levels = torch.arange(self.horizon + 1, dtype=w.dtype, device=w.device) / self.horizon  # [T+1]
-            # W_e e + b + w_t t / T per map and level, and W_x with the feature scales folded in: a lookup is one addmm
-            self._map_bias = (self.inp_x.bias + self.inp_e(embedding)[:, None, :]
-                              + levels[:, None] * w[:, -1]).detach()  # [B, T+1, Hd]
-            w_state = torch.cat((w[:, :n_lin] * self.inv_scale.index_select(0, self._linear_index), w[:, n_lin:-1]),
-                                dim=1)
-            if self.local is not None:  # the sampled features are more columns of the same addmm
-                assert self.inp_l is not None  # built with self.local
+            level_term, self._w_state, self._layers = self._folded_weights()
+            # W_e e + b + w_t t / T per map and level: a lookup is one addmm (summed in this order, as always)
+            self._map_bias = (self.inp_x.bias + self.inp_e(embedding)[:, None, :] + level_term).detach()
+            if self.local is not None:
                 self._local_map = self.encode_local(occupied).detach()  # [B, C, H, W]
-                w_state = torch.cat((w_state, self.inp_l.weight), dim=1)
-            self._w_state = w_state.T.contiguous().detach()  # [F-1, Hd]
-            self._layers = [(m.weight.detach().T.contiguous(), m.bias.detach()) for m in self.body
-                            if isinstance(m, nn.Linear)]
         self.encodes += 1
+
+    def _folded_weights(self) -> tuple[Tensor, Tensor, list[tuple[Tensor, Tensor]]]:
+        """What a lookup needs of the weights alone, made once per set of weights rather than per map: the level
+        term ``w_t t / T`` ``[T+1, Hd]``, ``W_x`` with the feature scales folded in (and ``W_l``: the sampled
+        local features are more columns of the same addmm) ``[F-1 (+ P * C), Hd]``, and the body's
+        ``(weight^T, bias)``. Remade when a parameter or buffer is another tensor or was written in place
+        (training, ``load_state_dict``: each bumps the tensor's version counter)."""
+        read = [self.inp_x.weight, self.inv_scale] + ([self.inp_l.weight] if self.inp_l is not None else [])
+        for m in self.body:
+            if isinstance(m, nn.Linear):
+                read += [m.weight, m.bias]
+        key = tuple((id(t), t.data_ptr(), t._version) for t in read)  # the tensors folded below
+        cached = self._folded
+        if cached is not None and cached[0] == key:
+            return cached[1]
+        w = self.inp_x.weight  # [Hd, F]: columns x_lin, cos, sin, t
+        n_lin = len(self._linear)
+        levels = torch.arange(self.horizon + 1, dtype=w.dtype, device=w.device) / self.horizon  # [T+1]
+        level_term = (levels[:, None] * w[:, -1]).detach()  # [T+1, Hd]
+        w_state = torch.cat((w[:, :n_lin] * self.inv_scale.index_select(0, self._linear_index), w[:, n_lin:-1]),
+                            dim=1)
+        if self.inp_l is not None:
+            w_state = torch.cat((w_state, self.inp_l.weight), dim=1)
+        layers = [(m.weight.detach().T.contiguous(), m.bias.detach()) for m in self.body if isinstance(m, nn.Linear)]
+        folded = (level_term, w_state.T.contiguous().detach(), layers)
+        self._folded = (key, folded)
+        return folded
 
     @property
     def maps_set(self) -> int:
@@ -381,8 +403,8 @@ class MapPolicy(CountsFallbacks, nn.Module):
         local = self.local
         geometry = dict(dt=system.dt, speed=system.speed, origin_x=self.patch_spec.origin[0],
                         origin_y=self.patch_spec.origin[1], resolution=self.patch_spec.resolution,
-                        half_x=float(self._box_half[0]), half_y=float(self._box_half[1]),
-                        cell_x=float(self._box_cell[0]), cell_y=float(self._box_cell[1]))
+                        half_x=self._box_floats[0][0], half_y=self._box_floats[0][1],
+                        cell_x=self._box_floats[1][0], cell_y=self._box_floats[1][1])
         states, actions, near, miss = kernels.rollout_start_frame(
             self._map_bias[0], self._w_state, self._layers, self.actions,
             self._local_map if local is not None else None,
@@ -405,6 +427,6 @@ class MapPolicy(CountsFallbacks, nn.Module):
 
     def _apply(self, fn, recurse: bool = True):  # .to(device) moves the counters; the folded map is derived from
         super()._apply(fn, recurse)             # the weights, so it is dropped (set_map again)
-        self._map_bias, self._w_state, self._layers, self._local_map = None, None, [], None
+        self._map_bias, self._w_state, self._layers, self._local_map, self._folded = None, None, [], None, None
         self.counts.to(self.device)
         return self

@@ -12,26 +12,29 @@ import numpy as np
 from cuniform_torch.common.compiled import njit
 from cuniform_torch.systems.dubins_loops import dubins_advance
 
-__all__ = ["features", "draw_and_step"]
+__all__ = ["features", "draw_and_step", "draw_step_features"]
 
 @njit(nogil=True, inline="always")
-def read(fmap, c, ix, iy):
-    """Bilinear read of channel ``c`` at pixel coordinates ``(ix, iy)`` (column, row); zero off the map."""
+def read_channels(fmap, ix, iy, feat, i, k):
+    """Bilinear reads of every channel of ``fmap [C, H, W]`` at pixel coordinates ``(ix, iy)`` (column, row) into
+    ``feat[i, k:k + C]``; zero off the map. The taps and their weights are found once for all channels; each
+    channel's sum takes the taps in the same order, with the same products, as one read of a single channel."""
     H, W = fmap.shape[1], fmap.shape[2]
     x0f, y0f = math.floor(ix), math.floor(iy)
     wx, wy = ix - x0f, iy - y0f
     x0, y0 = int(x0f), int(y0f)
-    v = np.float32(0.0)
-    for dy in range(2):
-        yy = y0 + dy
-        if yy < 0 or yy >= H:
-            continue
-        fy = wy if dy else np.float32(1.0) - wy
-        for dx in range(2):
-            xx = x0 + dx
-            if 0 <= xx < W:
-                v += (wx if dx else np.float32(1.0) - wx) * fy * fmap[c, yy, xx]
-    return v
+    for ch in range(fmap.shape[0]):
+        v = np.float32(0.0)
+        for dy in range(2):
+            yy = y0 + dy
+            if yy < 0 or yy >= H:
+                continue
+            fy = wy if dy else np.float32(1.0) - wy
+            for dx in range(2):
+                xx = x0 + dx
+                if 0 <= xx < W:
+                    v += (wx if dx else np.float32(1.0) - wx) * fy * fmap[ch, yy, xx]
+        feat[i, k + ch] = v
 
 @njit(nogil=True, boundscheck=False)
 def features(t, states, feat, ok, counts, fmap, probes, geo):
@@ -54,14 +57,17 @@ def features(t, states, feat, ok, counts, fmap, probes, geo):
             counts[0] += 1
         k = 4
         for p in range(probes.shape[0]):
-            ahead, left = probes[p, 0], probes[p, 1]
-            px = (x + c * ahead) - s * left
-            py = (y + s * ahead) + c * left
-            ix = (px - ox) / res - np.float32(0.5)
-            iy = (py - oy) / res - np.float32(0.5)
-            for ch in range(channels):
-                feat[i, k] = read(fmap, ch, ix, iy) if finite else np.float32(0.0)
-                k += 1
+            if finite:
+                ahead, left = probes[p, 0], probes[p, 1]
+                px = (x + c * ahead) - s * left
+                py = (y + s * ahead) + c * left
+                ix = (px - ox) / res - np.float32(0.5)
+                iy = (py - oy) / res - np.float32(0.5)
+                read_channels(fmap, ix, iy, feat, i, k)
+            else:
+                for ch in range(channels):
+                    feat[i, k + ch] = np.float32(0.0)
+            k += channels
 
 @njit(nogil=True, boundscheck=False)
 def draw_and_step(t, logits, uniforms, states, picks, actions, ok, geo, pi, two_pi):
@@ -69,6 +75,7 @@ def draw_and_step(t, logits, uniforms, states, picks, actions, ok, geo, pi, two_
     ``picks [T, N]``, and the Dubins step of ``states[t]`` into ``states[t + 1]``."""
     n_actions = logits.shape[1]
     dt, speed = geo[0], geo[1]
+    weights = np.empty(n_actions, dtype=np.float32)  # a row's exp(logit - max), made once for its two sums
     for i in range(logits.shape[0]):
         if ok[i]:
             top = logits[i, 0]
@@ -76,12 +83,13 @@ def draw_and_step(t, logits, uniforms, states, picks, actions, ok, geo, pi, two_
                 top = max(top, logits[i, a])
             total = np.float32(0.0)
             for a in range(n_actions):
-                total += np.float32(math.exp(logits[i, a] - top))
+                weights[a] = np.float32(math.exp(logits[i, a] - top))
+                total += weights[a]
             target = uniforms[t, i] * total
             cdf = np.float32(0.0)
             pick = n_actions - 1
             for a in range(n_actions):
-                cdf += np.float32(math.exp(logits[i, a] - top))
+                cdf += weights[a]
                 if cdf > target:
                     pick = a
                     break
@@ -89,3 +97,12 @@ def draw_and_step(t, logits, uniforms, states, picks, actions, ok, geo, pi, two_
             pick = min(int(uniforms[t, i] * n_actions), n_actions - 1)
         picks[t, i] = pick
         dubins_advance(states, t, i, actions[pick], dt, speed, pi, two_pi)
+
+
+@njit(nogil=True, boundscheck=False)
+def draw_step_features(t, logits, uniforms, states, picks, actions, ok, geo, pi, two_pi, feat, counts, fmap, probes):
+    """:func:`draw_and_step` of step ``t``, then (before the last step) :func:`features` of the states it reached:
+    one call per step instead of two (a call's dispatch costs microseconds, as much as the work at small N)."""
+    draw_and_step(t, logits, uniforms, states, picks, actions, ok, geo, pi, two_pi)
+    if t + 1 < states.shape[0] - 1:  # states [T+1, 3, N]: the last step needs no features
+        features(t + 1, states, feat, ok, counts, fmap, probes, geo)

@@ -16,16 +16,19 @@ farm's rule for its patches), at one ``contains`` per obstacle instead of one ga
 
 from __future__ import annotations
 
+import functools
 import math
+from collections.abc import Callable
 
 import torch
 from torch import Tensor
 
 from cuniform_torch.envs.environment import Environment
 from cuniform_torch.envs.occupancy import OccupancyGrid
+from cuniform_torch.envs.shapes import Circle
 from cuniform_torch.maps.encoder import PatchSpec
 
-__all__ = ["patch_centres", "sense_patch", "local_map"]
+__all__ = ["patch_centres", "sense_patch", "local_map", "warm_up"]
 
 
 _CENTRES: dict[tuple, Tensor] = {}
@@ -53,10 +56,12 @@ def _patch_centres(spec: PatchSpec, dtype: torch.dtype, device: torch.device | s
 
 
 def sense_patch(world: OccupancyGrid | Environment, pose: Tensor, spec: PatchSpec, max_range: float | None = None,
-                time: float | None = None) -> Tensor:
+                time: float | None = None, compiled: bool = True) -> Tensor:
     """``pose [3]`` (or ``[B, 3]``: world x, y, heading) -> ``bool [H, W]`` (or ``[B, H, W]``) occupancy of the
     patch in that pose's frame. A grid ``world`` must be on the pose's device; ``max_range`` (m) limits what is
-    seen; ``time`` (s) selects an Environment's obstacles sensed by then (None: all)."""
+    seen; ``time`` (s) selects an Environment's obstacles sensed by then (None: all). ``compiled``: an Environment
+    of discs and rectangles on a CPU is sensed by one compiled loop (:mod:`~cuniform_torch.maps.sensing_loops`,
+    the same cells to the last bit) where numba is installed; False: always the torch path."""
     if not isinstance(world, (OccupancyGrid, Environment)):
         raise ValueError(f"world must be an OccupancyGrid or an Environment, got {type(world).__name__}")
     if not isinstance(pose, Tensor) or not pose.is_floating_point() or pose.shape[-1:] != (3,) or pose.ndim > 2:
@@ -70,15 +75,79 @@ def sense_patch(world: OccupancyGrid | Environment, pose: Tensor, spec: PatchSpe
                          f"use world.to({str(pose.device)!r})")
     poses = pose.reshape(-1, 3)  # [B, 3]
     local = patch_centres(spec, pose.dtype, pose.device)  # [H, W, 2]
-    c, s = torch.cos(poses[:, 2]).view(-1, 1, 1), torch.sin(poses[:, 2]).view(-1, 1, 1)  # [B, 1, 1]
     lx, ly = local[..., 0], local[..., 1]  # [H, W]
-    wx = poses[:, 0].view(-1, 1, 1) + c * lx - s * ly  # [B, H, W]
-    wy = poses[:, 1].view(-1, 1, 1) + s * lx + c * ly
-    xy = torch.stack((wx, wy), dim=-1)  # [B, H, W, 2]
-    seen = world.contains(xy) if isinstance(world, OccupancyGrid) else world.in_collision(xy, time)  # [B, H, W]
+    seen = _sense_compiled(world, poses, local, time) if compiled else None  # [B, H, W]
+    if seen is None:
+        c, s = torch.cos(poses[:, 2]).view(-1, 1, 1), torch.sin(poses[:, 2]).view(-1, 1, 1)  # [B, 1, 1]
+        wx = poses[:, 0].view(-1, 1, 1) + c * lx - s * ly  # [B, H, W]
+        wy = poses[:, 1].view(-1, 1, 1) + s * lx + c * ly
+        xy = torch.stack((wx, wy), dim=-1)  # [B, H, W, 2]
+        seen = world.contains(xy) if isinstance(world, OccupancyGrid) else world.in_collision(xy, time)
     if max_range is not None:
         seen = seen & (lx.square() + ly.square() <= max_range * max_range)
     return seen if pose.ndim == 2 else seen[0]
+
+
+@functools.cache
+def _loop() -> Callable[..., None] | None:
+    """The compiled sensing loop, or None without numba."""
+    try:
+        from cuniform_torch.maps.sensing_loops import sense_poses
+    except Exception:  # numba missing or broken against this numpy: the torch path
+        return None
+    return sense_poses
+
+
+@functools.cache
+def warm_up() -> None:
+    """Compile (or load from numba's disk cache) the sensing loop now, for float32 poses: a controller calls this
+    when it is made, so that no control cycle pays for the compilation (seconds). Nothing without numba."""
+    world = Environment([Circle((0.0, 0.0), 0.1)], bounds=(-1.0, -1.0, 1.0, 1.0))
+    _sense_compiled(world, torch.zeros((1, 3)), patch_centres(PatchSpec((2, 2), 0.1, (-0.1, -0.1))), None)
+
+
+def _sense_compiled(world: OccupancyGrid | Environment, poses: Tensor, local: Tensor,
+                    time: float | None) -> Tensor | None:
+    """``bool [B, H, W]`` of the patch centres ``local [H, W, 2]`` at ``poses [B, 3]`` by the compiled loop, or None
+    where it does not apply (a grid world, not a CPU, a dtype other than float32 / float64, an obstacle other than
+    a Circle or Rect, no numba): the torch path then senses."""
+    if not isinstance(world, Environment) or poses.device.type != "cpu" \
+            or poses.dtype not in (torch.float32, torch.float64):
+        return None
+    # the Environment's own tables of its discs and rectangles (cached there while the obstacles are the same)
+    circles, rects, others = world._batched(world.visible(time))
+    loop = _loop() if not others else None
+    if loop is None:
+        return None
+    h, w = local.shape[:2]
+    lx, ly, circ, rect, bounds = _loop_tables(world, circles, rects, local)
+    poses = poses.detach().contiguous()
+    seen = torch.empty((poses.shape[0], h * w), dtype=torch.bool)
+    loop(poses[:, 0].numpy(), poses[:, 1].numpy(), torch.cos(poses[:, 2]).numpy(), torch.sin(poses[:, 2]).numpy(),
+         lx, ly, circ, rect, bounds, seen.numpy())
+    return seen.view(-1, h, w)
+
+
+_TABLES: dict[tuple, tuple] = {}
+"""the loop's arrays per world's tables, patch centres and dtype (the last few: made once, not per command)"""
+
+
+def _loop_tables(world: Environment, circles: Tensor, rects: Tensor, local: Tensor) -> tuple:
+    """The loop's arrays in the points' dtype: the centres' ``lx, ly [P]``, ``circles [C, 3]``, ``rects [R, 4]``
+    and the bounds ``[4]`` (empty: none; cast to the points' dtype, as the torch path's comparisons cast them),
+    cached while the world's tables (the objects themselves), the centres and the bounds are the same."""
+    key = (id(circles), id(rects), id(local), local.dtype, world.bounds)
+    hit = _TABLES.get(key)
+    if hit is not None and hit[0] is circles and hit[1] is rects and hit[2] is local:
+        return hit[3]
+    dtype = local.dtype
+    bounds = torch.tensor(world.bounds, dtype=dtype) if world.bounds is not None else torch.zeros(0, dtype=dtype)
+    arrays = (local[..., 0].reshape(-1).numpy(), local[..., 1].reshape(-1).numpy(), circles.to(dtype).numpy(),
+              rects.to(dtype).numpy(), bounds.numpy())
+    if len(_TABLES) >= 8:  # a few worlds at a time; an old one is dropped rather than kept alive
+        _TABLES.pop(next(iter(_TABLES)))
+    _TABLES[key] = (circles, rects, local, arrays)
+    return arrays
 
 
 def local_map(world: OccupancyGrid | Environment, pose: Tensor, spec: PatchSpec, max_range: float | None = None,

@@ -1,0 +1,88 @@
+"""CU-MPPI's first stage, whole plan against lean, in one process: per-command CPU time side by side.
+
+    python -m eval.bench.first_stage                       # K = 64, 256, 1024; T = 15; 300 rounds
+
+Two CU-MPPI controllers of the same seed drive the family benchmark's robot on BARN map 0 (its start, the
+navigation cost, the robot's max-flow table): one as it is (the first stage proposes, costs, takes the argmin and
+gathers the best sequence: ``CUniformMPPI._best_actions``), one whose first stage runs the whole plan it ran
+before (weights, the weighted sequence, a result, then ``best_actions()``), and MPPI (std 1.0) beside them. One
+command of each in turn per round, timed by this thread's CPU clock (the time other processes hold the core left
+out), so the two paths meet the same machine, load and caches; the least and the median of the rounds are
+printed, and the least as a ratio to MPPI's. A separate-process before / after (``eval.bench.family`` on two checkouts) cannot resolve a few percent
+on a shared machine: each process's own layout moves a figure by about as much. Both controllers command the
+same (checked).
+"""
+
+from __future__ import annotations
+
+import os
+import statistics
+import sys
+import time
+import types
+from pathlib import Path
+
+import torch
+
+from precompute.cli import ArgumentParser, cli_main, non_negative_int, positive_int
+
+
+def make_parser() -> ArgumentParser:
+    p = ArgumentParser(prog="python -m eval.bench.first_stage", description=(__doc__ or "").split("\n\n")[0])
+    p.add_argument("--samples", type=positive_int, nargs="+", default=[64, 256, 1024], help="K (both stages)")
+    p.add_argument("--repeats", type=positive_int, default=300)
+    p.add_argument("--warmup", type=non_negative_int, default=30)
+    p.add_argument("--cache", type=Path, default=Path("out/nav-cache"),
+                   help="where the robot's table is built once and cached")
+    return p
+
+
+def _whole_plan(self, states: torch.Tensor, streams) -> tuple[torch.Tensor, torch.Tensor]:
+    """``CompositeProposal.propose_batch`` as it was: the first stage's whole plan, then its best sequence."""
+    self.local.seed(self.first._plan(states).best_actions())
+    return self.local.propose_batch(states, streams)
+
+
+@cli_main()
+def main(argv: list[str] | None = None) -> int:
+    args = make_parser().parse_args(argv)
+    torch.set_num_threads(1)
+    from cuniform_torch import CUMPPI, MPPI, TablePolicy, read_table
+    from cuniform_torch.envs import NavigationCost
+    from eval.navigate.robot_files import ensure_table
+    from precompute.worlds.barn import load_barn
+    from precompute.worlds.robot import NAV_ROBOT
+
+    world = load_barn()[0]
+    cost = NavigationCost(world.environment(NAV_ROBOT.radius), world.goal)
+    state = torch.tensor(world.start, dtype=torch.float32)
+    table = TablePolicy(read_table(ensure_table(NAV_ROBOT, Path(args.cache))))
+    print(f"# per-command CPU ms (thread clock), least / median of {args.repeats} round-robin rounds, 1 thread, "
+          f"BARN map 0, navigation cost")
+    print(f"{'K':>6} {'mppi':>15} {'cumppi whole':>23} {'cumppi lean':>23} {'lean / whole':>13}")
+    for k in args.samples:
+        whole, lean = CUMPPI(table, cost, k, seed=0), CUMPPI(table, cost, k, seed=0)
+        whole.proposal.propose_batch = types.MethodType(_whole_plan, whole.proposal)  # type: ignore[method-assign]
+        mppi = MPPI(NAV_ROBOT.make_system(), cost, k, table.horizon, noise_std=1.0, seed=0)
+        fns = {"mppi": mppi.command, "whole": whole.command, "lean": lean.command}
+        times: dict[str, list[float]] = {name: [] for name in fns}
+        for r in range(args.warmup + args.repeats):
+            for name, fn in fns.items():
+                t0 = time.thread_time()
+                fn(state)
+                if r >= args.warmup:
+                    times[name].append(time.thread_time() - t0)
+        if not torch.equal(whole.command(state), lean.command(state)):
+            print(f"K = {k}: the two paths commanded differently", file=sys.stderr)
+            return 1
+        base = min(times["mppi"])
+        cells = [f"{1e3 * min(v):6.3f} / {1e3 * statistics.median(v):5.3f}"
+                 + ("" if name == "mppi" else f" ({min(v) / base:.2f}x)") for name, v in times.items()]
+        ratio = min(times["lean"]) / min(times["whole"])
+        print(f"{k:>6} {cells[0]:>15} {cells[1]:>23} {cells[2]:>23} {ratio:>12.2f}x")
+    print(f"load {os.getloadavg()[0]:.2f}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
