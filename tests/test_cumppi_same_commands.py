@@ -88,7 +88,9 @@ def _table():
 def test_the_commands_are_the_recorded_ones(name, dubins_table):
     recorded = json.loads(DATA.read_text())[name]
     now = closed_loop(name, dubins_table)
-    assert torch.allclose(torch.tensor(now), torch.tensor(recorded), atol=1e-5, rtol=0), (name, now, recorded)
+    # 1e-4: the local stage's rollouts are Dubins.scan's running sums since the recording (the step loop's values to
+    # float rounding, which a few closed-loop steps grow to about 1e-5); a changed choice moves a command by 0.1 or more
+    assert torch.allclose(torch.tensor(now), torch.tensor(recorded), atol=1e-4, rtol=0), (name, now, recorded)
 
 
 if __name__ == "__main__":
