@@ -280,6 +280,17 @@ def _legacy_value(field: dataclasses.Field, values: list[str], flag: str) -> str
     return json.dumps(number(text, float))
 
 
+def _param_items(argv: Sequence[str]) -> list[str]:
+    """The ``KEY=VALUE`` items of ``--param`` in ``argv`` (``--param K=V`` or ``--param=K=V``)."""
+    items = []
+    for i, word in enumerate(argv):
+        if word == "--param" and i + 1 < len(argv):
+            items.append(argv[i + 1])
+        elif word.startswith("--param="):
+            items.append(word[len("--param="):])
+    return items
+
+
 def legacy_argv(argv: Sequence[str]) -> tuple[list[str], str | None]:
     """``(argv, note)``: the old spelling (no subcommand) translated, and the one-line deprecation note naming the
     new command (None when ``argv`` already starts with a subcommand). The subcommand follows the old mode flags:
@@ -315,6 +326,9 @@ def legacy_argv(argv: Sequence[str]) -> tuple[list[str], str | None]:
         out.append(argv[i])
         i += 1
     given = {a.partition("=")[0] for a in out}
+    explicit = {item.partition("=")[0].replace("-", "_") for item in _param_items(out)}
+    for key in sorted(explicit & {p.partition("=")[0] for p in params}):
+        raise CLIError(f"{key} given both as a flag and as --param; give it once (--param {key}=VALUE)")
     if "--starts" in given and "--map" in given:
         raise CLIError("--map builds one safe table; a table set (--starts) takes no map (see precompute.maps.farm)")
     if "--starts" in given and "--start" in given:

@@ -71,6 +71,8 @@ def parse_params(items: list[str]) -> dict[str, Any]:
         key, sep, value = item.partition("=")
         if not sep or not key:
             raise ValueError(f"--param needs KEY=VALUE, got {item!r}")
+        if key.replace("-", "_") in out:
+            raise ValueError(f"--param {key} given twice; give each parameter once")
         try:
             out[key.replace("-", "_")] = json.loads(value)
         except json.JSONDecodeError:

@@ -403,6 +403,7 @@ def test_build_cli_with_a_user_module_and_params(user_module, tmp_path, capsys):
     (["--system", "no_such_module_xyz:Car"], r"cannot import module 'no_such_module_xyz'"),
     (["--param", "speed"], r"--param needs KEY=VALUE"),
     (["--param", "speed=0.3", "--speed", "0.5"], r"speed given both as a flag and as --param"),
+    (["--param", "speed=0.3", "--param", "speed=0.5"], r"--param speed given twice"),
     (["--param", "wheels=4"], r"system 'dubins' has no parameter\(s\) wheels"),
 ])
 def test_build_cli_errors(argv, match, tmp_path, capsys):

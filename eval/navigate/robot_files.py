@@ -19,7 +19,6 @@ build says what it builds and how long it takes before it starts (:func:`announc
 
 from __future__ import annotations
 
-import argparse
 import hashlib
 import json
 import os
@@ -33,7 +32,7 @@ from typing import TYPE_CHECKING, Any
 
 import cuniform_torch
 from cuniform_torch.common.fileio import FileLockedError, open_regular, read_capped_text, write_json
-from precompute.cli import CLIError, cli_main, horizon_arg
+from precompute.cli import ArgumentParser, CLIError, cli_main, horizon_arg
 from precompute.worlds.robot import NAV_ROBOT, RobotPreset, preset_dict
 
 if TYPE_CHECKING:
@@ -329,8 +328,8 @@ than 1e-3, at most by 0.011, for the same coverage (6306 / 15816 cells at N = 10
 15817; CHANGELOG)"""
 
 
-def make_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+def make_parser() -> ArgumentParser:
+    parser = ArgumentParser(
         prog="python -m eval.navigate.robot_files",
         description="The navigation robot's shipped tables (cuniform_torch/maps/robot_tables/): rebuild them "
                     f"(--ship, about {BUILD_SECONDS[('maxflow', 15)] + BUILD_SECONDS[('coverage', 15)]:.0f} s on a "
