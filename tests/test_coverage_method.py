@@ -163,19 +163,79 @@ def test_approximations_keep_real_coverage(small_dubins):
     assert totals["approx"] >= 0.95 * totals["exact"], totals
 
 
-def test_adjoint_gradient_is_the_autograd_gradient():
-    """The hand-written backward pass (precompute/coverage/adjoint.py) against autograd through _propagate."""
-    from precompute.coverage.adjoint import StatePropagator
-    from precompute.coverage.method import _propagate, coverage_objective
+# the compiled loops of the coverage build (precompute/coverage/loops.py) against the torch and autograd references
+def _torch_transitions(levels, probs, A):
+    """The torch assembly of the recorded transitions the compiled one replaced (the slow reference)."""
+    import torch
 
-    system = make_system("dubins")
-    levels = enumerate_reachable(system, 5)
-    config = CoverageConfig(horizon=5, target_samples=100)
+    out, state_mass = [], torch.ones(1, dtype=torch.float64)
+    for t in range(len(levels.successor)):
+        sc, succ = levels.state_cell[t], levels.successor[t]
+        n, m = len(levels.cells[t]), len(levels.cells[t + 1])
+        ok = (succ >= 0).reshape(-1)
+        src = sc.unsqueeze(1).expand_as(succ).reshape(-1)[ok]
+        act = torch.arange(A).repeat(len(sc))[ok]
+        dst = levels.state_cell[t + 1][succ.reshape(-1)[ok]]
+        weight = state_mass.unsqueeze(1).expand_as(succ).reshape(-1)[ok]
+        uniq, inv = torch.unique((src * A + act) * m + dst, return_inverse=True)
+        w = torch.zeros(len(uniq), dtype=torch.float64).index_add(0, inv, weight)
+        cnt = torch.zeros(len(uniq), dtype=torch.float64).index_add(0, inv, torch.ones_like(weight))
+        sa = uniq // m
+        tot_w = torch.zeros(n * A, dtype=torch.float64).index_add(0, sa, w)
+        tot_c = torch.zeros(n * A, dtype=torch.float64).index_add(0, sa, cnt)
+        frac = torch.where(tot_w[sa] > 0, w / tot_w[sa].clamp(min=1e-300), cnt / tot_c[sa])
+        out.append((torch.stack((sa // A, sa % A, uniq % m), 1).numpy(), frac.numpy()))
+        state_mass = torch.zeros(levels.num_states[t + 1], dtype=torch.float64).index_add(
+            0, succ.reshape(-1)[ok], (state_mass.unsqueeze(1) * probs[t][sc]).reshape(-1)[ok])
+    return out
+
+
+@pytest.mark.parametrize("pruned", [False, True])
+def test_the_compiled_transitions_are_the_torch_assembly_to_the_bit(pruned):
+    import torch
+
+    from cuniform_torch.systems import make_system
+    from precompute.coverage.loops import level_transitions
+    from precompute.coverage.method import enumerate_reachable
+
+    levels = enumerate_reachable(make_system("dubins"), 6, state_budget=2000)
     gen = torch.Generator().manual_seed(0)
+    if pruned:  # every fifth pair lost to a map, and one level's states all without mass on action 0
+        levels.successor = [torch.where(torch.rand(s.shape, generator=gen) < 0.2, -1, s) for s in levels.successor]
+    A = levels.successor[0].shape[1]
+    probs = [torch.softmax(3 * torch.randn(len(c), A, generator=gen, dtype=torch.float64), 1)
+             for c in levels.cells[:-1]]
+    if pruned:
+        probs[2][:, 0] = 0.0
+    state_mass = torch.ones(1, dtype=torch.float64)
+    for t, (rows, frac) in enumerate(_torch_transitions(levels, probs, A)):
+        sc, succ = levels.state_cell[t], levels.successor[t]
+        src, act, dst, got = level_transitions(sc.numpy(), succ.reshape(-1).numpy(),
+                                               levels.state_cell[t + 1].numpy(), state_mass.numpy(),
+                                               len(levels.cells[t]), A)
+        assert np.array_equal(np.stack((src, act, dst), 1), rows) and np.array_equal(got, frac), t
+        ok = (succ >= 0).reshape(-1)
+        state_mass = torch.zeros(levels.num_states[t + 1], dtype=torch.float64).index_add(
+            0, succ.reshape(-1)[ok], (state_mass.unsqueeze(1) * probs[t][sc]).reshape(-1)[ok])
+
+
+@pytest.mark.parametrize("pruned", [False, True])
+def test_the_compiled_ascent_passes_are_the_autograd_gradient(pruned):
+    """StatePropagator (compiled loops) against autograd through the torch propagation, with pruned successors."""
+    import torch
+
+    from cuniform_torch.systems import make_system
+    from precompute.coverage.adjoint import StatePropagator
+    from precompute.coverage.method import CoverageConfig, _propagate, coverage_objective, enumerate_reachable
+
+    levels = enumerate_reachable(make_system("dubins"), 5)
+    gen = torch.Generator().manual_seed(1)
+    if pruned:
+        levels.successor = [torch.where(torch.rand(s.shape, generator=gen) < 0.2, -1, s) for s in levels.successor]
+    config = CoverageConfig(horizon=5, target_samples=100)
     logits = [torch.randn((len(c), 5), generator=gen, dtype=torch.float64, requires_grad=True)
               for c in levels.cells[:-1]]
     coverage_objective(_propagate(levels, logits)[1:], config).backward()
-    expected = [l.grad.clone() for l in logits]
     probs = [torch.softmax(l.detach(), dim=1) for l in logits]
     propagator = StatePropagator(levels, 5, torch.float64)
     cells = propagator.forward(probs)
@@ -183,6 +243,7 @@ def test_adjoint_gradient_is_the_autograd_gradient():
         torch.testing.assert_close(got, want)
     leaves = [c.requires_grad_() for c in cells[1:]]
     cell_grads = [torch.zeros_like(cells[0])] + list(torch.autograd.grad(coverage_objective(leaves, config), leaves))
-    for t, (g, p, want) in enumerate(zip(propagator.backward(probs, cell_grads), probs, expected)):
-        got = p * (g - (g * p).sum(1, keepdim=True))  # through the softmax
-        torch.testing.assert_close(got, want, msg=f"level {t}")
+    for t, (g, p, l) in enumerate(zip(propagator.backward(probs, cell_grads), probs, logits)):
+        torch.testing.assert_close(p * (g - (g * p).sum(1, keepdim=True)), l.grad, msg=f"level {t}")
+    with pytest.raises(ValueError, match="expected torch.float64 tensors, got torch.float32"):
+        propagator.forward([p.float() for p in probs])

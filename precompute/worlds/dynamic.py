@@ -35,7 +35,7 @@ import torch
 
 from cuniform_torch.envs import Environment, MovingDiscs
 from precompute.worlds.geometry import SuiteError, inflate, reachable
-from precompute.worlds.suites import MAX_ATTEMPTS, NavTask, _int, _num, validate_task
+from precompute.worlds.suites import MAX_ATTEMPTS, NavTask, _int, _num, disc_count_range, validate_task
 
 __all__ = ["moving", "sudden", "SUDDEN_APPEAR", "sudden_id", "sudden_position"]
 
@@ -94,12 +94,7 @@ def moving(seed: int, length: float = 20.0, width: float = 6.0, num_discs: tuple
     v_robot, jitter = _num(robot_speed, "robot_speed", who), _num(crossing_jitter, "crossing_jitter", who, False)
     clear, every = _num(start_clearance, "start_clearance", who), _num(check_every, "check_every", who)
     limit = _num(time_limit, "time_limit", who)
-    try:
-        lo, hi = (_int(v, "num_discs", who) for v in num_discs)
-    except TypeError:
-        raise SuiteError(f"{who}: num_discs must be a pair (min, max), got {num_discs!r}") from None
-    if not 0 <= lo <= hi:
-        raise SuiteError(f"{who}: num_discs must satisfy 0 <= min <= max, got {num_discs!r}")
+    lo, hi = disc_count_range(num_discs, who)
     if not L > 6.0:
         raise SuiteError(f"{who}: length ({L}) must exceed 6 m (the discs cross within [3, length - 3])")
     if not Wd > 2 * r:

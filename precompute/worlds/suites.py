@@ -113,6 +113,17 @@ def _int(value: Any, what: str, who: str) -> int:
     return int(value)
 
 
+def disc_count_range(num_discs: Any, who: str) -> tuple[int, int]:
+    """``num_discs`` checked as a pair ``(min, max)`` of integers with ``0 <= min <= max``; SuiteError naming it."""
+    try:
+        lo, hi = (_int(v, "num_discs", who) for v in num_discs)
+    except TypeError:
+        raise SuiteError(f"{who}: num_discs must be a pair (min, max), got {num_discs!r}") from None
+    if not 0 <= lo <= hi:
+        raise SuiteError(f"{who}: num_discs must satisfy 0 <= min <= max, got {num_discs!r}")
+    return lo, hi
+
+
 def validate_task(task: NavTask, resolution: float = 0.1, check_reachable: bool = True) -> None:
     """Raise :class:`SuiteError` if the start or goal is in collision on ``task.environment`` (obstacles or
     bounds; moving discs where they are at t = 0) or, with ``check_reachable``, if :func:`reachable` fails on the
@@ -151,12 +162,7 @@ def forest(seed: int, length: float = 35.0, width: float = 10.0, num_discs: tupl
     L, Wd = _num(length, "length", who), _num(width, "width", who)
     R, r = _num(disc_radius, "disc_radius", who), _num(robot_radius, "robot_radius", who, positive=False)
     clear = _num(start_clearance, "start_clearance", who)
-    try:
-        lo, hi = (_int(v, "num_discs", who) for v in num_discs)
-    except TypeError:
-        raise SuiteError(f"{who}: num_discs must be a pair (min, max), got {num_discs!r}") from None
-    if not 0 <= lo <= hi:
-        raise SuiteError(f"{who}: num_discs must satisfy 0 <= min <= max, got {num_discs!r}")
+    lo, hi = disc_count_range(num_discs, who)
     if sensing_range is not None:
         sensing_range = _num(sensing_range, "sensing_range", who)
         if sensing_range <= r:
