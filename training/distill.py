@@ -51,10 +51,10 @@ import torch
 
 from cuniform_torch.common.fileio import exclusive_lock
 from cuniform_torch.grid.cells import Grid
-from cuniform_torch.policies.checkpoint import file_sha256, policy_checkpoint, save_policy
+from cuniform_torch.policies.checkpoint import policy_checkpoint, save_policy
 from cuniform_torch.policies.mlp import MAX_FREQUENCIES, MLPConfig, MLPPolicy, default_feature_scale
 from cuniform_torch.policies.table import TablePolicy
-from cuniform_torch.tables.file import Table, read_table
+from cuniform_torch.tables.file import Table, read_table_sha256
 from precompute.cli import (
     OUT,
     ArgumentParser,
@@ -111,8 +111,9 @@ def make_parser() -> ArgumentParser:
 
 
 def parse_args(argv: Sequence[str] | None = None) -> DistillConfig:
-    """Flags -> a checked :class:`DistillConfig` with its derived fields filled; :class:`UsageError` when bad."""
-    return check_config(dataclass_from_args(DistillConfig, make_parser().parse_args(argv)))
+    """Flags -> a :class:`DistillConfig` (each flag's type checked as it is parsed; :class:`UsageError` when bad).
+    :func:`distill`, the library edge, checks the whole config once (:func:`check_config`)."""
+    return dataclass_from_args(DistillConfig, make_parser().parse_args(argv))
 
 
 def check_config(cfg: DistillConfig) -> DistillConfig:
@@ -165,16 +166,18 @@ def check_outputs(cfg: DistillConfig) -> None:
     check_output_folder(cfg.logdir, "--logdir")
 
 
-def read_tables(paths: Sequence[str]) -> list[Table]:
-    """Read every table (:class:`TableError` when one is bad) and check they share the system and the actions."""
-    tables = [read_table(p, graph=False) for p in paths]  # the flow graph is not distilled
+def read_tables(paths: Sequence[str]) -> tuple[list[Table], list[str]]:
+    """Read every table (:class:`TableError` when one is bad) and check they share the system and the actions:
+    ``(tables, their files' sha256)``, each file read once (the digest is of the bytes the table came from)."""
+    read = [read_table_sha256(p, graph=False) for p in paths]  # the flow graph is not distilled
+    tables = [t for t, _ in read]
     for path, table in zip(paths[1:], tables[1:]):
         if json.loads(table.system) != json.loads(tables[0].system):
             raise UsageError(f"{path} was built for {table.system}, but {paths[0]} for {tables[0].system}; "
                              "tables distilled together must share the system JSON")
         if table.actions.shape != tables[0].actions.shape or (table.actions != tables[0].actions).any():
             raise UsageError(f"{path} and {paths[0]} have different action sets")
-    return tables
+    return tables, [sha for _, sha in read]
 
 
 def distill(cfg: DistillConfig) -> int:
@@ -196,12 +199,11 @@ def _distill(cfg: DistillConfig) -> int:
     device = torch.device(cfg.device)
 
     # ---- tables
-    tables = read_tables(cfg.tables)
+    tables, table_shas = read_tables(cfg.tables)
     table = tables[0]
     cfg = with_epochs(cfg, sum(int(t.cells.shape[0]) for t in tables))
     system, T = table.make_system(), table.horizon
     grid = Grid.of(system)
-    table_shas = [file_sha256(p) for p in cfg.tables]
     fingerprint = {**{k: getattr(cfg, k) for k in RESUME_KEYS}, "tables_sha256": table_shas}
 
     data_gen, val_gen = seed_run(cfg)

@@ -7,25 +7,29 @@ E flow arcs, K recorded transitions. See DESIGN.md for the key-by-key contract.
 
 from __future__ import annotations
 
+import hashlib
+import io
 import math
+import mmap
 import os
 import zipfile
 import zlib
 from collections.abc import Callable
 from dataclasses import dataclass, field, fields
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 import torch
 
 from cuniform_torch.common.digest import DIGEST_KEY, DigestError, check_digest, content_digest
-from cuniform_torch.common.fileio import file_kind, write_npz
+from cuniform_torch.common.fileio import file_kind, open_regular, write_npz
 from cuniform_torch.common.npz import NpzError, npy_header
 from cuniform_torch.systems import MAX_ACTIONS, MAX_HORIZON, System, system_from_json, system_to_json
 from cuniform_torch.tables.checks import KNOWN_METHODS, TableError, validate_table
 
-__all__ = ["TABLE_FORMAT", "Table", "TableError", "write_table", "read_table", "validate_table", "system_fields",
+__all__ = ["TABLE_FORMAT", "Table", "TableError", "write_table", "read_table", "read_table_sha256",
+           "validate_table", "system_fields",
            "KNOWN_METHODS", "DIGEST_KEY", "NOGRAPH_DIGEST_KEY", "table_digests"]
 
 TABLE_FORMAT = "cuniform-table/1"
@@ -191,18 +195,73 @@ def read_table(path: str | os.PathLike, *, check_system: bool = True, graph: boo
     edited file) is a :class:`TableError` naming the file. A table written before digests loads, after a
     one-line note on stderr.
     """
+    path = _table_path(path)
+    try:
+        arrays = _read_zip(path, path, graph, path.stat().st_size)
+    except (zipfile.BadZipFile, zipfile.LargeZipFile, OSError, EOFError, zlib.error) as exc:
+        raise TableError(f"{path}: not a readable .npz table ({type(exc).__name__}: {exc})") from None
+    return _table_of(arrays, path, graph, check_system, trust_factory)
+
+
+def read_table_sha256(path: str | os.PathLike, *, check_system: bool = True, graph: bool = True,
+                      trust_factory: str | Callable[..., Any] | None = None) -> tuple[Table, str]:
+    """:func:`read_table`, and the sha256 of the file's bytes (hex), from one read: the file is mapped once,
+    hashed, and the table read from the same mapping, so the digest names exactly the bytes the table came
+    from (a reader that hashes the path again reads the file twice and may hash a file replaced meanwhile)."""
+    path = _table_path(path)
+    try:
+        with open_regular(path, "the table file") as fh:
+            size = os.fstat(fh.fileno()).st_size
+            if size == 0:  # mmap refuses an empty file; zipfile says what is wrong with it
+                _read_zip(io.BytesIO(b""), path, graph, 0)
+            with mmap.mmap(fh.fileno(), 0, access=mmap.ACCESS_READ) as mm:
+                sha = hashlib.sha256(mm).hexdigest()
+                arrays = _read_zip(_Mapped(mm), path, graph, size)
+    except (zipfile.BadZipFile, zipfile.LargeZipFile, OSError, EOFError, zlib.error) as exc:
+        raise TableError(f"{path}: not a readable .npz table ({type(exc).__name__}: {exc})") from None
+    return _table_of(arrays, path, graph, check_system, trust_factory), sha
+
+
+class _Mapped:
+    """A read-only file over an ``mmap`` for :class:`zipfile.ZipFile` (Python 3.11's mmap has no ``seekable``)."""
+
+    def __init__(self, mm: mmap.mmap) -> None:
+        self._mm = mm
+        self.read, self.tell = mm.read, mm.tell
+
+    def seek(self, pos: int, whence: Literal[0, 1, 2] = 0) -> int:
+        try:
+            self._mm.seek(pos, whence)
+        except ValueError as exc:  # a file says OSError, which zipfile expects of a short (non-zip) file
+            raise OSError(str(exc)) from None
+        return self._mm.tell()
+
+    def seekable(self) -> bool:
+        return True
+
+
+def _read_zip(source: Any, path: Path, graph: bool, size: int) -> dict[str, np.ndarray]:
+    """:func:`_read_members` of the zip at ``source`` (a path or a seekable binary file)."""
+    with zipfile.ZipFile(source) as zf:
+        return _read_members(zf, path, graph, size)
+
+
+def _table_path(path: str | os.PathLike) -> Path:
+    """``path`` as a Path, or :class:`TableError` when no regular file is there (a FIFO or a device is never
+    opened), saying what is there instead, when something is."""
     path = Path(path)
-    if not path.is_file():  # what is there instead, when something is: a FIFO or a device is never opened
+    if not path.is_file():
         try:
             there = f" ({file_kind(os.stat(path).st_mode)}{' through a symlink' if path.is_symlink() else ''})"
         except OSError:
             there = ""
         raise TableError(f"{path}: no table file there{there}")
-    try:
-        with zipfile.ZipFile(path) as zf:
-            arrays = _read_members(zf, path, graph)
-    except (zipfile.BadZipFile, zipfile.LargeZipFile, OSError, EOFError, zlib.error) as exc:
-        raise TableError(f"{path}: not a readable .npz table ({type(exc).__name__}: {exc})") from None
+    return path
+
+
+def _table_of(arrays: dict[str, np.ndarray], path: Path, graph: bool, check_system: bool,
+              trust_factory: str | Callable[..., Any] | None) -> Table:
+    """The arrays read from ``path``, digest-checked, as a validated :class:`Table`."""
     _check_digests(arrays, path, graph)
     kwargs: dict[str, Any] = {k: v for k, v in arrays.items() if k != "format" and k not in _DIGEST_KEYS}
     for key in ("system", *_OPTIONAL_STRINGS):
@@ -234,8 +293,9 @@ _MAX_STRING = {"format": 64, "system": 1 << 20, "method": 64, "build_info": 1 <<
                DIGEST_KEY: 64, NOGRAPH_DIGEST_KEY: 64}  # characters
 
 
-def _read_members(zf: zipfile.ZipFile, path: Path, graph: bool) -> dict[str, np.ndarray]:
-    """The format's arrays of an open ``.npz``, read in an order that bounds each one before it is decompressed."""
+def _read_members(zf: zipfile.ZipFile, path: Path, graph: bool, file_size: int) -> dict[str, np.ndarray]:
+    """The format's arrays of an open ``.npz`` of ``file_size`` bytes, read in an order that bounds each one before
+    it is decompressed."""
     infos = zf.infolist()
     seen: set[str] = set()
     for info in infos:
@@ -251,7 +311,7 @@ def _read_members(zf: zipfile.ZipFile, path: Path, graph: bool) -> dict[str, np.
                              "stored or deflated")
     if "format" not in members:
         raise TableError(f"{path}: no 'format' key; this is not a cuniform table")
-    budget = max(_MIN_BUDGET, MAX_EXPANSION * path.stat().st_size)
+    budget = max(_MIN_BUDGET, MAX_EXPANSION * file_size)
     total = sum(info.file_size for info in members.values())
     if total > budget:
         big = max(members, key=lambda k: members[k].file_size)
