@@ -84,3 +84,91 @@ def test_distill_library_call_still_checks_its_config(walk_path, tmp_path):
     cfg = distill.DistillConfig(tables=[str(walk_path)], out=str(tmp_path / "p.pt"), logdir=str(tmp_path), hidden=0)
     with pytest.raises(distill.UsageError, match="--hidden must be a positive integer, got 0"):
         distill.distill(cfg)
+
+
+# ------------------------------------------------------------------------------------------ K, from --budgets on
+
+def test_navigate_checks_its_budgets_once_from_the_flags(monkeypatch, tmp_path, capsys):
+    """``main`` checks the config before any work and hands it to the unchecked ``_run``; ``run`` (the library
+    edge) checks it itself."""
+    from eval.navigate import run as nav
+
+    calls: list[int] = []
+    real = nav._check
+    monkeypatch.setattr(nav, "_check", lambda cfg: calls.append(1) or real(cfg))
+
+    class Stop(Exception):
+        pass
+
+    def stop(*a, **k):
+        raise Stop
+
+    monkeypatch.setattr(nav, "_run", stop)
+    with pytest.raises(Stop):
+        nav.run(nav.NavConfig(budgets=(8,)), tmp_path / "lib")
+    assert len(calls) == 1
+    calls.clear()
+    with pytest.raises(Stop):
+        nav.main(["--budgets", "8", "--tasks", "1", "--out", str(tmp_path / "cli"), "--quiet"])
+    assert len(calls) == 1, f"the config was checked {len(calls)} times on the way from the flags"
+
+
+@pytest.mark.parametrize("budgets, message", [(("1",), "argument --budgets: must be an integer in [2, "),
+                                               (("0",), "argument --budgets: must be an integer in [2, "),
+                                               (("x",), "argument --budgets:")])
+def test_a_bad_budget_flag_is_one_error_line(budgets, message, tmp_path, capsys):
+    from eval.navigate import run as nav
+
+    with pytest.raises(SystemExit) as exit_:  # argparse's exit, with the project's code
+        nav.main(["--budgets", *budgets, "--out", str(tmp_path)])
+    assert exit_.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("error: ") and message in err[0], err
+
+
+def test_a_bad_budget_at_the_library_edge(tmp_path):
+    from eval.navigate import run as nav
+
+    with pytest.raises(ValueError, match=r"every budget must be an integer >= 2 \(CU-MPPI splits it in two\), got \[1\]"):
+        nav.run(nav.NavConfig(budgets=(1, 8)), tmp_path)
+
+
+def _cost(states, actions):
+    return (states ** 2).sum((-1, -2))
+
+
+@pytest.mark.parametrize("k", [0, -3, 2.5, True, "8"])
+def test_a_bad_k_at_each_public_constructor(k):
+    from cuniform_torch.controllers.mppi import CUMPPI, MPPI
+    from cuniform_torch.controllers.proposals import GaussianProposal
+    from cuniform_torch.policies.table import TablePolicy
+
+    system = make_system("random_walk_1d")
+    table, _ = build_table(system, BuildConfig(horizon=3))
+    message = rf"num_samples must be a positive integer, got {k!r}".replace(".", r"\.")
+    for make in (lambda: MPPI(system, _cost, num_samples=k, horizon=3),
+                 lambda: GaussianProposal(system, k, 3),
+                 lambda: CUMPPI(TablePolicy(table), _cost, num_samples=k)):
+        with pytest.raises(ValueError, match=message):
+            make()
+
+
+def test_a_plug_in_proposals_bad_k_at_the_core():
+    """A user's proposal reaches the core unchecked: the core is its edge, and says which attribute is wrong."""
+    from cuniform_torch.controllers.core import MPPICore
+
+    class Plugin:
+        system = make_system("random_walk_1d")
+        num_samples, horizon, num_robots, device, dtype = 0, 3, 1, torch.device("cpu"), torch.float32
+
+        def propose_batch(self, states, streams):
+            raise AssertionError("never called")
+
+        def update(self, result):
+            pass
+
+        def reset(self, robots=None):
+            pass
+
+    with pytest.raises(ValueError, match="num_samples must be a positive integer, got 0"):
+        MPPICore(Plugin(), _cost)

@@ -304,8 +304,17 @@ def _trained_radius(path: Path, name: str) -> float | None:
 def run(cfg: NavConfig, out: Path, robot: RobotPreset = NAV_ROBOT, cache: Path = Path("out/navigate/cache"),
         barn_file: Path | None = None, given: dict[str, Path | None] | None = None,
         ray_address: str | None = None, progress: bool = True) -> dict:
-    """Run (or resume) the benchmark ``cfg`` into the folder ``out``; the result that ``results.json`` holds."""
+    """Run (or resume) the benchmark ``cfg`` into the folder ``out``; the result that ``results.json`` holds.
+    ``cfg`` is checked here, the library's edge (:func:`main` checks its flags before any work and calls
+    :func:`_run`)."""
     _check(cfg)
+    return _run(cfg, out, robot, cache, barn_file, given, ray_address, progress)
+
+
+def _run(cfg: NavConfig, out: Path, robot: RobotPreset, cache: Path, barn_file: Path | None,
+         given: dict[str, Path | None] | None, ray_address: str | None, progress: bool) -> dict:
+    """:func:`run` of a checked ``cfg``: the budgets and the rest are trusted from here to the controllers (whose
+    public constructors check K for other callers)."""
     methods = [m.key for m in parse_methods(cfg.methods, benchmark=NAVIGATE, closed_loop=True)]
     tasks = make_tasks(cfg.suite, robot.radius, cfg.tasks, seed=cfg.seed, barn_file=barn_file,
                        sensing_range=cfg.sensing_range, time_limits=TIME_LIMITS, split=cfg.split)
@@ -460,7 +469,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"converted {args.barn_worlds} into {barn_file}")
     given = {"table": args.table, "coverage_table": args.coverage_table, "policy": args.policy,
              "map_policy": args.map_policy}
-    res = run(cfg, out, robot, args.cache, barn_file, given, args.ray, progress=not args.quiet)
+    res = _run(cfg, out, robot, args.cache, barn_file, given, args.ray, progress=not args.quiet)  # checked above
     print(render(res))
     for path in write_outputs(res, out):
         print(f"wrote {path}")
