@@ -32,6 +32,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
+from cuniform_torch.common.checks import check_positive_int
 from cuniform_torch.controllers.callables import (
     CallableProposal,
     DynamicsFn,
@@ -229,8 +230,7 @@ class MPPI_Batched(MPPI):
                  u_max: Tensor | float | None = None, u_init: Tensor | None = None, u_scale: float = 1,
                  u_per_command: int = 1, step_dependent_dynamics: bool = False, noise_abs_cost: bool = False, *,
                  seed: int | None = None):
-        if isinstance(num_envs, bool) or not isinstance(num_envs, int) or num_envs < 1:
-            raise ValueError(f"num_envs must be a positive integer, got {num_envs!r}")
+        check_positive_int("num_envs", num_envs, integral=False)
         self._num_robots = num_envs
         self.N = num_envs
         super().__init__(dynamics, running_cost, nx, noise_sigma, num_samples, horizon, device, lambda_=lambda_,

@@ -54,6 +54,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from cuniform_torch.common.checks import check_positive_int
 from cuniform_torch.grid.cells import CellKeys, Grid
 from cuniform_torch.policies.start_mlp import start_dims_of
 from cuniform_torch.systems import _REGISTRY, System, check_system, register_system, system_to_json
@@ -92,9 +93,7 @@ class AutoConfig:
 
     def __post_init__(self) -> None:
         for name in ("horizon", "cell_budget", "member_budget", "probes", "sequences"):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-                raise ValueError(f"{name} must be a positive integer, got {value!r}")
+            check_positive_int(name, getattr(self, name), integral=False)
         if self.actions_per_dim is not None and (not isinstance(self.actions_per_dim, int) or self.actions_per_dim < 1):
             raise ValueError(f"actions_per_dim must be a positive integer or None, got {self.actions_per_dim!r}")
         if not (math.isfinite(self.shift_cells) and self.shift_cells > 0):

@@ -172,3 +172,26 @@ def test_a_plug_in_proposals_bad_k_at_the_core():
 
     with pytest.raises(ValueError, match="num_samples must be a positive integer, got 0"):
         MPPICore(Plugin(), _cost)
+
+
+# ------------------------------------------------------------------------------------------ one checks vocabulary
+
+def test_one_positive_integer_check_keeps_each_sites_message_and_types():
+    """The folded copies say what they said, and a config field still refuses a numpy integer (it is written
+    to JSON as given) while a controller's K takes one (a K computed with numpy)."""
+    import numpy as np
+
+    from cuniform_torch.common.checks import check_positive_int
+    from cuniform_torch.controllers.checks import check_positive_int as reexported
+    from cuniform_torch.pytorch_mppi import MPPI_Batched
+    from precompute.coverage.method import CoverageConfig
+
+    assert reexported is check_positive_int
+    assert check_positive_int("num_samples", np.int64(8)) == 8 and type(check_positive_int("K", np.int64(8))) is int
+    with pytest.raises(ValueError, match=r"^steps must be a positive integer, got 0$"):
+        CoverageConfig(steps=0)
+    with pytest.raises(ValueError, match=r"^steps must be a positive integer, got np.int64\(3\)$|^steps must be a "
+                                         r"positive integer, got 3$"):
+        CoverageConfig(steps=np.int64(3))
+    with pytest.raises(ValueError, match=r"^num_envs must be a positive integer, got True$"):
+        MPPI_Batched(lambda s, a: s, lambda s, a: s.sum(-1), 1, torch.eye(1), num_envs=True)

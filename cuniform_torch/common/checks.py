@@ -8,12 +8,13 @@ other module of the package, so anything may use it.
 from __future__ import annotations
 
 import math
+import numbers
 from typing import Any
 
 import torch
 from torch import Tensor
 
-__all__ = ["wrap_angle", "positive", "non_negative", "finite", "positive_int", "float_tuple"]
+__all__ = ["wrap_angle", "positive", "non_negative", "finite", "positive_int", "check_positive_int", "float_tuple"]
 
 
 def wrap_angle(theta: Tensor) -> Tensor:
@@ -48,6 +49,15 @@ def positive_int(who: str, key: str, value: Any, at_most: int | None = None) -> 
         bound = "" if at_most is None else f" (at most {at_most})"
         raise ValueError(f"{who}: {key} must be a positive integer{bound}, got {value!r}")
     return value
+
+
+def check_positive_int(name: str, value: object, *, integral: bool = True) -> int:
+    """``value`` as a positive int, else ValueError ``"{name} must be a positive integer, got {value!r}"`` (a bool
+    is not an int here). ``integral``: any ``numbers.Integral`` passes (a numpy integer: a K or T computed with
+    numpy); False: only a Python ``int`` (a config field that is written to JSON as it is)."""
+    if isinstance(value, bool) or not isinstance(value, numbers.Integral if integral else int) or value < 1:
+        raise ValueError(f"{name} must be a positive integer, got {value!r}")
+    return int(value)
 
 
 def float_tuple(value: Any, length: int, key: str, who: str) -> tuple[float, ...]:

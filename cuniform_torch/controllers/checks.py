@@ -15,17 +15,11 @@ import numbers
 import torch
 from torch import Tensor
 
+from cuniform_torch.common.checks import check_positive_int as check_positive_int  # re-exported (proposals, mppi)
 from cuniform_torch.sampling.rollout import same_device
 
 COST_CAP = 1e10
 """NaN / inf costs are replaced by this finite value before weighting"""
-
-
-def check_positive_int(name: str, value: object) -> int:
-    """``value`` as a positive int (ValueError otherwise; a bool is not an int here)."""
-    if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < 1:
-        raise ValueError(f"{name} must be a positive integer, got {value!r}")
-    return int(value)
 
 
 def seeded_generator(seed: int | None, device: torch.device) -> torch.Generator:

@@ -21,6 +21,7 @@ from typing import Any, Protocol
 import torch
 from torch import Tensor
 
+from cuniform_torch.common.checks import positive_int
 from cuniform_torch.envs.environment import Environment
 from cuniform_torch.systems import System
 
@@ -127,8 +128,7 @@ def simulate(
     goal_t = x0.new_tensor((gx, gy))  # [2]
     max_steps = max(1, math.ceil(limit / dt - 1e-9))  # t = k dt >= time_limit ends the run
     cap = MAX_SIM_STEPS if step_limit is None else step_limit
-    if isinstance(cap, bool) or not isinstance(cap, int) or cap < 1:
-        raise ValueError(f"simulate: step_limit must be a positive integer, got {step_limit!r}")
+    positive_int("simulate", "step_limit", cap)  # cap is step_limit when one is given
     if max_steps > cap:
         raise ValueError(f"simulate: time_limit {time_limit!r} s at dt {dt!r} s is {max_steps:,} steps, more than the "
                          f"limit of {cap:,}; give a shorter time_limit, or step_limit={max_steps} to allow it")

@@ -33,6 +33,7 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
+from cuniform_torch.common.checks import check_positive_int
 from cuniform_torch.grid.cells import Grid
 from cuniform_torch.maps import kernels
 from cuniform_torch.maps.encoder import MapEncoder, PatchSpec
@@ -85,9 +86,7 @@ class MapPolicyConfig:
 
     def __post_init__(self) -> None:
         for name in ("state_dim", "num_actions", "horizon", "hidden", "layers", "embed", "channels"):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-                raise ValueError(f"MapPolicyConfig.{name} must be a positive integer, got {value!r}")
+            check_positive_int(f"MapPolicyConfig.{name}", getattr(self, name), integral=False)
         if max(self.hidden, self.embed) > MAX_MAP_HIDDEN or self.layers > MAX_MAP_LAYERS \
                 or self.channels > MAX_MAP_CHANNELS:
             raise ValueError(f"MapPolicyConfig: at most {MAX_MAP_LAYERS} layers, {MAX_MAP_HIDDEN} hidden units or "

@@ -53,6 +53,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from cuniform_torch.common.checks import check_positive_int
 from cuniform_torch.envs import Environment, Rect, u_shape
 from eval.common import config
 from eval.common.figures import plot_paths
@@ -188,8 +189,7 @@ def controller_seed(cfg: ClutteredConfig, env_index: int, start: int, rep: int =
 
 def episodes(cfg: ClutteredConfig, methods: list[str], speed: float) -> list[Episode]:
     reps = cfg.seeds_per_start
-    if isinstance(reps, bool) or not isinstance(reps, int) or reps < 1:
-        raise ValueError(f"seeds_per_start must be a positive integer, got {reps!r}")
+    check_positive_int("seeds_per_start", reps, integral=False)
     if cfg.starts > 1000:
         raise ValueError(f"at most 1000 starts per environment (controller seeds would repeat), got {cfg.starts}")
     out = []

@@ -42,6 +42,7 @@ from typing import cast
 import numpy as np
 import torch
 
+from cuniform_torch.common.checks import check_positive_int
 from cuniform_torch.systems import System
 from cuniform_torch.tables.file import Table, system_fields
 from precompute.coverage.adjoint import StatePropagator
@@ -92,9 +93,7 @@ class CoverageConfig:
 
     def __post_init__(self) -> None:
         for name in ("horizon", "target_samples", "merge_resolution", "steps", "max_states"):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-                raise ValueError(f"{name} must be a positive integer, got {value!r}")
+            check_positive_int(name, getattr(self, name), integral=False)
         if not (self.lr > 0 and math.isfinite(self.lr)):
             raise ValueError(f"lr must be positive, got {self.lr!r}")
         if isinstance(self.state_budget, bool) or not isinstance(self.state_budget, int) or self.state_budget < 0:
