@@ -205,6 +205,9 @@ class RolloutPlan:
     for_start: Callable[[Tensor], Any] | None = None
     """the policy's ``for_start(x0)`` (a table set: the member nearest the start, with its own start check and
     compiled rollout), when it has one"""
+    fused_rollout: Callable[..., Any] | None = None
+    """the policy's ``fused_rollout(system, x0, N, T, generator, uniforms)`` (it rolls itself out in the start
+    frame; None falls back to the step loop), when it has one: settled here, not looked up per rollout"""
 
     @classmethod
     def of(cls, system: System, policy: object) -> RolloutPlan:
@@ -217,10 +220,12 @@ class RolloutPlan:
         traits = PolicyTraits.of(policy)
         watch = getattr(policy, "watch_start", None)
         select = getattr(policy, "for_start", None)
+        fused = getattr(policy, "fused_rollout", None)
         return cls(sampler=sampler, relative=traits.start_relative and bool(system.se2_invariant), traits=traits,
                    step_out=_steps_into(system), column_major_ok=steps_column_major(system),
                    watch_start=watch if callable(watch) else None, draws=callable(getattr(policy, "draw", None)),
-                   for_start=select if callable(select) else None)
+                   for_start=select if callable(select) else None,
+                   fused_rollout=fused if callable(fused) else None)
 
     def check(self, x0: Tensor, horizon: int) -> None:
         """ValueError unless the policy serves ``horizon`` steps from ``x0`` (its device, finite)."""
@@ -299,13 +304,14 @@ class RolloutPlan:
         batched controller draws up front, per robot) and ``generator`` is not used."""
         if self.for_start is not None:  # a table set: the table nearest to this start, and its start check
             policy = self.for_start(x0)
+            # a member's hooks are its own (the member changes with the start): looked up per rollout here only
             watch = getattr(policy, "watch_start", None)
+            fused = getattr(policy, "fused_rollout", None)
         else:
-            watch = self.watch_start
+            watch, fused = self.watch_start, self.fused_rollout
         report = watch(x0, self.relative) if watch is not None else None
         d = x0.shape[-1]
         start = x0.unsqueeze(0).expand(num_samples, d) if x0.ndim == 1 else x0  # [N, d]
-        fused = getattr(policy, "fused_rollout", None)  # a policy that rolls itself out in the start frame
         own = (fused(system, x0, num_samples, horizon, generator, uniforms) if self.relative and callable(fused)
                else None)
         if own is not None:
