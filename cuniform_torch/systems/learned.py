@@ -54,25 +54,27 @@ def train_weights(speed: float, dt: float, max_omega: float, hidden: int, seed: 
     threads = torch.get_num_threads()
     torch.set_num_threads(1)  # one thread: the same sums in the same order, so the same weights on any CPU count
     try:
-        rate = (torch.rand(train_samples, dtype=torch.float64, generator=gen) * 2.0 - 1.0) * max_omega  # [M]
-        feats = _features(rate, max_omega)  # [M, 1]
-        target = dubins_body_step(rate, speed, dt) / _out_scale(speed, dt, max_omega, torch.float64)  # [M, 3]
+        # enabled here: the first step may come inside a controller's no-grad or inference-mode command
+        with torch.inference_mode(False), torch.enable_grad():
+            rate = (torch.rand(train_samples, dtype=torch.float64, generator=gen) * 2.0 - 1.0) * max_omega  # [M]
+            feats = _features(rate, max_omega)  # [M, 1]
+            target = dubins_body_step(rate, speed, dt) / _out_scale(speed, dt, max_omega, torch.float64)  # [M, 3]
 
-        def init(fan_in: int, fan_out: int) -> tuple[Tensor, Tensor]:
-            bound = 1.0 / math.sqrt(fan_in)
-            w = (torch.rand(fan_in, fan_out, dtype=torch.float64, generator=gen) * 2 - 1) * bound
-            b = (torch.rand(fan_out, dtype=torch.float64, generator=gen) * 2 - 1) * bound
-            return w.requires_grad_(), b.requires_grad_()
+            def init(fan_in: int, fan_out: int) -> tuple[Tensor, Tensor]:
+                bound = 1.0 / math.sqrt(fan_in)
+                w = (torch.rand(fan_in, fan_out, dtype=torch.float64, generator=gen) * 2 - 1) * bound
+                b = (torch.rand(fan_out, dtype=torch.float64, generator=gen) * 2 - 1) * bound
+                return w.requires_grad_(), b.requires_grad_()
 
-        params = [*init(1, hidden), *init(hidden, hidden), *init(hidden, 3)]
-        opt = torch.optim.Adam(params, lr=1e-2)
-        sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=train_steps, eta_min=1e-5)
-        for _ in range(train_steps):  # full batch: no sampling order to seed
-            opt.zero_grad(set_to_none=True)
-            loss = torch.mean((_mlp(feats, params) - target) ** 2)
-            loss.backward()
-            opt.step()
-            sched.step()
+            params = [*init(1, hidden), *init(hidden, hidden), *init(hidden, 3)]
+            opt = torch.optim.Adam(params, lr=1e-2)
+            sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=train_steps, eta_min=1e-5)
+            for _ in range(train_steps):  # full batch: no sampling order to seed
+                opt.zero_grad(set_to_none=True)
+                loss = torch.mean((_mlp(feats, params) - target) ** 2)
+                loss.backward()
+                opt.step()
+                sched.step()
     finally:
         torch.set_num_threads(threads)
     return tuple(p.detach() for p in params)

