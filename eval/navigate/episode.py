@@ -42,6 +42,7 @@ import torch
 from cuniform_torch.envs import Environment, NavigationCost, OccupancyGrid, simulate
 from eval.common.methods import NAVIGATE, Sources, make_controller, methods_of
 from eval.navigate.cost_to_go import CostToGo
+from eval.navigate.dynamics import DYNAMICS, LearnedSources
 from eval.navigate.stats import cycle_histogram
 from precompute.worlds.geometry import inflate, obstacle_tables
 from precompute.worlds.suites import NavTask
@@ -95,15 +96,21 @@ class NavContext:
     cost_to_go: float | None = None
     """m: the goal term's geodesic cost-to-go on cells of this side (:mod:`eval.navigate.cost_to_go`); None: the straight
     line"""
+    dynamics: str = "true"
+    """what the controllers plan with (:mod:`eval.navigate.dynamics`): ``true`` (the robot's) or ``learned`` (an MLP of
+    it); the simulator steps the robot's own in both"""
 
 
 _CACHE: dict[Any, Any] = {}
 
 
 def _sources(ctx: NavContext) -> Sources:
-    key = ("sources", ctx.table, ctx.coverage_table, ctx.policy, ctx.map_policy)
+    key = ("sources", ctx.table, ctx.coverage_table, ctx.policy, ctx.map_policy, ctx.dynamics)
     if key not in _CACHE:
-        _CACHE[key] = Sources(table=Path(ctx.table), coverage_table=Path(ctx.coverage_table or ctx.table),
+        if ctx.dynamics not in DYNAMICS:
+            raise ValueError(f"unknown dynamics {ctx.dynamics!r}; choose from {', '.join(DYNAMICS)}")
+        kind = LearnedSources if ctx.dynamics == "learned" else Sources
+        _CACHE[key] = kind(table=Path(ctx.table), coverage_table=Path(ctx.coverage_table or ctx.table),
                               policy=Path(ctx.policy or ctx.table),
                               map_policy=Path(ctx.map_policy) if ctx.map_policy else None, device="cpu")
     return _CACHE[key]
@@ -243,8 +250,8 @@ def run_nav_episode(job: NavJob, ctx: NavContext, trace: list | None = None) -> 
     MPPI-family controllers only, others append nothing); the record is the same with or without it."""
     torch.set_num_threads(1)
     task, method = job.task, methods_of(NAVIGATE)[job.method]
-    sources = _sources(ctx)
-    system = sources.system
+    sources = _sources(ctx)  # the controllers' (with learned dynamics, every policy's system is the model)
+    system = sources.true_system if isinstance(sources, LearnedSources) else sources.system  # the simulator's
     to_go = CostToGo(task.bounds, task.goal, ctx.cost_to_go) if ctx.cost_to_go is not None else None
     cost = NavigationCost(_cost_environment(task, ctx), task.goal, goal_tolerance=task.goal_tolerance,
                           collision_penalty=ctx.collision_penalty, per_state=True, stop_at_goal=True,

@@ -123,7 +123,7 @@ def replay_episode(out: Path, key: str, given: dict[str, Path | None] | None = N
     ctx = NavContext(table=sources["table"], coverage_table=sources["coverage_table"], policy=sources["policy"],
                      map_policy=sources.get("map_policy"), horizon=settings["horizon"], lambda_=settings["lambda_"],
                      collision_penalty=settings["collision_penalty"], cost_resolution=settings["cost_resolution"],
-                     record_path=True, cost_to_go=settings.get("cost_to_go"))
+                     record_path=True, cost_to_go=settings.get("cost_to_go"), dynamics=settings.get("dynamics", "true"))
     job = NavJob(task, stored["method"], stored["budget"], seed=stored["seed"], repeat=stored["repeat"])
     trace: list[dict] = []
     replayed = run_nav_episode(job, ctx, trace=trace)

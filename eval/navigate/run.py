@@ -34,6 +34,7 @@ from cuniform_torch.common.fileio import exclusive_lock, open_regular
 from eval.common import config
 from eval.common.methods import NAVIGATE, methods_of, parse_methods
 from eval.navigate.cost_to_go import RESOLUTION as COST_TO_GO_RESOLUTION
+from eval.navigate.dynamics import DYNAMICS, learned_model
 from eval.navigate.episode import NavContext, NavJob
 from eval.navigate.execute import execute
 from eval.navigate.results import render, result, success_pivot, write_outputs
@@ -107,6 +108,10 @@ class NavConfig:
     """local processes running episodes"""
     paths: bool = False
     """keep each episode's driven path in its record"""
+    dynamics: str = "true"
+    """what the controllers plan with: true (the robot's) or learned (a 2x64 MLP trained on the robot's step, with no
+    closed-form or compiled rollout: the costly-dynamics mode, eval.navigate.dynamics); the simulator steps the robot's
+    own in both"""
 
 
 def controller_seed(suite: str, task_id: int, repeat: int, seed: int) -> int:
@@ -123,6 +128,8 @@ def make_jobs(tasks: Sequence[NavTask], methods: Sequence[str], budgets: Sequenc
 
 
 def _check(cfg: NavConfig) -> None:
+    if cfg.dynamics not in DYNAMICS:
+        raise ValueError(f"unknown dynamics {cfg.dynamics!r}; choose from {', '.join(DYNAMICS)}")
     if cfg.suite not in SUITES:
         raise ValueError(f"unknown suite {cfg.suite!r}; choose from {', '.join(SUITES)}")
     if cfg.split not in SPLITS:
@@ -184,6 +191,8 @@ def settings_record(cfg: NavConfig, robot: RobotPreset, barn_file: Path | None, 
                sources={k: _file_digest(Path(v)) if v else None for k, v in sources.items()})
     if cfg.cost_to_go:  # absent otherwise: the folders of runs without it stay as they were
         out["cost_to_go"] = COST_TO_GO_RESOLUTION
+    if cfg.dynamics != "true":  # absent otherwise, as cost_to_go
+        out["dynamics"] = cfg.dynamics
     if cfg.suite == "gaps":  # the sweep's widths depend on its length: task 3 of 4 gaps is not task 3 of 7
         if not tasks:
             raise ValueError("settings_record: a gaps run's record needs its tasks (their widths)")
@@ -332,7 +341,7 @@ def _run(cfg: NavConfig, out: Path, robot: RobotPreset, cache: Path, barn_file: 
                          map_policy=sources.get("map_policy"),
                          horizon=cfg.horizon, lambda_=cfg.lambda_, collision_penalty=cfg.collision_penalty,
                          cost_resolution=cfg.cost_resolution, record_path=cfg.paths,
-                         cost_to_go=COST_TO_GO_RESOLUTION if cfg.cost_to_go else None)
+                         cost_to_go=COST_TO_GO_RESOLUTION if cfg.cost_to_go else None, dynamics=cfg.dynamics)
         load0, t0 = os.getloadavg()[0], time.perf_counter()
 
         def keep(rec: dict) -> None:
@@ -372,7 +381,7 @@ NAV_TYPES = {"tasks": positive_int, "budgets": int_in(2, MAX_COUNT, note=" (CU-M
 
 def make_parser() -> ArgumentParser:
     p = ArgumentParser(prog="python -m eval.navigate", description=(__doc__ or "").split("\n\n")[0])
-    add_dataclass_args(p, NavConfig, flags={"lambda_": "--lambda"}, choices={"suite": SUITES, "split": SPLITS},
+    add_dataclass_args(p, NavConfig, flags={"lambda_": "--lambda"}, choices={"suite": SUITES, "split": SPLITS, "dynamics": DYNAMICS},
                        help={"methods": f"method keys, of {', '.join(methods_of(NAVIGATE))} (default: all but the opt-in cu_mlp and cfu_mppi)"},
                        arg_types=NAV_TYPES)
     p.add_argument("--ray", nargs="?", const="local", default=None, metavar="ADDRESS",
@@ -441,6 +450,8 @@ def _robot(args, cfg: NavConfig) -> RobotPreset:
     robot = RobotPreset(system=args.system or NAV_ROBOT.system, params=params, radius=radius, horizon=cfg.horizon,
                         starts=args.starts)
     system = robot.make_system()  # a bad system or parameter fails here, before any work
+    if cfg.dynamics == "learned":
+        learned_model(system)  # a robot it cannot model, too
     if args.starts is not None:
         from precompute.table_set import parse_starts
 

@@ -118,6 +118,7 @@ SETTINGS: dict[str, Check] = {
     MERGED: ("an object of digests (16 hex digits) or nulls",
              lambda v: isinstance(v, dict) and all(_digest(d) for d in v.values()), True),
     "cost_to_go": ("a number > 0", _positive, False),
+    "dynamics": ("'learned' (absent: the robot's own)", lambda v: v == "learned", False),
     "gap_widths": ("a list of numbers > 0, non-empty, sorted and distinct", _widths, False),
 }
 """``settings.json``'s fields (``eval.navigate.run.settings_record`` writes them): another field is refused"""
