@@ -7,6 +7,7 @@ benchmark driving the suite with the fast robot.
 
 from __future__ import annotations
 
+import json
 import math
 
 import numpy as np
@@ -116,3 +117,43 @@ def test_the_benchmark_drives_narrow_with_the_fast_robot():
     for suite, want in (("narrow", FAST_ROBOT), ("forest", NAV_ROBOT)):
         args = p.parse_args(["--suite", suite])
         assert _robot(args, dataclass_from_args(NavConfig, args)) == want
+
+
+# ------------------------------------------------------------------------------------------------ the fast robot's tables
+
+@pytest.mark.parametrize("method", ["maxflow", "coverage"])
+def test_the_fast_robots_tables_ship_and_are_used_without_building(method, tmp_path, monkeypatch):
+    import precompute.build  # noqa: F401  (imported first: it binds the real build_table_file, not the patch below)
+    import precompute.one_table as one_table
+    from cuniform_torch.tables.file import read_table
+    from eval.navigate.robot_files import SHIPPED_DIR, SHIPPED_ROBOTS, ensure_table, shipped_table
+
+    assert FAST_ROBOT in SHIPPED_ROBOTS
+    path = shipped_table(FAST_ROBOT, method)  # size and sha256 checked against the manifest
+    assert path is not None and path.parent == SHIPPED_DIR and path != shipped_table(NAV_ROBOT, method)
+    table = read_table(path, graph=False)  # the reader checks the content digest
+    assert table.method == method and table.horizon == FAST_ROBOT.horizon
+    assert json.loads(table.system)["params"]["speed"] == FAST_ROBOT.params["speed"]
+
+    def refuse(job):
+        raise AssertionError(f"built {job.out}")
+
+    monkeypatch.setattr(one_table, "build_table_file", refuse)
+    assert ensure_table(FAST_ROBOT, tmp_path, method) == path
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_shipping_one_robot_keeps_the_other_robots_tables(tmp_path):
+    from dataclasses import replace
+
+    from eval.navigate.robot_files import ship_tables, shipped_table
+
+    slow, fast = replace(NAV_ROBOT, horizon=4), replace(FAST_ROBOT, horizon=4)  # 4-step tables: under a second
+    ship_tables(slow, tmp_path, ["maxflow"])
+    manifest = ship_tables(fast, tmp_path, ["maxflow"])
+    assert [e["fingerprint"] for e in manifest["tables"]] == [slow.fingerprint(), fast.fingerprint()]
+    first = shipped_table(slow, "maxflow", tmp_path)
+    manifest = ship_tables(slow, tmp_path, ["maxflow"])  # reshipping one robot replaces only its entry
+    assert [e["fingerprint"] for e in manifest["tables"]] == [fast.fingerprint(), slow.fingerprint()]
+    assert shipped_table(fast, "maxflow", tmp_path) is not None and shipped_table(slow, "maxflow", tmp_path) == first
+    assert sorted(p.name for p in tmp_path.glob("*.npz")) == sorted(e["file"] for e in manifest["tables"])
