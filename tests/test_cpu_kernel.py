@@ -8,7 +8,8 @@ inside, near and far outside the level sets, NaN and infinite ones, row- and col
 action dimensions, dense and hash lookups, the uniform fallback, one and two states. ``kernel="numba"`` names what
 rules it out (float64, compile, a key box that needs float64 keys or an int64 hash); ``"auto"`` falls back to
 torch there. Making the policy compiles every layout the kernel is later given, and threads sampling one policy
-draw what each would draw alone.
+draw what each would draw alone. The whole-rollout loop's own arithmetic (its vectorized cosine and sine, its
+fmod-free heading wrap) is checked against numpy.
 """
 
 from __future__ import annotations
