@@ -49,3 +49,20 @@ def test_cumppi_does_not_plan_its_first_stage(dubins_table):
     ctrl.cuniform._plan = whole_plan  # type: ignore[method-assign]
     u = ctrl.command(torch.zeros(3))
     assert u.shape == (1,) and bool(torch.isfinite(u).all())
+
+
+def test_the_parts_benchmark_times_the_parts_it_names(dubins_table):
+    """``python -m eval.bench.first_stage --parts``: each closure runs the part of its name, at its stage's K
+    (K / 2 C-Uniform rollouts in stage 1, the rest in stage 2, all K for MPPI)."""
+    from eval.bench.first_stage import _PARTS, _part_fns
+
+    policy = TablePolicy(dubins_table)
+    fns = _part_fns(10, policy, lambda x, u: x[:, :, 0].square().sum(dim=1), torch.zeros(3))
+    assert tuple(fns) == _PARTS
+    out = {name: fn() for name, fn in fns.items()}
+    t = policy.horizon
+    assert out["mppi proposals"][1].shape == (1, 10, t, 1) and out["mppi evaluate"][0].shape == (1, 10)
+    assert out["stage 1 rollouts"][1].shape == (1, 5, t, 1) and out["stage 1 cost"].shape == (1, 5)
+    assert out["stage 1"].shape == (1, t, 1)
+    assert out["stage 2 proposals"][1].shape == (1, 5, t, 1) and out["stage 2 evaluate"][0].shape == (1, 5)
+    assert out["mppi command"].shape == out["cumppi command"].shape == (1,)

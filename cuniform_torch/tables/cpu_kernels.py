@@ -79,6 +79,7 @@ class NumbaKernel:
                          h.slot_hash.numpy(), index.slot_entry.numpy())
         self.step = _kernels()[0 if index.lookup is Lookup.DENSE else 1]
         self.actions, self.outcome_is_value = index.actions, a.outcome_is_value
+        self._rates = self.actions[:, 0].to(torch.float32).contiguous().numpy()  # [A] a Dubins rollout's turn rates
         d = k.scale.shape[0]
         for n in (1, 2):  # numba's two layouts of x: C (one state, or d = 1) and F (what __call__ passes otherwise)
             self(np.zeros((n, d), dtype=np.float32), 0, np.zeros(n, dtype=np.float32),
@@ -118,18 +119,19 @@ class NumbaKernel:
         to the torch step to float rounding). ``uniforms [T, N]`` float32 -> start-frame states ``[T+1, 3, N]``
         (time-major), actions ``[N, T, q]`` and the summed fallback codes (a host int)."""
         horizon, n = uniforms.shape
-        states = torch.zeros((horizon + 1, 3, n), dtype=torch.float32)
-        picks = np.empty((horizon, n), dtype=self.alias[1].dtype)
-        actions_np = self.actions[:, 0].to(torch.float32).contiguous().numpy()
+        states = torch.empty((horizon + 1, 3, n), dtype=torch.float32)
+        states[0].zero_()  # the start frame's origin; the loop writes every later row
+        if self.outcome_is_value:  # the picks are the actions: written [N, T] (viewed [T, N]), no copy after
+            taken = torch.empty((n, horizon, 1), dtype=torch.float32)  # [N, T, 1]
+            picks = taken[:, :, 0].numpy().T  # [T, N] view
+        else:
+            picks = np.empty((horizon, n), dtype=self.alias[1].dtype)
         rollout = _kernels()[2 if self.find_is_dense else 3]
         total = rollout(states.numpy(), uniforms.detach().contiguous().numpy(), picks, self.level_base, *self.keys,
-                        *self.find, *self.alias, self.outcome_is_value, actions_np, np.float32(dt),
+                        *self.find, *self.alias, self.outcome_is_value, self._rates, np.float32(dt),
                         np.float32(speed), np.float32(math.pi), np.float32(2.0 * math.pi))
-        picked = torch.from_numpy(picks)  # [T, N]
-        if self.outcome_is_value:
-            taken = picked.T.unsqueeze(2).contiguous()  # [N, T, 1]
-        else:
-            taken = self.actions.index_select(0, picked.T.reshape(-1).long()).view(n, horizon, -1)
+        if not self.outcome_is_value:
+            taken = self.actions.index_select(0, torch.from_numpy(picks).T.reshape(-1).long()).view(n, horizon, -1)
         return states, taken, int(total)
 
 
