@@ -248,7 +248,7 @@ def test_a_flag_that_does_not_apply_or_a_run_too_large_is_refused(name, argv, ne
 
 
 def test_navigate_paths_on_a_folder_of_episodes_without_paths(tmp_path, capsys, monkeypatch):
-    from eval.navigate.store import EpisodeStore
+    from eval.navigate.records.store import EpisodeStore
 
     record = {"key": "barn/0/cu_table/256/0", "outcome": "goal"}  # kept by a run without --paths
     (tmp_path / "episodes.jsonl").write_text(json.dumps(record) + "\n")

@@ -19,8 +19,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from eval.common.stats import wilson_interval
-from eval.navigate.replay import load_folder
-from eval.navigate.stats import _by_episode, _compare
+from eval.navigate.records import by_episode, compare_pair, load_folder
 from precompute.cli import ArgumentParser, cli_main
 
 __all__ = ["parse_cell", "compare_cells", "main"]
@@ -36,7 +35,7 @@ def parse_cell(text: str) -> tuple[str, int]:
 
 def compare_cells(records: Sequence[dict], method: tuple[str, int], against: tuple[str, int]) -> dict:
     """``method`` against ``against`` (each ``(method, budget)``) over their common (task, seed) episodes: the
-    :func:`eval.navigate.stats.paired_comparisons` row (``wins``, ``losses``, ``diff`` and its interval, ``p_value``,
+    :func:`eval.navigate.records.stats.paired_comparisons` row (``wins``, ``losses``, ``diff`` and its interval, ``p_value``,
     ``verdict``) plus both cells' success rates with Wilson intervals."""
     cells = {}
     for cell in (method, against):
@@ -44,9 +43,9 @@ def compare_cells(records: Sequence[dict], method: tuple[str, int], against: tup
         if not recs:
             held = sorted({f"{r['method']}@{r['budget']}" for r in records})
             raise ValueError(f"no episode of {cell[0]}@{cell[1]} in the folder (it holds {', '.join(held)})")
-        cells[cell] = _by_episode(recs, f"{cell[0]}@{cell[1]}")
-    row = _compare(None, None, f"{method[0]}@{method[1]}", f"{against[0]}@{against[1]}", cells[method],
-                   cells[against])
+        cells[cell] = by_episode(recs, f"{cell[0]}@{cell[1]}")
+    row = compare_pair(None, None, f"{method[0]}@{method[1]}", f"{against[0]}@{against[1]}", cells[method],
+                       cells[against])
     if row is None:
         raise ValueError(f"{method[0]}@{method[1]} and {against[0]}@{against[1]} share no (task, seed) episode")
     for side, n_succ in (("method", row["method_successes"]), ("baseline", row["baseline_successes"])):

@@ -32,7 +32,8 @@ from cuniform_torch import CUniformMPPI
 from cuniform_torch.common.fileio import write_json
 from cuniform_torch.envs import NavigationCost
 from eval.navigate.episode import NavContext, _cost_environment, _sources
-from eval.navigate.replay import compare_records, load_folder, replay_episode, summarize
+from eval.navigate.records import load_folder
+from eval.navigate.replay import compare_records, replay_episode, summarize
 from precompute.cli import MAX_COUNT, ArgumentParser, check_output_file, cli_main, int_in, positive_int
 
 __all__ = ["FailureKind", "classify", "probe_free_share", "failure_table", "main"]

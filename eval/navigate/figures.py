@@ -1,4 +1,4 @@
-"""Figures and TensorBoard scalars of the navigation benchmark's summary rows (:func:`eval.navigate.stats.summarize`).
+"""Figures and TensorBoard scalars of the navigation benchmark's summary rows (:func:`eval.navigate.records.stats.summarize`).
 
 :func:`success_figure` draws success rate against the sample budget (log2 axis) per method with 95% Wilson
 error bars, one panel per suite, and writes it atomically as a PNG (:func:`eval.common.figures.save_figure`).
@@ -17,7 +17,7 @@ from cuniform_torch.common.fileio import MAX_JSON_BYTES, read_capped_text
 from eval.common.figures import method_style, plt, save_figure
 from precompute.cli import ArgumentParser, check_output_file, cli_main
 
-__all__ = ["TB_METRICS", "success_figure", "write_tensorboard", "main"]
+__all__ = ["TB_METRICS", "method_color", "success_figure", "write_tensorboard", "main"]
 
 TB_METRICS = ("success_rate", "collision_rate", "timeout_rate", "cycle_ms_median")
 """the summary-row fields logged to TensorBoard, one scalar per (suite, method) against the budget"""
@@ -38,7 +38,7 @@ def _check_rows(rows: Sequence[Mapping], fields: Sequence[str]) -> None:
             raise ValueError(f"summary row {i} has budget {b!r}; budgets must be positive numbers (log2 axis)")
 
 
-def _color(method: str, index: int, colors: Mapping[str, str] | None) -> str:
+def method_color(method: str, index: int, colors: Mapping[str, str] | None) -> str:
     """The caller's colour, else the method's registered colour, else the default colour cycle."""
     if colors and method in colors:
         return colors[method]
@@ -60,7 +60,7 @@ def _panel(ax, rows: Sequence[Mapping], suite: str, methods: Sequence[str], labe
         y = [r["success_rate"] for r in mine]
         yerr = [[r["success_rate"] - r["success_rate_low"] for r in mine],
                 [r["success_rate_high"] - r["success_rate"] for r in mine]]
-        ax.errorbar(x, y, yerr=yerr, marker="o", markersize=4, capsize=2, color=_color(m, i, colors),
+        ax.errorbar(x, y, yerr=yerr, marker="o", markersize=4, capsize=2, color=method_color(m, i, colors),
                     label=labels.get(m, m), linewidth=1.2, elinewidth=0.8)
     ax.set_xscale("log", base=2)
     ax.set_xticks(budgets)
