@@ -58,7 +58,8 @@ COMMANDS = readme_commands(docs_text())
 
 def command_module(name: str) -> str:
     """The module whose ``main`` ``python -m name`` runs: ``name`` itself, or for a package the module its
-    ``__main__.py`` takes ``main`` from (``eval.navigate`` -> ``eval.navigate.run``)."""
+    ``__main__.py`` takes ``main`` from (``eval.navigate`` -> ``eval.navigate.commands``, which dispatches its
+    subcommands)."""
     spec = importlib.util.find_spec(name)
     if spec is None or not spec.submodule_search_locations:
         return name
@@ -70,7 +71,7 @@ def command_module(name: str) -> str:
 
 def cli_modules() -> set[str]:
     """Every ``python -m`` name of the project: a module with a ``__main__`` guard, or a package with a
-    ``__main__.py`` (whose runner module, e.g. ``eval.navigate.run``, is then covered by the package's name)."""
+    ``__main__.py`` (whose runner module, e.g. ``eval.navigate.commands``, is then covered by the package's name)."""
     names, runners = set(), set()
     for layer in LAYERS:
         for path in (ROOT / layer).rglob("*.py"):
@@ -98,7 +99,7 @@ def test_the_docs_show_every_command_line_module():
 
 
 def test_command_module_follows_a_package_main():
-    assert command_module("eval.navigate") == "eval.navigate.run"
+    assert command_module("eval.navigate") == "eval.navigate.commands"
     assert command_module("precompute.build") == "precompute.build"
 
 

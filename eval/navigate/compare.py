@@ -1,6 +1,6 @@
 """Paired comparison of any two (method, budget) cells of a benchmark folder, across budgets too.
 
-    python -m eval.navigate.compare --out out/navigate/clutter-test-100 --method cfu_mppi@256 \
+    python -m eval.navigate compare --out out/navigate/clutter-test-100 --method cfu_mppi@256 \
         --against cumppi@256 mppi_1.0@1024 --margin 0.1
 
 The benchmark's own table compares each method with the best Gaussian baseline *at the same budget*. A question
@@ -14,7 +14,6 @@ interval's lower end.
 
 from __future__ import annotations
 
-import sys
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -67,7 +66,7 @@ def _line(row: dict, margin: float | None) -> str:
 
 
 def make_parser() -> ArgumentParser:
-    p = ArgumentParser(prog="python -m eval.navigate.compare", description=(__doc__ or "").split("\n\n")[0])
+    p = ArgumentParser(prog="python -m eval.navigate compare", description=(__doc__ or "").split("\n\n")[0])
     p.add_argument("--out", type=Path, required=True, help="the benchmark folder (python -m eval.navigate --out)")
     p.add_argument("--method", required=True, metavar="METHOD@BUDGET", help="the cell under test, e.g. cfu_mppi@256")
     p.add_argument("--against", nargs="+", required=True, metavar="METHOD@BUDGET",
@@ -95,7 +94,3 @@ def main(argv: Sequence[str] | None = None) -> int:
     print(f"paired on (task, seed) in {args.out}")
     print("\n".join([head, rule] + [_line(r, args.margin) for r in rows]))
     return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())

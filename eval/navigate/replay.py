@@ -1,6 +1,6 @@
 """Replay one stored navigation-benchmark episode and draw why it ended the way it did.
 
-    python -m eval.navigate.replay --out out/navigate/clutter --key clutter/15/cu_table/256/0
+    python -m eval.navigate replay --out out/navigate/clutter --key clutter/15/cu_table/256/0
 
 Reads ``DIR/settings.json`` and the record ``KEY`` of ``DIR/episodes.jsonl``
 (:func:`eval.navigate.records.load_episode`; read only, so a benchmark still writing the folder is not disturbed),
@@ -213,7 +213,7 @@ def plot_replay(task: NavTask, replayed: dict, trace: list[dict], path: Path, ti
 
 
 def make_parser() -> ArgumentParser:
-    p = ArgumentParser(prog="python -m eval.navigate.replay", description=(__doc__ or "").split("\n\n")[0])
+    p = ArgumentParser(prog="python -m eval.navigate replay", description=(__doc__ or "").split("\n\n")[0])
     p.add_argument("--out", type=Path, required=True, help="the benchmark folder (python -m eval.navigate --out)")
     p.add_argument("--key", required=True, help="the episode: suite/task_id/method/budget/repeat")
     p.add_argument("--cache", type=Path, default=Path("out/navigate/cache"),
@@ -256,7 +256,3 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"wrote {args.json}")
     sys.stdout.flush()
     return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())
