@@ -31,7 +31,7 @@ import sys
 import warnings
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any, BinaryIO
+from typing import Any, BinaryIO, cast
 
 from eval.navigate.records.files import (
     MAX_JSONL_BYTES,
@@ -429,7 +429,7 @@ class EpisodeStore:
                 raise StoreError(f"{self.records_file} is {file_kind(st_mode)}, not a regular file; remove it, or "
                                  "use another --out")
             os.set_blocking(fd, True)
-            return os.fdopen(fd, mode)
+            return cast(BinaryIO, os.fdopen(fd, mode))  # a str mode types as IO[Any]; it is "ab" or "r+b"
         except BaseException:
             os.close(fd)
             raise
