@@ -239,5 +239,6 @@ def test_cfu_mppi_from_a_checkpoint_and_bad_arguments(tmp_path):
     assert bool(torch.isfinite(controller.command(torch.zeros(3))).all())
     with pytest.raises(ValueError, match="world must be an OccupancyGrid"):
         CFUMPPI(_policy(), "map", _cost, num_samples=16)
-    states, _ = rollout(SYSTEM, controller.sensed, torch.zeros(3), 8, T, torch.Generator().manual_seed(0))
+    controller.sense(torch.zeros(1, 3))  # the controller senses; the map policy takes the map as its input
+    states, _ = rollout(SYSTEM, controller.map_policy, torch.zeros(3), 8, T, torch.Generator().manual_seed(0))
     assert states.shape == (8, T + 1, 3)

@@ -7,7 +7,7 @@ built on them (:class:`MPPI`, :class:`LogMPPI`, :class:`CUniformMPPI`, :class:`C
 
 from cuniform_torch.controllers.bank import BankProposal, BankRefreshWarning
 from cuniform_torch.controllers.callables import CallableProposal, DynamicsSystem, RunningCost
-from cuniform_torch.controllers.cfu import CFUMPPI, SensedMapPolicy
+from cuniform_torch.controllers.cfu import CFUMPPI, MapSensor
 from cuniform_torch.controllers.core import COST_CAP, CostFn, MPPICore, mppi_weights
 from cuniform_torch.controllers.filtered import ColoredMPPI, LowPassMPPI
 from cuniform_torch.controllers.mixture import CUniformMixtureMPPI, MixtureMPPI, MixtureProposal
@@ -26,7 +26,7 @@ from cuniform_torch.controllers.temperature import auto_temperature
 
 __all__ = [
     "MPPICore", "MPPIResult", "CostFn", "mppi_weights", "COST_CAP",
-    "MPPI", "LogMPPI", "CUniformMPPI", "CUMPPI", "CFUMPPI", "SensedMapPolicy", "ColoredMPPI", "LowPassMPPI",
+    "MPPI", "LogMPPI", "CUniformMPPI", "CUMPPI", "CFUMPPI", "MapSensor", "ColoredMPPI", "LowPassMPPI",
     "SmoothMPPI", "KernelMPPI", "MixtureMPPI", "CUniformMixtureMPPI", "MixtureProposal",
     "Proposal", "GaussianProposal", "NormalLogNormalProposal", "PolicyProposal", "BankProposal", "CompositeProposal",
     "BankRefreshWarning", "DynamicsSystem", "RunningCost", "CallableProposal", "auto_temperature", "default_noise_std",

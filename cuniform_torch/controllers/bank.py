@@ -12,7 +12,6 @@ from __future__ import annotations
 import warnings
 from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
-from typing import Any, cast
 
 import torch
 from torch import Tensor
@@ -66,7 +65,8 @@ class BankProposal(OneRobotCall):
         self.state_dim = len(self.system.periodic)
         if not self.system.se2_invariant:
             raise ValueError(f"a proposal bank needs an SE(2)-invariant system; {self.system.name} is not")
-        self.member_starts = _member_starts(source.policy)
+        caps = source.capabilities  # read once, by the source
+        self.member_starts = caps.member_starts if caps.table_set else None
         """``[S, d]`` the starts of a table set's members (one bank each), None for one table or MLP"""
         if self.state_dim > 3 and self.member_starts is None:  # a state's speed etc. is not a change of frame
             raise ValueError(f"a proposal bank needs the state (x, y, theta) only; {self.system.name} has "
@@ -123,7 +123,9 @@ class BankProposal(OneRobotCall):
         idx = torch.stack([torch.randperm(self.bank_size, generator=g, device=self.device)[: self.num_samples]
                            for g in streams.generators])  # [B, K]: a permutation per robot, from its stream
         if self.member_starts is not None:  # the nearest member's actions, rolled out from the state itself
-            members = cast(Any, self.source.policy).nearest(states)[0].tolist()  # stateless: a background draw may run for_start
+            nearest = self.source.capabilities.nearest
+            assert nearest is not None  # member_starts: a table set
+            members = nearest(states)[0].tolist()  # stateless: a background draw may run for_start
             actions = torch.stack([self.bank_actions[m][i] for m, i in zip(members, idx)])  # [B, K, T, q]
             b, k, t, q = actions.shape
             return (rollout_actions(self.system, states.repeat_interleave(k, dim=0), actions.view(b * k, t, q))
@@ -194,10 +196,3 @@ class BankProposal(OneRobotCall):
         finally:
             executor.shutdown(wait=True)
 
-
-def _member_starts(policy: object) -> Tensor | None:
-    """The members' starts ``[S, d]`` of a table set policy (``members``, ``starts``, ``for_start``), else None."""
-    starts = getattr(policy, "starts", None)
-    if isinstance(starts, Tensor) and getattr(policy, "members", None) is not None and hasattr(policy, "for_start"):
-        return starts
-    return None

@@ -2,9 +2,10 @@
 
 Shapes: K samples, T horizon, d state dimensions, q action dimensions, H x W patch cells.
 
-Per command: the robot-frame patch at each robot's pose is cropped from the world grid and the B patches encoded
-as one batch (:class:`SensedMapPolicy`'s ``for_starts``, called by the proposal before the rollout: the rollout
-itself senses nothing), half the budget are rollouts of the
+Per command the controller senses (:meth:`CFUMPPI.sense`, called once with every robot's state before the first
+stage's rollout): the robot-frame patch at each robot's pose is cropped from the world grid (:class:`MapSensor`)
+and the B patches encoded as one batch, the map policy's explicit input (``set_maps``; the rollout itself senses
+nothing); half the budget are rollouts of the
 :class:`~cuniform_torch.maps.policy.MapPolicy` for that map, the lowest-cost one becomes the nominal of one
 Gaussian (or log-normal) MPPI pass with the other half, and that pass's first control is applied. It is
 :class:`~cuniform_torch.controllers.mppi.CUMPPI` with the map policy in place of the table: the MPPI core, the composite
@@ -26,16 +27,21 @@ from cuniform_torch.envs.occupancy import OccupancyGrid
 from cuniform_torch.maps import kernels, sensing
 from cuniform_torch.maps.checkpoint import load_map_policy
 from cuniform_torch.maps.policy import MapPolicy
-from cuniform_torch.maps.sensing import local_map, sense_patch
+from cuniform_torch.maps.sensing import sense_patch
 from cuniform_torch.sampling.rollout import same_device
 
-__all__ = ["SensedMapPolicy", "CFUMPPI", "check_policy_robot"]
+__all__ = ["MapSensor", "CFUMPPI", "check_policy_robot"]
 
 
-class SensedMapPolicy:
-    """A :class:`MapPolicy` bound to a world grid: :func:`~cuniform_torch.sampling.rollout.rollout` calls
-    ``for_start(x0)`` once per rollout, which senses the patch at the pose ``x0[:3]`` (range ``max_range``),
-    sets it (one encoding) and returns the policy; every lookup of that rollout is for that map."""
+class MapSensor:
+    """What CFU-MPPI senses: the robot-frame occupancy patch of a :class:`MapPolicy`'s
+    :class:`~cuniform_torch.maps.encoder.PatchSpec` around each robot's pose, cropped from a world grid (or an
+    Environment's shapes), within ``max_range`` (m), seeing an Environment's obstacles sensed by :attr:`time`.
+
+    :param policy: the map policy whose patch is sensed (its spec, device and dtype)
+    :param world: an OccupancyGrid or an Environment, world frame, not inflated
+    :param max_range: how far the patch sees (m; None: the whole patch)
+    """
 
     def __init__(self, policy: MapPolicy, world: OccupancyGrid | Environment, max_range: float | None = None):
         if not isinstance(policy, MapPolicy):
@@ -43,43 +49,26 @@ class SensedMapPolicy:
         if not policy.system.se2_invariant or len(policy.system.periodic) < 3:
             raise ValueError(f"a map policy needs (x, y, heading, ...) states of an SE(2)-invariant system; "
                              f"{policy.system.name} is not one")
-        self.policy, self.max_range = policy, max_range
-        self.actions, self.system, self.horizon = policy.actions, policy.system, policy.horizon
-        self.device, self.dtype, self.start_relative = policy.device, policy.dtype, policy.start_relative
+        self.spec, self.device, self.max_range = policy.patch_spec, policy.device, max_range
         self.set_world(world)
 
         self.time: float | None = None
         """an Environment world's obstacles sensed by this time (s) are seen (None: all); see :meth:`set_time`"""
 
     def set_world(self, world: OccupancyGrid | Environment) -> None:
-        """Sense ``world`` from the next rollout on (a map that changed: a new obstacle)."""
+        """Sense ``world`` from the next call on (a map that changed: a new obstacle)."""
         if not isinstance(world, (OccupancyGrid, Environment)):
             raise ValueError(f"world must be an OccupancyGrid or an Environment, got {type(world).__name__}")
         self.world = world.to(self.device) if isinstance(world, OccupancyGrid) else world
 
     def set_time(self, time: float | None) -> None:
-        """See an Environment's obstacles sensed by ``time`` (s) from the next rollout on (None: all)."""
+        """See an Environment's obstacles sensed by ``time`` (s) from the next call on (None: all)."""
         self.time = time
 
-    def for_start(self, x0: Tensor) -> MapPolicy:
-        """Sense and set the patch at ``x0 [d]`` (world pose first); the policy to roll out."""
-        if x0.ndim != 1:
-            raise ValueError(f"a map policy rolls out from one start [d], got {list(x0.shape)}")
-        self.policy.set_map(local_map(self.world, x0[:3], self.policy.patch_spec, self.max_range, self.time))
-        return self.policy
-
-    def for_starts(self, starts: Tensor) -> MapPolicy:
-        """Sense the patches at the poses ``starts[:, :3]`` (``[B, d]``, one per robot) in one call, set them (one
-        encoding of the B patches) and return the policy: its lookups are then B robot-major groups of rows."""
-        self.policy.set_maps(sense_patch(self.world, starts[:, :3], self.policy.patch_spec, self.max_range, self.time))
-        return self.policy
-
-    def action_probs(self, x: Tensor, t: int) -> Tensor:
-        """The bound policy's, for the map last sensed: ``x [N, d]`` -> ``[N, A]``."""
-        return self.policy.action_probs(x, t)
-
-    def sample(self, x: Tensor, t: int, generator: torch.Generator | None) -> Tensor:
-        return self.policy.sample(x, t, generator)
+    def sense(self, states: Tensor) -> Tensor:
+        """The patches at the poses ``states[:, :3]`` (``[B, d]``, world frame, one per robot), in one call:
+        ``[B, H, W]`` bool, on the policy's device."""
+        return sense_patch(self.world, states[:, :3], self.spec, self.max_range, self.time)
 
 
 def check_policy_robot(policy: MapPolicy, system: Any, horizon: int | None = None) -> None:
@@ -137,19 +126,28 @@ class CFUMPPI(CUMPPI):
             kernels.warm_up()  # the compiled rollout's loops, now rather than in the first command
             if isinstance(world, Environment):
                 sensing.warm_up()  # and the sensing loop's
-        self.sensed = SensedMapPolicy(policy, world, max_range)
-        super().__init__(self.sensed, cost_fn, num_samples, cuniform_fraction, lambda_, noise_std, local, horizon,
+        self.sensor = MapSensor(policy, world, max_range)
+        """what each command senses around every robot (:meth:`sense`)"""
+        self._map_policy = policy
+        # the map policy is the first stage's policy itself; its input, the B local maps, is set by :meth:`sense`,
+        # which the first stage calls once per command with every robot's state, before its rollout
+        super().__init__(policy, cost_fn, num_samples, cuniform_fraction, lambda_, noise_std, local, horizon,
                          terminal_cost=terminal_cost, device=policy.device, seed=seed, num_robots=num_robots,
-                         debug=debug, cuda_graph=cuda_graph, **local_kwargs)
+                         debug=debug, cuda_graph=cuda_graph, condition=self.sense, **local_kwargs)
 
     @property
     def map_policy(self) -> MapPolicy:
-        return self.sensed.policy
+        return self._map_policy
+
+    def sense(self, states: Tensor) -> None:
+        """Sense the local map around each robot (``states [B, d]``, world frame) and set them as the map
+        policy's input (one encoding of the B maps): its rollouts' row groups ``b`` read map ``b``."""
+        self._map_policy.set_maps(self.sensor.sense(states))
 
     def set_world(self, world: OccupancyGrid | Environment) -> None:
         """Sense ``world`` from the next command on."""
-        self.sensed.set_world(world)
+        self.sensor.set_world(world)
 
     def set_time(self, time: float | None) -> None:
         """Sense an Environment world's obstacles that appeared by ``time`` (s) from the next command on."""
-        self.sensed.set_time(time)
+        self.sensor.set_time(time)

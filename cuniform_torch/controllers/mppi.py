@@ -209,6 +209,8 @@ class CUniformMPPI(MPPICore):
     :param bank_refresh: draw a new bank every this many commands (None: never)
     :param bank_background: draw refreshed banks in a worker thread
     :param device: the policy's device when a checkpoint dict is given
+    :param condition: ``condition(states [B, d])``, called once per command before the rollouts: sets the
+        policy's per-robot input (:class:`~cuniform_torch.controllers.proposals.PolicyProposal`)
     """
 
     def __init__(self, policy: Policy | dict[str, Any], cost_fn: CostFn, num_samples: int = 1000,
@@ -216,7 +218,8 @@ class CUniformMPPI(MPPICore):
                  bank_refresh: int | None = None,
                  bank_background: bool = False, terminal_cost: Callable[[Tensor], Tensor] | None = None,
                  device: torch.device | str | None = None, seed: int | Sequence[int] | None = None,
-                 num_robots: int = 1, debug: bool | None = None, cuda_graph: bool = False):
+                 num_robots: int = 1, debug: bool | None = None, cuda_graph: bool = False,
+                 condition: Callable[[Tensor], None] | None = None):
         if bank_refresh is not None:
             check_positive_int("bank_refresh", bank_refresh)
             if bank_size is None:
@@ -225,7 +228,7 @@ class CUniformMPPI(MPPICore):
             raise ValueError("bank_background refreshes the bank every bank_refresh commands: set bank_refresh too")
         if cuda_graph and bank_size is not None:
             raise ValueError("cuda_graph: a proposal bank swaps its tensors when refreshed; use it without a bank")
-        source = PolicyProposal(policy, num_samples, horizon, device, num_robots)
+        source = PolicyProposal(policy, num_samples, horizon, device, num_robots, condition)
         self.policy = source.policy
         seeds = robot_seeds(seed, source.num_robots)
         streams = RobotStreams.seeded(seeds, source.device)
@@ -338,6 +341,7 @@ class CUMPPI(MPPICore):
     :param pipelined: one pass per command (:class:`~cuniform_torch.controllers.proposals.PipelinedProposal`): the
         local rollouts around the previous command's best C-Uniform sequence, rolled out and costed together with
         this command's C-Uniform rollouts, and all of them weighed (a mixture); False: the two stages of the paper
+    :param condition: as :class:`CUniformMPPI`'s (the first stage's per-robot input, set once per command)
     """
 
     def __init__(self, policy: Policy | dict[str, Any], cost_fn: CostFn, num_samples: int = 1000,
@@ -345,7 +349,8 @@ class CUMPPI(MPPICore):
                  local: str = "mppi", horizon: int | None = None, bank_size: int | None = None,
                  terminal_cost: Callable[[Tensor], Tensor] | None = None, device: torch.device | str | None = None,
                  seed: int | Sequence[int] | None = None, num_robots: int = 1, debug: bool | None = None,
-                 cuda_graph: bool = False, pipelined: bool = False, **local_kwargs: Any):
+                 cuda_graph: bool = False, pipelined: bool = False,
+                 condition: Callable[[Tensor], None] | None = None, **local_kwargs: Any):
         check_positive_int("num_samples", num_samples)
         if not 0 < cuniform_fraction < 1:
             raise ValueError(f"cuniform_fraction must be in (0, 1), got {cuniform_fraction!r}")
@@ -358,7 +363,7 @@ class CUMPPI(MPPICore):
         k_cu = max(1, min(num_samples - 1, round(cuniform_fraction * num_samples)))
         self.cuniform = CUniformMPPI(policy, cost_fn, k_cu, lambda_=0.0, horizon=horizon, bank_size=bank_size,
                                      terminal_cost=terminal_cost, device=device, seed=seed, num_robots=num_robots,
-                                     debug=debug)
+                                     debug=debug, condition=condition)
         self.local = local_cls(self.cuniform.system, num_samples - k_cu, self.cuniform.horizon, noise_std=noise_std,
                                device=self.cuniform.device, dtype=self.cuniform.dtype, num_robots=num_robots,
                                **local_kwargs)

@@ -30,7 +30,7 @@ generator)``) still does, for one robot. The ones here:
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import Any, Protocol, cast, runtime_checkable
+from typing import Protocol, cast, runtime_checkable
 
 import torch
 from torch import Tensor
@@ -39,9 +39,16 @@ from cuniform_torch.controllers.checks import _check_dtype, check_positive_int
 from cuniform_torch.controllers.result import MPPIResult
 from cuniform_torch.controllers.streams import RobotStreams
 from cuniform_torch.policies.checkpoint import load_policy
+from cuniform_torch.policies.table_set import MemberRows
 from cuniform_torch.sampling.noise import GaussianSampler, NormalLogNormalSampler
-from cuniform_torch.sampling.rollout import Policy, PolicyTraits, RolloutPlan, open_loop, same_device
-from cuniform_torch.sampling.start_watch import new_episode
+from cuniform_torch.sampling.rollout import (
+    Policy,
+    PolicyCapabilities,
+    PolicyTraits,
+    RolloutPlan,
+    open_loop,
+    same_device,
+)
 from cuniform_torch.systems import System, check_dynamics
 
 __all__ = ["Proposal", "SingleRobotProposal", "as_batched", "GaussianProposal", "NormalLogNormalProposal", "PolicyProposal", "CompositeProposal",
@@ -333,21 +340,40 @@ class PolicyProposal(OneRobotCall):
     front (``[B, T, K]``, one call per robot) and rolls all B x K out together: one rollout for a policy that serves
     every start (a table, an MLP: on an SE(2)-invariant system in each robot's frame), one per member used for a
     table set (each robot's member is the one nearest its start), one per robot for a policy that is set per start
-    (``for_start``: a start-conditioned MLP, a map policy sensing around each robot).
+    (``for_start``: a start-conditioned MLP). What it reads of the policy is settled here, once
+    (:class:`~cuniform_torch.sampling.contract.PolicyCapabilities`).
+
+    :param policy: a :class:`~cuniform_torch.sampling.contract.Policy` with a ``system``, or a checkpoint dict
+    :param num_samples: K rollouts per robot
+    :param horizon: T (default: the policy's)
+    :param device: where a checkpoint dict is loaded (default: the policy's, else the CPU)
+    :param num_robots: B robots per command
+    :param condition: ``condition(states [B, d])``, called once per command before the rollout: the caller sets
+        the policy's per-robot input there (CFU-MPPI: each robot's local map, sensed and encoded as one batch)
     """
 
     def __init__(self, policy: object, num_samples: int, horizon: int | None = None,
-                 device: torch.device | str | None = None, num_robots: int = 1):
+                 device: torch.device | str | None = None, num_robots: int = 1,
+                 condition: Callable[[Tensor], None] | None = None):
+        if condition is not None and not callable(condition):
+            raise ValueError(f"condition must be a callable of the robots' states [B, d], got "
+                             f"{type(condition).__name__}")
+        self.condition = condition
+        """called once per command with every robot's state ``[B, d]``, before the rollout: what the policy is
+        conditioned on is set there, by its owner (CFU-MPPI senses and encodes each robot's local map)"""
         traits = PolicyTraits.of(policy) if not isinstance(policy, dict) else PolicyTraits()
         self.device = torch.device(device) if device is not None else (traits.device or torch.device("cpu"))
         self.policy = _as_policy(policy, self.device)
-        traits = PolicyTraits.of(self.policy)
+        caps = PolicyCapabilities.of(self.policy)
+        self.capabilities = caps
+        """what the policy declares (:class:`~cuniform_torch.sampling.contract.PolicyCapabilities`), read here once:
+        a command reads only this record"""
+        traits = caps.traits
         if traits.device is not None and not same_device(traits.device, self.device):
             raise ValueError(f"the policy is on {traits.device} but device={self.device} was asked for")
-        system = getattr(self.policy, "system", None)
-        if system is None:
+        if caps.system is None:
             raise ValueError(f"{type(self.policy).__name__} has no system: a proposal needs the policy's dynamics")
-        self.system: System = system
+        self.system: System = caps.system
         horizon = horizon if horizon is not None else traits.horizon
         if horizon is None:
             raise ValueError("horizon is required for a policy without a table horizon")
@@ -358,20 +384,19 @@ class PolicyProposal(OneRobotCall):
         self.num_robots = check_positive_int("num_robots", num_robots)
         self.dtype = traits.dtype or torch.float32
         check_dynamics(self.system, self.dtype, self.device)  # a user system's step, probed once (cached)
-        self.plan = RolloutPlan.of(self.system, self.policy)
+        self.plan = RolloutPlan.of(self.system, self.policy, caps)
         """how the policy is rolled out, settled here: a command runs it without the per-call checks"""
-        self._members = callable(getattr(self.policy, "nearest", None)) and hasattr(self.policy, "members")
+        self._members = caps.table_set
         """a table set: robots are grouped by the member nearest their start"""
-        sensed = getattr(self.policy, "for_starts", None)
-        self._for_starts = sensed if callable(sensed) else None
-        """a policy set for B starts at once (``for_starts``: a map policy sensing around each robot), called here,
-        before the rollout (the rollout itself senses nothing): one rollout of its answer"""
-        self._inner_plan = (RolloutPlan.of(self.system, cast(Any, self.policy).policy)  # the sensing wrapper's
-                            if self._for_starts is not None else None)                # inner map policy
-        self._per_start = (not self._members and self._for_starts is None
-                           and callable(getattr(self.policy, "for_start", None)))
+        self._dispatch = (MemberRows.reusable(caps.member(0)) if self._members and caps.member is not None
+                          else None)
+        """a table set's members answering their robots' rows of one rollout (set per command), and its plan"""
+        self._dispatch_plan = (RolloutPlan.of(self.system, self._dispatch) if self._dispatch is not None else None)
+        self._per_start = not self._members and caps.for_start is not None
         """a policy set per start (``for_start`` only): each robot is rolled out on its own"""
-        new_episode(self.policy)  # a controller's first episode: its off-start rollouts warn afresh
+        self._episode = caps.new_episode
+        if self._episode is not None:
+            self._episode()  # a controller's first episode: its off-start rollouts warn afresh
 
     def _groups(self, states: Tensor) -> list[list[int]] | None:
         """Robots rolled out together (each group in one rollout); None: all of them at once. Only a policy set per
@@ -382,13 +407,11 @@ class PolicyProposal(OneRobotCall):
     def propose_batch(self, states: Tensor, streams: RobotStreams) -> tuple[Tensor, Tensor]:
         b, k, t = states.shape[0], self.num_samples, self.horizon
         uniforms = streams.rand((t, k), self.dtype)  # [B, T, K]: robot b's from its own stream
-        if self._for_starts is not None and self._inner_plan is not None:  # B maps, sensed and set here, at once
-            inner = self._for_starts(states)
-            flat = uniforms[0] if b == 1 else uniforms.transpose(0, 1).reshape(t, b * k)  # [T, B*K] robot-major
-            x, u = self._inner_plan.run(self.system, inner, _start_rows(states, k), b * k, t, None, flat)
-            return x.view(b, k, t + 1, -1), u.view(b, k, t, -1)
+        if self.condition is not None:  # the controller's per-command input (B local maps), set before the rollout
+            self.condition(states)
         if b > 1 and self._members:  # a table set: one rollout, each member drawing for its robots' rows
-            index = cast(Any, self.policy).nearest(states)[0].tolist()  # [B] each robot's member (host ints)
+            assert self.capabilities.nearest is not None  # a table set declares it
+            index = self.capabilities.nearest(states)[0].tolist()  # [B] each robot's member (host ints)
             return self._members_rollout(states, index, uniforms)
         groups = self._groups(states)
         if groups is None:
@@ -413,19 +436,17 @@ class PolicyProposal(OneRobotCall):
     def _members_rollout(self, states: Tensor, index: list[int], uniforms: Tensor) -> tuple[Tensor, Tensor]:
         """All robots of a table set in one rollout (``index``: each robot's member): the dynamics stepped once for
         all, each member used drawing its robots' rows (:class:`~cuniform_torch.policies.table_set.MemberRows`)."""
-        from cuniform_torch.policies.table_set import MemberRows
-
         b, k, t = states.shape[0], self.num_samples, self.horizon
         by_member: dict[int, list[int]] = {}
         for robot, member in enumerate(index):
             by_member.setdefault(member, []).append(robot)
         samples = torch.arange(k, device=states.device)
         rows = [torch.cat([robot * k + samples for robot in robots]) for robots in by_member.values()]
-        policy = cast(Any, self.policy)
-        dispatch = MemberRows([policy.member(m) for m in by_member], rows)
+        member_of = self.capabilities.member
+        assert member_of is not None and self._dispatch is not None and self._dispatch_plan is not None
+        dispatch = self._dispatch.assign([member_of(m) for m in by_member], rows)
         flat = uniforms.transpose(0, 1).reshape(t, b * k)  # [T, B*K] robot-major
-        x, u = RolloutPlan.of(self.system, dispatch).run(self.system, dispatch, _start_rows(states, k), b * k, t,
-                                                        None, flat)
+        x, u = self._dispatch_plan.run(self.system, dispatch, _start_rows(states, k), b * k, t, None, flat)
         return x.view(b, k, t + 1, -1), u.view(b, k, t, -1)
 
     def rollout(self, start: Tensor, num_samples: int, generator: torch.Generator) -> tuple[Tensor, Tensor]:
@@ -438,8 +459,9 @@ class PolicyProposal(OneRobotCall):
 
     def reset(self, robots: Tensor | None = None) -> None:
         """The start of an episode: the policy's start check warns afresh and counts anew
-        (:func:`~cuniform_torch.sampling.start_watch.new_episode`)."""
-        new_episode(self.policy)
+        (its ``new_episode``, read once)."""
+        if self._episode is not None:
+            self._episode()
 
 
 # ------------------------------------------------------------------------------------------ composite

@@ -26,7 +26,6 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -40,7 +39,7 @@ from cuniform_torch.maps.encoder import MapEncoder, PatchSpec
 from cuniform_torch.maps.local_features import PROBES, LocalFeatures
 from cuniform_torch.policies.mlp_ops import check_query, inverse_cdf_draw, inverse_cdf_pick, state_features
 from cuniform_torch.sampling.fallback_counts import CountsFallbacks, FallbackCounts
-from cuniform_torch.sampling.rollout import StartWatch
+from cuniform_torch.sampling.start_watch import StartWatch, WatchesStart
 from cuniform_torch.systems import MAX_ACTIONS, MAX_HORIZON, System
 from cuniform_torch.systems.models import Dubins
 
@@ -155,7 +154,7 @@ class MapPolicyConfig:
         return out
 
 
-class MapPolicy(CountsFallbacks, nn.Module):
+class MapPolicy(WatchesStart, CountsFallbacks, nn.Module):
     """pi(u | x, t, map): ``set_map(patch)`` once, then ``action_probs(x [N, d], t) -> [N, A]`` for that map.
 
     ``encode(occupancy [B, H, W]) -> [B, E]``, ``encode_local(occupancy) -> [B, C, H, W]`` (local features only)
@@ -207,7 +206,9 @@ class MapPolicy(CountsFallbacks, nn.Module):
         self.register_buffer("_box_cell", torch.tensor(grid.cell_size)[self._linear], persistent=False)
         self._box_floats = (self._box_half.tolist(), self._box_cell.tolist())
         """the support box as Python floats (float32 values), for the compiled rollout: no host read per command"""
-        self._start_watch = StartWatch(f"map policy ({system.name})", system)
+        self.counts = FallbackCounts(self.device)
+        """the lookups' fallback counts (:class:`~cuniform_torch.sampling.fallback_counts.FallbackCounts`)"""
+        self._start_watch = StartWatch(f"map policy ({system.name})", system, counts=self.counts)
         self.register_buffer("_uniform", torch.full((1, config.num_actions), 1.0 / config.num_actions), persistent=False)
         self._map_bias: Tensor | None = None  # [B, T+1, Hd] per map and level, for the maps last set (set_maps)
         self._w_state: Tensor | None = None  # [F-1 (+ P * C), Hd]
@@ -218,8 +219,6 @@ class MapPolicy(CountsFallbacks, nn.Module):
         self.encodes = 0
         self.compiled = True
         """roll out through :meth:`fused_rollout` where it applies (False: always step by step)"""
-        self.counts = FallbackCounts(self.device)
-        """the lookups' fallback counts (:class:`~cuniform_torch.sampling.fallback_counts.FallbackCounts`)"""
 
     # -------------------------------------------------------------------------------- traits
     @property
@@ -234,13 +233,6 @@ class MapPolicy(CountsFallbacks, nn.Module):
     def start_relative(self) -> bool:
         """True on an SE(2)-invariant system: states and patch are in the start pose's frame."""
         return bool(self.system.se2_invariant)
-
-    @property
-    def build_start(self) -> Tensor:
-        return self._start_watch.build_start
-
-    def watch_start(self, x0: Tensor, relative: bool) -> Callable[[], None] | None:
-        return self._start_watch.begin(self, x0, relative)
 
     @property
     def num_parameters(self) -> int:

@@ -32,7 +32,6 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -45,6 +44,7 @@ from cuniform_torch.policies.mlp_ops import check_query, encode_features, state_
 from cuniform_torch.policies.table import Fallback
 from cuniform_torch.sampling.fallback_counts import CountsFallbacks, FallbackCounts
 from cuniform_torch.sampling.rollout import StartWatch, check_states
+from cuniform_torch.sampling.start_watch import WatchesStart
 from cuniform_torch.systems import MAX_ACTIONS, MAX_HORIZON, System
 from cuniform_torch.tables.file import Table
 from cuniform_torch.tables.lookup import MISS, NEAREST, Lookup, TableIndex, build_index
@@ -187,7 +187,7 @@ class MLPSupport:
         return {"cells": self.cells.cpu(), "level_offsets": self.level_offsets.cpu()}
 
 
-class MLPPolicy(CountsFallbacks, nn.Module):
+class MLPPolicy(WatchesStart, CountsFallbacks, nn.Module):
     """pi(u | x, t): ``action_probs(x [N, d], t) -> [N, A]``; works in ``rollout`` and every controller.
 
     It knows its support (``support``, else the box of the table's cells; see the module docstring), counts the
@@ -244,24 +244,14 @@ class MLPPolicy(CountsFallbacks, nn.Module):
         # the build start: the centre of the support's level-0 cell (a table built at a start other than the zero
         # state), else the zero state
         start = None if support is None else self._grid.centers(support.cells[:1])[0]
-        self._start_watch = StartWatch(f"MLP policy ({system.name})", system, start)
         self.counts = FallbackCounts(self.device)
         """the lookups' fallback counts (:class:`~cuniform_torch.sampling.fallback_counts.FallbackCounts`)"""
+        self._start_watch = StartWatch(f"MLP policy ({system.name})", system, start, self.counts)
 
     @property
     def start_relative(self) -> bool:
         """True only for an SE(2)-invariant system (states relative to the start pose, as for its table)."""
         return bool(self.system.se2_invariant)
-
-    @property
-    def build_start(self) -> Tensor:
-        """The start its table was built from, ``[d]`` float64 (the zero state)."""
-        return self._start_watch.build_start
-
-    def watch_start(self, x0: Tensor, relative: bool) -> Callable[[], None] | None:
-        """What :func:`~cuniform_torch.sampling.rollout.rollout` calls before a rollout from ``x0`` (see
-        :class:`~cuniform_torch.sampling.rollout.StartWatch`)."""
-        return self._start_watch.begin(self, x0, relative)
 
     @property
     def device(self) -> torch.device:

@@ -42,6 +42,7 @@ from cuniform_torch.common.options import Option, option_label
 from cuniform_torch.grid.cells import Grid
 from cuniform_torch.sampling.fallback_counts import CountsFallbacks, FallbackCounts
 from cuniform_torch.sampling.rollout import StartWatch, check_generator, check_states
+from cuniform_torch.sampling.start_watch import WatchesStart
 from cuniform_torch.systems import System
 from cuniform_torch.systems.models import Dubins
 from cuniform_torch.tables import cpu_kernels, gpu_kernels
@@ -77,7 +78,7 @@ class Kernel(Option):
     CUDA device, dense lookup; single lookups (``sample``, ``action_probs``) run the torch ops"""
 
 
-class TablePolicy(CountsFallbacks):
+class TablePolicy(WatchesStart, CountsFallbacks):
     """The Policy interface over a table: ``actions [A, q]`` and ``action_probs(x [N, d], t) -> [N, A]``.
 
     Also an :class:`~cuniform_torch.sampling.rollout.ActionSampler`: ``sample(x, t, generator)`` draws the actions with
@@ -118,7 +119,9 @@ class TablePolicy(CountsFallbacks):
         self.num_cells = self.index.num_cells
         self.num_halo = self.index.num_entries - self.num_cells
         build_start = None if getattr(table, "start", None) is None else torch.from_numpy(table.start)
-        self._start_watch = StartWatch(f"table policy ({self.system.name})", self.system, build_start)
+        self.counts = FallbackCounts(self.device)
+        """the lookups' fallback counts (:class:`~cuniform_torch.sampling.fallback_counts.FallbackCounts`)"""
+        self._start_watch = StartWatch(f"table policy ({self.system.name})", self.system, build_start, self.counts)
         asked = Kernel.parse(kernel)
         self.kernel = self._choose_kernel(asked, compile)
         # the numba kernel compiles (or loads from numba's disk cache) now, not in the first control cycle
@@ -129,8 +132,6 @@ class TablePolicy(CountsFallbacks):
         """roll out a Dubins system in one compiled call (:meth:`fused_rollout`) when the numba kernel runs"""
         # compiled, the level goes in as a 0-d tensor: one graph serves every level
         self._levels = [torch.tensor(t, device=self.device) if compile else t for t in range(self.horizon + 1)]
-        self.counts = FallbackCounts(self.device)
-        """the lookups' fallback counts (:class:`~cuniform_torch.sampling.fallback_counts.FallbackCounts`)"""
 
     def _choose_kernel(self, kernel: Kernel, compile: bool) -> Kernel:
         """The kernel :meth:`sample` runs: numba when asked for (an error naming what rules it out) or, for
@@ -170,16 +171,6 @@ class TablePolicy(CountsFallbacks):
         """True only for an SE(2)-invariant system: then states are relative to the start pose (the table is
         built at the origin); else they are used as they are, and the table holds from :attr:`build_start`."""
         return bool(self.system.se2_invariant)
-
-    @property
-    def build_start(self) -> Tensor:
-        """The start the table was built from, ``[d]`` float64 (the table's ``start``, else the zero state)."""
-        return self._start_watch.build_start
-
-    def watch_start(self, x0: Tensor, relative: bool) -> Callable[[], None] | None:
-        """What :func:`~cuniform_torch.sampling.rollout.rollout` calls before a rollout from ``x0``: see
-        :class:`~cuniform_torch.sampling.rollout.StartWatch`."""
-        return self._start_watch.begin(self, x0, relative)
 
     @property
     def num_actions(self) -> int:

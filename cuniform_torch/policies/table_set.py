@@ -128,6 +128,18 @@ class MemberRows:
         self.system, self.actions, self.horizon = first.system, first.actions, first.horizon
         self.device, self.dtype, self.start_relative = first.device, first.dtype, first.start_relative
 
+    @classmethod
+    def reusable(cls, first: TablePolicy) -> MemberRows:
+        """One for the rollouts of the members of ``first``'s set, made once (a proposal settles its rollout plan
+        on it) and :meth:`assign` ed per rollout."""
+        return cls([first], [torch.zeros(0, dtype=torch.int64)])
+
+    def assign(self, members: Sequence[TablePolicy], rows: Sequence[Tensor]) -> MemberRows:
+        """The members and their rows of the next rollout (every member of the same set: the traits stay);
+        returns ``self``."""
+        self.members, self.rows = list(members), list(rows)
+        return self
+
     def _each(self, x: Tensor, answer: Callable[[TablePolicy, Tensor | None], Tensor], width: int) -> Tensor:
         """Each member's answer for its rows (``rows`` None: one member answers every row, no gather)."""
         if len(self.members) == 1:

@@ -1,10 +1,11 @@
-"""Sampling trajectories: the Policy and ActionSampler protocols, batched rollouts, Gaussian noise samplers, the start check."""
+"""Sampling trajectories: the policy contract (the Policy and ActionSampler protocols, PolicyCapabilities), batched rollouts, Gaussian noise samplers, the start check."""
 
+from cuniform_torch.sampling.contract import ActionSampler, Policy, PolicyCapabilities, PolicyTraits
 from cuniform_torch.sampling.noise import GaussianSampler, NormalLogNormalSampler, lognormal_params
-from cuniform_torch.sampling.rollout import ActionSampler, Policy, PolicyTraits, rollout, rollout_actions
+from cuniform_torch.sampling.rollout import rollout, rollout_actions
 from cuniform_torch.sampling.start_watch import StartMismatchWarning
 
 __all__ = [
-    "rollout", "rollout_actions", "Policy", "ActionSampler", "PolicyTraits", "StartMismatchWarning",
+    "rollout", "rollout_actions", "Policy", "ActionSampler", "PolicyTraits", "PolicyCapabilities", "StartMismatchWarning",
     "GaussianSampler", "NormalLogNormalSampler", "lognormal_params",
 ]

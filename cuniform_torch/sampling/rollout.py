@@ -10,19 +10,17 @@ Shapes: N samples, T horizon, d state dimensions, q action dimensions, A actions
 * :func:`rollout_actions` runs given open-loop action sequences ``[N, T, q]`` (what the Gaussian and log-normal
   proposals of :mod:`cuniform_torch.controllers.proposals` draw).
 
-What :func:`rollout` reads from a policy, besides the protocol's members, is declared once, in
-:class:`PolicyTraits` (optional attributes, each with its default): ``horizon`` (longest rollout it serves),
-``device`` (where the start must be), ``dtype`` (what a controller around it runs in) and ``start_relative`` (a table or MLP built at the origin:
-on an SE(2)-invariant system it is rolled out from the origin and its states are moved to the start pose by a
-rigid transform) and ``watch_start`` (a table or MLP valid from one start: :class:`StartWatch` warns once,
-:class:`StartMismatchWarning`, when it is rolled out from another).
+What :func:`rollout` reads from a policy is declared once, in :mod:`cuniform_torch.sampling.contract`: the
+:class:`Policy` protocol (required members) and :class:`PolicyCapabilities` (every optional one, read once when a
+:class:`RolloutPlan` is made: ``horizon``, ``device``, ``dtype``, ``start_relative``, ``draw``, ``watch_start``,
+``for_start``, ``fused_rollout``); a rollout only reads the plan.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
-from typing import Any, Protocol, cast, runtime_checkable
+from dataclasses import dataclass, field
+from typing import Any, cast
 
 import torch
 from torch import Tensor
@@ -30,62 +28,13 @@ from torch import Tensor
 from cuniform_torch.common.frames import se2_to_world
 from cuniform_torch.common.tensors import check_generator, check_states, same_device
 from cuniform_torch.sampling import kernels as rollout_kernels
+from cuniform_torch.sampling.contract import ActionSampler, Policy, PolicyCapabilities, PolicyTraits
 from cuniform_torch.sampling.draws import inverse_cdf_pick
 from cuniform_torch.sampling.start_watch import OWN_ROBOT, StartMismatchWarning, StartWatch
 from cuniform_torch.systems import System, check_dynamics
 
-__all__ = ["Policy", "ActionSampler", "PolicyTraits", "RolloutPlan", "StartMismatchWarning", "StartWatch", "rollout",
-           "rollout_actions", "check_states", "check_generator", "same_device", "OWN_ROBOT"]
-
-
-@runtime_checkable
-class Policy(Protocol):
-    """Anything with a discrete action set and per-state action probabilities.
-
-    Optional attributes that :func:`rollout` reads when present are listed in :class:`PolicyTraits`.
-    """
-
-    actions: Tensor
-    """``[A, q]``"""
-
-    def action_probs(self, x: Tensor, t: int) -> Tensor:
-        """``x [N, d]`` at step ``t`` -> ``[N, A]`` probabilities (rows sum to 1)."""
-        ...
-
-
-@runtime_checkable
-class ActionSampler(Protocol):
-    """Anything that draws actions for a batch of states (a table's alias sampler, a noise law)."""
-
-    def sample(self, x: Tensor, t: int, generator: torch.Generator | None) -> Tensor:
-        """``x [N, d]`` at step ``t`` -> actions ``[N, q]``."""
-        ...
-
-
-@dataclass(frozen=True)
-class PolicyTraits:
-    """The optional attributes of a policy (or sampler) that :func:`rollout` reads, with their defaults."""
-
-    horizon: int | None = None
-    """the longest rollout the policy serves (a table's T); None: any"""
-    device: torch.device | None = None
-    """the policy's device: the start must be there; None: not checked"""
-    dtype: torch.dtype | None = None
-    """the policy's dtype (what a controller around it runs in; None: float32). A policy checks the states it is
-    given itself: a uniform policy serves any dtype"""
-    start_relative: bool = False
-    """True: the policy was built at the origin of an SE(2)-invariant system (tables, MLPs), its probabilities are
-    in the start pose's frame"""
-
-    @classmethod
-    def of(cls, policy: object) -> PolicyTraits:
-        """The traits ``policy`` declares (an attribute it lacks, or that is None, takes the default)."""
-        device = getattr(policy, "device", None)
-        dtype = getattr(policy, "dtype", None)
-        return cls(horizon=getattr(policy, "horizon", None),
-                   device=None if device is None else torch.device(device),
-                   dtype=dtype if isinstance(dtype, torch.dtype) else None,
-                   start_relative=bool(getattr(policy, "start_relative", False)))
+__all__ = ["Policy", "ActionSampler", "PolicyTraits", "PolicyCapabilities", "RolloutPlan", "StartMismatchWarning",
+           "StartWatch", "rollout", "rollout_actions", "check_states", "check_generator", "same_device", "OWN_ROBOT"]
 
 
 def _check_args(system: System, x0: Tensor, num_samples: int, horizon: int) -> int:
@@ -184,48 +133,64 @@ def _plain_step(system: System, x: Tensor, u: Tensor, n: int, d: int, column_maj
 
 @dataclass(frozen=True)
 class RolloutPlan:
-    """How :func:`rollout` drives one policy, settled once (a proposal keeps it and skips the per-call checks)."""
+    """How :func:`rollout` drives one policy, settled once (a proposal keeps it and skips the per-call checks): the
+    policy's :class:`PolicyCapabilities` and the system's step flags. A rollout reads only this record."""
 
-    sampler: bool
-    """draw through ``policy.sample`` (an :class:`ActionSampler`); else categorical draws of ``action_probs``"""
+    capabilities: PolicyCapabilities
+    """what the policy declares, read once"""
     relative: bool
     """roll out from the origin and move the states to the start pose (``start_relative`` on an SE(2)-invariant
     system)"""
-    traits: PolicyTraits
     step_out: bool = False
     """the system's ``step`` takes ``out=`` (its class says ``step_out = True``): each step writes a row of one
     preallocated ``[T+1, d, N]`` buffer, which the results are read from (no stack of T+1 states)"""
     column_major_ok: bool = False
     """the system's ``step`` may get column-major states (:func:`steps_column_major`); else contiguous ones"""
-    watch_start: Callable[[Tensor, bool], Callable[[], None] | None] | None = None
-    """the policy's ``watch_start(x0, relative)`` (a :class:`StartWatch`'s ``begin``), when it has one"""
-    draws: bool = False
-    """the policy has ``draw(x, t, r)``: it draws with given uniforms; else, given uniforms, the rollout draws from
-    ``action_probs`` by inverse CDF"""
-    for_start: Callable[[Tensor], Any] | None = None
-    """the policy's ``for_start(x0)`` (a table set: the member nearest the start, with its own start check and
-    compiled rollout), when it has one"""
-    fused_rollout: Callable[..., Any] | None = None
-    """the policy's ``fused_rollout(system, x0, N, T, generator, uniforms)`` (it rolls itself out in the start
-    frame; None falls back to the step loop), when it has one: settled here, not looked up per rollout"""
+    _members: dict[int, tuple[object, PolicyCapabilities]] = field(default_factory=dict, compare=False, repr=False)
+    """the capabilities of each policy ``for_start`` has returned, read the first time it is returned (keyed by
+    its id; the policy is kept so that the id is not reused)"""
+
+    @property
+    def traits(self) -> PolicyTraits:
+        return self.capabilities.traits
+
+    @property
+    def sampler(self) -> bool:
+        """draw through ``policy.sample`` (an :class:`ActionSampler`); else categorical draws of ``action_probs``"""
+        return self.capabilities.sampler
+
+    @property
+    def draws(self) -> bool:
+        """the policy has ``draw(x, t, r)``: it draws with given uniforms"""
+        return self.capabilities.draw is not None
+
+    @property
+    def watch_start(self) -> Callable[[Tensor, bool], Callable[[], None] | None] | None:
+        return self.capabilities.watch_start
+
+    @property
+    def for_start(self) -> Callable[[Tensor], Any] | None:
+        return self.capabilities.for_start
+
+    @property
+    def fused_rollout(self) -> Callable[..., Any] | None:
+        return self.capabilities.fused_rollout
 
     @classmethod
-    def of(cls, system: System, policy: object) -> RolloutPlan:
-        """The plan for ``policy`` on ``system``; ValueError when it is neither a Policy nor an ActionSampler."""
-        # the two protocols' runtime checks, spelled out (typing's isinstance on a Protocol is ~20 us a call)
-        sampler = callable(getattr(policy, "sample", None))
-        if not sampler and not (hasattr(policy, "actions") and callable(getattr(policy, "action_probs", None))):
-            raise ValueError(f"{type(policy).__name__} is neither a Policy (actions, action_probs) nor an "
-                             f"ActionSampler (sample)")
-        traits = PolicyTraits.of(policy)
-        watch = getattr(policy, "watch_start", None)
-        select = getattr(policy, "for_start", None)
-        fused = getattr(policy, "fused_rollout", None)
-        return cls(sampler=sampler, relative=traits.start_relative and bool(system.se2_invariant), traits=traits,
-                   step_out=_steps_into(system), column_major_ok=steps_column_major(system),
-                   watch_start=watch if callable(watch) else None, draws=callable(getattr(policy, "draw", None)),
-                   for_start=select if callable(select) else None,
-                   fused_rollout=fused if callable(fused) else None)
+    def of(cls, system: System, policy: object, capabilities: PolicyCapabilities | None = None) -> RolloutPlan:
+        """The plan for ``policy`` on ``system`` (``capabilities``: the policy's, when already read); ValueError when
+        it is neither a Policy nor an ActionSampler."""
+        caps = capabilities if capabilities is not None else PolicyCapabilities.of(policy)
+        caps.check(policy)
+        return cls(capabilities=caps, relative=caps.traits.start_relative and bool(system.se2_invariant),
+                   step_out=_steps_into(system), column_major_ok=steps_column_major(system))
+
+    def member_capabilities(self, member: object) -> PolicyCapabilities:
+        """The capabilities of a policy ``for_start`` returned: read the first time, then kept."""
+        known = self._members.get(id(member))
+        if known is None or known[0] is not member:
+            known = self._members[id(member)] = (member, PolicyCapabilities.of(member))
+        return known[1]
 
     def check(self, x0: Tensor, horizon: int) -> None:
         """ValueError unless the policy serves ``horizon`` steps from ``x0`` (its device, finite)."""
@@ -239,7 +204,8 @@ class RolloutPlan:
 
     def _steps(self, system: System, policy: Policy | ActionSampler, x0: Tensor, start: Tensor, num_samples: int,
                horizon: int, generator: torch.Generator | None,
-               uniforms: Tensor | None = None) -> tuple[Tensor | None, list[Tensor], Tensor]:
+               uniforms: Tensor | None = None,
+               caps: PolicyCapabilities | None = None) -> tuple[Tensor | None, list[Tensor], Tensor]:
         """The step-by-step loop of :meth:`run`: the time-major buffer ``[T+1, d, N]`` (None without one), the
         column-major states ``[N, d]`` of each step, and the actions ``[N, T, q]``."""
         d = x0.shape[-1]
@@ -252,16 +218,18 @@ class RolloutPlan:
             x[:, 3:] = start[:, 3:]
         else:
             x.copy_(start)
-        by_probs = not self.sampler or (uniforms is not None and not self.draws)
+        caps = self.capabilities if caps is None else caps
+        draw = caps.draw
+        by_probs = not caps.sampler or (uniforms is not None and draw is None)
         actions = cast(Tensor, cast(Policy, policy).actions.to(dtype=x0.dtype) if by_probs else None)  # [A, q]
         states, taken = [x], []
         for t in range(horizon):
-            if uniforms is not None and self.draws:
-                u = cast(Any, policy).draw(x, t, uniforms[t])  # [N, q]
+            if uniforms is not None and draw is not None:
+                u = draw(x, t, uniforms[t])  # [N, q]
             elif uniforms is not None:
                 u = inverse_cdf_pick(self._probs(policy, x, t, num_samples, actions).cumsum(dim=1), actions,
                                      uniforms[t])  # [N, q]
-            elif self.sampler:
+            elif caps.sampler:
                 u = cast(ActionSampler, policy).sample(x, t, generator)  # [N, q]
             else:
                 probs = self._probs(policy, x, t, num_samples, actions)
@@ -280,7 +248,7 @@ class RolloutPlan:
             # stacked time-major, then one transposing copy: cheaper on a CPU than stacking [N, q] along dim 1
             actions_t = torch.stack(taken).transpose(0, 1).contiguous()  # [N, T, q]
         else:
-            q = (policy.actions.shape[1] if hasattr(policy, "actions")
+            q = (caps.action_dim if caps.action_dim is not None
                  else system.action_set(dtype=x0.dtype, device=x0.device).shape[1])
             actions_t = x0.new_zeros((num_samples, 0, q))
         return buffer, states, actions_t
@@ -302,24 +270,22 @@ class RolloutPlan:
         device; a generator on it): ``states [N, T+1, d]``, ``actions [N, T, q]``. With ``uniforms [T, N]`` in
         ``[0, 1)`` (the policy's dtype and device), step ``t`` draws with ``uniforms[t]`` (one per sample: what a
         batched controller draws up front, per robot) and ``generator`` is not used."""
-        if self.for_start is not None:  # a table set: the table nearest to this start, and its start check
-            policy = self.for_start(x0)
-            # a member's hooks are its own (the member changes with the start): looked up per rollout here only
-            watch = getattr(policy, "watch_start", None)
-            fused = getattr(policy, "fused_rollout", None)
-        else:
-            watch, fused = self.watch_start, self.fused_rollout
+        caps = self.capabilities
+        if caps.for_start is not None:  # a table set: the table nearest to this start, and its start check
+            policy = caps.for_start(x0)
+            caps = self.member_capabilities(policy)  # a member's hooks are its own, read the first time it serves
+        watch, fused = caps.watch_start, caps.fused_rollout
         report = watch(x0, self.relative) if watch is not None else None
         d = x0.shape[-1]
         start = x0.unsqueeze(0).expand(num_samples, d) if x0.ndim == 1 else x0  # [N, d]
-        own = (fused(system, x0, num_samples, horizon, generator, uniforms) if self.relative and callable(fused)
+        own = (fused(system, x0, num_samples, horizon, generator, uniforms) if self.relative and fused is not None
                else None)
         if own is not None:
             buffer, actions_t = own  # [T+1, d, N] start-frame states, [N, T, q]
             states: list[Tensor] = []
         else:
             buffer, states, actions_t = self._steps(system, policy, x0, start, num_samples, horizon, generator,
-                                                    uniforms)
+                                                    uniforms, caps)
         # the origin pose needs no change of frame (a host read to know it: only on a CPU, where it is free, and not
         # for a controller's rollouts, given their uniforms: a command reads nothing back)
         if self.relative and (uniforms is not None or x0.ndim == 2 or x0.device.type != "cpu"

@@ -1,11 +1,12 @@
 """The start check of a policy valid from one start (a table, an MLP distilled from one): :class:`StartWatch`
 warns, :class:`StartMismatchWarning`, when such a policy is rolled out from another start (read by
 :func:`cuniform_torch.rollout.rollout` through a policy's ``watch_start``), once per episode, and counts every
-such rollout and its lookups in :class:`StartMisses`.
+such rollout and its lookups in :class:`StartMisses`. :class:`WatchesStart` is the one implementation of the
+members a policy answers through its watch (``watch_start``, ``new_episode``, ``start_misses``, ``build_start``).
 
 An episode begins when the policy is made, when a controller around it is made or ``reset()``
-(:class:`~cuniform_torch.controllers.proposals.PolicyProposal` calls :func:`new_episode`), and at
-:func:`new_episode` (``policy.new_episode()`` on a table set). :func:`start_misses` reads the current episode's
+(:class:`~cuniform_torch.controllers.proposals.PolicyProposal` calls the policy's ``new_episode``, read once), and
+at :func:`new_episode` (or ``policy.new_episode()``). :func:`start_misses` reads the current episode's
 counts.
 """
 
@@ -18,10 +19,11 @@ import torch
 from torch import Tensor
 
 from cuniform_torch.grid.cells import Grid
+from cuniform_torch.sampling.fallback_counts import FallbackCounts
 from cuniform_torch.systems import System
 
-__all__ = ["OWN_ROBOT", "StartMismatchWarning", "StartMisses", "StartWatch", "new_episode", "start_misses",
-           "watch_of"]
+__all__ = ["OWN_ROBOT", "StartMismatchWarning", "StartMisses", "StartWatch", "WatchesStart", "new_episode",
+           "start_misses", "watch_of"]
 
 OWN_ROBOT = 'README, "Your own robot"'
 """where the README tells how to build a table at another start, or a table set"""
@@ -93,8 +95,11 @@ class StartWatch:
     warned, then a few device operations (no sync) per rollout to count it.
     """
 
-    def __init__(self, who: str, system: System, build_start: Tensor | None = None):
+    def __init__(self, who: str, system: System, build_start: Tensor | None = None,
+                 counts: FallbackCounts | None = None):
         self.who = who
+        self.counts = counts
+        """the policy's fallback counts, read for the miss rate of an off-start rollout (None: not counted)"""
         self.system = system
         self.grid = Grid.of(system)
         d = self.grid.dim
@@ -117,23 +122,24 @@ class StartWatch:
         """Forget the episode: zero its counts; the next off-start rollout warns again."""
         self.episode.reset()
 
-    def begin(self, policy: object, x0: Tensor, relative: bool) -> Callable[[], None] | None:
+    def begin(self, x0: Tensor, relative: bool) -> Callable[[], None] | None:
         """Before a rollout from ``x0 [d]`` (or ``[N, d]``): None when there is nothing to say, else the call that
         counts (and, the first time in the episode, warns) after the rollout, with the miss rate of that rollout
-        (``policy.queries`` and ``policy.misses``)."""
+        (from :attr:`counts`)."""
         first = 3 if relative else 0
         if first >= self.grid.dim:
             return None
-        queries, misses = int(getattr(policy, "queries", 0)), getattr(policy, "misses", None)
-        misses = misses.clone() if isinstance(misses, Tensor) else None  # 0-d device tensor: no sync yet
+        counts = self.counts
+        queries = counts.queries if counts is not None else 0
+        misses = counts.misses.clone() if counts is not None else None  # 0-d device tensor: no sync yet
         if self.episode.warned:  # said already: count on x0's device, with no host read
             cells = self.grid.cells(x0.detach().double())[..., first:]
             off = (cells != self._cell_on(x0.device)[first:]).any()  # 0-d bool
-            return lambda: self._count(policy, off, queries, misses)
+            return lambda: self._count(off, queries, misses)
         cells = self.grid.cells(x0.detach().double().cpu())[..., first:]  # [d - first] or [N, d - first]
         if bool((cells == self._build_cell[first:]).all()):
             return None
-        return lambda: self._warn(policy, x0, relative, queries, misses)
+        return lambda: self._warn(x0, relative, queries, misses)
 
     def _cell_on(self, device: torch.device) -> Tensor:
         cell = self._device_cells.get(device)
@@ -141,15 +147,21 @@ class StartWatch:
             cell = self._device_cells[device] = self._build_cell.to(device)
         return cell
 
-    def _count(self, policy: object, off: bool | Tensor, queries: int, misses: Tensor | None) -> None:
-        asked = int(getattr(policy, "queries", 0)) - queries
-        missed = getattr(policy, "misses") - misses if misses is not None else 0
+    def _since(self, queries: int, misses: Tensor | None) -> tuple[int, int | Tensor]:
+        """Lookups and misses counted since ``(queries, misses)`` were read (misses: a device tensor, no sync)."""
+        counts = self.counts
+        if counts is None or misses is None:
+            return 0, 0
+        return counts.queries - queries, counts.misses - misses
+
+    def _count(self, off: bool | Tensor, queries: int, misses: Tensor | None) -> None:
+        asked, missed = self._since(queries, misses)
         self.episode.add(off, asked, missed)
 
-    def _warn(self, policy: object, x0: Tensor, relative: bool, queries: int, misses: Tensor | None) -> None:
+    def _warn(self, x0: Tensor, relative: bool, queries: int, misses: Tensor | None) -> None:
         self.episode.warned = True
-        asked = int(getattr(policy, "queries", 0)) - queries
-        missed = int(getattr(policy, "misses")) - int(misses) if misses is not None else 0
+        asked, missed_t = self._since(queries, misses)
+        missed = int(missed_t)
         self.episode.add(True, asked, missed)
         rate = f"{missed / asked:.3f} ({missed} of {asked} lookups)" if asked else "not counted"
         name = getattr(self.system, "name", type(self.system).__name__)
@@ -164,30 +176,48 @@ class StartWatch:
             f"start_misses(policy) counts every such rollout of the episode.", StartMismatchWarning, stacklevel=5)
 
 
+class WatchesStart:
+    """The start check of a policy valid from one start (a table, an MLP, a map policy), written once: the policy
+    keeps a :class:`StartWatch` as ``_start_watch`` (made with its :class:`FallbackCounts`) and answers through it
+    ``watch_start`` (what the rollout calls), ``new_episode`` (what a controller calls), ``start_misses`` and
+    ``build_start``."""
+
+    _start_watch: StartWatch
+
+    @property
+    def build_start(self) -> Tensor:
+        """The start the policy is valid from, ``[d]`` float64."""
+        return self._start_watch.build_start
+
+    def watch_start(self, x0: Tensor, relative: bool) -> Callable[[], None] | None:
+        """Before a rollout from ``x0 [d]`` (or ``[N, d]``): :meth:`StartWatch.begin`."""
+        return self._start_watch.begin(x0, relative)
+
+    def new_episode(self) -> None:
+        """Begin an episode: the off-start warning is armed again and :attr:`start_misses` restarts."""
+        self._start_watch.new_episode()
+
+    @property
+    def start_misses(self) -> StartMisses:
+        """This episode's off-start rollouts (``rollouts``, ``lookups``, ``misses``, ``rate``, ``warned``)."""
+        return self._start_watch.episode
+
+
 def watch_of(policy: object) -> StartWatch | None:
-    """The :class:`StartWatch` of a policy valid from one start (a table, an MLP, a map policy keep theirs as
-    ``_start_watch``), else None."""
-    watch = getattr(policy, "_start_watch", None)
-    return watch if isinstance(watch, StartWatch) else None
+    """The :class:`StartWatch` of a policy valid from one start (a :class:`WatchesStart`), else None."""
+    return policy._start_watch if isinstance(policy, WatchesStart) else None
 
 
 def new_episode(policy: object) -> None:
-    """Begin an episode for ``policy``: its start check warns again and its counts restart (a policy with its own
-    ``new_episode()``, a table set, does that; any other with a :class:`StartWatch` has it reset; others: nothing)."""
-    own = getattr(policy, "new_episode", None)
+    """Begin an episode for ``policy``: its start check warns again and its counts restart (its own
+    ``new_episode()``: a :class:`WatchesStart` policy, a table set; others: nothing)."""
+    own = getattr(policy, "new_episode", None)  # a user's call, not a command's: read here
     if callable(own):
         own()
-        return
-    watch = watch_of(policy)
-    if watch is not None:
-        watch.new_episode()
 
 
 def start_misses(policy: object) -> StartMisses | None:
-    """The current episode's off-start rollouts of ``policy`` (its ``start_misses``, a table set's; else its
-    :class:`StartWatch`'s), None for a policy that watches no start."""
-    own = getattr(policy, "start_misses", None)
-    if isinstance(own, StartMisses):
-        return own
-    watch = watch_of(policy)
-    return watch.episode if watch is not None else None
+    """The current episode's off-start rollouts of ``policy`` (its ``start_misses``: a :class:`WatchesStart`
+    policy's, a table set's), None for a policy that watches no start."""
+    own = getattr(policy, "start_misses", None)  # a user's call, not a command's: read here
+    return own if isinstance(own, StartMisses) else None

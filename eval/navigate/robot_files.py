@@ -9,6 +9,8 @@ max-flow table (81 329 cells) and its coverage table (47 514 cells) ship as pack
 (:data:`SHIPPED_DIR`, 1.5 MB and 1.3 MB without the flow graph no policy reads), checked against their manifest
 (size, sha256) before use (:func:`shipped_table`); ``python -m eval.navigate robot-files --ship`` rebuilds them
 (about 7 s and 27 s on the project's 2-core machine, :data:`BUILD_SECONDS`) and ``--check`` rebuilds and compares.
+The ``narrow`` suite's faster robot (:data:`~precompute.worlds.robot.FAST_ROBOT`, the same lattice scaled by two:
+as many cells) ships its two tables beside them (:data:`SHIPPED_ROBOTS`); ``--ship`` and ``--check`` do both robots.
 
 Any registered system can drive the suites instead (:class:`RobotPreset` with another ``system`` name and
 ``params``, or another horizon); it needs ``(x, y, heading, ...)`` states. The files a method needs are built by
@@ -33,14 +35,14 @@ from typing import TYPE_CHECKING, Any
 import cuniform_torch
 from cuniform_torch.common.fileio import FileLockedError, open_regular, read_capped_text, write_json
 from precompute.cli import ArgumentParser, CLIError, cli_main, horizon_arg
-from precompute.worlds.robot import NAV_ROBOT, RobotPreset, preset_dict
+from precompute.worlds.robot import FAST_ROBOT, NAV_ROBOT, RobotPreset, preset_dict
 
 if TYPE_CHECKING:
     from precompute.one_table import TableJob
 
 __all__ = ["table_file", "policy_file", "ensure_table", "ensure_policy", "expected_time", "announce", "BUILD_SECONDS",
-           "DISTILL_EPOCHS", "SHIPPED_DIR", "SHIPPED_FORMAT", "ShippedTableError", "shipped_table", "ship_tables",
-           "main"]
+           "DISTILL_EPOCHS", "SHIPPED_DIR", "SHIPPED_FORMAT", "SHIPPED_ROBOTS", "ShippedTableError", "shipped_table",
+           "ship_tables", "main"]
 
 BUILD_SECONDS: dict[tuple[str, int], float] = {
     ("maxflow", 15): 7, ("coverage", 15): 27, ("policy", 15): 230,
@@ -78,6 +80,8 @@ def policy_file(robot: RobotPreset, cache: Path) -> Path:
 SHIPPED_DIR = Path(cuniform_torch.__file__).parent / "maps" / "robot_tables"
 """``cuniform_torch/maps/robot_tables/``: the built-in robot's tables shipped as package data, beside the pretrained
 map policies (``maps/weights/``), with their manifest (:data:`MANIFEST`)"""
+SHIPPED_ROBOTS = (NAV_ROBOT, FAST_ROBOT)
+"""the robots whose 15-step tables ship: the built-in robot and the ``narrow`` suite's faster one"""
 
 SHIPPED_FORMAT = "cuniform-shipped-tables/1"
 MANIFEST = "manifest.json"
@@ -276,8 +280,8 @@ def ship_tables(robot: RobotPreset = NAV_ROBOT, folder: Path = SHIPPED_DIR, meth
                 quiet: bool = True) -> dict[str, Any]:
     """Build ``robot``'s tables of ``methods`` (:func:`build_policy_table`), write them into ``folder`` with their
     manifest (:data:`MANIFEST`: file, size, sha256, content digest, the robot, the build's wall-clock and CPU
-    seconds and the 1-minute load) and return
-    the manifest. Files an older manifest of ``folder`` named and this one does not are removed."""
+    seconds and the 1-minute load) and return the manifest. The older manifest's entries of ``robot`` (any method)
+    are replaced, their files removed when no longer named; the entries of other robots are kept."""
     from cuniform_torch.tables.file import NOGRAPH_DIGEST_KEY, table_digests, write_table
 
     if robot.starts is not None:
@@ -298,6 +302,9 @@ def ship_tables(robot: RobotPreset = NAV_ROBOT, folder: Path = SHIPPED_DIR, meth
                         "content_sha256_nograph": str(table_digests(table.to_arrays())[NOGRAPH_DIGEST_KEY]),
                         "cells": int(table.level_offsets[-1]), "build_seconds": round(seconds, 1),
                         "build_cpu_seconds": round(cpu, 1), "load": round(os.getloadavg()[0], 1)})
+    mine = {robot.fingerprint(m) for m in METHODS}  # this robot's entries, of every method, are replaced
+    others = [e for e in old["tables"] if e["fingerprint"] not in mine]
+    entries = others + entries
     kept = {e["file"] for e in entries}
     for entry in old["tables"]:
         if entry["file"] not in kept and (folder / entry["file"]).is_file():
@@ -331,9 +338,10 @@ than 1e-3, at most by 0.011, for the same coverage (6306 / 15816 cells at N = 10
 def make_parser() -> ArgumentParser:
     parser = ArgumentParser(
         prog="python -m eval.navigate robot-files",
-        description="The navigation robot's shipped tables (cuniform_torch/maps/robot_tables/): rebuild them "
-                    f"(--ship, about {BUILD_SECONDS[('maxflow', 15)] + BUILD_SECONDS[('coverage', 15)]:.0f} s on a "
-                    "2-core CPU), rebuild and compare them with the shipped ones (--check), or time the builds "
+        description="The navigation robots' shipped tables (cuniform_torch/maps/robot_tables/: the built-in "
+                    "robot's and the narrow suite's faster robot's): rebuild them "
+                    f"(--ship, about {BUILD_SECONDS[('maxflow', 15)] + BUILD_SECONDS[('coverage', 15)]:.0f} s per "
+                    "robot on a 2-core CPU), rebuild and compare them with the shipped ones (--check), or time the builds "
                     "(--time: the measurements of BUILD_SECONDS).")
     mode = parser.add_mutually_exclusive_group(required=True)
     mode.add_argument("--ship", action="store_true", help="build the tables and write them with their manifest")
@@ -361,7 +369,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         raise CLIError("--horizons applies to --time (--ship and --check build the navigation robot's 15 steps)")
     if args.ship:
         out = args.out or SHIPPED_DIR
-        manifest = ship_tables(NAV_ROBOT, out, args.methods, args.quiet)
+        manifest: dict[str, Any] = {}
+        for robot in SHIPPED_ROBOTS:
+            manifest = ship_tables(robot, out, args.methods, args.quiet)
         for e in manifest["tables"]:
             print(f"wrote {out / e['file']} ({e['bytes']} bytes, {e['cells']} cells, built in "
                   f"{e['build_seconds']} s, {e['build_cpu_seconds']} s of CPU, load {e['load']})")
@@ -376,14 +386,14 @@ def main(argv: Sequence[str] | None = None) -> int:
                       f"{os.getloadavg()[0]:.1f}", flush=True)
         return 0
     failed = False
-    for method in args.methods:
-        path = shipped_table(NAV_ROBOT, method)
+    for robot, method in ((robot, method) for robot in SHIPPED_ROBOTS for method in args.methods):
+        path = shipped_table(robot, method)
         if path is None:
-            raise CLIError(f"no shipped {method} table of the navigation robot in {SHIPPED_DIR} (build them: "
-                           f"{SHIP_COMMAND})")
-        print(f"rebuilding the {method} table to compare with {path} ({expected_time(NAV_ROBOT, method)})",
+            raise CLIError(f"no shipped {method} table of the navigation robot {robot.fingerprint(method)} in "
+                           f"{SHIPPED_DIR} (build them: {SHIP_COMMAND})")
+        print(f"rebuilding the {method} table to compare with {path} ({expected_time(robot, method)})",
               flush=True)
-        built, seconds, cpu = build_policy_table(NAV_ROBOT, method, args.quiet)
+        built, seconds, cpu = build_policy_table(robot, method, args.quiet)
         diff = compare_tables(built, read_table(path, graph=False))
         ok = diff["same_cells"] and diff["action_probs"] <= CHECK_TOLERANCE
         failed |= not ok

@@ -59,14 +59,14 @@ from precompute.cli import (
     positive_int,
     refuse_flags,
 )
-from precompute.worlds.robot import NAV_ROBOT, RobotPreset, preset_dict
+from precompute.worlds.robot import NAV_ROBOT, RobotPreset, preset_dict, suite_robot
 from precompute.worlds.suites import NavTask
 from precompute.worlds.tasks import SPLITS, SUITES, TIME_LIMITS, make_tasks
 
 __all__ = ["NavConfig", "NAV_TYPES", "REPEATS", "SHORT", "QUICK", "make_jobs", "run", "short_run", "render", "result",
            "success_pivot", "write_outputs", "main", "controller_seed"]
 
-REPEATS = {"barn": 1, "forest": 1, "gaps": 5, "clutter": 1, "moving": 1, "sudden": 1}
+REPEATS = {"barn": 1, "forest": 1, "gaps": 5, "clutter": 1, "moving": 1, "sudden": 1, "narrow": 1}
 """controller seeds per task by default: the gap suite has few tasks (9 widths), so each runs 5 times"""
 
 
@@ -75,9 +75,10 @@ class NavConfig:
     """One benchmark run (every field is a flag)."""
 
     suite: str = "barn"
-    """barn, forest, gaps, clutter, moving (discs crossing at constant velocity) or sudden (an obstacle sensed late)"""
+    """barn, forest, gaps, clutter, moving (discs crossing at constant velocity), sudden (an obstacle sensed late) or
+    narrow (passages 1.5-2x the robot's width, driven at 1.0 m/s by FAST_ROBOT)"""
     tasks: int | None = None
-    """how many tasks (BARN: the first maps of the file; forest, clutter, moving: seeds from --seed; gaps: widths
+    """how many tasks (BARN: the first maps of the file; forest, clutter, moving, narrow: seeds from --seed; gaps: widths
     0.6..1.2 m; sudden: 5 appearance times per obstacle position); default: every BARN map, 50 forests, 9 gaps,
     50 moving, 100 sudden"""
     budgets: tuple[int, ...] = (256, 1024)
@@ -310,13 +311,14 @@ def _trained_radius(path: Path, name: str) -> float | None:
     return float(radius) if isinstance(radius, (int, float)) and not isinstance(radius, bool) else None
 
 
-def run(cfg: NavConfig, out: Path, robot: RobotPreset = NAV_ROBOT, cache: Path = Path("out/navigate/cache"),
+def run(cfg: NavConfig, out: Path, robot: RobotPreset | None = None, cache: Path = Path("out/navigate/cache"),
         barn_file: Path | None = None, given: dict[str, Path | None] | None = None,
         ray_address: str | None = None, progress: bool = True) -> dict:
     """Run (or resume) the benchmark ``cfg`` into the folder ``out``; the result that ``results.json`` holds.
     ``cfg`` is checked here, the library's edge (:func:`main` checks its flags before any work and calls
-    :func:`_run`)."""
+    :func:`_run`). ``robot`` None: the suite's (:func:`~precompute.worlds.robot.suite_robot`)."""
     _check(cfg)
+    robot = suite_robot(cfg.suite) if robot is None else robot
     return _run(cfg, out, robot, cache, barn_file, given, ray_address, progress)
 
 
@@ -441,13 +443,14 @@ def _robot(args, cfg: NavConfig) -> RobotPreset:
         raise ValueError("--param needs --system (the built-in robot's parameters are fixed: eval/navigate/robot_files.py)")
     from precompute.build import parse_params
 
-    params = dict(NAV_ROBOT.params) if args.system is None else parse_params(args.param)
+    base = suite_robot(cfg.suite)  # the narrow suite's robot is the faster FAST_ROBOT
+    params = dict(base.params) if args.system is None else parse_params(args.param)
     radius = args.robot_radius
     if not (np.isfinite(radius) and radius >= 0):
         raise ValueError(f"--robot-radius must be a finite number >= 0, got {radius}")
     if args.starts is not None and args.system is None:
         raise ValueError("--starts needs --system (the built-in robot's state is a pose: one table serves it)")
-    robot = RobotPreset(system=args.system or NAV_ROBOT.system, params=params, radius=radius, horizon=cfg.horizon,
+    robot = RobotPreset(system=args.system or base.system, params=params, radius=radius, horizon=cfg.horizon,
                         starts=args.starts)
     system = robot.make_system()  # a bad system or parameter fails here, before any work
     if cfg.dynamics == "learned":

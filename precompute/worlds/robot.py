@@ -5,6 +5,11 @@ The built-in robot (:data:`NAV_ROBOT`) is a differential-drive base driven as a 
 dt = 0.2 s, a disc of radius 0.2 m (BARN's narrowest passages are about 0.6-0.7 m wide between cylinder
 surfaces), a controller horizon of 15 steps (3 s, 1.5 m ahead), cells of 0.05 m x 0.05 m x 10 degrees.
 
+The ``narrow`` suite is driven by a faster robot (:data:`FAST_ROBOT`, :func:`suite_robot`): the same unicycle at
+1.0 m/s with cells of 0.1 m x 0.1 m x 10 degrees, the built-in lattice scaled by two in x and y (a step of 0.2 m
+is two cells for both), the same turn rates (a 0.67 m turning radius instead of 0.33 m), body and horizon (3 s,
+3 m ahead). A preset's speed is part of its tables (:meth:`RobotPreset.fingerprint`), so this robot has its own.
+
 Any registered system can drive the suites instead (:class:`RobotPreset` with another ``system`` name and
 ``params``); it needs ``(x, y, heading, ...)`` states. The C-Uniform files a robot needs are built and cached by
 :mod:`eval.navigate.robot_files`.
@@ -20,7 +25,7 @@ from typing import Any
 
 from cuniform_torch.systems import make_system
 
-__all__ = ["RobotPreset", "NAV_ROBOT", "preset_dict"]
+__all__ = ["RobotPreset", "NAV_ROBOT", "FAST_ROBOT", "SUITE_ROBOTS", "suite_robot", "preset_dict"]
 
 
 @dataclass(frozen=True)
@@ -55,6 +60,18 @@ class RobotPreset:
 
 NAV_ROBOT = RobotPreset()
 """the built-in robot of :mod:`eval.navigate.run` (module docstring)"""
+
+FAST_ROBOT = RobotPreset(params=dict(speed=1.0, dt=0.2, max_omega=1.5, num_actions=7,
+                                     cell_size=[0.1, 0.1, 2 * math.pi / 36]))
+"""the ``narrow`` suite's robot: :data:`NAV_ROBOT` at 1.0 m/s on cells twice as wide (module docstring)"""
+
+SUITE_ROBOTS: dict[str, RobotPreset] = {"narrow": FAST_ROBOT}
+"""the suites driven by another robot than :data:`NAV_ROBOT`"""
+
+
+def suite_robot(suite: str) -> RobotPreset:
+    """The robot that drives ``suite`` when none is given: :data:`SUITE_ROBOTS`' entry, else :data:`NAV_ROBOT`."""
+    return SUITE_ROBOTS.get(suite, NAV_ROBOT)
 
 
 def preset_dict(robot: RobotPreset) -> dict[str, Any]:

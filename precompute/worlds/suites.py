@@ -1,6 +1,7 @@
-"""Seeded navigation suites as plain data: a forest corridor with a sensing range, and a narrow gap between rooms.
+"""Seeded navigation suites as plain data: a forest corridor with a sensing range, a narrow gap between rooms, and a
+corridor of narrow passages at staggered offsets (:func:`narrow`).
 
-Shapes used in this module: M discs, W wall rectangles.
+Shapes used in this module: M discs, W wall rectangles, P passages.
 
 A suite is a list of :class:`NavTask`; the benchmark (:mod:`eval.navigate.run`) drives a controller through each. Every
 task carries both its *raw* geometry (``discs``, ``walls``, ``bounds``: what the robot's body must not touch)
@@ -34,13 +35,19 @@ from cuniform_torch.common.options import Option, option_label
 from cuniform_torch.envs import Environment, MovingDiscs
 from precompute.worlds.geometry import SuiteError, inflate, reachable, sensed
 
-__all__ = ["NavTask", "SuiteError", "Suite", "forest", "gaps", "make_suite", "validate_task", "MAX_ATTEMPTS",
-           "GAP_WIDTHS"]
+__all__ = ["NavTask", "SuiteError", "Suite", "forest", "gaps", "narrow", "make_suite", "validate_task", "MAX_ATTEMPTS",
+           "GAP_WIDTHS", "NARROW_WIDTHS", "NARROW_TURNS"]
 
 MAX_ATTEMPTS = 100
 """a forest seed whose draws 0..MAX_ATTEMPTS-1 are all unreachable raises :class:`SuiteError`"""
 GAP_WIDTHS = (0.6, 1.2)
 """``make_suite("gaps", count)`` sweeps ``count`` widths evenly over this range (m), ends included"""
+NARROW_WIDTHS = (0.6, 0.8)
+"""m: :func:`narrow`'s passage widths by default, uniform in this range: 1.5-2x the 0.4 m body of the fast robot
+(:data:`precompute.worlds.robot.FAST_ROBOT`), a free band of 0.2-0.4 m for its centre"""
+NARROW_TURNS = (15.0, 35.0)
+"""degrees: :func:`narrow`'s default range of the angle between the corridor's axis and the line from one passage's
+exit (or the start) to the next passage's entry"""
 
 
 @option_label("suite")
@@ -49,6 +56,7 @@ class Suite(Option):
 
     FOREST = "forest"
     GAPS = "gaps"
+    NARROW = "narrow"
 
 
 @dataclass(frozen=True, eq=False)
@@ -56,9 +64,9 @@ class NavTask:
     """One navigation task: raw geometry, the inflated environment, start, goal and limits."""
 
     suite: str
-    """``"forest"``, ``"gaps"``, ``"clutter"``, ``"barn"``, ``"moving"`` or ``"sudden"``"""
+    """``"forest"``, ``"gaps"``, ``"clutter"``, ``"barn"``, ``"moving"``, ``"sudden"`` or ``"narrow"``"""
     task_id: int
-    """forest, moving: the seed; gaps: the index in its sweep; sudden: position x appearance times + appearance"""
+    """forest, moving, narrow: the seed; gaps: the index in its sweep; sudden: position x appearance times + appearance"""
     discs: np.ndarray
     """float64 ``[M, 3]``: (x, y, radius) of each raw disc (m); ``[0, 3]`` for none"""
     walls: np.ndarray
@@ -239,12 +247,107 @@ def gaps(width: float = 0.8, length: float = 1.0, room: float = 5.0, robot_radiu
     return task
 
 
+def narrow(seed: int, num_passages: int = 4, spacing: float = 2.5, thickness: float = 0.4,
+           widths: tuple[float, float] = NARROW_WIDTHS, turns: tuple[float, float] = NARROW_TURNS,
+           corridor: float = 5.0, robot_radius: float = 0.2, goal_tolerance: float = 0.5, time_limit: float = 30.0,
+           resolution: float = 0.05) -> NavTask:
+    """A corridor ``corridor`` m wide (walls and bounds as :func:`forest`'s) crossed by ``num_passages`` walls
+    ``thickness`` m thick, each pierced by one passage: wall ``k`` spans x in ``[1 + (k + 1) spacing, 1 + (k + 1)
+    spacing + thickness]``; start ``(1, 0, 0)`` (heading +x), goal ``(1 + (num_passages + 1) spacing, 0)``.
+
+    Passage ``k``: width uniform in ``widths`` (m); its centre ``y_k`` is ``y_{k-1} +- d_k tan(a_k)``, ``a_k``
+    uniform in ``turns`` (degrees), ``d_k`` the free run before the wall (``spacing`` for the first, from the start's
+    ``y = 0``; ``spacing - thickness`` after a passage), the side at even odds, flipped when the passage would come
+    within 0.25 m of the corridor's side walls. So each passage sits off the line through the last one and the
+    robot must turn into it, then straighten within the wall's ``thickness + 2 robot_radius`` m of inflated slot.
+
+    ``numpy.random.default_rng(seed)``, one draw: the free space is connected by construction (every passage is
+    wider than the robot, every free run longer than it), and the certified flood fill at ``resolution`` checks it
+    (:func:`validate_task`). ``params["passages"]`` holds ``[P, 3]`` rows (x of the wall's front face, y of the
+    passage's centre, width) and ``params["turn_angles"]`` the drawn ``a_k`` (signed, degrees). Raises
+    :class:`SuiteError` for bad parameters: a width range not wider than the robot, turns outside [0, 80) degrees,
+    a free run not longer than the robot, or a corridor too narrow for the largest offset."""
+    who = "narrow"
+    seed = _int(seed, "seed", who)
+    if seed < 0:
+        raise SuiteError(f"{who}: seed must be >= 0, got {seed}")
+    n = _int(num_passages, "num_passages", who)
+    if n < 1:
+        raise SuiteError(f"{who}: num_passages must be >= 1, got {n}")
+    S, t, Wd = _num(spacing, "spacing", who), _num(thickness, "thickness", who), _num(corridor, "corridor", who)
+    r = _num(robot_radius, "robot_radius", who, positive=False)
+    w_lo, w_hi = _range(widths, "widths", who)
+    a_lo, a_hi = _range(turns, "turns", who, positive=False)
+    if not w_lo > 2 * r:
+        raise SuiteError(f"{who}: the narrowest passage ({w_lo} m) must be wider than the robot (2 x robot_radius = "
+                         f"{2 * r} m)")
+    if not a_hi < 80.0:
+        raise SuiteError(f"{who}: turns must stay below 80 degrees, got {turns!r}")
+    if not S - t > 2 * r:
+        raise SuiteError(f"{who}: the free run between walls (spacing - thickness = {S - t} m) must be longer than "
+                         f"the robot ({2 * r} m)")
+    y_lim = Wd / 2 - w_hi / 2 - 0.25  # a passage's centre stays within this of the axis
+    shift = S * math.tan(math.radians(a_hi))  # the largest offset between two passages
+    if not shift <= y_lim:
+        raise SuiteError(f"{who}: a corridor {Wd} m wide cannot hold an offset of {shift:.2f} m (spacing {S} m at "
+                         f"{a_hi} degrees) on one side of the axis: widen it to {2 * (shift + w_hi / 2 + 0.25):.2f} m "
+                         "or lower the turns")
+    rng = np.random.default_rng(seed)
+    width = rng.uniform(w_lo, w_hi, n)  # [P]
+    angle = rng.uniform(a_lo, a_hi, n)  # [P] degrees
+    side = np.where(rng.random(n) < 0.5, -1.0, 1.0)  # [P]
+    run = np.full(n, S - t)
+    run[0] = S  # the first passage is reached from the start
+    step = run * np.tan(np.radians(angle))  # [P] lateral offsets, each <= y_lim
+    # the side flips where the passage would leave the corridor: a short sequential walk over P <= a few walls
+    centre = np.empty(n)
+    y = 0.0
+    for k in range(n):
+        if abs(y + side[k] * step[k]) > y_lim:
+            side[k] = -side[k]
+        y = centre[k] = y + side[k] * step[k]
+    front = 1.0 + S * np.arange(1, n + 1)  # [P] x of each wall's front face
+    lo, hi = centre - width / 2, centre + width / 2  # [P] the passage's edges
+    below = np.stack((front, np.full(n, -Wd / 2), front + t, lo), axis=1)  # [P, 4]
+    above = np.stack((front, hi, front + t, np.full(n, Wd / 2)), axis=1)  # [P, 4]
+    goal_x = 1.0 + (n + 1) * S
+    L = goal_x + 1.0
+    sides = np.array([[0.0, Wd / 2, L, Wd / 2 + 0.2], [0.0, -Wd / 2 - 0.2, L, -Wd / 2]])  # [2, 4], forest's
+    walls = np.concatenate((sides, below, above))  # [2 + 2P, 4]
+    bounds = (0.0, -Wd / 2, L, Wd / 2)
+    params = dict(num_passages=n, spacing=S, thickness=t, widths=(w_lo, w_hi), turns=(a_lo, a_hi), corridor=Wd,
+                  robot_radius=r, goal_tolerance=goal_tolerance, time_limit=time_limit, resolution=resolution,
+                  passages=np.stack((front, centre, width), axis=1).tolist(),
+                  turn_angles=(side * angle).tolist())
+    task = NavTask(
+        suite=Suite.NARROW.value, task_id=seed, discs=np.zeros((0, 3)), walls=walls, bounds=bounds, robot_radius=r,
+        environment=inflate(np.zeros((0, 3)), walls, bounds, r), start=(1.0, 0.0, 0.0), goal=(goal_x, 0.0),
+        goal_tolerance=_num(goal_tolerance, "goal_tolerance", who, positive=False),
+        time_limit=_num(time_limit, "time_limit", who), sensing_range=None, params=params,
+    )
+    validate_task(task, resolution=_num(resolution, "resolution", who))
+    return task
+
+
+def _range(value: Any, what: str, who: str, positive: bool = True) -> tuple[float, float]:
+    """A (low, high) pair of numbers with ``low <= high``; SuiteError naming ``what`` otherwise."""
+    try:
+        lo, hi = value
+    except (TypeError, ValueError):
+        raise SuiteError(f"{who}: {what} must be a pair (min, max), got {value!r}") from None
+    lo, hi = _num(lo, what, who, positive), _num(hi, what, who, positive)
+    if lo > hi:
+        raise SuiteError(f"{who}: {what} must satisfy min <= max, got {value!r}")
+    return lo, hi
+
+
 def make_suite(name: str, count: int, seed: int = 0, offsets: tuple[float, ...] = (0.0,),
                **params: Any) -> list[NavTask]:
-    """``count`` tasks of suite ``name``: forest seeds ``seed, seed + 1, ..., seed + count - 1``; gaps: the
+    """``count`` tasks of suite ``name``: forest and narrow seeds ``seed, seed + 1, ..., seed + count - 1``; gaps: the
     first ``count`` of every (width, offset) pair, widths ``numpy.linspace(*GAP_WIDTHS, ceil(count /
     len(offsets)))`` (0.6 for one width) outermost, ``offsets`` (m, gaps only) innermost; ``seed`` unused.
-    ``params`` go to :func:`forest` or :func:`gaps` (not ``seed`` / ``width`` / ``offset``, which the suite sets)."""
+    ``params`` go to :func:`forest`, :func:`narrow` or :func:`gaps` (not ``seed`` / ``width`` / ``offset``, which the
+    suite sets)."""
     try:
         suite = Suite.parse(name)
     except ValueError as err:
@@ -255,6 +358,8 @@ def make_suite(name: str, count: int, seed: int = 0, offsets: tuple[float, ...] 
     seed = _int(seed, "seed", "make_suite")
     if suite is Suite.FOREST:
         return [forest(seed + k, **params) for k in range(count)]
+    if suite is Suite.NARROW:
+        return [narrow(seed + k, **params) for k in range(count)]
     if "width" in params or "offset" in params:
         raise SuiteError("make_suite: the gaps suite sets width and offset itself (a sweep over GAP_WIDTHS and "
                          "offsets); call gaps() for one")

@@ -6,8 +6,10 @@ within 100 s. The walls of a BARN map are cylinders too (three sides; the top is
 workspace bounds are only a generous box around the map and the goal that keeps a lost robot from wandering
 off: (-6, -1.5) to (1.5, 15) m.
 
-:func:`make_tasks` makes any suite's tasks (``barn``, ``forest``, ``gaps``, ``clutter``, and the suites where
-time matters, ``moving`` and ``sudden``: :mod:`precompute.worlds.dynamic`) and checks each one the same way
+:func:`make_tasks` makes any suite's tasks (``barn``, ``forest``, ``gaps``, ``clutter``, the suites where
+time matters, ``moving`` and ``sudden``: :mod:`precompute.worlds.dynamic`, and ``narrow``: passages barely wider
+than the robot at staggered offsets, :func:`~precompute.worlds.suites.narrow`, driven by the faster robot
+:data:`~precompute.worlds.robot.FAST_ROBOT`) and checks each one the same way
 (:func:`precompute.worlds.suites.validate_task`): a start or goal in collision, or a goal that a certified flood fill cannot
 reach, is a :class:`~precompute.worlds.suites.SuiteError` naming the task, raised before any episode runs.
 """
@@ -24,12 +26,12 @@ import numpy as np
 from precompute.worlds.barn import CHALLENGE_GOAL, CHALLENGE_START, BarnMap, load_barn
 from precompute.worlds.dynamic import SUDDEN_APPEAR, moving, sudden, sudden_position
 from precompute.worlds.geometry import inflate
-from precompute.worlds.suites import NavTask, SuiteError, forest, make_suite, validate_task
+from precompute.worlds.suites import NavTask, SuiteError, forest, make_suite, narrow, validate_task
 
 __all__ = ["SUITES", "CLUTTER", "SPLITS", "split_of", "BARN_BOUNDS", "GAP_OFFSETS", "RESOLUTIONS", "TIME_LIMITS",
            "barn_task", "barn_tasks", "make_tasks", "make_task", "DEFAULT_COUNTS"]
 
-SUITES = ("barn", "forest", "gaps", "clutter", "moving", "sudden")
+SUITES = ("barn", "forest", "gaps", "clutter", "moving", "sudden", "narrow")
 """the suites of ``python -m eval.navigate``"""
 CLUTTER: dict[str, Any] = {"num_discs": (90, 120), "disc_radius": 0.5}
 """the ``clutter`` suite: the forest's corridor and rules with 90-120 discs of radius 0.5 m, 24% of the corridor
@@ -42,20 +44,24 @@ SPLITS = ("all", "train", "test")
 BARN_BOUNDS = (-6.0, -1.5, 1.5, 15.0)
 """raw workspace bounds of every BARN task (m): the map (x in [-4.5, 0], y in [0, 9.6]) and its goal, with room"""
 DEFAULT_COUNTS: dict[str, int | None] = {"barn": None, "forest": 50, "gaps": 9, "clutter": 50, "moving": 50,
-                                          "sudden": 20 * len(SUDDEN_APPEAR)}
+                                          "sudden": 20 * len(SUDDEN_APPEAR), "narrow": 50}
 """tasks per suite by default (None: every map of the file); 9 gaps: 3 widths x :data:`GAP_OFFSETS`; sudden: 20
 obstacle positions (the paper's) x the appearance times"""
-TIME_LIMITS = {"barn": 100.0, "forest": 120.0, "gaps": 30.0, "clutter": 120.0, "moving": 60.0, "sudden": 20.0}
+TIME_LIMITS = {"barn": 100.0, "forest": 120.0, "gaps": 30.0, "clutter": 120.0, "moving": 60.0, "sudden": 20.0,
+               "narrow": 30.0}
 """s per episode: BARN's is the Challenge's; the forest's 120 s is 1.8x the straight drive at 0.5 m/s (33 m);
-the gaps' 30 s is 2.5x theirs (6 m); moving's 60 s 1.7x its 18 m; sudden's 20 s 2.5x its 4 m"""
+the gaps' 30 s is 2.5x theirs (6 m); moving's 60 s 1.7x its 18 m; sudden's 20 s 2.5x its 4 m; narrow's 30 s 2.4x
+its 12.5 m at the fast robot's 1.0 m/s"""
 GAP_OFFSETS = (0.0, 0.75, 1.5)
 """m: where the gap sits off the start-goal line (an offset gap puts a wall between the robot and its goal)"""
-RESOLUTIONS = {"barn": 0.05, "forest": 0.1, "gaps": 0.02, "clutter": 0.05, "moving": 0.1, "sudden": 0.05}
-"""m: flood-fill cell per suite (the gap suite's narrowest free band is 0.2 m wide for a 0.2 m robot)"""
+RESOLUTIONS = {"barn": 0.05, "forest": 0.1, "gaps": 0.02, "clutter": 0.05, "moving": 0.1, "sudden": 0.05,
+               "narrow": 0.05}
+"""m: flood-fill cell per suite (the gap suite's narrowest free band is 0.2 m wide for a 0.2 m robot, the narrow
+suite's too: 4 cells)"""
 
 
 def split_of(key: int) -> str:
-    """The split of the map with ``key`` (a BARN map id, a forest or moving seed, a sudden obstacle's position):
+    """The split of the map with ``key`` (a BARN map id, a forest, moving or narrow seed, a sudden obstacle's position):
     test when ``key % 5 == 0``, else train.
     The map-table farm (:mod:`precompute.maps.worlds`) trains on the train split only, so a benchmark run on
     ``--split test`` drives on maps no map-conditioned policy has seen."""
@@ -92,9 +98,9 @@ def make_tasks(suite: str, robot_radius: float, count: int | None = None, seed: 
                split: str = "all") -> list[NavTask]:
     """The tasks of ``suite`` for a robot of ``robot_radius``, each validated (module docstring).
 
-    ``count``: tasks (None: :data:`DEFAULT_COUNTS`); ``seed``: the first forest / moving seed, the sudden
-    offsets' seed; ``split``: keep only the maps of that split (:func:`split_of` of the BARN map id, the forest or
-    moving seed, the sudden obstacle's position, so every appearance time of a position is in the same split: the
+    ``count``: tasks (None: :data:`DEFAULT_COUNTS`); ``seed``: the first forest / moving / narrow seed, the sudden
+    offsets' seed; ``split``: keep only the maps of that split (:func:`split_of` of the BARN map id, the forest,
+    moving or narrow seed, the sudden obstacle's position, so every appearance time of a position is in the same split: the
     first ``count`` of them from ``seed`` / position 0 on; the gap sweep is no farm map, so all of it is ``test``
     and none ``train``); ``barn_file``: another
     BARN file in the shipped format; ``sensing_range``: the forest's (None: all obstacles known);
@@ -115,7 +121,7 @@ def make_tasks(suite: str, robot_radius: float, count: int | None = None, seed: 
         tasks = barn_tasks(robot_radius, barn_file, None if split != "all" else count, **limit)
         if split != "all":
             tasks = [t for t in tasks if split_of(t.task_id) == split][:count]
-    elif suite in ("forest", "clutter", "moving"):
+    elif suite in ("forest", "clutter", "moving", "narrow"):
         assert count is not None  # only BARN's default count is None (every map)
         seeds = [s for s in range(seed, seed + 5 * count + 5) if split in ("all", split_of(s))][:count]
         tasks = [_seeded_task(suite, s, robot_radius, sensing_range, limit) for s in seeds]
@@ -138,9 +144,11 @@ def make_tasks(suite: str, robot_radius: float, count: int | None = None, seed: 
 
 def _seeded_task(suite: str, seed: int, robot_radius: float, sensing_range: float | None,
                  limit: dict[str, Any]) -> NavTask:
-    """The forest, clutter or moving task of ``seed`` (not validated)."""
+    """The forest, clutter, moving or narrow task of ``seed`` (``narrow`` validates itself; the others are not)."""
     if suite == "moving":
         return moving(seed, robot_radius=robot_radius, **limit)
+    if suite == "narrow":
+        return narrow(seed, robot_radius=robot_radius, **limit)
     shape = CLUTTER if suite == "clutter" else {}
     return dataclasses.replace(forest(seed, robot_radius=robot_radius, sensing_range=sensing_range, **shape, **limit),
                                suite=suite)
@@ -152,7 +160,7 @@ def make_task(suite: str, task_id: int, robot_radius: float, seed: int = 0,
               resolution: float | None = None) -> NavTask:
     """The one task ``task_id`` of ``suite``, the same as :func:`make_tasks` makes, validated the same way.
 
-    ``task_id``: forest / clutter / moving: the seed (one of a run from ``seed`` on, so >= ``seed``); BARN: the map
+    ``task_id``: forest / clutter / moving / narrow: the seed (one of a run from ``seed`` on, so >= ``seed``); BARN: the map
     id in ``barn_file``; sudden: :func:`~precompute.worlds.dynamic.sudden_id`; gaps: the index in the
     sweep of ``count`` tasks (None: :data:`DEFAULT_COUNTS`; the sweep's
     widths depend on it, so give the run's). The other arguments are :func:`make_tasks`' (only this task is
@@ -170,7 +178,7 @@ def make_task(suite: str, task_id: int, robot_radius: float, seed: int = 0,
             raise SuiteError(f"barn: no map {task_id} in {barn_file or 'the shipped BARN file'} (it holds "
                              f"{len(maps)} maps, ids {min(maps)}..{max(maps)})")
         task = barn_task(maps[task_id], robot_radius, **limit)
-    elif suite in ("forest", "clutter", "moving"):
+    elif suite in ("forest", "clutter", "moving", "narrow"):
         if task_id < seed:
             raise SuiteError(f"{suite}: task {task_id} is a seed below the run's first seed {seed}")
         task = _seeded_task(suite, task_id, robot_radius, sensing_range, limit)
