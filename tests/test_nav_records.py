@@ -143,3 +143,7 @@ def test_the_torch_free_readers_refuse_what_fileio_refuses(tmp_path, case):
     assert ours == theirs
     assert (ours[0] == "bytes") == (case == "regular"), ours
     assert files.file_kind(os.lstat(tmp_path).st_mode) == fileio.file_kind(os.lstat(tmp_path).st_mode) == "a folder"
+
+
+def test_the_torch_free_readers_have_fileios_caps():
+    assert (files.MAX_SMALL_JSON_BYTES, files.MAX_JSONL_BYTES) == (fileio.MAX_SMALL_JSON_BYTES, fileio.MAX_JSONL_BYTES)
