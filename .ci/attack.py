@@ -173,7 +173,7 @@ def _readers() -> dict[str, tuple[Callable[[Path], Any], tuple[type, ...]]]:
     from cuniform_torch.policies.checkpoint import PolicyCheckpointError, load_policy
     from cuniform_torch.policies.table_set import load_table_set
     from cuniform_torch.tables.file import TableError, read_table
-    from eval.navigate.store import EpisodeStore, StoreError
+    from eval.navigate.records.store import EpisodeStore, StoreError
     from precompute.levels.safe_map import MapError, read_map_file
     from precompute.maps.dataset import MapDatasetError, read_map_dataset
 
@@ -1452,7 +1452,7 @@ WRITING_READERS = {"bench_append"}
 
 
 def bench_family(work: Path, quick: bool) -> Family:
-    from eval.navigate.store import EpisodeStore
+    from eval.navigate.records.store import EpisodeStore
 
     folder = work / "bench"
     folder.mkdir()
@@ -1765,7 +1765,7 @@ def issue38_calls(work: Path, quick: bool) -> list[tuple[Case, Callable[[], Any]
 def issue38_commands(work: Path) -> tuple[list[Case], list[Path]]:
     """Commands of issue 38 that must be refused before any work: a --starts grid of a million members, a benchmark
     run into a folder whose records link into another folder or to /dev/null; ``(cases, folders to watch)``."""
-    from eval.navigate.store import EpisodeStore
+    from eval.navigate.records.store import EpisodeStore
 
     folder = work / "commands"
     other = folder / "other-benchmark"
@@ -1791,7 +1791,7 @@ def issue38_commands(work: Path) -> tuple[list[Case], list[Path]]:
 def baseline_mb() -> float:
     """Peak RSS of a fresh interpreter that imports torch and every reader (what each case starts from)."""
     code = ("import resource, torch, cuniform_torch, cuniform_torch.maps.checkpoint, precompute.maps.dataset, "
-            "precompute.levels.safe_map, eval.navigate.store, cuniform_torch.policies.table_set; "
+            "precompute.levels.safe_map, eval.navigate.records.store, cuniform_torch.policies.table_set; "
             "print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss)")
     env = {**os.environ, "PYTHONPATH": str(REPO)}
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, check=True)

@@ -1,4 +1,4 @@
-"""The BARN Challenge's score (eval.navigate.score) against hand-computed episodes: the clip at 2 OT and 8 OT, the
+"""The BARN Challenge's score (eval.navigate.records.score, eval.navigate.score) against hand-computed episodes: the clip at 2 OT and 8 OT, the
 path cells converted to metres as the Challenge's run.py does, the polyline from the start through the path to the
 goal, the geodesic where a world has no path, and the score beside success in budget.md."""
 
@@ -12,17 +12,10 @@ import pytest
 
 from cuniform_torch.envs import Environment, Rect
 from eval.navigate.budget import judge_folder, render
-from eval.navigate.cycle_hist import cycle_histogram
-from eval.navigate.score import (
-    barn_path_xy,
-    barn_reference_length,
-    barn_score,
-    episode_scores,
-    geodesic_length,
-    reference_lengths,
-    score_summary,
-)
-from eval.navigate.store import EpisodeStore
+from eval.navigate.records.cycle_hist import cycle_histogram
+from eval.navigate.records.score import barn_path_xy, barn_reference_length, barn_score, score_summary
+from eval.navigate.records.store import EpisodeStore
+from eval.navigate.score import episode_scores, geodesic_length, reference_lengths
 from precompute.worlds.barn import CHALLENGE_GOAL, CHALLENGE_START, load_barn
 
 

@@ -1,4 +1,4 @@
-"""The navigation benchmark folder's one parser (eval.navigate.store.EpisodeStore): records without settings, a key
+"""The navigation benchmark folder's one parser (eval.navigate.records.store.EpisodeStore): records without settings, a key
 twice, NaN or infinite numbers, and settings or records of the wrong shape are each one clear error naming the file
 (and line, and field), for a resumed run and for the read-only readers alike; nothing passes silently."""
 
@@ -9,7 +9,7 @@ import json
 import pytest
 
 from eval.navigate.compare import main as compare_main
-from eval.navigate.store import EpisodeStore, StoreError
+from eval.navigate.records.store import EpisodeStore, StoreError
 
 
 def bench_settings(suite: str = "gaps", **kw) -> dict:

@@ -58,7 +58,8 @@ COMMANDS = readme_commands(docs_text())
 
 def command_module(name: str) -> str:
     """The module whose ``main`` ``python -m name`` runs: ``name`` itself, or for a package the module its
-    ``__main__.py`` takes ``main`` from (``eval.navigate`` -> ``eval.navigate.run``)."""
+    ``__main__.py`` takes ``main`` from (``eval.navigate`` -> ``eval.navigate.commands``, which dispatches its
+    subcommands)."""
     spec = importlib.util.find_spec(name)
     if spec is None or not spec.submodule_search_locations:
         return name
@@ -68,9 +69,18 @@ def command_module(name: str) -> str:
     return found.group(1)
 
 
+def bare_subcommand(name: str, argv: list[str]) -> bool:
+    """A subcommand named alone (``python -m eval.navigate budget`` in a sentence or a table cell): a mention, like
+    a bare module; True only when the command's parser (its module's ``make_parser``) has that subcommand."""
+    make = getattr(importlib.import_module(command_module(name)), "make_parser", None)
+    if len(argv) != 1 or make is None:
+        return False
+    return any(isinstance(a, argparse._SubParsersAction) and argv[0] in a.choices for a in make()._actions)
+
+
 def cli_modules() -> set[str]:
     """Every ``python -m`` name of the project: a module with a ``__main__`` guard, or a package with a
-    ``__main__.py`` (whose runner module, e.g. ``eval.navigate.run``, is then covered by the package's name)."""
+    ``__main__.py`` (whose runner module, e.g. ``eval.navigate.commands``, is then covered by the package's name)."""
     names, runners = set(), set()
     for layer in LAYERS:
         for path in (ROOT / layer).rglob("*.py"):
@@ -98,7 +108,7 @@ def test_the_docs_show_every_command_line_module():
 
 
 def test_command_module_follows_a_package_main():
-    assert command_module("eval.navigate") == "eval.navigate.run"
+    assert command_module("eval.navigate") == "eval.navigate.commands"
     assert command_module("precompute.build") == "precompute.build"
 
 
@@ -128,7 +138,7 @@ def test_readme_command_parses(command, monkeypatch, tmp_path, capsys, registry_
     module, argv = words[2], words[3:]
     main = getattr(importlib.import_module(command_module(module)), "main", None)
     assert callable(main), f"{module} has no main(argv)"
-    if not argv:
+    if not argv or bare_subcommand(module, argv):
         return  # a bare mention of the command (a heading, a sentence): the module and its main exist
     if "my_robots" in command:
         (tmp_path / "my_robots.py").write_text(_my_robots(docs_text()))

@@ -216,10 +216,10 @@ def _ran(*args, **kwargs):
 
 
 @pytest.mark.parametrize("name, argv, needles, work", [
-    ("eval.navigate", ["--suite", "gaps", "--barn-file", "maps.npz"], ["--barn-file", "--suite gaps"], "_robot"),
-    ("eval.navigate", ["--suite", "forest", "--barn-worlds", "w"], ["--barn-worlds", "--suite forest"], "_robot"),
-    ("eval.navigate", ["--suite", "barn", "--sensing-range", "2"], ["--sensing-range", "--suite barn"], "_robot"),
-    ("eval.navigate", ["--tasks", "100000", "--repeats", "10"], ["episodes", "--no-limit"], "_robot"),
+    ("eval.navigate", ["--suite", "gaps", "--barn-file", "maps.npz"], ["--barn-file", "--suite gaps"], "eval.navigate.run:_robot"),
+    ("eval.navigate", ["--suite", "forest", "--barn-worlds", "w"], ["--barn-worlds", "--suite forest"], "eval.navigate.run:_robot"),
+    ("eval.navigate", ["--suite", "barn", "--sensing-range", "2"], ["--sensing-range", "--suite barn"], "eval.navigate.run:_robot"),
+    ("eval.navigate", ["--tasks", "100000", "--repeats", "10"], ["episodes", "--no-limit"], "eval.navigate.run:_robot"),
     ("eval.bench", ["--rollout-only", "--table", "GARBAGE"], ["--table", "--rollout-only"], "check_output_file"),
     ("eval.bench", ["--horizons", "15", "--table", "GARBAGE"], ["--table", "--horizons"], "check_output_file"),
     ("eval.bench.soak_bank", ["--table", "t.npz", "--horizon", "10"], ["--horizon", "--table"],
@@ -235,8 +235,10 @@ def _ran(*args, **kwargs):
 def test_a_flag_that_does_not_apply_or_a_run_too_large_is_refused(name, argv, needles, work, monkeypatch, tmp_path,
                                                                    capsys):
     module = entry_module(name)
+    where, _, work = work.rpartition(":")  # MODULE:NAME: the work is another module's (a subcommand's)
     owner, _, attr = work.rpartition(".")
-    monkeypatch.setattr(getattr(module, owner) if owner else module, attr, _ran)
+    home = importlib.import_module(where) if where else module
+    monkeypatch.setattr(getattr(home, owner) if owner else home, attr, _ran)
     monkeypatch.chdir(tmp_path)
     try:
         code = _exit_code(module.main, argv)
@@ -248,12 +250,12 @@ def test_a_flag_that_does_not_apply_or_a_run_too_large_is_refused(name, argv, ne
 
 
 def test_navigate_paths_on_a_folder_of_episodes_without_paths(tmp_path, capsys, monkeypatch):
-    from eval.navigate.store import EpisodeStore
+    from eval.navigate.records.store import EpisodeStore
 
     record = {"key": "barn/0/cu_table/256/0", "outcome": "goal"}  # kept by a run without --paths
     (tmp_path / "episodes.jsonl").write_text(json.dumps(record) + "\n")
     monkeypatch.chdir(tmp_path)
-    monkeypatch.setattr(entry_module("eval.navigate"), "_robot", _ran)  # the first work after the checks
+    monkeypatch.setattr(importlib.import_module("eval.navigate.run"), "_robot", _ran)  # the first work after the checks
     monkeypatch.setattr(EpisodeStore, "read", lambda self: {record["key"]: record})  # the store's own checks aside
     try:
         assert _exit_code(_main("eval.navigate"), ["--out", str(tmp_path), "--paths"]) == cli.EXIT_ERROR

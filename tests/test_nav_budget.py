@@ -8,9 +8,9 @@ from __future__ import annotations
 import pytest
 
 from eval.navigate.budget import judge, judge_folder, main, pareto_front, render
-from eval.navigate.cycle_hist import cycle_histogram
-from eval.navigate.stats import mcnemar_exact_p
-from eval.navigate.store import EpisodeStore
+from eval.navigate.records.cycle_hist import cycle_histogram
+from eval.navigate.records.stats import mcnemar_exact_p
+from eval.navigate.records.store import EpisodeStore
 
 SUITE = "barn"
 

@@ -1,4 +1,4 @@
-"""Paired comparison of two benchmark cells (python -m eval.navigate.compare): pairs on (task, seed) across budgets,
+"""Paired comparison of two benchmark cells (python -m eval.navigate compare): pairs on (task, seed) across budgets,
 counts wins and losses, and the margin verdicts follow the interval; bad cells are one clear error."""
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Sorting the benchmark's failures (python -m eval.navigate.failures): a timeout is lost, a collision whose last
+"""Sorting the benchmark's failures (python -m eval.navigate failures): a timeout is lost, a collision whose last
 command had free proposals is missed, one preceded by commands with none is trapped only when the C-Uniform
 probe finds no free trajectory at that state either; the CLI counts every failure of the folder once."""
 

@@ -1,4 +1,4 @@
-"""Replaying a stored navigation episode (python -m eval.navigate.replay): it reproduces the record, traces every
+"""Replaying a stored navigation episode (python -m eval.navigate replay): it reproduces the record, traces every
 command, draws it; bad keys and files are one clear error; the trace leaves the benchmark's records unchanged."""
 
 from __future__ import annotations

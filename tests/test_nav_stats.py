@@ -1,5 +1,6 @@
-"""eval.navigate.stats / eval.navigate.figures: Wilson values, cycle-time histograms, summaries, paired comparisons
-(Newcombe interval, exact McNemar), markdown, the success figure and the TensorBoard writer."""
+"""eval.navigate.records.stats / eval.navigate.results / eval.navigate.figures: Wilson values, cycle-time
+histograms, summaries, paired comparisons (Newcombe interval, exact McNemar), markdown, the success figure and the
+TensorBoard writer."""
 
 from __future__ import annotations
 
@@ -9,18 +10,18 @@ import random
 import pytest
 
 from eval.common.stats import wilson_interval
-from eval.navigate.stats import (
+from eval.navigate.records.stats import (
     BINS_PER_DECADE,
     NUM_BINS,
     cycle_histogram,
     histogram_quantile,
-    markdown,
     mcnemar_exact_p,
     merge_histograms,
     newcombe_paired_interval,
     paired_comparisons,
     summarize,
 )
+from eval.navigate.results import markdown
 
 BIN = 10 ** (1 / BINS_PER_DECADE)
 

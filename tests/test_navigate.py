@@ -265,7 +265,7 @@ def test_success_pivot_marks_methods_against_the_best_baseline():
 def test_store_merges_new_source_files_and_refuses_changed_ones(tmp_path):
     from test_bench_records import bench_settings
 
-    from eval.navigate.store import EpisodeStore, StoreError
+    from eval.navigate.records.store import EpisodeStore, StoreError
 
     aa, bb, cc, dd = (f"{c * 2:0>16}" for c in "abcd")  # digests as the run writes them: 16 hex digits
     base = bench_settings("barn", lambda_=0.5, sources=dict(table=aa, policy=None))
@@ -336,8 +336,8 @@ def test_cfu_mppi_senses_the_raw_obstacles_not_the_inflated_ones(monkeypatch, tm
 
 
 def test_a_gap_sweep_of_other_widths_is_refused_since_its_task_ids_mean_other_gaps(tmp_path):
+    from eval.navigate.records.store import EpisodeStore, StoreError
     from eval.navigate.run import settings_record
-    from eval.navigate.store import EpisodeStore, StoreError
     from precompute.worlds.tasks import make_tasks
 
     sweep = {n: make_tasks("gaps", 0.2, count=n) for n in (2, 3, 4, 7)}

@@ -30,7 +30,7 @@ from cuniform_torch.policies.table_set import load_table_set
 from cuniform_torch.systems import RandomWalk1D, register_system, system_from_json, system_to_json
 from cuniform_torch.systems.registry import _REGISTRY
 from cuniform_torch.tables.file import TableError, read_table, table_digests, write_table
-from eval.navigate.store import EpisodeStore, StoreError
+from eval.navigate.records.store import EpisodeStore, StoreError
 from precompute.levels.safe_map import LocalMap, MapError, read_map_file, write_map_file
 from precompute.maps.dataset import MapDatasetError, read_map_dataset
 

@@ -26,7 +26,7 @@ from cuniform_torch.common.fileio import (
     read_capped_text,
     write_json,
 )
-from eval.navigate.store import EpisodeStore, StoreError
+from eval.navigate.records.store import EpisodeStore, StoreError
 from precompute.cli import CLIError, check_output_file, check_output_folder
 from tests.test_bench_records import bench_record, bench_settings
 

@@ -1,7 +1,7 @@
-"""``python -m eval.navigate``: runs :func:`eval.navigate.run.main`."""
+"""``python -m eval.navigate``: runs :func:`eval.navigate.commands.main` (the run, or a subcommand)."""
 
 import sys
 
-from eval.navigate.run import main
+from eval.navigate.commands import main
 
 sys.exit(main())

@@ -43,9 +43,17 @@ from typing import Any
 from cuniform_torch.common.fileio import write_bytes
 from eval.common.markdown import table
 from eval.common.methods import NAVIGATE, gaussian_baselines, methods_of
-from eval.navigate.score import episode_scores, score_summary
-from eval.navigate.stats import _best_baseline, _by_episode, _compare, fmt_rate, fmt_score, summarize
-from eval.navigate.store import EpisodeStore
+from eval.navigate.records import (
+    EpisodeStore,
+    fmt_rate,
+    fmt_score,
+    score_summary,
+    summarize,
+)
+from eval.navigate.records import best_baseline as _best_baseline  # public names, bound to those the body uses
+from eval.navigate.records import by_episode as _by_episode
+from eval.navigate.records import compare_pair as _compare
+from eval.navigate.score import episode_scores
 from precompute.cli import ArgumentParser, check_output_file, cli_main, positive_float
 
 __all__ = ["DEFAULT_BUDGETS_MS", "FIT_QUANTILE", "cells", "pick_k", "budget_rows", "pareto_front", "threads_note",
@@ -275,7 +283,7 @@ def budget_figure(res: Mapping, path: str | Path, labels: Mapping[str, str] | No
     from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
 
     from eval.common.figures import plt, save_figure
-    from eval.navigate.figures import _color
+    from eval.navigate.figures import method_color as _color
 
     timed = [c for c in res["cells"] if c["cycle_ms_median"] is not None]
     if not timed:

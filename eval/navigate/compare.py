@@ -1,6 +1,6 @@
 """Paired comparison of any two (method, budget) cells of a benchmark folder, across budgets too.
 
-    python -m eval.navigate.compare --out out/navigate/clutter-test-100 --method cfu_mppi@256 \
+    python -m eval.navigate compare --out out/navigate/clutter-test-100 --method cfu_mppi@256 \
         --against cumppi@256 mppi_1.0@1024 --margin 0.1
 
 The benchmark's own table compares each method with the best Gaussian baseline *at the same budget*. A question
@@ -14,13 +14,11 @@ interval's lower end.
 
 from __future__ import annotations
 
-import sys
 from collections.abc import Sequence
 from pathlib import Path
 
 from eval.common.stats import wilson_interval
-from eval.navigate.replay import load_folder
-from eval.navigate.stats import _by_episode, _compare
+from eval.navigate.records import by_episode, compare_pair, load_folder
 from precompute.cli import ArgumentParser, cli_main
 
 __all__ = ["parse_cell", "compare_cells", "main"]
@@ -36,7 +34,7 @@ def parse_cell(text: str) -> tuple[str, int]:
 
 def compare_cells(records: Sequence[dict], method: tuple[str, int], against: tuple[str, int]) -> dict:
     """``method`` against ``against`` (each ``(method, budget)``) over their common (task, seed) episodes: the
-    :func:`eval.navigate.stats.paired_comparisons` row (``wins``, ``losses``, ``diff`` and its interval, ``p_value``,
+    :func:`eval.navigate.records.stats.paired_comparisons` row (``wins``, ``losses``, ``diff`` and its interval, ``p_value``,
     ``verdict``) plus both cells' success rates with Wilson intervals."""
     cells = {}
     for cell in (method, against):
@@ -44,9 +42,9 @@ def compare_cells(records: Sequence[dict], method: tuple[str, int], against: tup
         if not recs:
             held = sorted({f"{r['method']}@{r['budget']}" for r in records})
             raise ValueError(f"no episode of {cell[0]}@{cell[1]} in the folder (it holds {', '.join(held)})")
-        cells[cell] = _by_episode(recs, f"{cell[0]}@{cell[1]}")
-    row = _compare(None, None, f"{method[0]}@{method[1]}", f"{against[0]}@{against[1]}", cells[method],
-                   cells[against])
+        cells[cell] = by_episode(recs, f"{cell[0]}@{cell[1]}")
+    row = compare_pair(None, None, f"{method[0]}@{method[1]}", f"{against[0]}@{against[1]}", cells[method],
+                       cells[against])
     if row is None:
         raise ValueError(f"{method[0]}@{method[1]} and {against[0]}@{against[1]} share no (task, seed) episode")
     for side, n_succ in (("method", row["method_successes"]), ("baseline", row["baseline_successes"])):
@@ -68,7 +66,7 @@ def _line(row: dict, margin: float | None) -> str:
 
 
 def make_parser() -> ArgumentParser:
-    p = ArgumentParser(prog="python -m eval.navigate.compare", description=(__doc__ or "").split("\n\n")[0])
+    p = ArgumentParser(prog="python -m eval.navigate compare", description=(__doc__ or "").split("\n\n")[0])
     p.add_argument("--out", type=Path, required=True, help="the benchmark folder (python -m eval.navigate --out)")
     p.add_argument("--method", required=True, metavar="METHOD@BUDGET", help="the cell under test, e.g. cfu_mppi@256")
     p.add_argument("--against", nargs="+", required=True, metavar="METHOD@BUDGET",
@@ -96,7 +94,3 @@ def main(argv: Sequence[str] | None = None) -> int:
     print(f"paired on (task, seed) in {args.out}")
     print("\n".join([head, rule] + [_line(r, args.margin) for r in rows]))
     return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())

@@ -2,7 +2,7 @@
 
 The benchmark's goal term is the squared straight-line distance to the goal, whose minima sit behind every
 obstacle between the robot and its goal: a pocket facing the goal is where the cost is lowest, and a controller
-that avoids crashing there circles there (``python -m eval.navigate.failures`` calls it *lost*). A global planner
+that avoids crashing there circles there (``python -m eval.navigate failures`` calls it *lost*). A global planner
 gives a local controller a distance that knows the way; :class:`CostToGo` is that distance, computed on a grid of
 ``resolution`` cells over the task's bounds by Dijkstra's algorithm (scipy, 8-connected, edge length the step)
 from the goal's cell through the cells whose centres are free in the robot-inflated obstacles the robot senses,

@@ -43,11 +43,12 @@ from cuniform_torch.envs import Environment, NavigationCost, OccupancyGrid, simu
 from eval.common.methods import NAVIGATE, Sources, make_controller, methods_of
 from eval.navigate.cost_to_go import CostToGo
 from eval.navigate.dynamics import DYNAMICS, LearnedSources
-from eval.navigate.stats import cycle_histogram
+from eval.navigate.records.cycle_hist import cycle_histogram
+from eval.navigate.records.keys import episode_key
 from precompute.worlds.geometry import inflate, obstacle_tables
 from precompute.worlds.suites import NavTask
 
-__all__ = ["NavJob", "NavContext", "run_nav_episode", "rasterize", "episode_key", "RASTER_MIN_OBSTACLES"]
+__all__ = ["NavJob", "NavContext", "run_nav_episode", "rasterize", "RASTER_MIN_OBSTACLES"]
 
 RASTER_MIN_OBSTACLES = 32
 """a static map with more obstacles than this is rasterized for the cost (module docstring)"""
@@ -70,11 +71,6 @@ class NavJob:
     @property
     def key(self) -> str:
         return episode_key(self.task.suite, self.task.task_id, self.method, self.budget, self.repeat)
-
-
-def episode_key(suite: str, task_id: int, method: str, budget: int, repeat: int) -> str:
-    """The key a record is stored and resumed under."""
-    return f"{suite}/{task_id}/{method}/{budget}/{repeat}"
 
 
 @dataclass(frozen=True)
@@ -242,7 +238,7 @@ class _TimedSensingController:
 
 
 def run_nav_episode(job: NavJob, ctx: NavContext, trace: list | None = None) -> dict:
-    """Run one episode; its record (plain JSON types, :mod:`eval.navigate.stats`' format) with the job's ``key``,
+    """Run one episode; its record (plain JSON types, :mod:`eval.navigate.records`' format) with the job's ``key``,
     ``repeat``, ``outcome``, ``success``, ``time`` (s), ``path_length`` (m), ``steps``, ``cycles``,
     ``cycle_hist``, ``wall_s`` (and ``path`` with ``ctx.record_path``).
 

@@ -1,6 +1,6 @@
 """Why the benchmark's episodes failed: trapped, a sampling miss, or lost.
 
-    python -m eval.navigate.failures --out out/navigate/clutter-test-100 --budgets 256 --map-policy FILE
+    python -m eval.navigate failures --out out/navigate/clutter-test-100 --budgets 256 --map-policy FILE
 
 Replays every failed episode of a benchmark folder (:func:`eval.navigate.replay.replay_episode`, optionally only some
 methods and budgets) and sorts each failure into one of three kinds:
@@ -32,7 +32,8 @@ from cuniform_torch import CUniformMPPI
 from cuniform_torch.common.fileio import write_json
 from cuniform_torch.envs import NavigationCost
 from eval.navigate.episode import NavContext, _cost_environment, _sources
-from eval.navigate.replay import compare_records, load_folder, replay_episode, summarize
+from eval.navigate.records import load_folder
+from eval.navigate.replay import compare_records, replay_episode, summarize
 from precompute.cli import MAX_COUNT, ArgumentParser, check_output_file, cli_main, int_in, positive_int
 
 __all__ = ["FailureKind", "classify", "probe_free_share", "failure_table", "main"]
@@ -106,7 +107,7 @@ def failure_table(kinds: Sequence[FailureKind], totals: dict[tuple[str, int], in
 
 
 def make_parser() -> ArgumentParser:
-    p = ArgumentParser(prog="python -m eval.navigate.failures", description=(__doc__ or "").split("\n\n")[0])
+    p = ArgumentParser(prog="python -m eval.navigate failures", description=(__doc__ or "").split("\n\n")[0])
     p.add_argument("--out", type=Path, required=True, help="the benchmark folder (python -m eval.navigate --out)")
     p.add_argument("--methods", nargs="+", default=None, help="only these methods (default: every one in the folder)")
     p.add_argument("--budgets", nargs="+", type=int_in(2, MAX_COUNT), default=None,
@@ -159,7 +160,3 @@ def main(argv: Sequence[str] | None = None) -> int:
                                    failures=[k.__dict__ for k in kinds]))
         print(f"wrote {args.json}")
     return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())

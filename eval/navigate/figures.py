@@ -1,4 +1,4 @@
-"""Figures and TensorBoard scalars of the navigation benchmark's summary rows (:func:`eval.navigate.stats.summarize`).
+"""Figures and TensorBoard scalars of the navigation benchmark's summary rows (:func:`eval.navigate.records.stats.summarize`).
 
 :func:`success_figure` draws success rate against the sample budget (log2 axis) per method with 95% Wilson
 error bars, one panel per suite, and writes it atomically as a PNG (:func:`eval.common.figures.save_figure`).
@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import json
 import math
-import sys
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
@@ -17,7 +16,7 @@ from cuniform_torch.common.fileio import MAX_JSON_BYTES, read_capped_text
 from eval.common.figures import method_style, plt, save_figure
 from precompute.cli import ArgumentParser, check_output_file, cli_main
 
-__all__ = ["TB_METRICS", "success_figure", "write_tensorboard", "main"]
+__all__ = ["TB_METRICS", "method_color", "success_figure", "write_tensorboard", "make_parser", "main"]
 
 TB_METRICS = ("success_rate", "collision_rate", "timeout_rate", "cycle_ms_median")
 """the summary-row fields logged to TensorBoard, one scalar per (suite, method) against the budget"""
@@ -38,7 +37,7 @@ def _check_rows(rows: Sequence[Mapping], fields: Sequence[str]) -> None:
             raise ValueError(f"summary row {i} has budget {b!r}; budgets must be positive numbers (log2 axis)")
 
 
-def _color(method: str, index: int, colors: Mapping[str, str] | None) -> str:
+def method_color(method: str, index: int, colors: Mapping[str, str] | None) -> str:
     """The caller's colour, else the method's registered colour, else the default colour cycle."""
     if colors and method in colors:
         return colors[method]
@@ -60,7 +59,7 @@ def _panel(ax, rows: Sequence[Mapping], suite: str, methods: Sequence[str], labe
         y = [r["success_rate"] for r in mine]
         yerr = [[r["success_rate"] - r["success_rate_low"] for r in mine],
                 [r["success_rate_high"] - r["success_rate"] for r in mine]]
-        ax.errorbar(x, y, yerr=yerr, marker="o", markersize=4, capsize=2, color=_color(m, i, colors),
+        ax.errorbar(x, y, yerr=yerr, marker="o", markersize=4, capsize=2, color=method_color(m, i, colors),
                     label=labels.get(m, m), linewidth=1.2, elinewidth=0.8)
     ax.set_xscale("log", base=2)
     ax.set_xticks(budgets)
@@ -117,15 +116,19 @@ def write_tensorboard(summary_rows: Sequence[Mapping], logdir: str | Path) -> No
         writer.close()
 
 
-@cli_main()
-def main(argv: Sequence[str] | None = None) -> int:
-    """``python -m eval.navigate.figures RESULTS.json ... --out FIGURE.png``: one success figure over several runs'
-    ``results.json`` (one panel per suite)."""
-    p = ArgumentParser(prog="python -m eval.navigate.figures",
-                       description="One success-vs-budget figure from several eval.navigate.run results.json files")
+def make_parser() -> ArgumentParser:
+    p = ArgumentParser(prog="python -m eval.navigate figures",
+                       description="One success-vs-budget figure from several benchmark runs' results.json files")
     p.add_argument("results", type=Path, nargs="+", help="results.json files written by python -m eval.navigate")
     p.add_argument("--out", type=Path, required=True, help="PNG to write")
-    args = p.parse_args(argv)
+    return p
+
+
+@cli_main()
+def main(argv: Sequence[str] | None = None) -> int:
+    """``python -m eval.navigate figures RESULTS.json ... --out FIGURE.png``: one success figure over several runs'
+    ``results.json`` (one panel per suite)."""
+    args = make_parser().parse_args(argv)
     check_output_file(args.out, "--out", "success.png")
     rows: list = []
     labels: dict = {}
@@ -142,7 +145,3 @@ def main(argv: Sequence[str] | None = None) -> int:
     colors = {m: nav[m].color for m in labels if m in nav}
     print(f"wrote {success_figure(rows, args.out, labels=labels, colors=colors)}")
     return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())

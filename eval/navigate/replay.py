@@ -1,9 +1,10 @@
 """Replay one stored navigation-benchmark episode and draw why it ended the way it did.
 
-    python -m eval.navigate.replay --out out/navigate/clutter --key clutter/15/cu_table/256/0
+    python -m eval.navigate replay --out out/navigate/clutter --key clutter/15/cu_table/256/0
 
-Reads ``DIR/settings.json`` and the record ``KEY`` of ``DIR/episodes.jsonl`` (:mod:`eval.navigate.store`; read only,
-so a benchmark still writing the folder is not disturbed), rebuilds the one task
+Reads ``DIR/settings.json`` and the record ``KEY`` of ``DIR/episodes.jsonl``
+(:func:`eval.navigate.records.load_episode`; read only, so a benchmark still writing the folder is not disturbed),
+rebuilds the one task
 (:func:`precompute.worlds.tasks.make_task`) and the robot, checks that the source files (the same flags and defaults as
 ``eval.navigate.run``'s) are the ones the run used (their digests in ``settings["sources"]``), and re-runs the episode
 (episodes are deterministic) with a per-command trace (:func:`eval.navigate.episode.run_nav_episode`'s ``trace``):
@@ -16,7 +17,6 @@ with ``--json``, the trace and summary.
 
 from __future__ import annotations
 
-import difflib
 import sys
 from collections.abc import Sequence
 from pathlib import Path
@@ -24,35 +24,17 @@ from typing import Any
 
 from cuniform_torch.common.fileio import write_json
 from eval.navigate.episode import NavContext, NavJob, run_nav_episode
+from eval.navigate.records import load_episode
 from eval.navigate.run import NavConfig, _file_digest, _sources
-from eval.navigate.store import EpisodeStore
 from precompute.cli import ArgumentParser, add_system_module_arg, check_output_file, cli_main, import_system_modules
 from precompute.worlds.robot import RobotPreset
 from precompute.worlds.suites import NavTask
 from precompute.worlds.tasks import make_task
 
-__all__ = ["load_folder", "load_episode", "replay_episode", "compare_records", "summarize", "plot_replay", "main"]
+__all__ = ["replay_episode", "compare_records", "summarize", "plot_replay", "main"]
 
 PATH_TOLERANCE = 1e-4
 """m: a replayed path length within this of the stored one reproduces it"""
-
-
-def load_folder(out: Path) -> tuple[dict, dict[str, dict]]:
-    """``(settings, every record by key)`` of the benchmark folder ``out`` (read only; checked by
-    :meth:`eval.navigate.store.EpisodeStore.load`, the folder's one parser)."""
-    return EpisodeStore(out).load()
-
-
-def load_episode(out: Path, key: str) -> tuple[dict, dict, dict[str, dict]]:
-    """``(settings, record, every record by key)`` of the benchmark folder ``out``; a ValueError naming a few keys
-    present when ``key`` is not there."""
-    settings, records = load_folder(out)
-    if key not in records:
-        keys = sorted(records)
-        near = difflib.get_close_matches(key, keys, n=3, cutoff=0.5) or keys[:3]
-        held = f"it holds {len(keys)} episodes, e.g. {', '.join(near)}" if keys else "it holds no episode"
-        raise ValueError(f"no episode {key!r} in {EpisodeStore(out).records_file} ({held})")
-    return settings, records[key], records
 
 
 def _barn_file(out: Path, settings: dict, given: Path | None) -> Path | None:
@@ -90,7 +72,7 @@ def _checked_sources(settings: dict, record: dict, robot: RobotPreset, cache: Pa
     def check(sources: dict) -> None:
         for name, path in sources.items():
             if path is None or used.get(name) is None or not Path(path).exists():
-                continue  # a file the run's methods never read matches anything (eval.navigate.store)
+                continue  # a file the run's methods never read matches anything (eval.navigate.records.store)
             have = _file_digest(Path(path))
             if have != used[name]:
                 flag = f"--{name.replace('_', '-')}"
@@ -231,7 +213,7 @@ def plot_replay(task: NavTask, replayed: dict, trace: list[dict], path: Path, ti
 
 
 def make_parser() -> ArgumentParser:
-    p = ArgumentParser(prog="python -m eval.navigate.replay", description=(__doc__ or "").split("\n\n")[0])
+    p = ArgumentParser(prog="python -m eval.navigate replay", description=(__doc__ or "").split("\n\n")[0])
     p.add_argument("--out", type=Path, required=True, help="the benchmark folder (python -m eval.navigate --out)")
     p.add_argument("--key", required=True, help="the episode: suite/task_id/method/budget/repeat")
     p.add_argument("--cache", type=Path, default=Path("out/navigate/cache"),
@@ -274,7 +256,3 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"wrote {args.json}")
     sys.stdout.flush()
     return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())

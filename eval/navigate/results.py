@@ -1,21 +1,22 @@
 """The results of a benchmark run (:mod:`eval.navigate.run`): its summary rows, paired comparisons and facts; their
-markdown (the success table per budget, then :func:`eval.navigate.stats.markdown`'s); the files under ``--out``."""
+markdown (the success table per budget, then :func:`markdown`'s tables); the files under ``--out``."""
 
 from __future__ import annotations
 
 import dataclasses
 import os
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
 from cuniform_torch.common.fileio import write_bytes, write_json
+from eval.common.markdown import table
 from eval.common.methods import NAVIGATE, gaussian_baselines, methods_of
-from eval.navigate.stats import markdown, paired_comparisons, summarize
+from eval.navigate.records.stats import fmt_rate, fmt_score, paired_comparisons, require_fields, summarize
 from precompute.worlds.suites import NavTask
 from precompute.worlds.tasks import task_summary
 
-__all__ = ["result", "write_outputs", "render", "success_pivot"]
+__all__ = ["result", "write_outputs", "render", "success_pivot", "markdown"]
 
 
 def result(cfg: Any, records: list[dict], tasks: Sequence[NavTask], methods: Sequence[str], wall: float,
@@ -48,7 +49,7 @@ def write_outputs(res: dict, out: Path) -> list[Path]:
 
 
 def render(res: dict) -> str:
-    """The markdown of a result: the run's facts, then :func:`eval.navigate.stats.markdown`'s tables."""
+    """The markdown of a result: the run's facts, then :func:`markdown`'s tables."""
     r, c = res["run"], res["config"]
     ran = r.get("ran", r["episodes"])
     earlier = f", {r['episodes'] - ran} from earlier runs" if ran < r["episodes"] else ""
@@ -64,8 +65,6 @@ def success_pivot(summary: Sequence[dict], comparisons: Sequence[dict]) -> str:
     """Success rate [95% CI] per method (rows) and budget (columns), each marked against the best Gaussian
     baseline at that budget: ``+`` better, ``-`` worse (exact McNemar p < 0.05), nothing for a tie; ``(best)``
     on the baseline itself."""
-    from eval.navigate.stats import fmt_rate
-
     budgets = sorted({r["budget"] for r in summary})
     verdict = {(c["suite"], c["budget"], c["method"]): c["verdict"] for c in comparisons}
     best = {(c["suite"], c["budget"]): c["baseline"] for c in comparisons}
@@ -88,3 +87,47 @@ def success_pivot(summary: Sequence[dict], comparisons: Sequence[dict]) -> str:
             lines.append(f"| {m} | " + " | ".join(cells) + " |")
         out.append("\n".join(lines))
     return "\n\n".join(out)
+
+
+def _fmt(x: float | None, digits: int = 2) -> str:
+    return "-" if x is None else f"{x:.{digits}f}"
+
+
+def _summary_table(rows: Sequence[Mapping]) -> str:
+    scored = any("score_mean" in r for r in rows)  # a BARN score column only when the rows carry one
+    body = [[r["budget"], r["method"], r["n"], fmt_rate(r, "success"),
+             *([fmt_score(r)] if scored else []), fmt_rate(r, "collision"),
+             fmt_rate(r, "timeout"), _fmt(r["path_length_mean"]), _fmt(r["time_mean"]),
+             f"{_fmt(r['cycle_ms_median'])} / {_fmt(r['cycle_ms_p95'])}"] for r in rows]
+    head = ["budget", "method", "n", "success [95% CI]", *(["BARN score [95% CI]"] if scored else []), "collision",
+            "timeout", "path length (m)", "time (s)", "cycle ms median / p95"]
+    return table(head, body, align="rlrl" + ("l" if scored else "") + "llrrr")
+
+
+def _comparison_table(rows: Sequence[Mapping]) -> str:
+    body = [[r["budget"], r["method"], r["baseline"], r["n"], r["wins"], r["losses"],
+             f"{r['diff']:+.2f} [{r['diff_low']:+.2f}, {r['diff_high']:+.2f}]", f"{r['p_value']:.3g}",
+             r["verdict"]] for r in rows]
+    head = ["budget", "method", "best baseline", "pairs", "wins", "losses", "diff [95% CI]", "McNemar p",
+            "verdict"]
+    return table(head, body, align="rllrrrlrl")
+
+
+def markdown(summary_rows: Sequence[Mapping], comparison_rows: Sequence[Mapping]) -> str:
+    """Per suite: a summary table (one row per budget and method; success / collision / timeout rates with
+    95% Wilson intervals, mean path length and time of successes, cycle ms median / p95), then the paired
+    comparisons with their verdicts. Rows need ``suite``, ``method`` and ``budget`` (:func:`eval.navigate.records.stats.summarize`)."""
+    for i, r in enumerate(summary_rows):
+        require_fields(r, ("suite", "method", "budget", "n", "success_rate"), i)
+    suites = list(dict.fromkeys([r["suite"] for r in summary_rows] + [r["suite"] for r in comparison_rows]))
+    parts = []
+    for suite in suites:
+        parts.append(f"## {suite}")
+        mine = sorted((r for r in summary_rows if r["suite"] == suite), key=lambda r: r["budget"])
+        if mine:
+            parts.append(_summary_table(mine))
+        comp = sorted((r for r in comparison_rows if r["suite"] == suite), key=lambda r: r["budget"])
+        if comp:
+            parts.append(f"Paired comparisons with the best baseline per budget (exact McNemar test, "
+                         f"Newcombe 95% interval of the success-rate difference):\n\n{_comparison_table(comp)}")
+    return "\n\n".join(parts) + "\n"

@@ -7,7 +7,7 @@ dt = 0.2 s, a disc of radius 0.2 m (BARN's narrowest passages are about 0.6-0.7 
 surfaces), a controller horizon of 15 steps (3 s, 1.5 m ahead), cells of 0.05 m x 0.05 m x 10 degrees. Its
 max-flow table (81 329 cells) and its coverage table (47 514 cells) ship as package data
 (:data:`SHIPPED_DIR`, 1.5 MB and 1.3 MB without the flow graph no policy reads), checked against their manifest
-(size, sha256) before use (:func:`shipped_table`); ``python -m eval.navigate.robot_files --ship`` rebuilds them
+(size, sha256) before use (:func:`shipped_table`); ``python -m eval.navigate robot-files --ship`` rebuilds them
 (about 7 s and 27 s on the project's 2-core machine, :data:`BUILD_SECONDS`) and ``--check`` rebuilds and compares.
 The ``narrow`` suite's faster robot (:data:`~precompute.worlds.robot.FAST_ROBOT`, the same lattice scaled by two:
 as many cells) ships its two tables beside them (:data:`SHIPPED_ROBOTS`); ``--ship`` and ``--check`` do both robots.
@@ -51,7 +51,7 @@ BUILD_SECONDS: dict[tuple[str, int], float] = {
 }
 """seconds to build the built-in robot's files (:data:`NAV_ROBOT`'s system and parameters) by ``(method, horizon)``
 (``policy``: the MLP of :func:`ensure_policy`), one torch thread, on the project's 2-core machine when idle: the
-tables' CPU seconds printed by ``python -m eval.navigate.robot_files --time`` (each build written and read back;
+tables' CPU seconds printed by ``python -m eval.navigate robot-files --time`` (each build written and read back;
 the first coverage build of a process loads the compiled loops), measured at load 4.6-5 (other jobs running: the
 wall-clock times were 0.2 / 3.7 / 1.4 / 4.5 / 14.3 / 46.1 s); at load 1.2-1.3 the 15-step tables took 6.3 s
 and 25.7 s of wall time (``--time --horizons 15``). The coverage table's first build took 57 s of CPU
@@ -85,7 +85,7 @@ SHIPPED_ROBOTS = (NAV_ROBOT, FAST_ROBOT)
 
 SHIPPED_FORMAT = "cuniform-shipped-tables/1"
 MANIFEST = "manifest.json"
-SHIP_COMMAND = "python -m eval.navigate.robot_files --ship"
+SHIP_COMMAND = "python -m eval.navigate robot-files --ship"
 """rebuilds the shipped tables and their manifest (about :data:`BUILD_SECONDS` of both 15-step tables)"""
 _MAX_MANIFEST_BYTES = 1 << 20
 
@@ -337,7 +337,7 @@ than 1e-3, at most by 0.011, for the same coverage (6306 / 15816 cells at N = 10
 
 def make_parser() -> ArgumentParser:
     parser = ArgumentParser(
-        prog="python -m eval.navigate.robot_files",
+        prog="python -m eval.navigate robot-files",
         description="The navigation robots' shipped tables (cuniform_torch/maps/robot_tables/: the built-in "
                     "robot's and the narrow suite's faster robot's): rebuild them "
                     f"(--ship, about {BUILD_SECONDS[('maxflow', 15)] + BUILD_SECONDS[('coverage', 15)]:.0f} s per "
@@ -401,7 +401,3 @@ def main(argv: Sequence[str] | None = None) -> int:
               f"{diff['same_cells']}; max |action_probs diff| {diff['action_probs']:.3g}, max |cell_probs diff| "
               f"{diff['cell_probs']:.3g}: {'ok' if ok else 'DIFFERS'}")
     return 1 if failed else 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())

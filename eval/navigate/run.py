@@ -37,9 +37,9 @@ from eval.navigate.cost_to_go import RESOLUTION as COST_TO_GO_RESOLUTION
 from eval.navigate.dynamics import DYNAMICS, learned_model
 from eval.navigate.episode import NavContext, NavJob
 from eval.navigate.execute import execute
+from eval.navigate.records import EpisodeStore
 from eval.navigate.results import render, result, success_pivot, write_outputs
 from eval.navigate.robot_files import ensure_policy, ensure_table
-from eval.navigate.store import EpisodeStore
 from precompute.cli import (
     MAX_COUNT,
     ArgumentParser,

@@ -2,7 +2,7 @@
 
 A histogram is ``{str(bin): count}`` with only non-zero bins. One bin spans a factor ``10**(1/40)`` (about
 5.9%), from ``T_MIN = 1e-5`` s up to 100 s, so a quantile read from a histogram is within about 3% (half a
-bin, geometric) of a time inside the bin that holds it. :mod:`eval.navigate.stats` reads them into its summaries.
+bin, geometric) of a time inside the bin that holds it. :mod:`eval.navigate.records.stats` reads them into its summaries.
 """
 
 from __future__ import annotations

@@ -10,6 +10,9 @@ but a different file under the same name is refused. A line cut short by a
 crash (the last one) is dropped with a warning by a run, left out with a one-line note on stderr by a read-only
 reader; a bad line elsewhere is an error.
 
+It reads without torch (:mod:`eval.navigate.records.files`); :meth:`EpisodeStore.open`, the run's, writes
+``settings.json`` with ``cuniform_torch.common.fileio.write_json`` (atomic), imported there.
+
 This is the one parser of the folder: the run, and the read-only readers (replay, compare, failures) through
 :meth:`EpisodeStore.load`. Records without settings are refused (what they were run with is unknown), and so is
 any settings field or record of the wrong shape: a field missing or of the wrong type, a NaN or infinite number,
@@ -18,6 +21,7 @@ a key given twice, a record whose key disagrees with its fields (:data:`SETTINGS
 
 from __future__ import annotations
 
+import difflib
 import json
 import math
 import os
@@ -27,19 +31,18 @@ import sys
 import warnings
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any, BinaryIO
+from typing import Any, BinaryIO, cast
 
-from cuniform_torch.common.fileio import (
+from eval.navigate.records.files import (
     MAX_JSONL_BYTES,
     MAX_SMALL_JSON_BYTES,
     file_kind,
     read_capped_bytes,
     read_capped_text,
-    write_json,
 )
-from eval.navigate.episode import episode_key
+from eval.navigate.records.keys import episode_key
 
-__all__ = ["EpisodeStore", "StoreError", "SETTINGS", "RECORD", "OUTCOMES", "check_settings", "check_record"]
+__all__ = ["EpisodeStore", "StoreError", "load_folder", "load_episode", "SETTINGS", "RECORD", "OUTCOMES", "check_settings", "check_record"]
 
 
 class StoreError(ValueError):
@@ -199,7 +202,7 @@ def check_record(record: Any) -> str | None:
         return f"its key {r['key']!r} is not its fields' ({key!r})"
     if r["success"] != (r["outcome"] == "goal"):
         return f"success {r['success']} contradicts outcome {r['outcome']!r}"
-    hist = r["cycle_hist"]  # eval.navigate.cycle_hist.cycle_histogram: one count per command timed
+    hist = r["cycle_hist"]  # eval.navigate.records.cycle_hist.cycle_histogram: one count per command timed
     if not all(_BIN.fullmatch(b) and int(b) <= 279 and c >= 1 for b, c in hist.items()):
         return f"field 'cycle_hist' must map bins '0'..'279' to counts >= 1, got {hist!r}"
     if sum(hist.values()) != r["cycles"]:
@@ -256,6 +259,8 @@ class EpisodeStore:
 
     def open(self, settings: dict[str, Any]) -> dict[str, dict]:
         """Check or write the settings; the records already there, by key."""
+        from cuniform_torch.common.fileio import write_json  # only a run writes: it has the runtime loaded anyway
+
         settings = json.loads(json.dumps(settings))  # JSON types: tuples compare as the lists they are stored as
         problem = check_settings(settings)
         if problem is not None:  # a settings_record out of step with SETTINGS: a bug, said before any write
@@ -356,7 +361,7 @@ class EpisodeStore:
     def _records_bytes(self) -> bytes | None:
         """``episodes.jsonl``'s bytes; None when there is none; a :class:`StoreError` when something is there but
         cannot be read (a folder, a symlink loop or one to nothing: never taken for a folder without records; a FIFO
-        or a device; a file over :data:`~cuniform_torch.common.fileio.MAX_JSONL_BYTES`)."""
+        or a device; a file over :data:`~eval.navigate.records.files.MAX_JSONL_BYTES`)."""
         if not (self.records_file.exists() or self.records_file.is_symlink()):
             return None
         try:
@@ -424,7 +429,7 @@ class EpisodeStore:
                 raise StoreError(f"{self.records_file} is {file_kind(st_mode)}, not a regular file; remove it, or "
                                  "use another --out")
             os.set_blocking(fd, True)
-            return os.fdopen(fd, mode)
+            return cast(BinaryIO, os.fdopen(fd, mode))  # a str mode types as IO[Any]; it is "ab" or "r+b"
         except BaseException:
             os.close(fd)
             raise
@@ -435,3 +440,21 @@ class EpisodeStore:
             f.write(json.dumps(record, separators=(",", ":")).encode() + b"\n")
             f.flush()
             os.fsync(f.fileno())
+
+
+def load_folder(out: Path) -> tuple[dict, dict[str, dict]]:
+    """``(settings, every record by key)`` of the benchmark folder ``out`` (read only; checked by
+    :meth:`EpisodeStore.load`, the folder's one parser)."""
+    return EpisodeStore(out).load()
+
+
+def load_episode(out: Path, key: str) -> tuple[dict, dict, dict[str, dict]]:
+    """``(settings, record, every record by key)`` of the benchmark folder ``out``; a ValueError naming a few keys
+    present when ``key`` is not there."""
+    settings, records = load_folder(out)
+    if key not in records:
+        keys = sorted(records)
+        near = difflib.get_close_matches(key, keys, n=3, cutoff=0.5) or keys[:3]
+        held = f"it holds {len(keys)} episodes, e.g. {', '.join(near)}" if keys else "it holds no episode"
+        raise ValueError(f"no episode {key!r} in {EpisodeStore(out).records_file} ({held})")
+    return settings, records[key], records

@@ -1,6 +1,6 @@
 """Statistics of the navigation benchmark's episode records: cycle-time histograms, per-group summaries with
-Wilson intervals, paired comparisons against the best baseline (Newcombe interval + exact McNemar test) and
-their markdown tables.
+Wilson intervals, paired comparisons against the best baseline (Newcombe interval + exact McNemar test). Their markdown tables are
+a report's (:func:`eval.navigate.results.markdown`).
 
 A record is one closed-loop episode (``python -m eval.navigate``), plain JSON::
 
@@ -8,9 +8,9 @@ A record is one closed-loop episode (``python -m eval.navigate``), plain JSON::
      "outcome": "goal" | "collision" | "timeout", "success": true, "time": 23.4, "path_length": 11.2,
      "steps": 117, "wall_s": 0.83, "cycle_hist": {"57": 3, "58": 40}, "cycles": 117}
 
-Per-cycle wall times are kept as fixed log-spaced histograms (:mod:`eval.navigate.cycle_hist`, whose names are importable
-from here too) so that episodes, seeds and runs merge by adding counts. One bin spans a factor ``10**(1/40)``
-(about 5.9%), so a quantile read from a histogram is within about 3% (half a bin, geometric) of a time inside
+Per-cycle wall times are kept as fixed log-spaced histograms (:mod:`eval.navigate.records.cycle_hist`, whose names
+are importable from here too) so that episodes, seeds and runs merge by adding counts. One bin spans a factor
+``10**(1/40)`` (about 5.9%), so a quantile read from a histogram is within about 3% (half a bin, geometric) of a time inside
 the bin that holds it.
 """
 
@@ -22,7 +22,7 @@ from collections.abc import Mapping, Sequence
 from typing import Any
 
 from eval.common.stats import mean_or_none, wilson_interval
-from eval.navigate.cycle_hist import (
+from eval.navigate.records.cycle_hist import (
     BINS_PER_DECADE,
     NUM_BINS,
     T_MIN,
@@ -34,7 +34,7 @@ from eval.navigate.cycle_hist import (
 
 __all__ = ["T_MIN", "BINS_PER_DECADE", "NUM_BINS", "OUTCOMES", "cycle_histogram", "merge_histograms",
            "histogram_quantile", "bin_centre", "summarize", "newcombe_paired_interval", "mcnemar_exact_p",
-           "paired_comparisons", "fmt_rate", "fmt_score", "markdown"]
+           "require_fields", "best_baseline", "by_episode", "compare_pair", "paired_comparisons", "fmt_rate", "fmt_score"]
 
 OUTCOMES = ("goal", "collision", "timeout")
 """the possible ``outcome`` values of a record"""
@@ -45,8 +45,9 @@ _PAIR_FIELDS = ("suite", "budget", "method", "task_id", "seed", "success")
 
 # ------------------------------------------------------------------------------------------------ summaries
 
-def _check_record(r: Any, fields: Sequence[str], i: int) -> None:
-    """ValueError naming the record and the first missing field or inconsistent outcome."""
+def require_fields(r: Any, fields: Sequence[str], i: int) -> None:
+    """A ValueError naming record (or row) ``i`` and its first missing field of ``fields``, or an outcome that
+    is not one of :data:`OUTCOMES` or contradicts its ``success``; None when it is fine."""
     if not isinstance(r, Mapping):
         raise ValueError(f"record {i} is a {type(r).__name__}, not a mapping")
     missing = [f for f in fields if f not in r]
@@ -102,7 +103,7 @@ def _summary_row(key: tuple, keys: Sequence[str], recs: Sequence[Mapping],
     row["cycle_ms_p95"] = _ms(histogram_quantile(hist, 0.95))
     row["wall_s"] = float(sum(r.get("wall_s", 0.0) for r in recs))
     if scores is not None:
-        from eval.navigate.score import score_summary
+        from eval.navigate.records.score import score_summary
 
         mine = [scores[r["key"]] for r in recs if r.get("key") in scores]
         row.update(score_summary(mine if len(mine) == n else []))
@@ -123,7 +124,7 @@ def summarize(records: Sequence[Mapping], keys: Sequence[str] = ("suite", "metho
     """
     records = list(records)
     for i, r in enumerate(records):
-        _check_record(r, (*keys, *_SUMMARY_FIELDS), i)
+        require_fields(r, (*keys, *_SUMMARY_FIELDS), i)
     return [_summary_row(key, keys, recs, scores) for key, recs in _group(records, keys).items()]
 
 
@@ -181,7 +182,7 @@ def mcnemar_exact_p(wins: int, losses: int) -> float:
     return float(binomtest(wins, wins + losses, 0.5).pvalue)
 
 
-def _best_baseline(by_method: Mapping[str, Sequence[Mapping]], baselines: Sequence[str]) -> str | None:
+def best_baseline(by_method: Mapping[str, Sequence[Mapping]], baselines: Sequence[str]) -> str | None:
     """The baseline with the highest success rate among ``by_method``; ties go to the earlier in ``baselines``."""
     best, best_rate = None, -1.0
     for m in baselines:  # strict '>' keeps the earlier baseline on a tie
@@ -193,7 +194,7 @@ def _best_baseline(by_method: Mapping[str, Sequence[Mapping]], baselines: Sequen
     return best
 
 
-def _by_episode(recs: Sequence[Mapping], where: str) -> dict[tuple, bool]:
+def by_episode(recs: Sequence[Mapping], where: str) -> dict[tuple, bool]:
     """``{(task_id, seed): success}``; ValueError on a repeated episode (pairs would be ambiguous)."""
     out: dict[tuple, bool] = {}
     for r in recs:
@@ -212,9 +213,10 @@ def _verdict(p: float, diff: float) -> str:
     return "tie"
 
 
-def _compare(suite: Any, budget: Any, method: str, baseline: str, mine: dict[tuple, bool],
-             base: dict[tuple, bool]) -> dict | None:
-    """One comparison row over the episodes both ran (None without a common episode)."""
+def compare_pair(suite: Any, budget: Any, method: str, baseline: str, mine: dict[tuple, bool],
+                 base: dict[tuple, bool]) -> dict | None:
+    """One :func:`paired_comparisons` row of ``method`` against ``baseline`` over the episodes both ran (``mine``
+    and ``base`` from :func:`by_episode`); None without a common episode."""
     common = [k for k in mine if k in base]
     if not common:
         return None
@@ -246,7 +248,7 @@ def paired_comparisons(records: Sequence[Mapping], baselines: Sequence[str]) -> 
     if not baselines:
         raise ValueError("no baselines given")
     for i, r in enumerate(records):
-        _check_record(r, _PAIR_FIELDS, i)
+        require_fields(r, _PAIR_FIELDS, i)
     present = {r["method"] for r in records}
     absent = [m for m in baselines if m not in present]
     if absent:
@@ -255,42 +257,25 @@ def paired_comparisons(records: Sequence[Mapping], baselines: Sequence[str]) -> 
     rows = []
     for (suite, budget), recs in _group(records, ("suite", "budget")).items():
         by_method = {m[0]: rs for m, rs in _group(recs, ("method",)).items()}
-        best = _best_baseline(by_method, baselines)
+        best = best_baseline(by_method, baselines)
         if best is None:
             continue
-        base = _by_episode(by_method[best], f"suite={suite!r}, budget={budget!r}, method={best!r}")
+        base = by_episode(by_method[best], f"suite={suite!r}, budget={budget!r}, method={best!r}")
         for method, mrecs in by_method.items():
             if method == best:
                 continue
-            mine = _by_episode(mrecs, f"suite={suite!r}, budget={budget!r}, method={method!r}")
-            row = _compare(suite, budget, method, best, mine, base)
+            mine = by_episode(mrecs, f"suite={suite!r}, budget={budget!r}, method={method!r}")
+            row = compare_pair(suite, budget, method, best, mine, base)
             if row is not None:
                 rows.append(row)
     return rows
 
 
-# ------------------------------------------------------------------------------------------------ markdown
-
-def _fmt(x: float | None, digits: int = 2) -> str:
-    return "-" if x is None else f"{x:.{digits}f}"
-
+# ------------------------------------------------------------------------------------------------ formatting
 
 def fmt_rate(row: Mapping, name: str) -> str:
     """``0.93 [0.88, 0.96]``: the ``<name>_rate`` of a summary row with its Wilson interval."""
     return f"{row[f'{name}_rate']:.2f} [{row[f'{name}_rate_low']:.2f}, {row[f'{name}_rate_high']:.2f}]"
-
-
-def _summary_table(rows: Sequence[Mapping]) -> str:
-    from eval.common.markdown import table
-
-    scored = any("score_mean" in r for r in rows)  # a BARN score column only when the rows carry one
-    body = [[r["budget"], r["method"], r["n"], fmt_rate(r, "success"),
-             *([fmt_score(r)] if scored else []), fmt_rate(r, "collision"),
-             fmt_rate(r, "timeout"), _fmt(r["path_length_mean"]), _fmt(r["time_mean"]),
-             f"{_fmt(r['cycle_ms_median'])} / {_fmt(r['cycle_ms_p95'])}"] for r in rows]
-    head = ["budget", "method", "n", "success [95% CI]", *(["BARN score [95% CI]"] if scored else []), "collision",
-            "timeout", "path length (m)", "time (s)", "cycle ms median / p95"]
-    return table(head, body, align="rlrl" + ("l" if scored else "") + "llrrr")
 
 
 def fmt_score(row: Mapping) -> str:
@@ -298,34 +283,3 @@ def fmt_score(row: Mapping) -> str:
     if row.get("score_mean") is None:
         return "-"
     return f"{row['score_mean']:.2f} [{row['score_low']:.2f}, {row['score_high']:.2f}]"
-
-
-def _comparison_table(rows: Sequence[Mapping]) -> str:
-    from eval.common.markdown import table
-
-    body = [[r["budget"], r["method"], r["baseline"], r["n"], r["wins"], r["losses"],
-             f"{r['diff']:+.2f} [{r['diff_low']:+.2f}, {r['diff_high']:+.2f}]", f"{r['p_value']:.3g}",
-             r["verdict"]] for r in rows]
-    head = ["budget", "method", "best baseline", "pairs", "wins", "losses", "diff [95% CI]", "McNemar p",
-            "verdict"]
-    return table(head, body, align="rllrrrlrl")
-
-
-def markdown(summary_rows: Sequence[Mapping], comparison_rows: Sequence[Mapping]) -> str:
-    """Per suite: a summary table (one row per budget and method; success / collision / timeout rates with
-    95% Wilson intervals, mean path length and time of successes, cycle ms median / p95), then the paired
-    comparisons with their verdicts. Rows need ``suite``, ``method`` and ``budget`` (:func:`summarize`)."""
-    for i, r in enumerate(summary_rows):
-        _check_record(r, ("suite", "method", "budget", "n", "success_rate"), i)
-    suites = list(dict.fromkeys([r["suite"] for r in summary_rows] + [r["suite"] for r in comparison_rows]))
-    parts = []
-    for suite in suites:
-        parts.append(f"## {suite}")
-        mine = sorted((r for r in summary_rows if r["suite"] == suite), key=lambda r: r["budget"])
-        if mine:
-            parts.append(_summary_table(mine))
-        comp = sorted((r for r in comparison_rows if r["suite"] == suite), key=lambda r: r["budget"])
-        if comp:
-            parts.append(f"Paired comparisons with the best baseline per budget (exact McNemar test, "
-                         f"Newcombe 95% interval of the success-rate difference):\n\n{_comparison_table(comp)}")
-    return "\n\n".join(parts) + "\n"
