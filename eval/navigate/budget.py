@@ -22,7 +22,12 @@ which compare methods at the same sample count K. From a benchmark folder (read 
   .gaussian_baselines`) at the baseline's own K that fits the same B: the exact McNemar test and the Newcombe
   interval of the difference, paired on (task, seed) over the episodes both ran (as :mod:`eval.navigate.compare`
   pairs cells of different K). The best baseline is the one with the highest success rate at its fitting K (a
-  tie: the earlier in the registry), chosen like the benchmark's own per-K comparison.
+  tie: the earlier in the registry), chosen like the benchmark's own per-K comparison;
+* each method at its K against the **best method of every other family** (:data:`FAMILIES`: Gaussian MPPI,
+  log-normal, colored / smooth noise, mixtures, C-Uniform table, CU-MPPI, CFU-MPPI, uniform) at that method's own K
+  that fits the same B, paired the same way; and per budget the **winner**, the best method of all. "Best" here
+  (:func:`rank_key`): the highest success rate, a tie to the higher mean BARN score, then the lower p95, then the
+  earlier in the registry (success ties are common on easy suites, where the score still tells methods apart).
 
 Both sides' K are chosen by success on the same episodes the test then uses, so the pick is a little
 optimistic for each; the table lists every K that fits so a reader can see what was chosen from.
@@ -48,13 +53,29 @@ from eval.navigate.stats import _best_baseline, _by_episode, _compare, fmt_rate,
 from eval.navigate.store import EpisodeStore
 from precompute.cli import ArgumentParser, check_output_file, cli_main, positive_float
 
-__all__ = ["DEFAULT_BUDGETS_MS", "FIT_QUANTILE", "cells", "pick_k", "budget_rows", "pareto_front", "threads_note",
-           "judge", "judge_folder", "render", "budget_figure", "main"]
+__all__ = ["DEFAULT_BUDGETS_MS", "FIT_QUANTILE", "FAMILIES", "family_of", "rank_key", "cells", "pick_k",
+           "budget_rows", "winners", "pareto_front", "threads_note", "judge", "judge_folder", "render",
+           "budget_figure", "main"]
 
 DEFAULT_BUDGETS_MS = (2.0, 5.0, 10.0, 20.0)
 """cycle budgets (ms) judged when none are given"""
 FIT_QUANTILE = "cycle_ms_p95"
 """the summary field a K must keep within a budget to fit it (module docstring: p95, not the median)"""
+
+FAMILIES: dict[str, tuple[str, ...]] = {
+    "Gaussian MPPI": ("mppi_0.1", "mppi_0.3", "mppi_1.0"),
+    "log-normal": ("log_mppi_0.3",),
+    "colored / smooth noise": ("mppi_pink_1.0", "mppi_lowpass_1.0", "smppi_2.0", "kmppi_1.0"),
+    "mixture": ("mix_cu_mppi_0.5",),
+    "C-Uniform table": ("cu_table", "cu_coverage", "cu_mlp"),
+    "CU-MPPI": ("cumppi", "cumppi_pipe"),
+    "CFU-MPPI": ("cfu_mppi",),
+    "uniform": ("uniform",),
+}
+"""the navigation benchmark's method families (issue 36): a method is paired with the best method of every other
+family, so a noise level or a table variant is never its own rival; a key no family names is a family of its own
+(:func:`family_of`). A test checks that every method of the registry has a family."""
+_FAMILY_OF = {k: f for f, keys in FAMILIES.items() for k in keys}
 
 _UNKNOWN_THREADS = ("unknown: not recorded in settings.json or the records (this version's episodes run torch with "
                     "1 thread each, eval.navigate.episode; --workers, the CPU and the load are not recorded either)")
@@ -64,6 +85,19 @@ def _method_order(methods: Sequence[str]) -> list[str]:
     """Registry order first (the benchmark's tables' order), then methods the registry does not know."""
     known = [m for m in methods_of(NAVIGATE) if m in methods]
     return known + sorted(m for m in set(methods) if m not in known)
+
+
+def family_of(method: str) -> str:
+    """The family of ``method`` (:data:`FAMILIES`); a method no family names is its own family (its key)."""
+    return _FAMILY_OF.get(method, method)
+
+
+def rank_key(cell: Mapping, order: Mapping[str, int]) -> tuple:
+    """Sort key of a chosen cell, best first: the highest success rate, then the higher mean BARN score (a cell
+    without one after every scored cell), then the lower p95 cycle time, then the method earlier in ``order``."""
+    score = cell.get("score_mean")
+    return (-cell["success_rate"], score is None, -(score or 0.0), cell[FIT_QUANTILE],
+            order.get(cell["method"], len(order)))
 
 
 def cells(records: Sequence[Mapping], scores: Mapping[str, float] | None = None) -> list[dict]:
@@ -102,7 +136,7 @@ def pick_k(method_cells: Sequence[Mapping], budget_ms: float) -> tuple[dict | No
     return dict(best), sorted(c["budget"] for c in fit)
 
 
-def _fastest(method_cells: Sequence[Mapping]) -> dict | None:
+def _fastest(method_cells: Sequence[Mapping]) -> Mapping | None:
     timed = [c for c in method_cells if c[FIT_QUANTILE] is not None]
     return min(timed, key=lambda c: (c[FIT_QUANTILE], c["budget"])) if timed else None
 
@@ -122,7 +156,10 @@ def budget_rows(records: Sequence[Mapping], cell_rows: Sequence[Mapping], budget
     note when none fits), ``baseline`` / ``baseline_k`` (the best Gaussian baseline at its own fitting K, None
     when none fits), ``is_baseline`` (this row is that baseline) and ``comparison`` (the benchmark's paired
     comparison row against it, :func:`eval.navigate.stats.paired_comparisons`' fields; None for the baseline
-    itself, without a fitting K or without a common (task, seed) episode, and ``pairs_note`` says which)."""
+    itself, without a fitting K or without a common (task, seed) episode, and ``pairs_note`` says which);
+    ``family``, and ``rival`` / ``rival_k`` / ``rival_family`` (the best method of all other families at its own
+    fitting K, :func:`rank_key`; None when none fits), ``rival_comparison`` against it and ``rival_note`` (why
+    there is none), as for the baseline."""
     for b in budgets_ms:
         if isinstance(b, bool) or not isinstance(b, (int, float)) or not math.isfinite(b) or b <= 0:
             raise ValueError(f"cycle budgets are finite numbers of ms > 0, got {b!r}")
@@ -130,6 +167,7 @@ def budget_rows(records: Sequence[Mapping], cell_rows: Sequence[Mapping], budget
     for c in cell_rows:
         by_method.setdefault(c["method"], []).append(c)
     present = [m for m in baselines if m in by_method]
+    order = {m: i for i, m in enumerate(_method_order(list(by_method)))}
     out = []
     for budget in budgets_ms:
         picks = {m: pick_k(cs, budget) for m, cs in by_method.items()}
@@ -137,6 +175,7 @@ def budget_rows(records: Sequence[Mapping], cell_rows: Sequence[Mapping], budget
         # the best baseline, as the benchmark's per-K comparison picks it, among the baselines' chosen cells
         base_recs = {m: [r for r in records if (r["method"], r["budget"]) == chosen[m]] for m in present if m in chosen}
         best = _best_baseline(base_recs, present) if base_recs else None
+        ranked = sorted((c for c, _ in picks.values() if c is not None), key=lambda c: rank_key(c, order))
         for method, (cell, fits) in picks.items():
             row = dict(budget_ms=float(budget), method=method, cell=cell, fits=fits,
                        fastest=_fastest(by_method[method]), baseline=best,
@@ -151,7 +190,42 @@ def budget_rows(records: Sequence[Mapping], cell_rows: Sequence[Mapping], budget
                 row["comparison"] = _pair(records, chosen[method], chosen[best])
                 if row["comparison"] is None:  # said in the table, not a failure of the other rows
                     row["pairs_note"] = "no common (task, seed) episode"
+            row.update(_rival(records, method, cell, ranked))
             out.append(row)
+    return out
+
+
+def _rival(records: Sequence[Mapping], method: str, cell: Mapping | None, ranked: Sequence[Mapping]) -> dict:
+    """``method``'s row fields against the best chosen cell of ``ranked`` (best first) of another family."""
+    family = family_of(method)
+    rival = next((c for c in ranked if family_of(c["method"]) != family), None)
+    out = dict(family=family, rival=None if rival is None else rival["method"],
+               rival_k=None if rival is None else rival["budget"],
+               rival_family=None if rival is None else family_of(rival["method"]), rival_comparison=None, rival_note="")
+    if cell is None:
+        out["rival_note"] = "no K fits"
+    elif rival is None:
+        out["rival_note"] = "no method of another family fits"
+    else:
+        out["rival_comparison"] = _pair(records, (method, cell["budget"]), (rival["method"], rival["budget"]))
+        if out["rival_comparison"] is None:
+            out["rival_note"] = "no common (task, seed) episode"
+    return out
+
+
+def winners(res: Mapping) -> list[dict]:
+    """Per budget of :func:`judge`'s ``res``: its winner's :func:`budget_rows` row (the best chosen cell of all
+    methods, :func:`rank_key`, with its pairing against the best other family), or a row with ``cell`` None and
+    ``method`` None when no method fits that budget."""
+    order = {m: i for i, m in enumerate(_method_order([c["method"] for c in res["cells"]]))}
+    out = []
+    for budget in res["budgets_ms"]:
+        rows = [r for r in res["budgets"] if r["budget_ms"] == budget and r["cell"] is not None]
+        if rows:
+            out.append(min(rows, key=lambda r: rank_key(r["cell"], order)))
+        else:
+            out.append(dict(budget_ms=budget, method=None, cell=None, rival=None, rival_comparison=None,
+                            rival_note="no method fits"))
     return out
 
 
@@ -236,6 +310,28 @@ def _budget_line(row: Mapping) -> list[Any]:
                    c["verdict"]]
 
 
+def pair_cells(c: Mapping | None, note: str = "") -> list[Any]:
+    """The paired-test columns of a comparison row: against, pairs, wins / losses, diff [95% CI], McNemar p,
+    verdict (``note`` and dashes without one)."""
+    if c is None:
+        return [note or "-", "-", "-", "-", "-", "-"]
+    return [c["baseline"], c["n"], f"{c['wins']} / {c['losses']}",
+            f"{c['diff']:+.2f} [{c['diff_low']:+.2f}, {c['diff_high']:+.2f}]", f"{c['p_value']:.3g}", c["verdict"]]
+
+
+PAIR_HEAD = ["against", "pairs", "wins / losses", "diff [95% CI]", "McNemar p", "verdict"]
+"""the columns of :func:`pair_cells`"""
+
+
+def _rival_line(row: Mapping) -> list[Any]:
+    cell = row["cell"]
+    head = [f"{row['budget_ms']:g} ms", row["method"], row["family"]]
+    if cell is None:
+        return head + ["-", "-", "-", "-"] + pair_cells(None, row["rival_note"])
+    return head + [cell["budget"], fmt_rate(cell, "success"), fmt_score(cell), _ms(cell[FIT_QUANTILE])] + pair_cells(
+        row["rival_comparison"], row["rival_note"])
+
+
 def render(res: Mapping) -> str:
     """The markdown of :func:`judge`'s result: the facts, the per-(method, K) table, the time-budget table."""
     where = f" ({res['folder']})" if res.get("folder") else ""
@@ -262,6 +358,14 @@ def render(res: Mapping) -> str:
         "worse at p < 0.05).\n\n" + table(
             ["budget", "method", "K", "K that fit", "success [95% CI]", "BARN score", "p95 ms", "against", "pairs",
              "wins / losses", "diff [95% CI]", "McNemar p", "verdict"], lines, align="rlrlllrlrrlrl"))
+    win = [f"{w['budget_ms']:g} ms: " + ("no method fits" if w["cell"] is None else
+                                         f"**{w['method']}** @ K = {w['cell']['budget']}") for w in winners(res)]
+    parts.append(
+        "## Against the best of the other families\n\nEach method at its K that fits, against the best method of "
+        "every other family at its own K that fits (best: the highest success, a tie to the higher mean BARN score, "
+        "then the lower p95; paired as above). The winner per budget (the best of all): " + "; ".join(win) + ".\n\n"
+        + table(["budget", "method", "family", "K", "success [95% CI]", "BARN score", "p95 ms", *PAIR_HEAD],
+                [_rival_line(r) for r in res["budgets"]], align="rllrllrlrrlrl"))
     return "\n\n".join(parts) + "\n"
 
 
