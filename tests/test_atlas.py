@@ -26,16 +26,19 @@ def _settings(suite: str, **extra) -> dict:
                 sources=dict(table="00000000000000aa", coverage_table=None, policy=None), **extra)
 
 
-def _records(suite: str, method: str, k: int, outcomes: str, ms: float = 1.0, time: float = 30.0) -> list[dict]:
+def _records(suite: str, method: str, k: int, outcomes: str, ms: float = 1.0, time: float = 30.0,
+             tail_ms: float | None = None) -> list[dict]:
     """One record per character of ``outcomes`` ("1" goal, "0" collision) on tasks 0, 2, 4, .. (BARN maps the
-    shipped file holds: each has a reference length), seed 100 + task (paired), 20 commands of ``ms``."""
+    shipped file holds: each has a reference length), seed 100 + task (paired), 20 commands of ``ms`` (2 of them
+    at ``tail_ms``)."""
+    times = [ms / 1e3] * 20 if tail_ms is None else [ms / 1e3] * 18 + [tail_ms / 1e3] * 2
     out = []
     for i, o in enumerate(outcomes):
         t = 2 * i
         out.append(dict(key=f"{suite}/{t}/{method}/{k}/0", suite=suite, task_id=t, method=method, budget=k,
                         seed=100 + t, repeat=0, outcome="goal" if o == "1" else "collision", success=o == "1",
                         time=time, path_length=12.0, steps=20, cycles=20,
-                        cycle_hist=cycle_histogram([ms / 1e3] * 20), wall_s=0.1))
+                        cycle_hist=cycle_histogram(times), wall_s=0.1))
     return out
 
 
@@ -95,6 +98,23 @@ def test_a_tie_in_success_goes_to_the_higher_barn_score(atlas_dir):
     cells = {c["method"]: c for c in _suite(atlas, "barn:learned")["judgement"]["cells"]}
     assert cells["cu_table"]["score_mean"] > cells["mppi_1.0"]["score_mean"]
     assert w["rival"] == "mppi_1.0" and w["rival_comparison"]["wins"] == 0
+
+
+def test_judged_by_the_median_on_a_loaded_machine_and_said_so(tmp_path):
+    """cu_table@64: median 1 ms, p95 40 ms (preempted commands): it fits 5 ms by its median only."""
+    _write(tmp_path / "barn", _settings("barn"), [
+        *_records("barn", "mppi_1.0", 16, "1111111111"),
+        *_records("barn", "cu_table", 64, "1111111111", time=20.0, tail_ms=40.0)])
+    by_p95 = judge_atlas(tmp_path, ["barn"], [5])
+    by_median = judge_atlas(tmp_path, ["barn"], [5], fit="median")
+    assert _suite(by_p95, "barn")["winners"][0]["method"] == "mppi_1.0"
+    (w,) = _suite(by_median, "barn")["winners"]
+    assert (w["method"], w["cell"]["budget"], w["rival"]) == ("cu_table", 64, "mppi_1.0")
+    assert main(["--out", str(tmp_path), "--report-only", "--budgets-ms", "5", "--fit", "median"]) == 0
+    text = (tmp_path / "atlas.md").read_text()
+    assert "Judged by the median cycle time" in text and "| median ms |" in text
+    with pytest.raises(ValueError, match="unknown fit 'p50'"):
+        judge_atlas(tmp_path, ["barn"], [5], fit="p50")
 
 
 def test_the_page_has_the_score_columns_and_the_figures(atlas_dir, capsys):

@@ -53,7 +53,7 @@ from eval.navigate.stats import _best_baseline, _by_episode, _compare, fmt_rate,
 from eval.navigate.store import EpisodeStore
 from precompute.cli import ArgumentParser, check_output_file, cli_main, positive_float
 
-__all__ = ["DEFAULT_BUDGETS_MS", "FIT_QUANTILE", "FAMILIES", "family_of", "rank_key", "cells", "pick_k",
+__all__ = ["DEFAULT_BUDGETS_MS", "FIT_QUANTILE", "FITS", "FAMILIES", "family_of", "rank_key", "cells", "pick_k",
            "budget_rows", "winners", "pareto_front", "threads_note", "judge", "judge_folder", "render",
            "budget_figure", "main"]
 
@@ -61,6 +61,17 @@ DEFAULT_BUDGETS_MS = (2.0, 5.0, 10.0, 20.0)
 """cycle budgets (ms) judged when none are given"""
 FIT_QUANTILE = "cycle_ms_p95"
 """the summary field a K must keep within a budget to fit it (module docstring: p95, not the median)"""
+FITS = {"p95": "cycle_ms_p95", "median": "cycle_ms_median"}
+"""what a K may be asked to keep within a budget (``fit=``): the p95 (the default, :data:`FIT_QUANTILE`), or the
+median, only for folders written on a machine so loaded that the p95 measures the scheduler's preemptions rather
+than the method (each command's time is wall time): a median that fits still misses half the deadlines of a loop
+sized to it, so a page judged by it says so"""
+
+
+def _field(fit: str) -> str:
+    if fit not in FITS:
+        raise ValueError(f"unknown fit {fit!r}; choose from {', '.join(FITS)}")
+    return FITS[fit]
 
 FAMILIES: dict[str, tuple[str, ...]] = {
     "Gaussian MPPI": ("mppi_0.1", "mppi_0.3", "mppi_1.0"),
@@ -92,11 +103,12 @@ def family_of(method: str) -> str:
     return _FAMILY_OF.get(method, method)
 
 
-def rank_key(cell: Mapping, order: Mapping[str, int]) -> tuple:
+def rank_key(cell: Mapping, order: Mapping[str, int], field: str = FIT_QUANTILE) -> tuple:
     """Sort key of a chosen cell, best first: the highest success rate, then the higher mean BARN score (a cell
-    without one after every scored cell), then the lower p95 cycle time, then the method earlier in ``order``."""
+    without one after every scored cell), then the lower p95 cycle time (``field``), then the method earlier in
+    ``order``."""
     score = cell.get("score_mean")
-    return (-cell["success_rate"], score is None, -(score or 0.0), cell[FIT_QUANTILE],
+    return (-cell["success_rate"], score is None, -(score or 0.0), cell[field],
             order.get(cell["method"], len(order)))
 
 
@@ -125,20 +137,21 @@ def cells(records: Sequence[Mapping], scores: Mapping[str, float] | None = None)
     return sorted(rows, key=lambda r: (order[r["method"]], r["budget"]))
 
 
-def pick_k(method_cells: Sequence[Mapping], budget_ms: float) -> tuple[dict | None, list[int]]:
+def pick_k(method_cells: Sequence[Mapping], budget_ms: float,
+           field: str = FIT_QUANTILE) -> tuple[dict | None, list[int]]:
     """``(the chosen cell, every K that fits)`` of one method at ``budget_ms``: a cell fits when its
-    :data:`FIT_QUANTILE` is <= ``budget_ms``; chosen is the highest success, a tie to the lower p95, then the
+    ``field`` (:data:`FIT_QUANTILE`) is <= ``budget_ms``; chosen is the highest success, a tie to the lower p95, then the
     smaller K (module docstring). ``(None, [])`` when no K fits."""
-    fit = [c for c in method_cells if c[FIT_QUANTILE] is not None and c[FIT_QUANTILE] <= budget_ms]
+    fit = [c for c in method_cells if c[field] is not None and c[field] <= budget_ms]
     if not fit:
         return None, []
-    best = min(fit, key=lambda c: (-c["success_rate"], c[FIT_QUANTILE], c["budget"]))
+    best = min(fit, key=lambda c: (-c["success_rate"], c[field], c["budget"]))
     return dict(best), sorted(c["budget"] for c in fit)
 
 
-def _fastest(method_cells: Sequence[Mapping]) -> Mapping | None:
-    timed = [c for c in method_cells if c[FIT_QUANTILE] is not None]
-    return min(timed, key=lambda c: (c[FIT_QUANTILE], c["budget"])) if timed else None
+def _fastest(method_cells: Sequence[Mapping], field: str = FIT_QUANTILE) -> Mapping | None:
+    timed = [c for c in method_cells if c[field] is not None]
+    return min(timed, key=lambda c: (c[field], c["budget"])) if timed else None
 
 
 def _pair(records: Sequence[Mapping], mine: tuple[str, int], base: tuple[str, int]) -> dict | None:
@@ -150,7 +163,7 @@ def _pair(records: Sequence[Mapping], mine: tuple[str, int], base: tuple[str, in
 
 
 def budget_rows(records: Sequence[Mapping], cell_rows: Sequence[Mapping], budgets_ms: Sequence[float],
-                baselines: Sequence[str]) -> list[dict]:
+                baselines: Sequence[str], fit: str = "p95") -> list[dict]:
     """One row per (budget, method): ``budget_ms``, ``method``, ``cell`` (the chosen (method, K) cell of
     :func:`cells`, None when no K fits), ``fits`` (every K that fits), ``fastest`` (its fastest cell, for the
     note when none fits), ``baseline`` / ``baseline_k`` (the best Gaussian baseline at its own fitting K, None
@@ -159,7 +172,8 @@ def budget_rows(records: Sequence[Mapping], cell_rows: Sequence[Mapping], budget
     itself, without a fitting K or without a common (task, seed) episode, and ``pairs_note`` says which);
     ``family``, and ``rival`` / ``rival_k`` / ``rival_family`` (the best method of all other families at its own
     fitting K, :func:`rank_key`; None when none fits), ``rival_comparison`` against it and ``rival_note`` (why
-    there is none), as for the baseline."""
+    there is none), as for the baseline. ``fit``: what a K keeps within the budget (:data:`FITS`)."""
+    field = _field(fit)
     for b in budgets_ms:
         if isinstance(b, bool) or not isinstance(b, (int, float)) or not math.isfinite(b) or b <= 0:
             raise ValueError(f"cycle budgets are finite numbers of ms > 0, got {b!r}")
@@ -170,15 +184,15 @@ def budget_rows(records: Sequence[Mapping], cell_rows: Sequence[Mapping], budget
     order = {m: i for i, m in enumerate(_method_order(list(by_method)))}
     out = []
     for budget in budgets_ms:
-        picks = {m: pick_k(cs, budget) for m, cs in by_method.items()}
+        picks = {m: pick_k(cs, budget, field) for m, cs in by_method.items()}
         chosen = {m: (r["method"], r["budget"]) for m, (r, _) in picks.items() if r is not None}
         # the best baseline, as the benchmark's per-K comparison picks it, among the baselines' chosen cells
         base_recs = {m: [r for r in records if (r["method"], r["budget"]) == chosen[m]] for m in present if m in chosen}
         best = _best_baseline(base_recs, present) if base_recs else None
-        ranked = sorted((c for c, _ in picks.values() if c is not None), key=lambda c: rank_key(c, order))
+        ranked = sorted((c for c, _ in picks.values() if c is not None), key=lambda c: rank_key(c, order, field))
         for method, (cell, fits) in picks.items():
             row = dict(budget_ms=float(budget), method=method, cell=cell, fits=fits,
-                       fastest=_fastest(by_method[method]), baseline=best,
+                       fastest=_fastest(by_method[method], field), baseline=best,
                        baseline_k=chosen[best][1] if best else None, is_baseline=method == best,
                        comparison=None, pairs_note="")
             if cell is None:
@@ -218,11 +232,12 @@ def winners(res: Mapping) -> list[dict]:
     methods, :func:`rank_key`, with its pairing against the best other family), or a row with ``cell`` None and
     ``method`` None when no method fits that budget."""
     order = {m: i for i, m in enumerate(_method_order([c["method"] for c in res["cells"]]))}
+    field = _field(res.get("fit", "p95"))
     out = []
     for budget in res["budgets_ms"]:
         rows = [r for r in res["budgets"] if r["budget_ms"] == budget and r["cell"] is not None]
         if rows:
-            out.append(min(rows, key=lambda r: rank_key(r["cell"], order)))
+            out.append(min(rows, key=lambda r: rank_key(r["cell"], order, field)))
         else:
             out.append(dict(budget_ms=budget, method=None, cell=None, rival=None, rival_comparison=None,
                             rival_note="no method fits"))
@@ -252,11 +267,13 @@ def threads_note(settings: Mapping[str, Any], cell_rows: Sequence[Mapping]) -> s
 
 def judge(settings: Mapping[str, Any], records: Sequence[Mapping], budgets_ms: Sequence[float] = DEFAULT_BUDGETS_MS,
           baselines: Sequence[str] | None = None, scores: Mapping[str, float] | None = None,
-          score_note: str = "") -> dict:
+          score_note: str = "", fit: str = "p95") -> dict:
     """The judgement of one folder's ``settings`` and ``records``: ``suite``, ``episodes``, ``threads`` (a note),
     ``baselines`` (the Gaussian baselines present), ``budgets_ms``, ``cells`` (:func:`cells`, with the BARN score of
     ``scores``, by record key) and ``budgets`` (:func:`budget_rows`), ``score_note`` (what lacks a score, and why).
-    ``baselines``: default the registry's Gaussian baselines of the navigation benchmark."""
+    ``baselines``: default the registry's Gaussian baselines of the navigation benchmark; ``fit`` (kept in the
+    result): what a K keeps within a budget (:data:`FITS`)."""
+    _field(fit)
     budgets = sorted({float(b) for b in budgets_ms})
     if not budgets:
         raise ValueError("give at least one cycle budget (ms)")
@@ -266,20 +283,21 @@ def judge(settings: Mapping[str, Any], records: Sequence[Mapping], budgets_ms: S
     present = [m for m in base if any(c["method"] == m for c in cell_rows)]
     return dict(suite=settings.get("suite"), episodes=len(records), threads=threads_note(settings, cell_rows),
                 baselines=present, budgets_ms=budgets, cells=cell_rows,
-                budgets=budget_rows(records, cell_rows, budgets, base), score_note=score_note)
+                budgets=budget_rows(records, cell_rows, budgets, base, fit), score_note=score_note, fit=fit)
 
 
 def judge_folder(folder: str | Path, budgets_ms: Sequence[float] = DEFAULT_BUDGETS_MS,
-                 barn_file: str | Path | None = None, cache: str | Path | None = None) -> dict:
+                 barn_file: str | Path | None = None, cache: str | Path | None = None, fit: str = "p95") -> dict:
     """:func:`judge` of a benchmark folder, read through :meth:`EpisodeStore.load` (checked; read only), with each
     episode's BARN score (:func:`eval.navigate.score.episode_scores`: ``barn_file`` when the run used another than
-    the shipped one; the geodesic reference lengths cached under ``cache`` when given)."""
+    the shipped one; the geodesic reference lengths cached under ``cache`` when given); ``fit``: :data:`FITS`."""
+    _field(fit)  # before the folder is read
     settings, by_key = EpisodeStore(folder).load()
     if not by_key:
         raise ValueError(f"{folder} holds no episode yet (python -m eval.navigate --out {folder})")
     records = list(by_key.values())
     scores, note = episode_scores(settings, records, barn_file, cache)
-    return {**judge(settings, records, budgets_ms, scores=scores, score_note=note), "folder": str(folder)}
+    return {**judge(settings, records, budgets_ms, scores=scores, score_note=note, fit=fit), "folder": str(folder)}
 
 
 # ------------------------------------------------------------------------------------------------ markdown
@@ -290,16 +308,16 @@ def _ms(x: float | None) -> str:
 
 
 
-def _budget_line(row: Mapping) -> list[Any]:
+def _budget_line(row: Mapping, fit: str = "p95") -> list[Any]:
     b = f"{row['budget_ms']:g} ms"
     cell = row["cell"]
     if cell is None:
         fast = row["fastest"]
         why = ("no cycle times recorded" if fast is None else
-               f"no K fits (fastest: p95 {_ms(fast[FIT_QUANTILE])} ms at K = {fast['budget']})")
+               f"no K fits (fastest: {fit} {_ms(fast[FITS[fit]])} ms at K = {fast['budget']})")
         return [b, row["method"], "-", "-", why, "-", "-", "-", "-", "-", "-", "-", "-"]
     head = [b, row["method"], cell["budget"], ", ".join(map(str, row["fits"])), fmt_rate(cell, "success"),
-            fmt_score(cell), _ms(cell[FIT_QUANTILE])]
+            fmt_score(cell), _ms(cell[FITS[fit]])]
     c = row["comparison"]
     if row["is_baseline"]:
         return head + ["(best baseline)", "-", "-", "-", "-", "-"]
@@ -323,12 +341,12 @@ PAIR_HEAD = ["against", "pairs", "wins / losses", "diff [95% CI]", "McNemar p", 
 """the columns of :func:`pair_cells`"""
 
 
-def _rival_line(row: Mapping) -> list[Any]:
+def _rival_line(row: Mapping, fit: str = "p95") -> list[Any]:
     cell = row["cell"]
     head = [f"{row['budget_ms']:g} ms", row["method"], row["family"]]
     if cell is None:
         return head + ["-", "-", "-", "-"] + pair_cells(None, row["rival_note"])
-    return head + [cell["budget"], fmt_rate(cell, "success"), fmt_score(cell), _ms(cell[FIT_QUANTILE])] + pair_cells(
+    return head + [cell["budget"], fmt_rate(cell, "success"), fmt_score(cell), _ms(cell[FITS[fit]])] + pair_cells(
         row["rival_comparison"], row["rival_note"])
 
 
@@ -350,22 +368,25 @@ def render(res: Mapping) -> str:
     parts.append("## Per method and K\n\n" + table(
         ["method", "K", "episodes", "success [95% CI]", "BARN score [95% CI]", "commands", "cycle ms median",
          "cycle ms p95", "threads"], body, align="lrrllrrrl"))
-    lines = [_budget_line(r) for r in res["budgets"]]
+    fit = res.get("fit", "p95")
+    lines = [_budget_line(r, fit) for r in res["budgets"]]
+    loaded = ("" if fit == "p95" else " (**judged by the median**, not the p95: for a machine so loaded that the "
+              "p95 measures the scheduler, not the method; a loop sized to a median misses half its deadlines)")
     parts.append(
-        "## Time budgets\n\nA K fits a budget when its p95 cycle time is within it; each method at its most "
+        f"## Time budgets\n\nA K fits a budget when its {fit} cycle time is within it{loaded}; each method at its most "
         "successful K that fits, against the best Gaussian baseline at its own K that fits (paired on (task, "
         "seed): wins / losses, success difference with its 95% Newcombe interval, exact McNemar p; better / "
         "worse at p < 0.05).\n\n" + table(
-            ["budget", "method", "K", "K that fit", "success [95% CI]", "BARN score", "p95 ms", "against", "pairs",
+            ["budget", "method", "K", "K that fit", "success [95% CI]", "BARN score", f"{fit} ms", "against", "pairs",
              "wins / losses", "diff [95% CI]", "McNemar p", "verdict"], lines, align="rlrlllrlrrlrl"))
     win = [f"{w['budget_ms']:g} ms: " + ("no method fits" if w["cell"] is None else
                                          f"**{w['method']}** @ K = {w['cell']['budget']}") for w in winners(res)]
     parts.append(
         "## Against the best of the other families\n\nEach method at its K that fits, against the best method of "
         "every other family at its own K that fits (best: the highest success, a tie to the higher mean BARN score, "
-        "then the lower p95; paired as above). The winner per budget (the best of all): " + "; ".join(win) + ".\n\n"
-        + table(["budget", "method", "family", "K", "success [95% CI]", "BARN score", "p95 ms", *PAIR_HEAD],
-                [_rival_line(r) for r in res["budgets"]], align="rllrllrlrrlrl"))
+        f"then the lower {fit}; paired as above). The winner per budget (the best of all): " + "; ".join(win) + ".\n\n"
+        + table(["budget", "method", "family", "K", "success [95% CI]", "BARN score", f"{fit} ms", *PAIR_HEAD],
+                [_rival_line(r, fit) for r in res["budgets"]], align="rllrllrlrrlrl"))
     return "\n\n".join(parts) + "\n"
 
 
