@@ -66,13 +66,6 @@ FITS = {"p95": "cycle_ms_p95", "median": "cycle_ms_median"}
 median, only for folders written on a machine so loaded that the p95 measures the scheduler's preemptions rather
 than the method (each command's time is wall time): a median that fits still misses half the deadlines of a loop
 sized to it, so a page judged by it says so"""
-
-
-def _field(fit: str) -> str:
-    if fit not in FITS:
-        raise ValueError(f"unknown fit {fit!r}; choose from {', '.join(FITS)}")
-    return FITS[fit]
-
 FAMILIES: dict[str, tuple[str, ...]] = {
     "Gaussian MPPI": ("mppi_0.1", "mppi_0.3", "mppi_1.0"),
     "log-normal": ("log_mppi_0.3",),
@@ -87,6 +80,14 @@ FAMILIES: dict[str, tuple[str, ...]] = {
 family, so a noise level or a table variant is never its own rival; a key no family names is a family of its own
 (:func:`family_of`). A test checks that every method of the registry has a family."""
 _FAMILY_OF = {k: f for f, keys in FAMILIES.items() for k in keys}
+
+
+def _field(fit: str) -> str:
+    """The summary field of ``fit`` (:data:`FITS`); an unknown one names the known ones."""
+    if fit not in FITS:
+        raise ValueError(f"unknown fit {fit!r}; choose from {', '.join(FITS)}")
+    return FITS[fit]
+
 
 _UNKNOWN_THREADS = ("unknown: not recorded in settings.json or the records (this version's episodes run torch with "
                     "1 thread each, eval.navigate.episode; --workers, the CPU and the load are not recorded either)")
