@@ -153,8 +153,15 @@ def test_suites_and_the_methods_each_can_run():
     (["--report-only"], "no suite folder under"),
     (["--report-only", "--suites", "barn"], "no benchmark folder for barn"),
     (["--suites", "barn", "barn"], "named twice"),
+    (["--tasks", "100000", "--methods", "mppi_1.0", "cu_table"], "--no-limit"),
 ])
-def test_bad_input_one_error(tmp_path, capsys, argv, message):
+def test_bad_input_one_error(tmp_path, capsys, monkeypatch, argv, message):
+    import eval.navigate.atlas as atlas
+
+    def must_not_run(*a, **k):
+        raise AssertionError("bad input reached the runs")
+
+    monkeypatch.setattr(atlas, "run_atlas", must_not_run)
     code = main(["--out", str(tmp_path / "a"), *argv])
     err = capsys.readouterr().err
     assert code == 2 and message in err and len(err.strip().splitlines()) == 1

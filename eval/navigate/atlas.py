@@ -55,7 +55,9 @@ from precompute.cli import (
     MAX_COUNT,
     ArgumentParser,
     CLIError,
+    add_no_limit_arg,
     check_output_folder,
+    check_work,
     cli_main,
     int_in,
     positive_float,
@@ -311,6 +313,7 @@ def make_parser() -> ArgumentParser:
                    help="where the robot's tables and the BARN score's reference lengths are kept")
     p.add_argument("--report-only", action="store_true", help="run nothing: rebuild the atlas from the folders")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
+    add_no_limit_arg(p)
     return p
 
 
@@ -324,6 +327,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         given += ["--budgets"] if args.budgets != list(DEFAULT_RUN_BUDGETS) else []
         if given:
             raise CLIError(f"{', '.join(given)} does not apply with --report-only (it runs nothing)")
+    suites = _check_suites(default_suites() if args.suites is None else args.suites)  # before any work
+    if not args.report_only:  # every suite together: a product of counts too large is refused before any work
+        counts = {"--tasks": args.tasks, "budgets": len(args.budgets),
+                  "methods": len(args.methods) if args.methods else None, "suites": len(suites)}
+        check_work({k: v for k, v in counts.items() if v is not None}, "episodes", args.no_limit)
     check_output_folder(args.out, "--out")
     argv_line = " ".join(sys.argv[1:] if argv is None else argv)
     if not args.report_only:
