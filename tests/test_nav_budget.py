@@ -7,7 +7,8 @@ from __future__ import annotations
 
 import pytest
 
-from eval.navigate.budget import judge, judge_folder, main, pareto_front, render
+from eval.common.methods import NAVIGATE, methods_of
+from eval.navigate.budget import FAMILIES, family_of, judge, judge_folder, main, pareto_front, render, winners
 from eval.navigate.records.cycle_hist import cycle_histogram
 from eval.navigate.records.stats import mcnemar_exact_p
 from eval.navigate.records.store import EpisodeStore
@@ -118,6 +119,34 @@ def test_without_gaussian_baselines_and_threads_notes(folder):
     assert res["threads"].startswith("unknown")
     recs = [dict(r, threads=1) for r in by_key.values()]
     assert judge(settings, recs, [5])["threads"] == "1 (from the records)"
+
+
+def test_each_method_against_the_best_of_the_other_families(folder):
+    res = judge_folder(folder, [5])
+    # at 5 ms: cumppi@64 9/10, cu_table@16 9/11, mppi_0.3@64 7/10, uniform@16 5/10, mppi_1.0@64 4/10
+    (win,) = winners(res)
+    assert (win["method"], win["cell"]["budget"], win["rival"], win["rival_k"]) == ("cumppi", 64, "cu_table", 16)
+    a = _row(res, 5, "cu_table")  # C-Uniform table: its rival is CU-MPPI, another family
+    assert (a["family"], a["rival"], a["rival_family"]) == ("C-Uniform table", "cumppi", "CU-MPPI")
+    c = a["rival_comparison"]  # "0111111101" vs "1111111110" on tasks 0-9
+    assert (c["baseline"], c["n"], c["wins"], c["losses"]) == ("cumppi@64", 10, 1, 2)
+    assert _row(res, 5, "mppi_0.3")["rival"] == "cumppi"
+    assert _row(res, 5, "cu_mlp")["rival_note"] == "no K fits" and _row(res, 5, "cu_mlp")["rival_comparison"] is None
+    text = render(res)
+    assert "## Against the best of the other families" in text and "5 ms: **cumppi** @ K = 64" in text
+    line = next(ln for ln in text.split("## Against")[1].splitlines() if ln.startswith("| 5 ms | cu_table |"))
+    assert "| C-Uniform table | 16 |" in line and "cumppi@64" in line and "1 / 2" in line
+    # a rival is never of the method's own family: with only Gaussians fitting, they have none
+    settings, by_key = EpisodeStore(folder).load()
+    gauss = [r for r in by_key.values() if r["method"].startswith("mppi_")]
+    row = next(r for r in judge(settings, gauss, [5])["budgets"] if r["method"] == "mppi_1.0")
+    assert row["rival"] is None and row["rival_note"] == "no method of another family fits"
+
+
+def test_every_method_of_the_registry_has_a_family():
+    keys = [k for ks in FAMILIES.values() for k in ks]
+    assert sorted(methods_of(NAVIGATE)) == sorted(keys)  # a new method must be given its family
+    assert family_of("someone_elses") == "someone_elses" and family_of("cumppi_pipe") == "CU-MPPI"
 
 
 def test_pareto_front():

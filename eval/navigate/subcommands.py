@@ -13,6 +13,7 @@ __all__ = ["SUBCOMMANDS", "EXIT_ERROR", "old_spelling", "refuse_old_spelling"]
 SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "run": ("eval.navigate.run", "run the benchmark into a folder (the default: the words are its flags)"),
     "budget": ("eval.navigate.budget", "judge the methods per cycle-time budget (ms), not per sample count"),
+    "atlas": ("eval.navigate.atlas", "run every suite's test split and judge it per cycle budget on one page"),
     "compare": ("eval.navigate.compare", "paired comparison of any two METHOD@BUDGET cells of a folder"),
     "failures": ("eval.navigate.failures", "why the failed episodes failed: trapped, a sampling miss, or lost"),
     "replay": ("eval.navigate.replay", "replay one stored episode with a per-command trace, and draw it"),
