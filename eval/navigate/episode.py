@@ -204,18 +204,25 @@ class _TimedSensingController:
     """Wraps a controller: updates the cost's obstacles to what the robot senses (tasks with a sensing range)
     before each command, and times each command (the control cycle; sensing is the world's, not timed).
 
-    With a ``trace`` list and an MPPI-family inner controller (``plan`` and ``proposal``), each command is the
-    inner ``command`` spelled out (``plan``, ``proposal.update``, the result's command: the same arithmetic), and
-    appends ``dict(t, free_share, min_cost, state)``: the command's time (s), the share of its proposals that are
-    collision-free (cost < ``collision_penalty``), the lowest proposal cost and the state ``[d]`` it planned from."""
+    With a ``trace`` list and an inner controller with the core's trace hook (:attr:`MPPICore.on_plan
+    <cuniform_torch.controllers.core.MPPICore.on_plan>`: the MPPI family), each command appends ``dict(t,
+    free_share, min_cost, state)``: the command's time (s), the share of its proposals that are collision-free
+    (cost < ``collision_penalty``), the lowest proposal cost and the state ``[d]`` it planned from. The hook only
+    keeps the result; the trace's numbers are read after the command's clock stops."""
 
     def __init__(self, inner: Any, cost: NavigationCost, task: NavTask, trace: list | None = None,
                  dt: float = 0.0, collision_penalty: float = 1e6, to_go: CostToGo | None = None):
         self.inner, self.cost, self.task, self.to_go = inner, cost, task, to_go
         self.cycle_s: list[float] = []
-        traceable = callable(getattr(inner, "plan", None)) and hasattr(inner, "proposal")
-        self.trace = trace if traceable else None
+        self.trace = trace if trace is not None and hasattr(inner, "on_plan") else None
+        self._costs: torch.Tensor | None = None
+        """``[K]`` the last command's proposal costs (set by the hook)"""
+        if self.trace is not None:
+            inner.on_plan = self._keep
         self.dt, self.collision_penalty = dt, collision_penalty
+
+    def _keep(self, result: Any) -> None:
+        self._costs = result.costs
 
     def reset(self) -> None:
         if callable(getattr(self.inner, "reset", None)):
@@ -227,18 +234,14 @@ class _TimedSensingController:
         if self.to_go is not None:  # a global planner's work (untimed): recomputed when the sensed obstacles change
             self.to_go.update(self.cost.env)
         t0 = time.perf_counter()
-        if self.trace is None:
-            u = self.inner.command(state)
-            self.cycle_s.append(time.perf_counter() - t0)
-            return u
-        result = self.inner.plan(state)  # MPPICore.command, spelled out to see the proposals' costs
-        self.inner.proposal.update(result)
+        u = self.inner.command(state)
         self.cycle_s.append(time.perf_counter() - t0)
-        costs = result.costs  # [K]
-        self.trace.append(dict(t=round(len(self.trace) * self.dt, 6),
-                               free_share=float((costs < self.collision_penalty).float().mean()),
-                               min_cost=float(costs.min()), state=[round(float(v), 6) for v in state.tolist()]))
-        return result.command
+        if self.trace is not None and self._costs is not None:
+            costs = self._costs  # [K]
+            self.trace.append(dict(t=round(len(self.trace) * self.dt, 6),
+                                   free_share=float((costs < self.collision_penalty).float().mean()),
+                                   min_cost=float(costs.min()), state=[round(float(v), 6) for v in state.tolist()]))
+        return u
 
 
 def run_nav_episode(job: NavJob, ctx: NavContext, trace: list | None = None) -> dict:
