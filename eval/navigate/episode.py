@@ -47,7 +47,8 @@ from eval.navigate.stats import cycle_histogram
 from precompute.worlds.geometry import inflate, obstacle_tables
 from precompute.worlds.suites import NavTask
 
-__all__ = ["NavJob", "NavContext", "run_nav_episode", "rasterize", "episode_key", "RASTER_MIN_OBSTACLES"]
+__all__ = ["NavJob", "NavContext", "run_nav_episode", "rasterize", "episode_key", "RASTER_MIN_OBSTACLES",
+           "navigation_cost", "start_state", "sensed_world"]
 
 RASTER_MIN_OBSTACLES = 32
 """a static map with more obstacles than this is rasterized for the cost (module docstring)"""
@@ -244,6 +245,29 @@ class _TimedSensingController:
         return u
 
 
+def _sources_and_simulator(ctx: NavContext) -> tuple[Sources, Any]:
+    """The controllers' sources (with learned dynamics, every policy's system is the model) and the system the
+    simulator steps (the robot's own)."""
+    sources = _sources(ctx)
+    return sources, (sources.true_system if isinstance(sources, LearnedSources) else sources.system)
+
+
+def navigation_cost(task: NavTask, ctx: NavContext, dt: float) -> tuple[NavigationCost, CostToGo | None]:
+    """The episode's cost (module docstring) and its cost-to-go planner (None: the straight line)."""
+    to_go = CostToGo(task.bounds, task.goal, ctx.cost_to_go) if ctx.cost_to_go is not None else None
+    cost = NavigationCost(_cost_environment(task, ctx), task.goal, goal_tolerance=task.goal_tolerance,
+                          collision_penalty=ctx.collision_penalty, per_state=True, stop_at_goal=True,
+                          goal_distance=to_go, dt=dt)
+    return cost, to_go
+
+
+def start_state(task: NavTask, system: Any) -> torch.Tensor:
+    """``[d]`` float32: the task's start pose, zeros in the other state dimensions."""
+    x0 = torch.zeros(len(system.periodic), dtype=torch.float32)
+    x0[:3] = torch.tensor(task.start, dtype=torch.float32)
+    return x0
+
+
 def run_nav_episode(job: NavJob, ctx: NavContext, trace: list | None = None) -> dict:
     """Run one episode; its record (plain JSON types, :mod:`eval.navigate.stats`' format) with the job's ``key``,
     ``repeat``, ``outcome``, ``success``, ``time`` (s), ``path_length`` (m), ``steps``, ``cycles``,
@@ -253,20 +277,15 @@ def run_nav_episode(job: NavJob, ctx: NavContext, trace: list | None = None) -> 
     MPPI-family controllers only, others append nothing); the record is the same with or without it."""
     torch.set_num_threads(1)
     task, method = job.task, methods_of(NAVIGATE)[job.method]
-    sources = _sources(ctx)  # the controllers' (with learned dynamics, every policy's system is the model)
-    system = sources.true_system if isinstance(sources, LearnedSources) else sources.system  # the simulator's
-    to_go = CostToGo(task.bounds, task.goal, ctx.cost_to_go) if ctx.cost_to_go is not None else None
-    cost = NavigationCost(_cost_environment(task, ctx), task.goal, goal_tolerance=task.goal_tolerance,
-                          collision_penalty=ctx.collision_penalty, per_state=True, stop_at_goal=True,
-                          goal_distance=to_go, dt=float(system.dt))
+    sources, system = _sources_and_simulator(ctx)
+    cost, to_go = navigation_cost(task, ctx, float(system.dt))
     t0 = time.perf_counter()
     world = sensed_world(task) if method.source == "map_policy" else None
     inner = make_controller(method, sources, cost, job.budget, ctx.horizon, job.seed, lambda_=ctx.lambda_,
                             world=world, max_range=task.sensing_range)
     ctrl = _TimedSensingController(inner, cost, task, trace, dt=float(system.dt),
                                    collision_penalty=ctx.collision_penalty, to_go=to_go)
-    x0 = torch.zeros(len(system.periodic), dtype=torch.float32)
-    x0[:3] = torch.tensor(task.start, dtype=torch.float32)
+    x0 = start_state(task, system)
     res = simulate(system, ctrl, x0, task.environment, task.goal, task.goal_tolerance, task.time_limit, cost=cost,
                    record=ctx.record_path)
     rec = dict(key=job.key, suite=task.suite, task_id=task.task_id, method=job.method, budget=job.budget,
