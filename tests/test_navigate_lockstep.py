@@ -127,6 +127,14 @@ def test_the_benchmark_run_with_lockstep_writes_the_serial_outcomes(cache, tmp_p
     assert all("clock" not in r for r in records(tmp_path / "serial"))
 
 
+def test_the_command_with_lockstep_writes_no_equal_compute_view(cache, tmp_path, capsys):
+    out = tmp_path / "o"
+    assert main(["--suite", "gaps", "--tasks", "2", "--budgets", "16", "--methods", "mppi_1.0", "--horizon", "6",
+                 "--lockstep", "2", "--out", str(out), "--cache", str(cache), "--quiet"]) == 0
+    assert "no equal-compute view" in capsys.readouterr().out
+    assert (out / "results.md").is_file() and not (out / "budget.md").exists()
+
+
 def test_lockstep_flag_refuses_a_batch_of_none(capsys, tmp_path):
     with pytest.raises(SystemExit) as exc:
         main(["--suite", "gaps", "--lockstep", "0", "--out", str(tmp_path / "o")])

@@ -491,6 +491,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     print(render(res))
     for path in write_outputs(res, out):
         print(f"wrote {path}")
+    if cfg.lockstep is not None:  # its cycle times are a batched command's shares (eval.navigate.lockstep)
+        print("no equal-compute view (budget.md) for a --lockstep run: its cycle times are each batched command's "
+              "share, not a robot's own control cycle; rerun without --lockstep to judge at equal compute")
+        sys.stdout.flush()
+        return 0
     from eval.navigate.budget import judge_folder, write_budget
     from eval.navigate.budget import render as render_budget
 
