@@ -4,9 +4,9 @@ Shapes: B robots (episodes) in the batch, L of them still live, K samples, T hor
 
 :func:`run_lockstep` runs B jobs of one method and budget as the B robots of one controller (``num_robots=B``, robot
 ``b`` seeded with job ``b``'s seed: its own random stream, :class:`~cuniform_torch.controllers.streams.RobotStreams`),
-so robot ``b`` commands what the serial episode's controller of one robot commands
-(:func:`eval.navigate.episode.run_nav_episode`), and every record is the serial run's in every field but the timing
-ones. Each robot keeps its own world: its cost (:class:`_RobotCosts`, the core's per-robot ``batched = True`` cost:
+so robot ``b`` draws what the serial episode's controller of one robot draws
+(:func:`eval.navigate.episode.run_nav_episode`), and its record is the serial run's in every field but the timing
+ones as far as the library's batched arithmetic equals its one-robot arithmetic to the last bit (below). Each robot keeps its own world: its cost (:class:`_RobotCosts`, the core's per-robot ``batched = True`` cost:
 each robot's ``[K, T+1, d]`` rollouts against its own obstacles, goal and cost-to-go), its sensed obstacles, and
 for a map-conditioned method its own sensed map (:class:`_SensedPerRobot`). Per cycle, the live robots' states are
 one ``[B, d]`` command; the simulator then steps, checks and retires each live robot exactly as
@@ -19,11 +19,14 @@ is recorded as the batch command's wall time divided by the live robots (``cycle
 batch's wall time divided by B, and the record says ``"clock": "lockstep"`` plus ``"lockstep": B``. These are not
 per-robot cycle times: the equal-compute view (:mod:`eval.navigate.budget`) must not read them as such.
 
-Bit-identical to serial, and why some loops over robots stay: the world is per robot (a different obstacle set per
-episode), so the cost, the sensing and the collision check run once per live robot on that robot's tensors. The
-simulator steps each robot as a ``[1, d]`` row, as :func:`~cuniform_torch.envs.simulate` does: a vectorized
-elementwise op on L rows may take another code path (SIMD body vs scalar tail) than on one row, and a last-bit
-difference in a state grows over a few hundred closed-loop steps into a different record.
+Why some loops over robots stay: the world is per robot (a different obstacle set per episode), so the cost, the
+sensing and the collision check run once per live robot on that robot's tensors. The simulator steps each robot as
+a ``[1, d]`` row, as :func:`~cuniform_torch.envs.simulate` does (the built-in robot's step gives the same bits for
+L rows at once, a user's system need not): a closed loop turns a last-bit difference in a state into a different
+episode within a few hundred steps. Two such differences are in the library today, outside this runner: the
+core's weighted average (``torch.bmm`` rounds robot ``b``'s average differently at B = 40 than at B = 1) and the
+C-Uniform rollout's change to the world frame (a compiled kernel for one start, torch ops for per-robot starts);
+``tests/test_navigate_lockstep.py`` shows equal records with both taken out.
 """
 
 from __future__ import annotations
@@ -129,7 +132,8 @@ def run_lockstep(jobs: Sequence[NavJob], ctx: NavContext) -> list[dict]:
         raise ValueError("run_lockstep: a batch is one method at one budget, got "
                          f"{sorted({(j.method, j.budget) for j in jobs})}")
     if len({j.task.sensing_range for j in jobs}) != 1:
-        raise ValueError("run_lockstep: a batch's tasks share one sensing range")
+        raise ValueError("run_lockstep: a batch's tasks must share one sensing range (one suite); got "
+                         f"{sorted({str(j.task.sensing_range) for j in jobs})}: batch each suite's jobs apart")
     torch.set_num_threads(1)  # as every serial episode: the same arithmetic
     method = methods_of(NAVIGATE)[jobs[0].method]
     sources, system = _sources_and_simulator(ctx)
