@@ -19,6 +19,9 @@ B robots at once (``state [B, d]``; a ``[d]`` state is one robot and gets result
    [B, K]`` (pytorch_mppi's control cost ``U Sigma^-1 eps``) adds ``lambda * action_cost`` to the costs.
 
 :meth:`MPPICore.command` is ``plan``, then ``proposal.update(result)`` (the warm starts), then the commands.
+:attr:`MPPICore.on_plan` (opt-in, None by default: then it costs one attribute test per command) is called with each
+eager command's :class:`MPPIResult` after the warm-start update, so a caller sees the proposals' costs without
+spelling the command out again (the navigation benchmark's trace, :mod:`eval.navigate.episode`).
 :meth:`MPPICore.reset` forgets the warm start of every robot, or of the robots named (their episodes ended).
 
 Checks: the constructor refuses bad arguments with one ValueError or TypeError naming them (a ``lambda_`` that the
@@ -109,6 +112,7 @@ class MPPICore:
     :func:`~cuniform_torch.controllers.streams.robot_seeds`), so robot ``b`` of a batch commands exactly what a
     controller of that robot alone, seeded the same, commands. ``generator`` (one per robot) passes the streams in.
     ``close()`` (or ``with``) releases what the proposal holds (a bank's worker thread). ``debug``: see the module.
+    ``on_plan``: an optional ``callable(result)`` seeing every command's result (the module docstring).
 
     :param proposal: a :class:`~cuniform_torch.controllers.proposals.Proposal` (or a one-robot proposal)
     :param cost_fn: ``states [N, T+1, d]``, ``actions [N, T, q]`` -> ``[N]`` over all robots' rollouts (or, with
@@ -201,6 +205,24 @@ class MPPICore:
         self._fixed_lambda = (None if self.auto_lambda else torch.full(
             (self.num_robots,), float(self.lambda_), dtype=dtype, device=self.device))  # type: ignore[arg-type]
         """``[B]`` the fixed temperature, made once: every result reports it (no tensor made per command)"""
+        self._on_plan: Callable[[MPPIResult], None] | None = None
+
+    @property
+    def on_plan(self) -> Callable[[MPPIResult], None] | None:
+        """A trace hook: ``callable(result)`` called by :meth:`command` and :meth:`command_result` with the command's
+        :class:`MPPIResult` (batched ``[B, ...]``, or one robot's when the state was ``[d]``), after the warm-start
+        update and before the command is returned; None (the default): nothing is called. Not with ``cuda_graph``
+        (a replay has no result to show)."""
+        return self._on_plan
+
+    @on_plan.setter
+    def on_plan(self, hook: Callable[[MPPIResult], None] | None) -> None:
+        if hook is not None and not callable(hook):
+            raise TypeError(f"on_plan must be a callable(result) or None, got {type(hook).__name__}")
+        if hook is not None and self.cuda_graph:
+            raise ValueError("on_plan sees each command's result; with cuda_graph=True a command is one replay of a "
+                             "captured graph and has none: use cuda_graph=False to trace")
+        self._on_plan = hook
 
     # -------------------------------------------------------------------------------- the one MPPI iteration
 
@@ -240,6 +262,8 @@ class MPPICore:
             result = self._plan(states)
             self._batch.update(result)
             command = result.command
+            if self._on_plan is not None:
+                self._on_plan(result.robot(0) if single else result)
         command = command[0] if single else command
         return command if back is None else back(command)
 
@@ -254,7 +278,10 @@ class MPPICore:
         states, single = self._check_state(given)
         result = self._plan(states)
         self._batch.update(result)
-        return result.robot(0) if single else result
+        result = result.robot(0) if single else result
+        if self._on_plan is not None:
+            self._on_plan(result)
+        return result
 
     # -------------------------------------------------------------------------------- one CUDA graph per command
 

@@ -335,13 +335,18 @@ def sample_states(method: Method, sources: Sources, num_samples: int, horizon: i
 
 
 def make_controller(method: Method, sources: Sources, cost_fn, num_samples: int, horizon: int,
-                    seed: int, lambda_: float = config.LAMBDA, world: Any = None, max_range: float | None = None):
+                    seed: int | Sequence[int], lambda_: float = config.LAMBDA, world: Any = None,
+                    max_range: float | None = None, num_robots: int = 1):
     """The MPPI-family controller that proposes with ``method`` (``command(state) -> [q]``); a map-conditioned
-    method (source ``map_policy``) senses ``world`` within ``max_range`` (m) at each command."""
+    method (source ``map_policy``) senses ``world`` within ``max_range`` (m) at each command. ``num_robots`` B > 1:
+    one controller of B robots (``command(states [B, d]) -> [B, q]``), ``seed`` one int per robot."""
     controller = method.controller
     if controller is None:  # not closed_loop
         raise ValueError(f"{method.key} samples cells, not executable actions: it has no controller")
-    kw = dict(num_samples=num_samples, horizon=horizon, lambda_=lambda_, device=sources.device, seed=seed)
+    kw: dict[str, Any] = dict(num_samples=num_samples, horizon=horizon, lambda_=lambda_, device=sources.device,
+                              seed=seed)
+    if num_robots != 1:  # only then: a user's controller of one robot need not take it
+        kw["num_robots"] = num_robots
     if method.source is None:  # a noise baseline: the system and the noise level
         return controller(sources.system, cost_fn, noise_std=method.noise_std, **kw)
     if method.source == "map_policy":

@@ -48,7 +48,8 @@ from eval.navigate.records.keys import episode_key
 from precompute.worlds.geometry import inflate, obstacle_tables
 from precompute.worlds.suites import NavTask
 
-__all__ = ["NavJob", "NavContext", "run_nav_episode", "rasterize", "RASTER_MIN_OBSTACLES"]
+__all__ = ["NavJob", "NavContext", "run_nav_episode", "rasterize", "RASTER_MIN_OBSTACLES", "navigation_cost",
+           "start_state", "sensed_world"]
 
 RASTER_MIN_OBSTACLES = 32
 """a static map with more obstacles than this is rasterized for the cost (module docstring)"""
@@ -200,18 +201,25 @@ class _TimedSensingController:
     """Wraps a controller: updates the cost's obstacles to what the robot senses (tasks with a sensing range)
     before each command, and times each command (the control cycle; sensing is the world's, not timed).
 
-    With a ``trace`` list and an MPPI-family inner controller (``plan`` and ``proposal``), each command is the
-    inner ``command`` spelled out (``plan``, ``proposal.update``, the result's command: the same arithmetic), and
-    appends ``dict(t, free_share, min_cost, state)``: the command's time (s), the share of its proposals that are
-    collision-free (cost < ``collision_penalty``), the lowest proposal cost and the state ``[d]`` it planned from."""
+    With a ``trace`` list and an inner controller with the core's trace hook (:attr:`MPPICore.on_plan
+    <cuniform_torch.controllers.core.MPPICore.on_plan>`: the MPPI family), each command appends ``dict(t,
+    free_share, min_cost, state)``: the command's time (s), the share of its proposals that are collision-free
+    (cost < ``collision_penalty``), the lowest proposal cost and the state ``[d]`` it planned from. The hook only
+    keeps the result; the trace's numbers are read after the command's clock stops."""
 
     def __init__(self, inner: Any, cost: NavigationCost, task: NavTask, trace: list | None = None,
                  dt: float = 0.0, collision_penalty: float = 1e6, to_go: CostToGo | None = None):
         self.inner, self.cost, self.task, self.to_go = inner, cost, task, to_go
         self.cycle_s: list[float] = []
-        traceable = callable(getattr(inner, "plan", None)) and hasattr(inner, "proposal")
-        self.trace = trace if traceable else None
+        self.trace = trace if trace is not None and hasattr(inner, "on_plan") else None
+        self._costs: torch.Tensor | None = None
+        """``[K]`` the last command's proposal costs (set by the hook)"""
+        if self.trace is not None:
+            inner.on_plan = self._keep
         self.dt, self.collision_penalty = dt, collision_penalty
+
+    def _keep(self, result: Any) -> None:
+        self._costs = result.costs
 
     def reset(self) -> None:
         if callable(getattr(self.inner, "reset", None)):
@@ -223,18 +231,37 @@ class _TimedSensingController:
         if self.to_go is not None:  # a global planner's work (untimed): recomputed when the sensed obstacles change
             self.to_go.update(self.cost.env)
         t0 = time.perf_counter()
-        if self.trace is None:
-            u = self.inner.command(state)
-            self.cycle_s.append(time.perf_counter() - t0)
-            return u
-        result = self.inner.plan(state)  # MPPICore.command, spelled out to see the proposals' costs
-        self.inner.proposal.update(result)
+        u = self.inner.command(state)
         self.cycle_s.append(time.perf_counter() - t0)
-        costs = result.costs  # [K]
-        self.trace.append(dict(t=round(len(self.trace) * self.dt, 6),
-                               free_share=float((costs < self.collision_penalty).float().mean()),
-                               min_cost=float(costs.min()), state=[round(float(v), 6) for v in state.tolist()]))
-        return result.command
+        if self.trace is not None and self._costs is not None:
+            costs = self._costs  # [K]
+            self.trace.append(dict(t=round(len(self.trace) * self.dt, 6),
+                                   free_share=float((costs < self.collision_penalty).float().mean()),
+                                   min_cost=float(costs.min()), state=[round(float(v), 6) for v in state.tolist()]))
+        return u
+
+
+def _sources_and_simulator(ctx: NavContext) -> tuple[Sources, Any]:
+    """The controllers' sources (with learned dynamics, every policy's system is the model) and the system the
+    simulator steps (the robot's own)."""
+    sources = _sources(ctx)
+    return sources, (sources.true_system if isinstance(sources, LearnedSources) else sources.system)
+
+
+def navigation_cost(task: NavTask, ctx: NavContext, dt: float) -> tuple[NavigationCost, CostToGo | None]:
+    """The episode's cost (module docstring) and its cost-to-go planner (None: the straight line)."""
+    to_go = CostToGo(task.bounds, task.goal, ctx.cost_to_go) if ctx.cost_to_go is not None else None
+    cost = NavigationCost(_cost_environment(task, ctx), task.goal, goal_tolerance=task.goal_tolerance,
+                          collision_penalty=ctx.collision_penalty, per_state=True, stop_at_goal=True,
+                          goal_distance=to_go, dt=dt)
+    return cost, to_go
+
+
+def start_state(task: NavTask, system: Any) -> torch.Tensor:
+    """``[d]`` float32: the task's start pose, zeros in the other state dimensions."""
+    x0 = torch.zeros(len(system.periodic), dtype=torch.float32)
+    x0[:3] = torch.tensor(task.start, dtype=torch.float32)
+    return x0
 
 
 def run_nav_episode(job: NavJob, ctx: NavContext, trace: list | None = None) -> dict:
@@ -246,20 +273,15 @@ def run_nav_episode(job: NavJob, ctx: NavContext, trace: list | None = None) -> 
     MPPI-family controllers only, others append nothing); the record is the same with or without it."""
     torch.set_num_threads(1)
     task, method = job.task, methods_of(NAVIGATE)[job.method]
-    sources = _sources(ctx)  # the controllers' (with learned dynamics, every policy's system is the model)
-    system = sources.true_system if isinstance(sources, LearnedSources) else sources.system  # the simulator's
-    to_go = CostToGo(task.bounds, task.goal, ctx.cost_to_go) if ctx.cost_to_go is not None else None
-    cost = NavigationCost(_cost_environment(task, ctx), task.goal, goal_tolerance=task.goal_tolerance,
-                          collision_penalty=ctx.collision_penalty, per_state=True, stop_at_goal=True,
-                          goal_distance=to_go, dt=float(system.dt))
+    sources, system = _sources_and_simulator(ctx)
+    cost, to_go = navigation_cost(task, ctx, float(system.dt))
     t0 = time.perf_counter()
     world = sensed_world(task) if method.source == "map_policy" else None
     inner = make_controller(method, sources, cost, job.budget, ctx.horizon, job.seed, lambda_=ctx.lambda_,
                             world=world, max_range=task.sensing_range)
     ctrl = _TimedSensingController(inner, cost, task, trace, dt=float(system.dt),
                                    collision_penalty=ctx.collision_penalty, to_go=to_go)
-    x0 = torch.zeros(len(system.periodic), dtype=torch.float32)
-    x0[:3] = torch.tensor(task.start, dtype=torch.float32)
+    x0 = start_state(task, system)
     res = simulate(system, ctrl, x0, task.environment, task.goal, task.goal_tolerance, task.time_limit, cost=cost,
                    record=ctx.record_path)
     rec = dict(key=job.key, suite=task.suite, task_id=task.task_id, method=job.method, budget=job.budget,
