@@ -94,8 +94,8 @@ def test_navigate_checks_its_budgets_once_from_the_flags(monkeypatch, tmp_path, 
     from eval.navigate import run as nav
 
     calls: list[int] = []
-    real = nav._check
-    monkeypatch.setattr(nav, "_check", lambda cfg: calls.append(1) or real(cfg))
+    real = nav.check_config
+    monkeypatch.setattr(nav, "check_config", lambda cfg: calls.append(1) or real(cfg))
 
     class Stop(Exception):
         pass

@@ -24,11 +24,8 @@ RUNNER = ("eval.navigate.run", "eval.navigate.episode", "eval.navigate.execute",
           "eval.navigate.cost_to_go", "eval.navigate.dynamics", "eval.navigate.gym_env")
 """the runner's modules: the records import none of them"""
 
-RUNNER_PRIVATES = {("replay.py", "eval.navigate.run", "_file_digest"), ("replay.py", "eval.navigate.run", "_sources"),
-                   ("failures.py", "eval.navigate.episode", "_cost_environment"),
-                   ("failures.py", "eval.navigate.episode", "_sources")}
-"""private names of the runner that reports still import: the runner's files are another change's (issue 35); the
-test fails when one is gone, so that the change that makes it public drops it from here"""
+RUNNER_PRIVATES: set = set()
+"""private names of the runner that reports may still import: none (the runner's names they read are public)"""
 
 
 def _python(code: str, cwd: Path = ROOT) -> str:

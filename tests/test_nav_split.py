@@ -2,7 +2,7 @@
 
 import pytest
 
-from eval.navigate.run import NavConfig, _check
+from eval.navigate.run import NavConfig, check_config
 from precompute.maps.worlds import suite_worlds
 from precompute.worlds.suites import SuiteError
 from precompute.worlds.tasks import make_tasks, split_of
@@ -32,7 +32,7 @@ def test_bad_split_and_empty_split_are_clear_errors():
     with pytest.raises(SuiteError, match="train split of gaps holds no task"):
         make_tasks("gaps", 0.2, None, split="train")
     with pytest.raises(ValueError, match="unknown split 'heldout'"):
-        _check(NavConfig(suite="forest", split="heldout"))
+        check_config(NavConfig(suite="forest", split="heldout"))
 
 
 def test_clutter_suite_is_the_forest_corridor_denser():

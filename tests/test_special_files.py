@@ -287,7 +287,7 @@ def test_build_to_a_device_is_one_line_and_leaves_it_a_device(tmp_path, capsys):
 def test_the_benchmark_digests_its_inputs_from_regular_files_only(tmp_path, where):
     """eval.navigate's digest of an input (``_file_digest``: the settings record, ``eval.navigate.replay``'s check of
     a given --table) opens regular files only: a FIFO is one FileKindError naming it (it hung in ``open``)."""
-    from eval.navigate.run import _file_digest
+    from eval.navigate.run import input_digest as _file_digest
 
     if where == "file":
         target = fifo = tmp_path / "table.npz"

@@ -202,14 +202,14 @@ def test_the_benchmark_tells_the_cost_when_the_obstacle_appears(tmp_path):
 
 
 def test_the_benchmark_refuses_what_cannot_see_time():
-    from eval.navigate.run import NavConfig, _check
+    from eval.navigate.run import NavConfig, check_config
 
     for suite in ("moving", "sudden"):
         with pytest.raises(ValueError, match="cfu_mppi cannot drive"):
-            _check(NavConfig(suite=suite, methods=("mppi_1.0", "cfu_mppi")))
+            check_config(NavConfig(suite=suite, methods=("mppi_1.0", "cfu_mppi")))
         with pytest.raises(ValueError, match="--cost-to-go cannot serve"):
-            _check(NavConfig(suite=suite, methods=("mppi_1.0",), cost_to_go=True))
-    _check(NavConfig(suite="moving", methods=("mppi_1.0", "cu_table")))
+            check_config(NavConfig(suite=suite, methods=("mppi_1.0",), cost_to_go=True))
+    check_config(NavConfig(suite="moving", methods=("mppi_1.0", "cu_table")))
 
 
 def test_moving_and_sudden_are_scored_against_their_still_obstacles():

@@ -109,15 +109,15 @@ def parse_suite(name: str) -> AtlasSuite:
 
 def suite_methods(entry: AtlasSuite, methods: Sequence[str] | None) -> tuple[tuple[str, ...] | None, list[str]]:
     """``(the methods entry runs, the ones left out)``: each of ``methods`` that the benchmark accepts on this suite
-    (:func:`eval.navigate.run._check`, the benchmark's own rule); None: the benchmark's default methods."""
-    from eval.navigate.run import NavConfig, _check
+    (:func:`eval.navigate.run.check_config`, the benchmark's own rule); None: the benchmark's default methods."""
+    from eval.navigate.run import NavConfig, check_config
 
     if methods is None:
         return None, []
     keep, dropped = [], []
     for m in methods:
         try:
-            _check(NavConfig(suite=entry.suite, methods=(m,), dynamics=entry.dynamics))
+            check_config(NavConfig(suite=entry.suite, methods=(m,), dynamics=entry.dynamics))
             keep.append(m)
         except ValueError:
             dropped.append(m)
@@ -142,7 +142,7 @@ def run_atlas(out: str | Path, suites: Sequence[str] | None = None, tasks: int |
     ``results.*`` and ``budget.*`` files as ``python -m eval.navigate`` writes them); ``{folder: the run's
     result}``. Every suite and method list is checked before the first episode of any suite."""
     from eval.navigate.results import write_outputs
-    from eval.navigate.run import NavConfig, _check, run
+    from eval.navigate.run import NavConfig, check_config, run
 
     entries = _check_suites(default_suites() if suites is None else suites)
     if methods is not None:
@@ -154,7 +154,7 @@ def run_atlas(out: str | Path, suites: Sequence[str] | None = None, tasks: int |
             raise ValueError(f"no method of {', '.join(methods or [])} can run the {e.suite} suite")
         cfgs[e.folder] = NavConfig(suite=e.suite, split="test", tasks=tasks, budgets=tuple(budgets), methods=kept,
                                    workers=workers, horizon=robot.horizon, dynamics=e.dynamics)
-        _check(cfgs[e.folder])
+        check_config(cfgs[e.folder])
     out, results = Path(out), {}
     for folder, cfg in cfgs.items():
         res = run(cfg, out / folder, robot, Path(cache), ray_address=ray_address, progress=progress)

@@ -48,7 +48,7 @@ from eval.navigate.records.keys import episode_key
 from precompute.worlds.geometry import inflate, obstacle_tables
 from precompute.worlds.suites import NavTask
 
-__all__ = ["NavJob", "NavContext", "run_nav_episode", "rasterize", "RASTER_MIN_OBSTACLES", "navigation_cost",
+__all__ = ["NavJob", "NavContext", "run_nav_episode", "rasterize", "RASTER_MIN_OBSTACLES", "navigation_cost", "context_sources", "cost_environment", "sources_and_simulator",
            "start_state", "sensed_world"]
 
 RASTER_MIN_OBSTACLES = 32
@@ -101,7 +101,8 @@ class NavContext:
 _CACHE: dict[Any, Any] = {}
 
 
-def _sources(ctx: NavContext) -> Sources:
+def context_sources(ctx: NavContext) -> Sources:
+    """The methods' sources (tables, policies, the robot) of ``ctx``, loaded once per process."""
     key = ("sources", ctx.table, ctx.coverage_table, ctx.policy, ctx.map_policy, ctx.dynamics)
     if key not in _CACHE:
         if ctx.dynamics not in DYNAMICS:
@@ -186,7 +187,8 @@ def sensed_world(task: NavTask) -> Environment:
     return inflate(task.discs, task.walls, task.bounds, 0.0)
 
 
-def _cost_environment(task: NavTask, ctx: NavContext) -> Environment:
+def cost_environment(task: NavTask, ctx: NavContext) -> Environment:
+    """The obstacles the cost checks: the task's own (sensed or few), else its raster at ``ctx.cost_resolution``."""
     if task.sensing_range is not None or len(task.environment.obstacles) <= RASTER_MIN_OBSTACLES:
         return task.environment
     # by content: each job brings its own (unpickled) copy of the task
@@ -241,17 +243,17 @@ class _TimedSensingController:
         return u
 
 
-def _sources_and_simulator(ctx: NavContext) -> tuple[Sources, Any]:
+def sources_and_simulator(ctx: NavContext) -> tuple[Sources, Any]:
     """The controllers' sources (with learned dynamics, every policy's system is the model) and the system the
     simulator steps (the robot's own)."""
-    sources = _sources(ctx)
+    sources = context_sources(ctx)
     return sources, (sources.true_system if isinstance(sources, LearnedSources) else sources.system)
 
 
 def navigation_cost(task: NavTask, ctx: NavContext, dt: float) -> tuple[NavigationCost, CostToGo | None]:
     """The episode's cost (module docstring) and its cost-to-go planner (None: the straight line)."""
     to_go = CostToGo(task.bounds, task.goal, ctx.cost_to_go) if ctx.cost_to_go is not None else None
-    cost = NavigationCost(_cost_environment(task, ctx), task.goal, goal_tolerance=task.goal_tolerance,
+    cost = NavigationCost(cost_environment(task, ctx), task.goal, goal_tolerance=task.goal_tolerance,
                           collision_penalty=ctx.collision_penalty, per_state=True, stop_at_goal=True,
                           goal_distance=to_go, dt=dt)
     return cost, to_go
@@ -273,7 +275,7 @@ def run_nav_episode(job: NavJob, ctx: NavContext, trace: list | None = None) -> 
     MPPI-family controllers only, others append nothing); the record is the same with or without it."""
     torch.set_num_threads(1)
     task, method = job.task, methods_of(NAVIGATE)[job.method]
-    sources, system = _sources_and_simulator(ctx)
+    sources, system = sources_and_simulator(ctx)
     cost, to_go = navigation_cost(task, ctx, float(system.dt))
     t0 = time.perf_counter()
     world = sensed_world(task) if method.source == "map_policy" else None

@@ -31,7 +31,7 @@ import torch
 from cuniform_torch import CUniformMPPI
 from cuniform_torch.common.fileio import write_json
 from cuniform_torch.envs import NavigationCost
-from eval.navigate.episode import NavContext, _cost_environment, _sources
+from eval.navigate.episode import NavContext, context_sources, cost_environment
 from eval.navigate.records import load_folder
 from eval.navigate.replay import compare_records, replay_episode, summarize
 from precompute.cli import MAX_COUNT, ArgumentParser, check_output_file, cli_main, int_in, positive_int
@@ -61,12 +61,12 @@ class FailureKind:
 def probe_free_share(task, state: list[float], ctx: NavContext, samples: int = PROBE_SAMPLES, seed: int = 0) -> float:
     """The share of ``samples`` C-Uniform rollouts (the max-flow table of ``ctx``) from ``state [d]`` that are
     collision-free for the horizon, against the obstacles the robot senses there (the benchmark's cost)."""
-    cost = NavigationCost(_cost_environment(task, ctx), task.goal, goal_tolerance=task.goal_tolerance,
+    cost = NavigationCost(cost_environment(task, ctx), task.goal, goal_tolerance=task.goal_tolerance,
                           collision_penalty=ctx.collision_penalty, per_state=True, stop_at_goal=True)
     x = torch.tensor(state, dtype=torch.float32)
     if task.sensing_range is not None:
         cost.env = task.sensed_environment(x[:2])
-    probe = CUniformMPPI(_sources(ctx).load("table"), cost, samples, lambda_=0.0, horizon=ctx.horizon, seed=seed)
+    probe = CUniformMPPI(context_sources(ctx).load("table"), cost, samples, lambda_=0.0, horizon=ctx.horizon, seed=seed)
     states, actions = probe.propose(x)
     return float((cost(states, actions) < ctx.collision_penalty).float().mean())
 

@@ -40,8 +40,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from cuniform_torch.controllers.cfu import CFUMPPI, SensedMapPolicy
-from cuniform_torch.controllers.mppi import CUMPPI
+from cuniform_torch.controllers.cfu import CFUMPPI, MapSensor
 from cuniform_torch.envs import COLLISION, GOAL, TIMEOUT, Environment, NavigationCost, OccupancyGrid
 from cuniform_torch.maps.policy import MapPolicy
 from cuniform_torch.maps.sensing import sense_patch
@@ -50,9 +49,9 @@ from eval.navigate.cost_to_go import CostToGo
 from eval.navigate.episode import (
     NavContext,
     NavJob,
-    _sources_and_simulator,
     navigation_cost,
     sensed_world,
+    sources_and_simulator,
     start_state,
 )
 from eval.navigate.records.cycle_hist import cycle_histogram
@@ -82,32 +81,29 @@ class _RobotCosts:
         return out
 
 
-class _SensedPerRobot(SensedMapPolicy):
-    """A map policy bound to one world per robot: ``for_starts`` senses robot ``b``'s patch in ``worlds[b]`` and
-    encodes the B patches as one batch (the map-conditioned policy's ``set_maps``)."""
+class _SensorPerRobot(MapSensor):
+    """A map sensor bound to one world per robot: robot ``b``'s patch is cropped from ``worlds[b]``; the B patches
+    are then encoded as one batch by the controller (:meth:`~cuniform_torch.controllers.cfu.CFUMPPI.sense`)."""
 
     def __init__(self, policy: MapPolicy, worlds: Sequence[OccupancyGrid | Environment], max_range: float | None):
         super().__init__(policy, worlds[0], max_range)
         self.worlds = [w.to(self.device) if isinstance(w, OccupancyGrid) else w for w in worlds]
 
-    def for_starts(self, starts: Tensor) -> MapPolicy:
-        if starts.shape[0] != len(self.worlds):
-            raise ValueError(f"{len(self.worlds)} worlds for {starts.shape[0]} robots")
-        patches = [sense_patch(w, starts[b:b + 1, :3], self.policy.patch_spec, self.max_range, self.time)
-                   for b, w in enumerate(self.worlds)]  # [1, H, W] each
-        self.policy.set_maps(torch.cat(patches))  # [B, H, W]
-        return self.policy
+    def sense(self, states: Tensor) -> Tensor:
+        if states.shape[0] != len(self.worlds):
+            raise ValueError(f"{len(self.worlds)} worlds for {states.shape[0]} robots")
+        return torch.cat([sense_patch(w, states[b:b + 1, :3], self.spec, self.max_range, self.time)
+                          for b, w in enumerate(self.worlds)])  # [B, H, W]
 
 
 class _CFUPerRobot(CFUMPPI):
-    """CFU-MPPI whose robot ``b`` senses ``worlds[b]``: CFU-MPPI's own construction (CU-MPPI over a sensed map
-    policy, :class:`~cuniform_torch.controllers.cfu.CFUMPPI`) with :class:`_SensedPerRobot` as the sensed policy.
-    ``kwargs``: CU-MPPI's (``num_samples``, ``horizon``, ``lambda_``, ``device``, ``seed``, ``num_robots``)."""
+    """CFU-MPPI whose robot ``b`` senses ``worlds[b]``: CFU-MPPI as it is, with :class:`_SensorPerRobot` as its
+    sensor. ``kwargs``: CFU-MPPI's (``num_samples``, ``horizon``, ``lambda_``, ``device``, ``seed``, ``num_robots``)."""
 
     def __init__(self, policy: MapPolicy, worlds: Sequence[Environment], cost_fn: Any, max_range: float | None = None,
                  **kwargs: Any):
-        self.sensed = _SensedPerRobot(policy, worlds, max_range)
-        CUMPPI.__init__(self, self.sensed, cost_fn, **kwargs)
+        super().__init__(policy, worlds[0], cost_fn, max_range=max_range, **kwargs)
+        self.sensor = _SensorPerRobot(self.map_policy, worlds, max_range)
 
 
 def lockstep_batches(jobs: Sequence[NavJob], size: int) -> list[list[NavJob]]:
@@ -136,7 +132,7 @@ def run_lockstep(jobs: Sequence[NavJob], ctx: NavContext) -> list[dict]:
                          f"{sorted({str(j.task.sensing_range) for j in jobs})}: batch each suite's jobs apart")
     torch.set_num_threads(1)  # as every serial episode: the same arithmetic
     method = methods_of(NAVIGATE)[jobs[0].method]
-    sources, system = _sources_and_simulator(ctx)
+    sources, system = sources_and_simulator(ctx)
     dt = float(system.dt)
     B = len(jobs)
     made = [navigation_cost(j.task, ctx, dt) for j in jobs]

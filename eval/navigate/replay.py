@@ -25,7 +25,7 @@ from typing import Any
 from cuniform_torch.common.fileio import write_json
 from eval.navigate.episode import NavContext, NavJob, run_nav_episode
 from eval.navigate.records import load_episode
-from eval.navigate.run import NavConfig, _file_digest, _sources
+from eval.navigate.run import NavConfig, input_digest, prepare_sources
 from precompute.cli import ArgumentParser, add_system_module_arg, check_output_file, cli_main, import_system_modules
 from precompute.worlds.robot import RobotPreset
 from precompute.worlds.suites import NavTask
@@ -43,9 +43,9 @@ def _barn_file(out: Path, settings: dict, given: Path | None) -> Path | None:
         return given
     want = settings.get("barn_file")  # None: the shipped file (settings_record digests only a given file)
     converted = Path(out) / "barn.npz"  # where a run with --barn-worlds converted them
-    if given is None and want is not None and converted.is_file() and _file_digest(converted) == want:
+    if given is None and want is not None and converted.is_file() and input_digest(converted) == want:
         given = converted
-    have = _file_digest(given) if given is not None else None
+    have = input_digest(given) if given is not None else None
     if have != want:
         there = "the shipped BARN file" if want is None else f"another BARN file (digest {want})"
         here = f"--barn-file {given}" if given is not None else "the shipped BARN file"
@@ -73,7 +73,7 @@ def _checked_sources(settings: dict, record: dict, robot: RobotPreset, cache: Pa
         for name, path in sources.items():
             if path is None or used.get(name) is None or not Path(path).exists():
                 continue  # a file the run's methods never read matches anything (eval.navigate.records.store)
-            have = _file_digest(Path(path))
+            have = input_digest(Path(path))
             if have != used[name]:
                 flag = f"--{name.replace('_', '-')}"
                 what = f"{flag} {path}" if given.get(name) else f"{path} (the default of {flag})"
@@ -81,7 +81,7 @@ def _checked_sources(settings: dict, record: dict, robot: RobotPreset, cache: Pa
                                  f"give the run's {flag}")
 
     check(given)  # a given file first: before it is read, so another file is named as such
-    sources = _sources(cfg, robot, cache, given, quiet=True)
+    sources = prepare_sources(cfg, robot, cache, given, quiet=True)
     check(sources)
     return sources
 

@@ -63,7 +63,7 @@ from precompute.worlds.robot import NAV_ROBOT, RobotPreset, preset_dict, suite_r
 from precompute.worlds.suites import NavTask
 from precompute.worlds.tasks import SPLITS, SUITES, TIME_LIMITS, make_tasks
 
-__all__ = ["NavConfig", "NAV_TYPES", "REPEATS", "SHORT", "QUICK", "make_jobs", "run", "short_run", "render", "result",
+__all__ = ["NavConfig", "check_config", "input_digest", "prepare_sources", "NAV_TYPES", "REPEATS", "SHORT", "QUICK", "make_jobs", "run", "short_run", "render", "result",
            "success_pivot", "write_outputs", "main", "controller_seed"]
 
 REPEATS = {"barn": 1, "forest": 1, "gaps": 5, "clutter": 1, "moving": 1, "sudden": 1, "narrow": 1}
@@ -132,7 +132,9 @@ def make_jobs(tasks: Sequence[NavTask], methods: Sequence[str], budgets: Sequenc
             for task in tasks for r in range(repeats) for k in budgets for m in methods]
 
 
-def _check(cfg: NavConfig) -> None:
+def check_config(cfg: NavConfig) -> None:
+    """Refuse a config the benchmark cannot run (unknown suite, dynamics or method, a method the suite refuses,
+    bad counts): one ``ValueError`` naming the field; the run calls it once, the atlas per suite."""
     if cfg.dynamics not in DYNAMICS:
         raise ValueError(f"unknown dynamics {cfg.dynamics!r}; choose from {', '.join(DYNAMICS)}")
     if cfg.suite not in SUITES:
@@ -169,7 +171,7 @@ def _check(cfg: NavConfig) -> None:
             raise ValueError(f"--{name.rstrip('_').replace('_', '-')} must be a finite number > 0, got {v}")
 
 
-def _file_digest(path: Path | None) -> str | None:
+def input_digest(path: Path | None) -> str | None:
     """A short sha256 of a file, or of a table set's index and tables. Each is opened as a regular file
     (:func:`~cuniform_torch.common.fileio.open_regular`) and read in blocks: a FIFO, a device or a link to one is one
     FileKindError (a ValueError) naming it, never a hang (``eval.navigate.replay --table FIFO`` hung here) or an
@@ -195,8 +197,8 @@ def settings_record(cfg: NavConfig, robot: RobotPreset, barn_file: Path | None, 
     keep = ("suite", "seed", "sensing_range", "horizon", "lambda_", "collision_penalty", "cost_resolution")
     out: dict[str, Any] = {k: getattr(cfg, k) for k in keep}
     out.update(robot=preset_dict(robot), time_limit=TIME_LIMITS[cfg.suite],
-               barn_file=_file_digest(barn_file) if cfg.suite == "barn" else None,
-               sources={k: _file_digest(Path(v)) if v else None for k, v in sources.items()})
+               barn_file=input_digest(barn_file) if cfg.suite == "barn" else None,
+               sources={k: input_digest(Path(v)) if v else None for k, v in sources.items()})
     if cfg.cost_to_go:  # absent otherwise: the folders of runs without it stay as they were
         out["cost_to_go"] = COST_TO_GO_RESOLUTION
     if cfg.dynamics != "true":  # absent otherwise, as cost_to_go
@@ -208,8 +210,8 @@ def settings_record(cfg: NavConfig, robot: RobotPreset, barn_file: Path | None, 
     return out
 
 
-def _sources(cfg: NavConfig, robot: RobotPreset, cache: Path, given: dict[str, Path | None],
-             quiet: bool) -> dict[str, str | None]:
+def prepare_sources(cfg: NavConfig, robot: RobotPreset, cache: Path, given: dict[str, Path | None],
+                    quiet: bool) -> dict[str, str | None]:
     """The files the methods need: given on the command line, else the robot's cached ones (built when missing)."""
     methods = {m.source for m in parse_methods(cfg.methods, benchmark=NAVIGATE, closed_loop=True)}
     _check_given(given, methods)  # before anything is built: a bad file is refused at once
@@ -324,7 +326,7 @@ def run(cfg: NavConfig, out: Path, robot: RobotPreset | None = None, cache: Path
     """Run (or resume) the benchmark ``cfg`` into the folder ``out``; the result that ``results.json`` holds.
     ``cfg`` is checked here, the library's edge (:func:`main` checks its flags before any work and calls
     :func:`_run`). ``robot`` None: the suite's (:func:`~precompute.worlds.robot.suite_robot`)."""
-    _check(cfg)
+    check_config(cfg)
     robot = suite_robot(cfg.suite) if robot is None else robot
     return _run(cfg, out, robot, cache, barn_file, given, ray_address, progress)
 
@@ -341,7 +343,7 @@ def _run(cfg: NavConfig, out: Path, robot: RobotPreset, cache: Path, barn_file: 
     with exclusive_lock(Path(out) / ".lock", what=f"the benchmark folder {out}"):
         store = EpisodeStore(out)
         store.check()  # a damaged folder is refused before the tables are built
-        sources = _sources(cfg, robot, cache, given or {}, quiet=not progress)
+        sources = prepare_sources(cfg, robot, cache, given or {}, quiet=not progress)
         done = store.open(settings_record(cfg, robot, barn_file, sources, tasks))
         todo = [j for j in jobs if j.key not in done]
         print(f"{cfg.suite}: {len(tasks)} tasks x {repeats} repeats x {len(cfg.budgets)} budgets x {len(methods)} "
@@ -475,7 +477,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = p.parse_args(argv)
     import_system_modules(args.system_module)
     cfg = dataclass_from_args(NavConfig, args)
-    _check(cfg)
+    check_config(cfg)
     out = args.out or Path("out/navigate") / cfg.suite
     _check_flags(p, args, cfg, out)
     robot = _robot(args, cfg)

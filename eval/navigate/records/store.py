@@ -85,7 +85,7 @@ _DIGEST = re.compile(r"[0-9a-f]{16}")
 
 
 def _digest(v: Any) -> bool:
-    """A file's digest as the run writes it (``eval.navigate.run._file_digest``): 16 hex digits of its sha256, or
+    """A file's digest as the run writes it (``eval.navigate.run.input_digest``): 16 hex digits of its sha256, or
     None (no such file)."""
     return v is None or (isinstance(v, str) and _DIGEST.fullmatch(v) is not None)
 
