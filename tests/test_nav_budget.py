@@ -183,3 +183,12 @@ def test_bad_folders_one_error(tmp_path, capsys):
     assert main([str(tmp_path / "empty")]) == 2
     err = capsys.readouterr().err
     assert "holds no episode" in err and len(err.strip().splitlines()) == 1
+
+
+def test_lockstep_records_are_refused_their_cycles_are_a_batch_share():
+    """A --lockstep run's cycle times are a batched command's share per robot: judging them as control cycles
+    would credit batching to the method, so the view refuses them, naming why."""
+    recs = _records("mppi_1.0", 64, "1111", 4) + _records("cu_table", 64, "1110", 4, clock="lockstep", lockstep=4)
+    with pytest.raises(ValueError, match="--lockstep"):
+        judge(_settings(), recs)
+    judge(_settings(), _records("mppi_1.0", 64, "1111", 4))  # the serial records alone are judged

@@ -130,6 +130,10 @@ def cells(records: Sequence[Mapping], scores: Mapping[str, float] | None = None)
     records = list(records)
     if not records:
         raise ValueError("no episode records to judge")
+    shared = [r["key"] for r in records if r.get("clock") == "lockstep"]
+    if shared:  # their cycle times are a batched command's share, not a control cycle (eval.navigate.lockstep)
+        raise ValueError(f"{len(shared)} record(s) (e.g. {shared[0]}) ran with --lockstep: their cycle times are a "
+                         "batched command's share, not a control cycle; judge a folder run without --lockstep")
     rows = summarize(records, keys=("method", "budget"))
     by_cell: dict[tuple, list[Mapping]] = {}
     for r in records:
