@@ -1,0 +1,78 @@
+"""The library owns its jobs (issue 35 item 1): building a table or a set, distilling and training a map policy
+are typed functions of ``precompute`` and ``training``, and the commands call them, so a table built from Python
+is byte for byte the command's file; the old ``python -m eval.bench.NAME`` spelling is refused naming the new."""
+
+from __future__ import annotations
+
+import hashlib
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import precompute.build as build_command
+from cuniform_torch import write_table
+from cuniform_torch.systems import make_system
+from precompute import BuildConfig, CoverageConfig, SetConfig, build_table, build_table_set
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _sha(path: Path) -> str:
+    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+
+
+# ------------------------------------------------------------------------------------------ precompute
+
+@pytest.mark.parametrize("method", ["maxflow", "coverage"])
+def test_build_table_from_python_is_the_commands_file(tmp_path, method):
+    """The same settings from Python and from the command: the same table bytes (and the returned table is the
+    one written)."""
+    system = make_system("dubins")
+    config = BuildConfig(horizon=4, seed=3)
+    coverage = CoverageConfig(horizon=4, target_samples=200, steps=5) if method == "coverage" else None
+    table = build_table(system, config, coverage=coverage, out=tmp_path / "lib.npz")
+    flags = ["--target-samples", "200", "--steps", "5"] if method == "coverage" else []
+    assert build_command.main([method, "--system", "dubins", "--horizon", "4", "--seed", "3", "--no-report",
+                               "--quiet", "--out", str(tmp_path / "cli.npz"), *flags]) == 0
+    assert _sha(tmp_path / "lib.npz") == _sha(tmp_path / "cli.npz")
+    write_table(tmp_path / "returned.npz", table)
+    assert _sha(tmp_path / "returned.npz") == _sha(tmp_path / "lib.npz")
+    assert (tmp_path / "lib.report.json").is_file()
+    assert (table.method or "maxflow") == method
+
+
+def test_build_table_in_memory_writes_nothing_and_prints_nothing(tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(tmp_path)
+    table = build_table(make_system("dubins"), BuildConfig(horizon=3))
+    assert table.horizon == 3 and len(table.level_sizes) == 4
+    assert list(tmp_path.iterdir()) == []
+    captured = capsys.readouterr()
+    assert captured.out == "" and captured.err == ""  # progress bars are off by default in library calls
+
+
+@pytest.mark.parametrize("call, field", [
+    (lambda s: build_table(s, CoverageConfig(horizon=3)), "config must be a BuildConfig"),
+    (lambda s: build_table(s, BuildConfig(horizon=3), coverage=CoverageConfig(horizon=4)), "horizon"),
+    (lambda s: build_table(s, BuildConfig(horizon=3), report=True), "need out=FILE"),
+    (lambda s: SetConfig(starts="3=0:1:2", workers=0), "SetConfig.workers"),
+    (lambda s: build_table_set(s, SetConfig(starts=[[0.0, 1.0]]), out="x"), "SetConfig.starts"),
+    (lambda s: build_table(s, BuildConfig(horizon=3), out=Path("/proc/nope/t.npz")), "--out"),
+])
+def test_bad_settings_are_one_value_error_naming_the_field(call, field):
+    with pytest.raises(ValueError, match=field.replace("(", r"\(")):
+        call(make_system("ks_speed"))
+
+
+def test_build_table_set_returns_the_set_and_equals_the_commands(tmp_path):
+    system = make_system("ks_speed")
+    config = BuildConfig(horizon=3)
+    policy = build_table_set(system, SetConfig(starts="3=0:1:2"), config, out=tmp_path / "lib")
+    assert policy.starts.shape == (2, 4) and policy.starts[:, 3].tolist() == [0.0, 1.0]
+    assert build_command.main(["set", "--system", "ks_speed", "--horizon", "3", "--starts", "3=0:1:2", "--quiet",
+                               "--out", str(tmp_path / "cli")]) == 0
+    for name in ("start_0000.npz", "start_0001.npz"):
+        assert _sha(tmp_path / "lib" / name) == _sha(tmp_path / "cli" / name)
+    starts = np.array([[0.0, 0.0, 0.0, 0.0], [0.0, 0.0, 0.0, 1.0]])  # the same starts as an array
+    again = build_table_set(system, SetConfig(starts=starts), config, out=tmp_path / "lib")  # complete: kept
+    assert again.starts.tolist() == policy.starts.tolist()
