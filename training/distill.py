@@ -295,8 +295,12 @@ def format_comparison(c: dict[str, Any]) -> str:
 @cli_main(interrupted="interrupted: no checkpoint written; rerun with --resume to continue from the last "
                       "finished epoch")
 def main(argv: Sequence[str] | None = None) -> int:
-    """Distil from the flags ``argv``: 0, or 2 after one ``error: ...`` line, or 130 on Ctrl-C."""
-    return distill(parse_args(argv))
+    """Distil from the flags ``argv`` through the library function (:func:`training.distill_policy`): 0, or 2
+    after one ``error: ...`` line, or 130 on Ctrl-C."""
+    from training.api import distill_policy
+
+    distill_policy(parse_args(argv), progress=True)
+    return 0
 
 
 if __name__ == "__main__":
