@@ -15,10 +15,10 @@ from __future__ import annotations
 import dataclasses
 import os
 import sys
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, TypeVar
 
 import numpy as np
 
@@ -33,7 +33,9 @@ from precompute.table_set import MAX_SET_MEMBERS, ensure_table_set, parse_starts
 if TYPE_CHECKING:
     from cuniform_torch.policies.table_set import TableSetPolicy
 
-__all__ = ["BuildConfig", "CoverageConfig", "SetConfig", "build_table", "build_table_set"]
+__all__ = ["BuildConfig", "CoverageConfig", "SetConfig", "build_table", "build_table_set", "library_errors"]
+
+T = TypeVar("T")
 
 
 @dataclass(frozen=True)
@@ -89,8 +91,9 @@ def _job(system: System, config: BuildConfig, coverage: CoverageConfig | None, o
     return TableJob(system=system, out=out, build=config, coverage=coverage, **fields)
 
 
-def _library_errors(run):
-    """``run()`` with the command layer's :class:`CLIError` (an unusable output path, a held lock) as ValueError."""
+def library_errors(run: Callable[[], T]) -> T:
+    """``run()`` with the command layer's :class:`CLIError` (an unusable output path, a held lock) as the
+    ValueError a library call raises (the training jobs use it too)."""
     try:
         return run()
     except CLIError as exc:
@@ -122,7 +125,7 @@ def build_table(system: System, config: BuildConfig | None = None, *, coverage: 
         return _in_memory(job)
     job = _job(system, config, coverage, Path(out), report=report, rollouts=rollouts, device=device, resume=resume,
                max_memory_gb=max_memory_gb, quiet=quiet)
-    return _library_errors(lambda: run_table_job(job))
+    return library_errors(lambda: run_table_job(job))
 
 
 def _in_memory(job: TableJob) -> Table:
@@ -164,5 +167,5 @@ def build_table_set(system: System, config: SetConfig, build: BuildConfig | None
     folder = Path(out)
     template = _job(system, build, coverage, folder / "start_0000.npz", report=False, quiet=not progress)
     starts = config.start_array(system, seed=build.seed)
-    _library_errors(lambda: ensure_table_set(template, starts, folder, config.workers, config.ray))
+    library_errors(lambda: ensure_table_set(template, starts, folder, config.workers, config.ray))
     return load_table_set(folder)

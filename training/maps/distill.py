@@ -33,7 +33,9 @@ from torch.utils.tensorboard import SummaryWriter
 from tqdm import tqdm
 
 from cuniform_torch.common.fileio import MAX_JSON_BYTES, exclusive_lock, read_capped_text
-from cuniform_torch.maps.checkpoint import map_policy_checkpoint, save_map_policy
+from cuniform_torch.maps.checkpoint import load_map_policy, map_policy_checkpoint, save_map_policy
+from cuniform_torch.maps.policy import MapPolicy
+from precompute.api import library_errors
 from precompute.cli import (
     OUT,
     RUNS,
@@ -240,13 +242,33 @@ def _run(cfg: MapDistillConfig, out: Path, state_path: Path) -> int:
     return 0
 
 
+def train_map_policy(config: MapDistillConfig, *, progress: bool = False) -> MapPolicy:
+    """Train a map-conditioned policy on ``config.maps`` (map-table data sets, :mod:`training.maps.distill`).
+    Writes the checkpoint ``config.out`` (default ``out/<first data set>.map_policy.pt``) atomically, the
+    training state beside it and a TensorBoard run under ``config.logdir``. ``progress``: the epoch bar and the
+    summary lines (``config.quiet=True`` keeps them off).
+
+    :return: the trained policy, read back from its checkpoint (:func:`cuniform_torch.maps.load_map_policy`)
+    """
+    if not isinstance(config, MapDistillConfig):
+        raise ValueError(f"config must be a MapDistillConfig, got {type(config).__name__}")
+    cfg = dataclasses.replace(config, quiet=config.quiet or not progress)
+
+    def run() -> str:
+        checked = check_map_config(cfg)
+        distill_maps(checked)
+        assert checked.out is not None
+        return checked.out
+
+    out = library_errors(run)
+    return load_map_policy(Path(out), device=cfg.device)
+
+
 @cli_main(interrupted="interrupted: no checkpoint written; rerun with --resume to continue from the last "
                       "finished epoch")
 def main(argv: Sequence[str] | None = None) -> int:
     """Train from the flags ``argv``: 0, or 2 after one ``error: ...`` line, or 130 on Ctrl-C."""
-    from training.api import train_map_policy  # the library function a Python user calls
-
-    train_map_policy(parse_args(argv), progress=True)
+    train_map_policy(parse_args(argv), progress=True)  # the library function a Python user calls
     return 0
 
 
