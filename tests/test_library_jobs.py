@@ -76,3 +76,45 @@ def test_build_table_set_returns_the_set_and_equals_the_commands(tmp_path):
     starts = np.array([[0.0, 0.0, 0.0, 0.0], [0.0, 0.0, 0.0, 1.0]])  # the same starts as an array
     again = build_table_set(system, SetConfig(starts=starts), config, out=tmp_path / "lib")  # complete: kept
     assert again.starts.tolist() == policy.starts.tolist()
+
+
+# ------------------------------------------------------------------------------------------ training
+
+def test_distill_policy_from_python_is_the_commands_checkpoint(tmp_path, monkeypatch, capsys):
+    """The same DistillConfig from Python and from the command: the same weights; the policy comes back."""
+    import torch
+
+    from training import DistillConfig, distill_policy
+    from training.distill import main as distill_main
+
+    write_table(tmp_path / "t.npz", build_table(make_system("dubins"), BuildConfig(horizon=3)))
+    flags = dict(epochs=3, eval_samples=[50], eval_every=3, logdir=str(tmp_path / "runs"))
+    capsys.readouterr()
+    policy = distill_policy(DistillConfig(tables=[str(tmp_path / "t.npz")], out=str(tmp_path / "lib.pt"), **flags))
+    assert capsys.readouterr().err == ""  # no progress bar from a library call
+    assert distill_main(["--tables", str(tmp_path / "t.npz"), "--out", str(tmp_path / "cli.pt"), "--epochs", "3",
+                         "--eval-samples", "50", "--eval-every", "3", "--logdir", str(tmp_path / "runs"),
+                         "--quiet"]) == 0
+    a, b = (torch.load(tmp_path / f"{n}.pt", weights_only=True)["state_dict"] for n in ("lib", "cli"))
+    assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
+    assert policy.horizon == 3 and policy.system.name == "dubins"
+    with pytest.raises(ValueError, match="--lr"):
+        distill_policy(DistillConfig(tables=[str(tmp_path / "t.npz")], lr=-1.0))
+    with pytest.raises(ValueError, match="DistillConfig.tables"):
+        distill_policy(DistillConfig())
+
+
+def test_train_map_policy_from_python(tmp_path):
+    from test_distill_maps import MAPS, SYSTEM, T, write_dataset
+
+    from training import MapDistillConfig, train_map_policy
+
+    data = write_dataset(tmp_path / "walls", build_table(SYSTEM, BuildConfig(horizon=T)), MAPS)
+    config = MapDistillConfig(maps=[str(data)], out=str(tmp_path / "p.pt"), epochs=2, hidden=16, embed=8,
+                              channels=4, logdir=str(tmp_path / "runs"), skip_deep_checks=True)  # as that file trains
+    policy = train_map_policy(config)
+    assert (tmp_path / "p.pt").is_file() and policy.horizon == T
+    with pytest.raises(ValueError, match="--hidden"):
+        train_map_policy(MapDistillConfig(maps=[str(data)], hidden=0))
+    with pytest.raises(ValueError, match="--maps"):
+        train_map_policy(MapDistillConfig(maps=[str(tmp_path)]))
