@@ -5,6 +5,9 @@ is byte for byte the command's file; the old ``python -m eval.bench.NAME`` spell
 from __future__ import annotations
 
 import hashlib
+import os
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -118,3 +121,29 @@ def test_train_map_policy_from_python(tmp_path):
         train_map_policy(MapDistillConfig(maps=[str(data)], hidden=0))
     with pytest.raises(ValueError, match="--maps"):
         train_map_policy(MapDistillConfig(maps=[str(tmp_path)]))
+
+
+# ------------------------------------------------------------------------------------------ eval.bench subcommands
+
+def test_the_old_eval_bench_spelling_is_refused_naming_the_new(tmp_path):
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}
+    proc = subprocess.run([sys.executable, "-m", "eval.bench.soak_bank", "--commands", "10"], cwd=tmp_path, env=env,
+                          capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 2 and proc.stdout == ""
+    assert proc.stderr.splitlines() == [
+        "error: python -m eval.bench.soak_bank is now a subcommand: python -m eval.bench soak_bank --commands 10"]
+    assert list(tmp_path.iterdir()) == []  # nothing ran
+
+
+def test_eval_bench_dispatches_its_subcommands(monkeypatch, capsys):
+    import eval.bench.cli as bench
+    import eval.bench.family as family
+
+    seen = []
+    monkeypatch.setattr(family, "main", lambda argv: seen.append(argv) or 0)
+    assert bench.main(["family", "--repeats", "3"]) == 0 and seen == [["--repeats", "3"]]
+    assert bench.main(["nope"]) == 2
+    assert "'nope' is not a subcommand" in capsys.readouterr().err
+    parser = bench.make_parser()  # every subcommand's own flags, for --help and the entry-point tests
+    subs = next(a for a in parser._actions if a.choices and "family" in a.choices).choices
+    assert set(subs) == set(bench.COMMANDS) and any("--robots" in a.option_strings for a in subs["family"]._actions)
