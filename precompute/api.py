@@ -22,7 +22,7 @@ from typing import TYPE_CHECKING, TypeVar
 
 import numpy as np
 
-from cuniform_torch.systems import System
+from cuniform_torch.systems import System, check_system
 from cuniform_torch.tables.file import Table
 from precompute.cli import CLIError
 from precompute.coverage.method import CoverageConfig
@@ -77,6 +77,10 @@ class SetConfig:
 
 def _job(system: System, config: BuildConfig, coverage: CoverageConfig | None, out: Path, **fields) -> TableJob:
     """The :class:`TableJob` of the public arguments; a ValueError naming the field that does not fit."""
+    if isinstance(system, str):
+        raise ValueError(f"system must be a System object, e.g. make_system({system!r}) "
+                         "(cuniform_torch.systems.make_system), not its name")
+    check_system(system)  # a user system's missing member or bad grid: one ValueError naming it, before any work
     if not isinstance(config, BuildConfig):
         raise ValueError(f"config must be a BuildConfig (horizon, seed, start, ...), got {type(config).__name__}; "
                          "the coverage method's settings go in coverage=CoverageConfig(...)")

@@ -61,6 +61,8 @@ def test_build_table_in_memory_writes_nothing_and_prints_nothing(tmp_path, monke
     (lambda s: SetConfig(starts="3=0:1:2", workers=0), "SetConfig.workers"),
     (lambda s: build_table_set(s, SetConfig(starts=[[0.0, 1.0]]), out="x"), "SetConfig.starts"),
     (lambda s: build_table(s, BuildConfig(horizon=3), out=Path("/proc/nope/t.npz")), "--out"),
+    (lambda s: build_table("ks_speed", BuildConfig(horizon=3)), "system must be a System object"),
+    (lambda s: build_table(object(), BuildConfig(horizon=3)), "lacks name"),
 ])
 def test_bad_settings_are_one_value_error_naming_the_field(call, field):
     with pytest.raises(ValueError, match=field.replace("(", r"\(")):
