@@ -28,7 +28,8 @@ from precompute.cli import CLIError
 from precompute.coverage.method import CoverageConfig
 from precompute.flow.builder import BuildConfig
 from precompute.one_table import TableJob, run_table_job
-from precompute.table_set import MAX_SET_MEMBERS, ensure_table_set, parse_starts
+from precompute.table_set import MAX_SET_MEMBERS, parse_starts
+from precompute.table_set import build_table_set as build_members
 
 if TYPE_CHECKING:
     from cuniform_torch.policies.table_set import TableSetPolicy
@@ -156,8 +157,8 @@ def build_table_set(system: System, config: SetConfig, build: BuildConfig | None
                     progress: bool = False) -> TableSetPolicy:
     """Build one table of ``system`` per start of ``config`` into the folder ``out`` (``start_0000.npz``, ...,
     ``tables.json``): each member is :func:`build_table` with ``build`` (and ``coverage``) from its start, so
-    byte-identical to that table built alone. A complete set already there with these settings is kept; one built
-    with others is a ValueError naming what differs; members already there are kept (a rerun resumes).
+    byte-identical to that table built alone. Members already there with these settings are kept (a rerun resumes;
+    a complete set is only re-indexed); one built with other settings is a ValueError naming what differs.
     ``random:N`` starts are drawn with ``build.seed``.
 
     :return: the set as a policy (:class:`~cuniform_torch.policies.table_set.TableSetPolicy`, its tables read on
@@ -171,5 +172,5 @@ def build_table_set(system: System, config: SetConfig, build: BuildConfig | None
     folder = Path(out)
     template = _job(system, build, coverage, folder / "start_0000.npz", report=False, quiet=not progress)
     starts = config.start_array(system, seed=build.seed)
-    library_errors(lambda: ensure_table_set(template, starts, folder, config.workers, config.ray))
+    library_errors(lambda: build_members(template, starts, folder, config.workers, config.ray))
     return load_table_set(folder)
