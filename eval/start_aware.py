@@ -1,6 +1,6 @@
 """How well a table set serves starts it was not built at: ``python -m eval.start_aware``.
 
-A table set (``python -m precompute.build --starts SPEC``) is read as one start-aware policy
+A table set (``python -m precompute.build set --starts SPEC``) is read as one start-aware policy
 (:class:`~cuniform_torch.policies.table_set.TableSetPolicy`: each rollout uses the table whose start is nearest). This
 command draws random starts inside the set's start box (and, for an SE(2)-invariant system, random poses), builds
 the table of each exact start, rolls both out N times from that start, and prints per start: the set's miss rate
@@ -163,7 +163,7 @@ def make_parser() -> ArgumentParser:
     p.add_argument("--param", action="append", default=[], metavar="KEY=VALUE", help="a system parameter")
     p.add_argument("--horizon", type=horizon_arg, default=None, help="steps (default 5, or the --set's own)")
     p.add_argument("--starts", default=None, metavar="SPEC",
-                   help="the set's starts (precompute.build --starts; default: ks_speed's speeds 0, 0.2, ..., 1, "
+                   help="the set's starts (precompute.build set --starts; default: ks_speed's speeds 0, 0.2, ..., 1, "
                         "one cell apart)")
     p.add_argument("--set", type=Path, default=None, metavar="DIR",
                    help="a built set to measure instead (its system and horizon are read from its tables)")

@@ -1,6 +1,7 @@
-"""One table, built and written: :class:`TableJob` (the typed form of ``python -m precompute.build`` without
-``--starts``) and :func:`build_table_file`, the library function that the CLI (:mod:`precompute.build`), the table
-set (one job per member start, :mod:`precompute.table_set`) and the evaluations call.
+"""One table, built and written: :class:`TableJob` (the typed job of ``python -m precompute.build maxflow``,
+``coverage`` or ``safe``) and :func:`build_table_file` / :func:`run_table_job`, what the library's
+:func:`precompute.build_table` (and so the command), the table set (one job per member start,
+:mod:`precompute.table_set`) and the evaluations call.
 """
 
 from __future__ import annotations
