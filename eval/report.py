@@ -132,25 +132,32 @@ class Stages:
 
 def build_inputs(paths: OutputPaths, runs: Path, stages: Stages) -> None:
     """Tables and the distilled policy, each made only when missing (or ``force``)."""
-    from precompute.build import build_table_file, parse_job, with_threads
-    from precompute.build_args import parse_build_args
+    from cuniform_torch.systems import make_system
+    from precompute import BuildConfig, CoverageConfig, build_table
+    from precompute.build import with_threads
     from training.distill import distill, parse_args
-
-    def build(argv: list[str]) -> None:
-        # with the command's torch threads (--threads, 1 by default), as `python -m precompute.build` runs it
-        with_threads(parse_build_args(argv).threads, lambda: build_table_file(parse_job(argv)[0]))
 
     def train(argv: list[str]) -> None:
         distill(parse_args(argv))
 
     quiet = ["--quiet"] if paths.quick else []
-    tables = [(paths.table, []), (paths.coverage_table, ["--method", "coverage"])]
+    system = make_system("dubins")
+    tables = [(paths.table, "maxflow", 10), (paths.coverage_table, "coverage", 10)]
     if not paths.quick:
-        tables += [(paths.table_cl, ["--horizon", "15"]),
-                   (paths.coverage_table_cl, ["--method", "coverage", "--horizon", "15"])]
-    for path, extra in tables:
-        if not stages.reuse(path):
-            stages.run_step("precompute.build", ["--out", str(path), *extra, *quiet], build)
+        tables += [(paths.table_cl, "maxflow", 15), (paths.coverage_table_cl, "coverage", 15)]
+    for path, method, horizon in tables:
+        if stages.reuse(path):
+            continue
+        config = BuildConfig(horizon=horizon)
+        coverage = CoverageConfig(horizon=horizon) if method == "coverage" else None
+
+        def build(argv: list[str], path: Path = path, config: BuildConfig = config,
+                  coverage: CoverageConfig | None = coverage) -> None:
+            # the library function the command calls, on the command's one torch thread (its --threads default)
+            with_threads(1, lambda: build_table(system, config, coverage=coverage, out=path, report=True,
+                                                progress=not paths.quick))
+
+        stages.run_step("precompute.build", [method, "--horizon", str(horizon), "--out", str(path), *quiet], build)
     if stages.reuse(paths.policy):
         return
     # the 3 s table (30 606 cells) at the distillation's default; --quick: a brief run, enough to drive a controller

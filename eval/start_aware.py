@@ -1,6 +1,6 @@
 """How well a table set serves starts it was not built at: ``python -m eval.start_aware``.
 
-A table set (``python -m precompute.build --starts SPEC``) is read as one start-aware policy
+A table set (``python -m precompute.build set --starts SPEC``) is read as one start-aware policy
 (:class:`~cuniform_torch.policies.table_set.TableSetPolicy`: each rollout uses the table whose start is nearest). This
 command draws random starts inside the set's start box (and, for an SE(2)-invariant system, random poses), builds
 the table of each exact start, rolls both out N times from that start, and prints per start: the set's miss rate
@@ -34,7 +34,7 @@ from cuniform_torch.metrics import coverage
 from cuniform_torch.policies.table_set import TableSetPolicy
 from cuniform_torch.sampling import StartMismatchWarning
 from cuniform_torch.systems import System, make_system, resolve_system
-from precompute.build import ensure_table_set, parse_job, parse_params
+from precompute import SetConfig, build_table_set
 from precompute.cli import (
     MAX_COUNT,
     ArgumentParser,
@@ -47,6 +47,7 @@ from precompute.cli import (
     positive_int,
 )
 from precompute.flow.builder import BuildConfig, build_table
+from precompute.system_args import parse_params
 from precompute.table_set import parse_starts
 
 __all__ = ["StartRow", "random_starts", "measure_start", "main"]
@@ -162,7 +163,7 @@ def make_parser() -> ArgumentParser:
     p.add_argument("--param", action="append", default=[], metavar="KEY=VALUE", help="a system parameter")
     p.add_argument("--horizon", type=horizon_arg, default=None, help="steps (default 5, or the --set's own)")
     p.add_argument("--starts", default=None, metavar="SPEC",
-                   help="the set's starts (precompute.build --starts; default: ks_speed's speeds 0, 0.2, ..., 1, "
+                   help="the set's starts (precompute.build set --starts; default: ks_speed's speeds 0, 0.2, ..., 1, "
                         "one cell apart)")
     p.add_argument("--set", type=Path, default=None, metavar="DIR",
                    help="a built set to measure instead (its system and horizon are read from its tables)")
@@ -231,13 +232,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         spec = "3=0:1:6" if args.starts is None else args.starts
         parse_starts(spec, system)  # a bad SPEC: its own message, before anything is built
         folder = set_folder(args.cache, name, params, horizon, spec)
-        build_argv = ["--system", args.system or "ks_speed", "--horizon", str(horizon), "--starts", spec,
-                      "--workers", str(args.workers), "--no-report"]
-        build_argv += [w for item in args.param for w in ("--param", item)]
-        build_argv += [w for m in args.system_module for w in ("--system-module", m)]
-        template, table_set = parse_job([*build_argv, "--out", str(folder), *(["--quiet"] if args.quiet else [])])
-        ensure_table_set(template, table_set["starts"], folder, table_set["workers"])
-        policy = _load_set(folder)
+        # the library function `python -m precompute.build set` calls; a complete set there is reused
+        policy = build_table_set(system, SetConfig(starts=spec, workers=args.workers), BuildConfig(horizon=horizon),
+                                 out=folder, progress=not args.quiet)
     set_starts = policy.starts.numpy()
     dims = [k for k in range(set_starts.shape[1]) if np.ptp(set_starts[:, k]) > 0]
     if getattr(system, "se2_invariant", False):

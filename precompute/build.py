@@ -112,11 +112,19 @@ def _job_of(args: argparse.Namespace) -> tuple[TableJob, dict]:
 
 
 def _run(args: argparse.Namespace) -> int:
+    """The job of ``args`` through the library functions a Python user calls (:mod:`precompute.api`)."""
+    from precompute.api import SetConfig, build_table
+    from precompute.api import build_table_set as build_set
+
     job, table_set = _job_of(args)
     if table_set:
-        build_table_set(job, **table_set)
+        config = SetConfig(starts=table_set["starts"], workers=table_set["workers"], ray=table_set["ray_address"],
+                           no_limit=True)  # the flags' limit was checked when --starts was parsed
+        build_set(job.system, config, job.build, coverage=job.coverage, out=table_set["out"], progress=not job.quiet)
     else:
-        build_table_file(job)
+        build_table(job.system, job.build, coverage=job.coverage, out=job.out, report=job.report,
+                    rollouts=job.rollouts, device=job.device, resume=job.resume, max_memory_gb=job.max_memory_gb,
+                    progress=not job.quiet)
     return 0
 
 

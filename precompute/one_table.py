@@ -1,6 +1,7 @@
-"""One table, built and written: :class:`TableJob` (the typed form of ``python -m precompute.build`` without
-``--starts``) and :func:`build_table_file`, the library function that the CLI (:mod:`precompute.build`), the table
-set (one job per member start, :mod:`precompute.table_set`) and the evaluations call.
+"""One table, built and written: :class:`TableJob` (the typed job of ``python -m precompute.build maxflow``,
+``coverage`` or ``safe``) and :func:`build_table_file` / :func:`run_table_job`, what the library's
+:func:`precompute.build_table` (and so the command), the table set (one job per member start,
+:mod:`precompute.table_set`) and the evaluations call.
 """
 
 from __future__ import annotations
@@ -16,13 +17,13 @@ from typing import Any
 
 from cuniform_torch.common.fileio import exclusive_lock, write_json
 from cuniform_torch.systems import System
-from cuniform_torch.tables.file import write_table
+from cuniform_torch.tables.file import Table, write_table
 from precompute.cli import CLIError, check_output_file
 from precompute.coverage.method import CoverageConfig
 from precompute.flow.builder import BuildConfig, SizeGuide, available_memory_bytes, build_table, check_resume
 from precompute.report import format_report, uniformity_report
 
-__all__ = ["TableJob", "build_table_file", "check_device"]
+__all__ = ["TableJob", "build_table_file", "run_table_job", "check_device"]
 
 
 @dataclass(frozen=True)
@@ -115,6 +116,12 @@ def build_table_file(job: TableJob) -> Path:
     """Build the table ``job`` describes, write it (atomically) and its report JSON; return the table's path.
     A bad setting, an unusable ``out`` or a refused resume is a ValueError / CLIError; Ctrl-C a KeyboardInterrupt
     saying what survives."""
+    run_table_job(job)
+    return job.out
+
+
+def run_table_job(job: TableJob) -> Table:
+    """:func:`build_table_file`, returning the table it wrote (what :func:`precompute.build_table` returns)."""
     check_output_file(job.out, "--out", example="table.npz")
     if job.report:
         check_device(job.device)
@@ -122,7 +129,7 @@ def build_table_file(job: TableJob) -> Path:
         return _build(job)
 
 
-def _build(job: TableJob) -> Path:
+def _build(job: TableJob) -> Table:
     """Build, write and report, holding the lock of ``job.out``."""
     system, config, coverage_config, out = job.system, job.build, job.coverage, job.out
     horizon = config.horizon
@@ -214,4 +221,4 @@ def _build(job: TableJob) -> Path:
         say(f"report: {report.num_rollouts} rollouts in {summary['report_seconds']:.2f}s")
     write_json(report_path, summary)
     say(f"wrote {report_path}")
-    return out
+    return table

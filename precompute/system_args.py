@@ -47,7 +47,7 @@ def register_factory(spec: str) -> None:
 
 
 def make_cli_system(spec: str, name: str, params: dict[str, Any]):
-    """``make_system``, with an allocation failure (``--num-actions 10**12``) or a user system's own exception
+    """``make_system``, with an allocation failure (``--param num_actions=10**12``) or a user system's own exception
     as a CLIError naming the system and its parameters."""
     try:
         return make_system(name, **params)
@@ -57,8 +57,8 @@ def make_cli_system(spec: str, name: str, params: dict[str, Any]):
         given = ", ".join(f"{k}={v!r}" for k, v in params.items())
         oom = out_of_memory_message(exc)
         if oom is not None:
-            raise CLIError(f"--system {name}" + (f" ({given})" if given else "") + f": {oom}; make --num-actions "
-                           "(or the grid) smaller") from None
+            raise CLIError(f"--system {name}" + (f" ({given})" if given else "") + f": {oom}; make num_actions "
+                           "(--param num_actions=N) or the grid smaller") from None
         if not is_builtin(_REGISTRY[name]):
             raise CLIError(f"--system {spec}: building or checking it failed ({type(exc).__name__}: {exc})") from None
         raise  # a built-in system that fails is a bug

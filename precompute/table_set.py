@@ -1,4 +1,4 @@
-"""A table set: independent tables of one system built from many starts (``python -m precompute.build --starts``).
+"""A table set: independent tables of one system built from many starts (``python -m precompute.build set --starts``).
 
 ``--starts SPEC`` names the starts over the state dimensions that matter (others are 0):
 

@@ -1,4 +1,4 @@
-"""``python -m eval.bench.family --clock thread``: a command's CPU time, not the time it waited (a loaded machine)."""
+"""``python -m eval.bench family --clock thread``: a command's CPU time, not the time it waited (a loaded machine)."""
 
 from __future__ import annotations
 

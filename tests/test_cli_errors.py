@@ -111,7 +111,7 @@ def test_build_allocation_failure_is_one_line(tmp_path, capsys, monkeypatch):
 
     monkeypatch.setattr(system_args, "make_system", alloc_fails)
     assert build.main(_build(tmp_path / "t.npz")) == 2
-    _one_error(capsys, "out of memory", "8e+03 GB", "--num-actions")
+    _one_error(capsys, "out of memory", "8e+03 GB", "--param num_actions=N")
 
 
 def test_build_full_disk_on_the_final_write_keeps_the_levels(tmp_path, capsys, monkeypatch):
@@ -187,7 +187,7 @@ def test_build_ctrl_c_is_one_line(tmp_path, capsys, monkeypatch):
 
 @pytest.mark.parametrize("changed, message", [
     (["--horizon", "4"], "--horizon was 3, now 4"),
-    (["--param", "num_actions=7"], "--num-actions was 5, now 7"),
+    (["--param", "num_actions=7"], "--param num_actions was 5, now 7"),
     (["--points", "lattice"], "--points was 'centers', now 'lattice'"),
 ])
 def test_build_resume_with_changed_settings_is_refused(tmp_path, capsys, monkeypatch, changed, message):

@@ -17,15 +17,18 @@ import pytest
 import yaml
 
 import cuniform_torch
+import precompute
+import training
 
 ROOT = Path(__file__).resolve().parents[1]
 DOCS = ROOT / "docs"
 API_PAGE = DOCS / "api" / "toplevel.md"
 HOOK = DOCS / "hooks" / "sphinx_roles.py"
-BUILD_AND_DISTILL = ["precompute.flow.builder.BuildConfig", "precompute.flow.builder.build_table",
-                     "training.distill.DistillConfig", "training.distill.distill", "training.auto.auto_cuniform",
-                     "cuniform_torch.pytorch_mppi.MPPI", "cuniform_torch.pytorch_mppi.MPPI_Batched"]
-"""the page's names beyond ``cuniform_torch.__all__``: the build and distill functions, the pytorch_mppi drop-in"""
+BUILD_AND_DISTILL = [*(f"precompute.api.{n}" for n in precompute.__all__), *(f"training.api.{n}" for n in training.__all__),
+                     "training.auto.auto_cuniform", "cuniform_torch.pytorch_mppi.MPPI",
+                     "cuniform_torch.pytorch_mppi.MPPI_Batched"]
+"""the page's names beyond ``cuniform_torch.__all__``: every public name of ``precompute`` and ``training`` (the
+library's jobs), auto_cuniform, the pytorch_mppi drop-in"""
 RAW_ROLE = re.compile(r":(?:class|func|meth|mod|attr|data|exc|obj|const):(?:`|<code>)")
 MACHINE_PATH = re.compile(r"(?<![\w.~])/(?:tmp|root|work|home)/")
 

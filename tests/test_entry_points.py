@@ -153,8 +153,10 @@ def test_every_command_is_found_and_wrapped():
 def test_the_cases_cover_the_reported_flags():
     ids = {(c.values[0], c.values[1][-2]) for c in CASES}
     for name in ("eval.paper.cluttered", "eval.paper.coverage", "eval.paper.sudden_obstacle", "eval.paper.uniformity",
-                 "eval.bench.soak_bank", "eval.bench"):
+                 "eval.bench"):
         assert (name, "--device") in ids, name
+    subs = {c.values[1][0] for c in CASES if c.values[0] == "eval.bench" and len(c.values[1]) == 3}
+    assert {"controllers", "soak_bank", "family"} <= subs, subs  # python -m eval.bench SUB: each one's flags
     assert ("eval.navigate", "--horizon") in ids and ("training.maps.timing", "--threads") in ids
     argvs = {tuple(c.values[1][:-1]) for c in CASES if c.values[0] == "precompute.build"}
     assert {("maxflow", "--rollouts"), ("coverage", "--seed"), ("set", "--workers"), ("safe", "--horizon"),
@@ -220,10 +222,12 @@ def _ran(*args, **kwargs):
     ("eval.navigate", ["--suite", "forest", "--barn-worlds", "w"], ["--barn-worlds", "--suite forest"], "eval.navigate.run:_robot"),
     ("eval.navigate", ["--suite", "barn", "--sensing-range", "2"], ["--sensing-range", "--suite barn"], "eval.navigate.run:_robot"),
     ("eval.navigate", ["--tasks", "100000", "--repeats", "10"], ["episodes", "--no-limit"], "eval.navigate.run:_robot"),
-    ("eval.bench", ["--rollout-only", "--table", "GARBAGE"], ["--table", "--rollout-only"], "check_output_file"),
-    ("eval.bench", ["--horizons", "15", "--table", "GARBAGE"], ["--table", "--horizons"], "check_output_file"),
-    ("eval.bench.soak_bank", ["--table", "t.npz", "--horizon", "10"], ["--horizon", "--table"],
-     "import_system_modules"),
+    ("eval.bench", ["controllers", "--rollout-only", "--table", "GARBAGE"], ["--table", "--rollout-only"],
+     "eval.bench.controllers:check_output_file"),
+    ("eval.bench", ["controllers", "--horizons", "15", "--table", "GARBAGE"], ["--table", "--horizons"],
+     "eval.bench.controllers:check_output_file"),
+    ("eval.bench", ["soak_bank", "--table", "t.npz", "--horizon", "10"], ["--horizon", "--table"],
+     "eval.bench.soak_bank:import_system_modules"),
     ("training.maps.timing", ["--checkpoint", "p.pt", "--layers", "3"], ["--layers", "--checkpoint"], "make_system"),
     ("eval.mountain_car", ["--methods", "mppi", "--set-grid", "3x3"], ["--set-grid", "--methods"],
      "check_output_folder"),
@@ -346,7 +350,7 @@ def test_ctrl_c_while_importing_is_one_line_and_130(name, tmp_path):
 
 def test_ctrl_c_during_the_heavy_imports(tmp_path):
     """No pause: the signal lands while torch imports (or, on a very fast machine, in main): the same line and code."""
-    proc = _python_m("eval.bench.soak_bank", "--commands", "1000000", "--quiet", pause="0", cwd=tmp_path)
+    proc = _python_m("eval.bench", "soak_bank", "--commands", "1000000", "--quiet", pause="0", cwd=tmp_path)
     _wait_for_line(proc, "importing")
     code, err = _interrupt(proc)
     assert code == cli.EXIT_INTERRUPTED and err == "interrupted\n", (code, err)

@@ -183,24 +183,24 @@ def test_the_stage_table_says_what_cost_what():
 
 
 def test_the_report_builds_its_tables_on_the_commands_one_thread(tmp_path, monkeypatch):
-    import precompute.build
+    import precompute.api
     import training.distill
     from eval.common.paths import OutputPaths
     from eval.report import Stages, build_inputs
 
     seen = []
 
-    def build(job):  # the threads it ran with; an empty file stands for the table
-        seen.append((job.out.name, torch.get_num_threads()))
-        job.out.write_bytes(b"")
+    def build(system, config, *, coverage, out, **kwargs):  # the threads it ran with; an empty file: the table
+        seen.append((out.name, torch.get_num_threads(), config.horizon, coverage is not None))
+        out.write_bytes(b"")
 
-    monkeypatch.setattr(precompute.build, "build_table_file", build)
+    monkeypatch.setattr(precompute.api, "build_table", build)  # the library function eval.report calls
     monkeypatch.setattr(training.distill, "distill", lambda cfg: None)
     threads = torch.get_num_threads()
     stages = Stages()
     stages.stage("tables and policy", lambda: build_inputs(OutputPaths(tmp_path, quick=True), tmp_path / "runs",
                                                            stages))
-    assert seen == [("dubins.npz", 1), ("dubins_cov.npz", 1)]  # as `python -m precompute.build` (--threads 1)
+    assert seen == [("dubins.npz", 1, 10, False), ("dubins_cov.npz", 1, 10, True)]  # as the command (--threads 1)
     assert torch.get_num_threads() == threads
     assert [step for step, _ in stages.steps["tables and policy"]] == [
         "precompute.build dubins.npz", "precompute.build dubins_cov.npz", "training.distill dubins.policy.pt"]

@@ -446,7 +446,7 @@ def test_build_prints_the_projection_and_warns_before_exceeding_memory(tmp_path,
     captured = capsys.readouterr()
     assert re.search(r"projected level sizes after 5 levels .*: \[\d+, \d+, \d+\] for levels 6..8", captured.out)
     assert re.search(r"warning: this build is projected to need about [\d.]+ GB, more than the 0.0 GB available "
-                     r"\(--max-memory\); make it smaller with a shorter --horizon .* or a coarser --cell-size",
+                     r"\(--max-memory\); make it smaller with a shorter --horizon .* or a coarser grid \(--param cell_size=",
                      captured.err)
     report = json.loads((tmp_path / "ks.report.json").read_text())
     assert report["size_guide"]["warned"] and len(report["size_guide"]["projected_level_sizes"]) == 9

@@ -1,5 +1,9 @@
 """Distillation of C-Uniform tables into small MLP policies.
 
+The library's training jobs are importable from here (:mod:`training.api`; they load on first use)::
+
+    from training import DistillConfig, MapDistillConfig, distill_policy, train_map_policy
+
 * ``python -m training.distill --tables out/dubins.npz``: the training script (:mod:`training.distill`), one
   table (or several pooled) -> pi(u | x, t); ``--tables DIR`` of a table set (:mod:`training.sets.distill`) ->
   one start-conditioned pi(u | x, t, x0);
@@ -12,6 +16,25 @@
   :mod:`training.tables.figures` (TensorBoard figures), :mod:`training.tables.support` (the cells a checkpoint records).
 """
 
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, Any
+
 from precompute.startup import install_when_run_as_command
 
 install_when_run_as_command()  # python -m ...: Ctrl-C during the imports is one line and exit 130
+
+if TYPE_CHECKING:
+    from training.api import DistillConfig, MapDistillConfig, distill_policy, train_map_policy
+
+__all__ = ["DistillConfig", "MapDistillConfig", "distill_policy", "train_map_policy"]
+
+
+def __getattr__(name: str) -> Any:
+    """The public names of :mod:`training.api`, imported on first use (``python -m training.distill`` would
+    otherwise find its own module imported before it runs)."""
+    if name in __all__:
+        import training.api
+
+        return getattr(training.api, name)
+    raise AttributeError(f"module 'training' has no attribute {name!r}")

@@ -51,10 +51,11 @@ import torch
 
 from cuniform_torch.common.fileio import exclusive_lock
 from cuniform_torch.grid.cells import Grid
-from cuniform_torch.policies.checkpoint import policy_checkpoint, save_policy
+from cuniform_torch.policies.checkpoint import load_policy, policy_checkpoint, save_policy
 from cuniform_torch.policies.mlp import MAX_FREQUENCIES, MLPConfig, MLPPolicy, default_feature_scale
 from cuniform_torch.policies.table import TablePolicy
 from cuniform_torch.tables.file import Table, read_table_sha256
+from precompute.api import library_errors
 from precompute.cli import (
     OUT,
     ArgumentParser,
@@ -266,6 +267,30 @@ def _distill(cfg: DistillConfig) -> int:
     return 0
 
 
+def distill_policy(config: DistillConfig, *, progress: bool = False) -> MLPPolicy:
+    """Distil ``config.tables`` into an MLP (module :mod:`training.distill`): pi(u | x, t) from table files, or
+    the start-conditioned pi(u | x, t, x0) from one table-set folder. Writes the checkpoint ``config.out``
+    (default ``out/<first table stem>.policy.pt``) atomically, its training state and comparison JSON beside it,
+    and a TensorBoard run under ``config.logdir``. ``progress``: the epoch bar (``config.quiet=True`` keeps it off).
+
+    :return: the trained policy, read back from its checkpoint (:func:`cuniform_torch.load_policy`)
+    """
+    if not isinstance(config, DistillConfig):
+        raise ValueError(f"config must be a DistillConfig, got {type(config).__name__}")
+    cfg = dataclasses.replace(config, quiet=config.quiet or not progress)
+
+    def run() -> str:
+        checked = check_config(dataclasses.replace(cfg, tables=[str(t) for t in cfg.tables]))  # out filled
+        distill(checked)
+        assert checked.out is not None
+        return checked.out
+
+    if not cfg.tables:
+        raise ValueError("DistillConfig.tables is empty: give table files, or one table-set folder")
+    out = library_errors(run)
+    return load_policy(out, device=cfg.device)
+
+
 def format_comparison(c: dict[str, Any]) -> str:
     """A short human-readable summary of the comparison dict."""
     s = c["sizes"]
@@ -295,8 +320,10 @@ def format_comparison(c: dict[str, Any]) -> str:
 @cli_main(interrupted="interrupted: no checkpoint written; rerun with --resume to continue from the last "
                       "finished epoch")
 def main(argv: Sequence[str] | None = None) -> int:
-    """Distil from the flags ``argv``: 0, or 2 after one ``error: ...`` line, or 130 on Ctrl-C."""
-    return distill(parse_args(argv))
+    """Distil from the flags ``argv`` through the library function (:func:`training.distill_policy`): 0, or 2
+    after one ``error: ...`` line, or 130 on Ctrl-C."""
+    distill_policy(parse_args(argv), progress=True)  # the library function a Python user calls
+    return 0
 
 
 if __name__ == "__main__":

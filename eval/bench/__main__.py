@@ -1,7 +1,7 @@
-"""``python -m eval.bench``: runs :func:`eval.bench.controllers.main`."""
+"""``python -m eval.bench SUB [flags]``: runs :func:`eval.bench.cli.main` (the subcommands)."""
 
 import sys
 
-from eval.bench.controllers import main
+from eval.bench.cli import main
 
 sys.exit(main())

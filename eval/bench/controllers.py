@@ -1,7 +1,7 @@
 """Per-command time of the MPPI family, side by side with pytorch_mppi, and bare rollout times.
 
-    python -m eval.bench                         # K in {500, 1000, 10000}, T = 15 and the table's T
-    python -m eval.bench --samples 1000 --repeats 50 --json out/bench.json
+    python -m eval.bench controllers             # K in {500, 1000, 10000}, T = 15 and the table's T
+    python -m eval.bench controllers --samples 1000 --repeats 50 --json out/bench.json
 
 Every controller runs on the same Dubins dynamics and the same cost (squared distance to a goal summed over the
 horizon), from the same state; each figure is the median of ``--repeats`` timed commands after ``--warmup``
@@ -89,7 +89,7 @@ def _table(path: Path, horizon: int):
 
 
 def make_parser() -> ArgumentParser:
-    p = ArgumentParser(prog="python -m eval.bench", description=__doc__.split("\n\n")[0])
+    p = ArgumentParser(prog="python -m eval.bench controllers", description=__doc__.split("\n\n")[0])
     p.add_argument("--samples", type=int_in(2, MAX_COUNT), nargs="+", default=[500, 1000, 10000],
                    help="K, samples per command (each >= 2: CU-MPPI splits it in two)")
     p.add_argument("--horizons", type=horizon_arg, nargs="+", default=[15, 10], help="15 and the default table's 10")

@@ -1,8 +1,8 @@
 """Per-command time of the whole MPPI family on the navigation robot, side by side, for one robot or a batch.
 
-    python -m eval.bench.family                                  # K = 64, 256, 1024; T = 15; one robot
-    python -m eval.bench.family --robots 64 --samples 256        # a batch of 64 robots per command
-    python -m eval.bench.family --device cuda --samples 1024 8192 --horizon 15 100
+    python -m eval.bench family                                  # K = 64, 256, 1024; T = 15; one robot
+    python -m eval.bench family --robots 64 --samples 256        # a batch of 64 robots per command
+    python -m eval.bench family --device cuda --samples 1024 8192 --horizon 15 100
 
 Every controller drives the navigation benchmark's robot (Dubins, 0.5 m/s, 7 turn rates, dt 0.2 s) on BARN map 0
 (the shipped half) under the navigation cost, from the map's start (robot ``b`` a little further along x): MPPI
@@ -24,7 +24,6 @@ from __future__ import annotations
 
 import os
 import statistics
-import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -32,6 +31,7 @@ from pathlib import Path
 import torch
 
 from cuniform_torch.common.fileio import write_json
+from eval.bench.cli import refuse_old_spelling
 from precompute.cli import (
     ArgumentParser,
     check_output_file,
@@ -48,7 +48,7 @@ METHODS = ("mppi", "log_mppi", "mppi_pink", "mppi_lowpass", "smppi", "kmppi", "c
 
 
 def make_parser() -> ArgumentParser:
-    p = ArgumentParser(prog="python -m eval.bench.family", description=(__doc__ or "").split("\n\n")[0])
+    p = ArgumentParser(prog="python -m eval.bench family", description=(__doc__ or "").split("\n\n")[0])
     p.add_argument("--samples", type=positive_int, nargs="+", default=[64, 256, 1024], help="K per robot")
     p.add_argument("--horizon", type=horizon_arg, nargs="+", default=[15],
                    help="T (the table and the map policy serve up to 15)")
@@ -250,5 +250,4 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
-if __name__ == "__main__":
-    sys.exit(main())
+refuse_old_spelling(__name__, "family")  # run as the old module command: one line naming the new spelling, exit 2

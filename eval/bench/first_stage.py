@@ -1,6 +1,6 @@
 """CU-MPPI's first stage, whole plan against lean, in one process: per-command CPU time side by side.
 
-    python -m eval.bench.first_stage                       # K = 64, 256, 1024; T = 15; 300 rounds
+    python -m eval.bench first_stage                       # K = 64, 256, 1024; T = 15; 300 rounds
 
 Two CU-MPPI controllers of the same seed drive the family benchmark's robot on BARN map 0 (its start, the
 navigation cost, the robot's max-flow table): one as it is (the first stage proposes, costs, takes the argmin and
@@ -32,11 +32,12 @@ from pathlib import Path
 
 import torch
 
+from eval.bench.cli import refuse_old_spelling
 from precompute.cli import ArgumentParser, cli_main, non_negative_int, positive_int
 
 
 def make_parser() -> ArgumentParser:
-    p = ArgumentParser(prog="python -m eval.bench.first_stage", description=(__doc__ or "").split("\n\n")[0])
+    p = ArgumentParser(prog="python -m eval.bench first_stage", description=(__doc__ or "").split("\n\n")[0])
     p.add_argument("--samples", type=positive_int, nargs="+", default=[64, 256, 1024], help="K (both stages)")
     p.add_argument("--repeats", type=positive_int, default=300)
     p.add_argument("--warmup", type=non_negative_int, default=30)
@@ -150,5 +151,4 @@ def _parts(args, table, cost, state: torch.Tensor) -> int:
     return 0
 
 
-if __name__ == "__main__":
-    sys.exit(main())
+refuse_old_spelling(__name__, "first_stage")  # run as the old module command: one line naming the new spelling, exit 2

@@ -1,6 +1,6 @@
 """Benchmark the max-flow solvers on the flow networks of a real table, side by side.
 
-    python -m eval.bench.maxflow --table out/paper.npz --levels 6 9 12 15 --networkx-max-nodes 30000
+    python -m eval.bench maxflow --table out/paper.npz --levels 6 9 12 15 --networkx-max-nodes 30000
 
 For each chosen step t -> t+1 of the table: the network size, scipy's Dinic (what the builder uses; median of
 repeats), and networkx's preflow-push on the same network (once; skipped above ``--networkx-max-nodes``), the
@@ -16,6 +16,7 @@ from pathlib import Path
 
 from cuniform_torch.common.fileio import write_json
 from cuniform_torch.tables.file import read_table
+from eval.bench.cli import refuse_old_spelling
 from eval.common.paths import DEFAULT
 from precompute.cli import (
     ArgumentParser,
@@ -31,7 +32,7 @@ from precompute.flow.maxflow import maxflow_value_networkx, solve_maxflow
 
 
 def make_parser() -> ArgumentParser:
-    p = ArgumentParser(prog="python -m eval.bench.maxflow", description=__doc__.split("\n\n")[0])
+    p = ArgumentParser(prog="python -m eval.bench maxflow", description=__doc__.split("\n\n")[0])
     p.add_argument("--table", type=Path, default=DEFAULT.table)
     p.add_argument("--levels", type=positive_int, nargs="+", default=None,
                    help="target levels t+1 (default: every level)")
@@ -88,5 +89,4 @@ def main(argv=None) -> int:
     return 0
 
 
-if __name__ == "__main__":
-    sys.exit(main())
+refuse_old_spelling(__name__, "maxflow")  # run as the old module command: one line naming the new spelling, exit 2

@@ -1,8 +1,8 @@
 """Many robots in one call: 32 pendulums swung up by one batched MPPI, by 32 MPPI controllers in a loop, and by
 pytorch_mppi's ``MPPI_Batched``, side by side.
 
-    python -m eval.bench.pendulum                      # 32 pendulums, K = 100, T = 15, 200 steps
-    python -m eval.bench.pendulum --robots 64 --steps 100
+    python -m eval.bench pendulum                      # 32 pendulums, K = 100, T = 15, 200 steps
+    python -m eval.bench pendulum --robots 64 --steps 100
 
 The pendulum of pytorch_mppi's own example (gym's Pendulum-v1 dynamics: g = 10, m = l = 1, dt = 0.05, torque in
 [-2, 2], speed clipped to [-8, 8]; per-step cost ``angle^2 + 0.1 speed^2`` of the next state), noise covariance
@@ -16,13 +16,13 @@ from __future__ import annotations
 import dataclasses
 import math
 import os
-import sys
 import time
 from pathlib import Path
 
 import torch
 
 from cuniform_torch.common.fileio import write_json
+from eval.bench.cli import refuse_old_spelling
 from precompute.cli import (
     ArgumentParser,
     check_output_file,
@@ -146,7 +146,7 @@ def run(method: str, starts: torch.Tensor, args, tables=None) -> tuple[float, fl
 
 
 def make_parser() -> ArgumentParser:
-    p = ArgumentParser(prog="python -m eval.bench.pendulum", description=(__doc__ or "").split("\n\n")[0])
+    p = ArgumentParser(prog="python -m eval.bench pendulum", description=(__doc__ or "").split("\n\n")[0])
     p.add_argument("--robots", type=positive_int, default=32)
     p.add_argument("--samples", type=positive_int, default=100, help="K per robot")
     p.add_argument("--horizon", type=horizon_arg, default=15)
@@ -204,5 +204,4 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
-if __name__ == "__main__":
-    sys.exit(main())
+refuse_old_spelling(__name__, "pendulum")  # run as the old module command: one line naming the new spelling, exit 2

@@ -1,6 +1,6 @@
 """A pytorch_mppi user's script: the pendulum swing-up of pytorch_mppi's example (tests/pendulum.py), with gym's
 Pendulum-v1 equations in a few lines of numpy instead of gym. The twin files pendulum_user_pytorch_mppi.py and
-pendulum_user_cuniform.py differ by the import line only; ``python -m eval.bench.switch_pendulum`` runs both
+pendulum_user_cuniform.py differ by the import line only; ``python -m eval.bench switch_pendulum`` runs both
 (``run(seed)``: one episode's total reward) and prints their returns side by side.
 """
 

@@ -1,4 +1,4 @@
-"""Where a control cycle goes, from a cProfile of a benchmark run:  python -m eval.bench.profile_split PROFILE
+"""Where a control cycle goes, from a cProfile of a benchmark run:  python -m eval.bench profile_split PROFILE
 
 Make the profile with ``python -m cProfile -o PROFILE -m eval.navigate ... --methods M --budgets K --workers 1``
 (one method and one K per profile: the split is per command of the whole run). Printed, in ms per command:
@@ -22,11 +22,11 @@ times.
 from __future__ import annotations
 
 import pstats
-import sys
 from collections.abc import Sequence
 from pathlib import Path
 
 from cuniform_torch.common.fileio import check_regular
+from eval.bench.cli import refuse_old_spelling
 from precompute.cli import ArgumentParser, CLIError, cli_main
 
 __all__ = ["split", "main"]
@@ -80,7 +80,7 @@ def split(profile: str | Path) -> dict[str, float]:
 
 
 def make_parser() -> ArgumentParser:
-    p = ArgumentParser(prog="python -m eval.bench.profile_split", description=__doc__.splitlines()[0])
+    p = ArgumentParser(prog="python -m eval.bench profile_split", description=__doc__.splitlines()[0])
     p.add_argument("profiles", nargs="+", help="cProfile output files (python -m cProfile -o FILE -m eval.navigate ...)")
     return p
 
@@ -97,5 +97,4 @@ def main(argv: Sequence[str] | None = None) -> int:
     return 0
 
 
-if __name__ == "__main__":
-    sys.exit(main())
+refuse_old_spelling(__name__, "profile_split")  # run as the old module command: one line naming the new spelling, exit 2

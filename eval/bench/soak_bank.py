@@ -1,7 +1,7 @@
 """Soak of the background proposal bank: many C-Uniform commands while a worker thread refreshes the bank.
 
-    python -m eval.bench.soak_bank                                    # 20 000 commands, bank 20 000, K = 1000, refresh 5
-    python -m eval.bench.soak_bank --commands 20000 --fail-once --json out/soak_bank.json
+    python -m eval.bench soak_bank                                    # 20 000 commands, bank 20 000, K = 1000, refresh 5
+    python -m eval.bench soak_bank --commands 20000 --fail-once --json out/soak_bank.json
 
 A :class:`~cuniform_torch.controllers.mppi.CUniformMPPI` with ``bank_background=True`` runs ``--commands`` commands from one
 pose on the Dubins car (cost: squared distance to a goal summed over the horizon). Every ``--sample-every``
@@ -16,7 +16,6 @@ finite.
 
 from __future__ import annotations
 
-import sys
 import threading
 import warnings
 from dataclasses import asdict, dataclass
@@ -28,6 +27,7 @@ from tqdm import tqdm
 from cuniform_torch import CUniformMPPI, Dubins, load_table
 from cuniform_torch.common.fileio import write_json
 from cuniform_torch.controllers.mppi import BankRefreshWarning
+from eval.bench.cli import refuse_old_spelling
 from precompute.cli import (
     MAX_COUNT,
     ArgumentParser,
@@ -148,7 +148,7 @@ def _policy(path: Path | None, horizon: int, device: str):
 
 
 def make_parser() -> ArgumentParser:
-    p = ArgumentParser(prog="python -m eval.bench.soak_bank", description=__doc__.split("\n\n")[0])
+    p = ArgumentParser(prog="python -m eval.bench soak_bank", description=__doc__.split("\n\n")[0])
     p.add_argument("--commands", type=positive_int, default=20000)
     p.add_argument("--samples", type=int_in(2, MAX_COUNT), default=1000, help="K, proposals per command")
     p.add_argument("--bank-size", type=positive_int, default=20000)
@@ -185,5 +185,4 @@ def main(argv=None) -> int:
     return 0 if result.finite and result.worker_threads_after_close == 0 else 1
 
 
-if __name__ == "__main__":
-    sys.exit(main())
+refuse_old_spelling(__name__, "soak_bank")  # run as the old module command: one line naming the new spelling, exit 2

@@ -1,8 +1,8 @@
 """A pytorch_mppi user switches by changing the import line: the same pendulum script run with pytorch_mppi and with
 ``cuniform_torch.pytorch_mppi``, the returns of each seed side by side.
 
-    python -m eval.bench.switch_pendulum                 # seeds 0 1 2, 200 steps each
-    python -m eval.bench.switch_pendulum --defaults      # also this library's MPPI with its defaults (below)
+    python -m eval.bench switch_pendulum                 # seeds 0 1 2, 200 steps each
+    python -m eval.bench switch_pendulum --defaults      # also this library's MPPI with its defaults (below)
 
 The script is :mod:`eval.bench.pendulum_user_pytorch_mppi`; its twin :mod:`eval.bench.pendulum_user_cuniform` differs
 by the import line only (printed first, as a unified diff). Each episode starts hanging down (angle pi, speed 1);
@@ -20,13 +20,13 @@ from __future__ import annotations
 import difflib
 import os
 import statistics
-import sys
 import time
 from pathlib import Path
 
 import torch
 
 from cuniform_torch.common.fileio import write_json
+from eval.bench.cli import refuse_old_spelling
 from precompute.cli import ArgumentParser, check_output_file, cli_main, non_negative_int, positive_int
 
 HERE = Path(__file__).parent
@@ -58,7 +58,7 @@ def run_defaults(seed: int, steps: int) -> float:
 
 
 def make_parser() -> ArgumentParser:
-    p = ArgumentParser(prog="python -m eval.bench.switch_pendulum", description=(__doc__ or "").split("\n\n")[0])
+    p = ArgumentParser(prog="python -m eval.bench switch_pendulum", description=(__doc__ or "").split("\n\n")[0])
     p.add_argument("--seed", dest="seeds", type=non_negative_int, nargs="+", default=[0, 1, 2],
                    help="the seeds, one run of each script per seed (default 0 1 2)")
     p.add_argument("--steps", type=positive_int, default=200)
@@ -103,5 +103,4 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
-if __name__ == "__main__":
-    sys.exit(main())
+refuse_old_spelling(__name__, "switch_pendulum")  # run as the old module command: one line naming the new spelling, exit 2

@@ -156,6 +156,22 @@ def _map_settings(config: BuildConfig) -> dict:
             "map_shape": list(m.shape), "map_radius": float(config.radius), "map_rule": SAFE_RULE}
 
 
+_BUILD_FLAGS = {"system": "--system", "horizon": "--horizon", "points": "--points", "points_per_cell": "--points-per-cell",
+                "seed": "--seed", "ties": "--ties", "map_radius": "--radius"}
+"""the flags of ``python -m precompute.build`` that set a build setting; the other settings are the map's or the
+system's parameters"""
+
+
+def _setting_name(key: str) -> str:
+    """How a user sets the build setting ``key``: its flag, ``--param KEY`` for a system parameter (the per-system
+    flags such as ``--num-actions`` are gone), or the map's own (its file decides)."""
+    if key in _BUILD_FLAGS:
+        return _BUILD_FLAGS[key]
+    if key.startswith("map_"):
+        return f"the map's {key[4:]} (--map)"
+    return f"--param {key}"
+
+
 def check_resume(checkpoint_dir: str | Path, system: System, config: BuildConfig) -> None:
     """ResumeError naming every setting (old and new value) that differs from the build whose steps
     ``checkpoint_dir`` holds; a no-op for a folder without settings (none yet, or from an older version)."""
@@ -168,8 +184,7 @@ def check_resume(checkpoint_dir: str | Path, system: System, config: BuildConfig
         return
     changed = [k for k in sorted(set(saved) | set(settings)) if saved.get(k) != settings.get(k)]
     if changed:
-        flag = lambda k: "--" + k.replace("_", "-")  # noqa: E731
-        detail = "; ".join(f"{flag(k)} was {saved.get(k)!r}, now {settings.get(k)!r}" for k in changed)
+        detail = "; ".join(f"{_setting_name(k)} was {saved.get(k)!r}, now {settings.get(k)!r}" for k in changed)
         raise ResumeError(f"--resume: the checkpoints in {ckpt} are of a build with other settings ({detail}); "
                           "resume with the old values, or rerun without --resume to start over")
 

@@ -145,6 +145,6 @@ class SizeGuide:
             extra = "; --no-report saves the report's lookup index" if self.report else ""
             lines.append(f"warning: this build is projected to need about {estimate / 1e9:.1f} GB, more than the "
                          f"{self.budget_bytes / 1e9:.1f} GB available (--max-memory); make it smaller with a shorter "
-                         f"--horizon ({shorter}) or a coarser --cell-size{extra}")
+                         f"--horizon ({shorter}) or a coarser grid (--param cell_size=[...]){extra}")
         self.exceeds = over
         return lines

@@ -17,6 +17,8 @@ resume, an output that cannot be written), or 130 on Ctrl-C.
 
 from __future__ import annotations
 
+import argparse
+import dataclasses
 import json
 import math
 import sys
@@ -31,7 +33,9 @@ from torch.utils.tensorboard import SummaryWriter
 from tqdm import tqdm
 
 from cuniform_torch.common.fileio import MAX_JSON_BYTES, exclusive_lock, read_capped_text
-from cuniform_torch.maps.checkpoint import map_policy_checkpoint, save_map_policy
+from cuniform_torch.maps.checkpoint import load_map_policy, map_policy_checkpoint, save_map_policy
+from cuniform_torch.maps.policy import MapPolicy
+from precompute.api import library_errors
 from precompute.cli import (
     OUT,
     RUNS,
@@ -125,7 +129,24 @@ def make_parser() -> ArgumentParser:
 
 def parse_args(argv: Sequence[str] | None = None) -> MapDistillConfig:
     """Flags -> a checked config (``out`` filled); :class:`CLIError` when bad."""
-    cfg = dataclass_from_args(MapDistillConfig, make_parser().parse_args(argv))
+    return check_map_config(dataclass_from_args(MapDistillConfig, make_parser().parse_args(argv)))
+
+
+def check_map_config(cfg: MapDistillConfig) -> MapDistillConfig:
+    """``cfg`` checked once at the edge (each field as its flag would parse it; the data sets exist; the outputs
+    can be written), ``out`` filled: a new config, or :class:`CLIError` naming the field's flag."""
+    cfg = dataclasses.replace(cfg, maps=[str(m) for m in cfg.maps])
+    if not cfg.maps:
+        raise CLIError("--maps: give at least one map-table data set folder")
+    for name, parse in MAP_DISTILL_TYPES.items():
+        value = getattr(cfg, name)
+        if isinstance(value, bool) or not isinstance(value, (int, float, str)):
+            raise CLIError(f"--{name.replace('_', '-')} must be a {type(getattr(MapDistillConfig(), name)).__name__}, "
+                           f"got {value!r}")
+        try:
+            parse(str(value))
+        except (argparse.ArgumentTypeError, ValueError) as exc:
+            raise CLIError(f"--{name.replace('_', '-')}: {exc}") from None
     if not 0 <= cfg.val_fraction < 1:
         raise CLIError(f"--val-fraction must be in [0, 1), got {cfg.val_fraction}")
     for folder in cfg.maps:
@@ -139,7 +160,8 @@ def parse_args(argv: Sequence[str] | None = None) -> MapDistillConfig:
 
 
 def distill_maps(cfg: MapDistillConfig) -> int:
-    """Train and checkpoint (module docstring), holding ``<out>.lock``."""
+    """Train and checkpoint (module docstring), holding ``<out>.lock``; ``cfg`` checked (:func:`check_map_config`)."""
+    assert cfg.out is not None, "check_map_config fills out"
     out = Path(cfg.out)
     with exclusive_lock(out.with_name(out.name + ".lock"), what=f"--out {out}"):
         return _run(cfg, out, out.with_name(out.name + ".train.pt"))
@@ -173,7 +195,8 @@ def _run(cfg: MapDistillConfig, out: Path, state_path: Path) -> int:
         best = {k: v.to(device) for k, v in state["best_model"].items()}
         epoch, best_val, best_epoch, seconds = state["epoch"], state["best_val"], state["best_epoch"], state["seconds"]
         run_name = state["run_name"]
-    print(f"data: {data.num_entries} entries ({len(split.val_entries)} held out), {data.centres.shape[0]:,} rows, "
+    say = (lambda *a, **k: None) if cfg.quiet else print  # a library call is quiet unless asked
+    say(f"data: {data.num_entries} entries ({len(split.val_entries)} held out), {data.centres.shape[0]:,} rows, "
           f"patches {list(data.spec.shape)} at {data.spec.resolution} m, {data.nbytes:,} bytes in "
           f"{len(data.sources)} data set(s); policy: {trainer.policy.num_parameters:,} parameters", flush=True)
     writer = SummaryWriter(str(Path(cfg.logdir) / run_name), purge_step=epoch + 1 if cfg.resume else None)
@@ -214,16 +237,39 @@ def _run(cfg: MapDistillConfig, out: Path, state_path: Path) -> int:
     source = {f"map_{i}": f"{s['path']} sha256={s['sha256']}" for i, s in enumerate(data.sources)}
     save_map_policy(out, map_policy_checkpoint(trainer.policy.cpu(), data.system_json, source, metrics))
     kind = "val KL" if split.val_entries else "train KL"
-    print(f"trained in {seconds:.1f} s ({epoch} epochs; best epoch {best_epoch}, {kind} {best_val:.4f}); "
+    say(f"trained in {seconds:.1f} s ({epoch} epochs; best epoch {best_epoch}, {kind} {best_val:.4f}); "
           f"wrote {out} and {state_path}; TensorBoard: {Path(cfg.logdir) / run_name}")
     return 0
+
+
+def train_map_policy(config: MapDistillConfig, *, progress: bool = False) -> MapPolicy:
+    """Train a map-conditioned policy on ``config.maps`` (map-table data sets, :mod:`training.maps.distill`).
+    Writes the checkpoint ``config.out`` (default ``out/<first data set>.map_policy.pt``) atomically, the
+    training state beside it and a TensorBoard run under ``config.logdir``. ``progress``: the epoch bar and the
+    summary lines (``config.quiet=True`` keeps them off).
+
+    :return: the trained policy, read back from its checkpoint (:func:`cuniform_torch.maps.load_map_policy`)
+    """
+    if not isinstance(config, MapDistillConfig):
+        raise ValueError(f"config must be a MapDistillConfig, got {type(config).__name__}")
+    cfg = dataclasses.replace(config, quiet=config.quiet or not progress)
+
+    def run() -> str:
+        checked = check_map_config(cfg)
+        distill_maps(checked)
+        assert checked.out is not None
+        return checked.out
+
+    out = library_errors(run)
+    return load_map_policy(Path(out), device=cfg.device)
 
 
 @cli_main(interrupted="interrupted: no checkpoint written; rerun with --resume to continue from the last "
                       "finished epoch")
 def main(argv: Sequence[str] | None = None) -> int:
     """Train from the flags ``argv``: 0, or 2 after one ``error: ...`` line, or 130 on Ctrl-C."""
-    return distill_maps(parse_args(argv))
+    train_map_policy(parse_args(argv), progress=True)  # the library function a Python user calls
+    return 0
 
 
 if __name__ == "__main__":
