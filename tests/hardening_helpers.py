@@ -16,9 +16,6 @@ from pathlib import Path
 
 import pytest
 
-DEEP = "[" * 100000 + "]" * 100000
-"""valid JSON nested deeper than the json module's recursion allows (it raises RecursionError)"""
-
 
 def _quick(fn, *args, timeout: float = 20.0, **kwargs):
     """``fn(*args, **kwargs)`` in a thread: its result, or the exception it raised; a failed test (never a hung

@@ -13,6 +13,7 @@ import sys
 from pathlib import Path
 
 import pytest
+from cases import STARTS_GRIDS
 from hardening_helpers import _build, _call, _dead_pid, _one_error
 
 import eval.paper.coverage as eval_coverage
@@ -139,7 +140,7 @@ def test_build_to_a_device_is_one_line_and_leaves_it_a_device(tmp_path, capsys):
 
 # ---------------------------------------------------------------------------------------------- runaway --starts grids
 
-@pytest.mark.parametrize("spec, count", [("0=-1:1:20001", "20,001"), ("random:1000000 0=-1:1", "1,000,000")])
+@pytest.mark.parametrize("spec, count", STARTS_GRIDS)
 def test_a_starts_grid_over_the_limit_is_refused_before_any_work(tmp_path, capsys, monkeypatch, spec, count):
     import time
 

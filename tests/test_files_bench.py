@@ -10,7 +10,8 @@ import stat
 from pathlib import Path
 
 import pytest
-from hardening_helpers import DEEP, _fifo, _quick
+from cases import DEEP, RECORD_LINK_TARGETS
+from hardening_helpers import _fifo, _quick
 from test_bench_records import bench_record, bench_settings
 
 from eval.navigate.store import EpisodeStore, StoreError
@@ -159,7 +160,7 @@ def test_benchmark_records_linked_to_a_device_are_refused(tmp_path):
             _quick(use)
 
 
-@pytest.mark.parametrize("target", ["other", "/dev/null"])
+@pytest.mark.parametrize("target", RECORD_LINK_TARGETS)
 def test_a_benchmark_folder_whose_records_link_elsewhere_is_refused_never_written_through(tmp_path, target):
     other = _bench_store(tmp_path / "other")
     before = other.records_file.read_bytes()

@@ -18,7 +18,8 @@ import zipfile
 
 import numpy as np
 import pytest
-from hardening_helpers import DEEP, _fifo, _quick
+from cases import DEEP
+from hardening_helpers import _fifo, _quick
 
 from cuniform_torch.common.digest import DIGEST_KEY, content_digest
 from cuniform_torch.common.fileio import (

@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from cases import CARD_EDITS, edit_card
 
 import cuniform_torch.maps.pretrained as pretrained
 from cuniform_torch import load_policy, make_system
@@ -194,14 +195,7 @@ def shelf(tmp_path, monkeypatch):
 
 
 def _edit_card(folder, **robot) -> None:
-    path = folder / f"{SHIPPED}.json"
-    card = json.loads(path.read_text())
-    for key, value in robot.items():
-        if key in card["robot"]:
-            card["robot"][key] = value
-        else:
-            card["robot"]["params"][key] = value
-    path.write_text(json.dumps(card, indent=2))
+    edit_card(folder / f"{SHIPPED}.json", **robot)
 
 
 def _mlp(table, support: bool = False, fallback: str = "nearest") -> MLPPolicy:
@@ -442,10 +436,7 @@ def test_the_shipped_card_and_file_agree_and_load(shelf):
     assert isinstance(load_map_policy(SHIPPED), MapPolicy)
 
 
-@pytest.mark.parametrize("edit, said", [({"speed": 0.6}, "speed: card 0.6, file 0.5"),
-                                        ({"radius": 0.5}, "radius: card 0.5, file 0.2"),
-                                        ({"horizon": 12}, "horizon: card 12, file 15"),
-                                        ({"max_omega": 2.0}, "max_omega: card 2.0, file 1.5")])
+@pytest.mark.parametrize("edit, said", CARD_EDITS)
 def test_a_card_edited_to_another_robot_is_refused(shelf, edit, said):
     _edit_card(shelf, **edit)
     with pytest.raises(PretrainedError, match=f"does not describe the robot .*{said}"):

@@ -12,7 +12,8 @@ from dataclasses import replace
 from pathlib import Path
 
 import pytest
-from hardening_helpers import DEEP, _fifo, _quick
+from cases import DEEP, SET_MEMBER_NAMES, one_member_repeated, too_many_entries
+from hardening_helpers import _fifo, _quick
 
 from cuniform_torch.policies.table_set import load_table_set
 from cuniform_torch.tables.file import TableError
@@ -49,8 +50,7 @@ def test_a_table_set_index_that_is_a_special_file_is_one_clear_error(tmp_path, t
         _quick(load_table_set, tmp_path)
 
 
-@pytest.mark.parametrize("name, said", [("a" * 300 + ".npz", "is not usable .*File name too long"),
-                                        ("nul\0.npz", "but missing")], ids=["too-long", "nul"])
+@pytest.mark.parametrize("name, said", [pytest.param(n, s, id=i) for i, n, s in SET_MEMBER_NAMES])
 def test_a_table_set_member_name_the_system_cannot_use_is_one_table_error(tmp_path, name, said):
     from cuniform_torch.policies.table_set import load_table_set
     from cuniform_torch.tables.file import TableError
@@ -116,7 +116,7 @@ def test_a_table_set_index_of_too_many_entries_is_refused_at_once(tmp_path):
     from cuniform_torch.policies.table_set import MAX_SET_TABLES, load_table_set
     from cuniform_torch.tables.file import TableError
 
-    _index(tmp_path, [{"file": f"start_{i:06d}.npz", "start": [float(i)]} for i in range(MAX_SET_TABLES + 1)])
+    _index(tmp_path, too_many_entries(MAX_SET_TABLES))
     begin = time.perf_counter()
     with pytest.raises(TableError, match="lists 100,001 tables, more than the 100,000"):
         load_table_set(tmp_path)
@@ -130,7 +130,7 @@ def test_one_member_listed_20000_times_is_refused_in_a_moment(tmp_path):
     from cuniform_torch.tables.file import TableError
 
     (tmp_path / "start_0000.npz").write_bytes(b"not read")
-    _index(tmp_path, [{"file": "start_0000.npz", "start": [float(i)]} for i in range(20_000)])
+    _index(tmp_path, one_member_repeated(20_000))
     begin = time.perf_counter()
     with pytest.raises(TableError, match="start_0000.npz listed more than once"):
         load_table_set(tmp_path)

@@ -24,6 +24,7 @@ from typing import ClassVar
 import numpy as np
 import pytest
 import torch
+from cases import SYSTEM_JSON_MALFORMED, TABLE_CORRUPTIONS
 from hardening_helpers import _fifo, _quick
 
 from cuniform_torch.common.digest import DIGEST_KEY
@@ -119,136 +120,6 @@ def _object_array(marker: Path) -> np.ndarray:
     return arr
 
 
-def _scale_row(a):
-    a["action_probs"][0] *= 0.5
-
-
-def _negative_prob(a):
-    a["action_probs"][1] = 0.0
-    a["action_probs"][1, :2] = (1.5, -0.5)
-
-
-def _nan_prob(a):
-    a["action_probs"][2, 0] = np.nan
-
-
-def _nan_cell_prob(a):
-    a["cell_probs"][3] = np.nan
-
-
-def _inf_cell_size(a):
-    a["cell_size"][0] = np.inf
-
-
-def _offsets_end_short(a):
-    a["level_offsets"][-1] -= 1
-
-
-def _offsets_end_long(a):
-    a["level_offsets"][-1] += 1
-
-
-def _offsets_not_increasing(a):
-    a["level_offsets"][2] = a["level_offsets"][1]
-
-
-def _offsets_not_from_zero(a):
-    a["level_offsets"][0] = 1
-
-
-def _cell_probs_short(a):
-    a["cell_probs"] = a["cell_probs"][:-1]
-
-
-def _action_probs_narrow(a):
-    a["action_probs"] = np.ascontiguousarray(a["action_probs"][:, :-1])
-
-
-def _cell_probs_level_sum(a):
-    a["cell_probs"][-1] += 0.01
-
-
-def _flow_target(a):
-    a["flow_target"][0] += 1
-
-
-def _flow_value(a):
-    a["flow_value"][0] = a["flow_target"][0] + 1
-
-
-def _angle_cell(a):
-    a["cells"][-1, 2] = 40  # K = 40 angle cells: valid indices are 0..39
-
-
-def _arc_outside(a):
-    a["arcs"][0, 1] = len(a["cells"]) + 5
-
-
-def _arc_wrong_level(a):
-    a["arcs"][0, 1] = 0  # step 0 arcs must end in level 1
-
-
-def _transitions_alone(a):
-    del a["transition_frac"]
-
-
-def _periodic_changed(a):
-    a["periodic"][2] = False
-
-
-def _format_bytes(a):
-    a["format"] = np.array(TABLE_FORMAT.encode())
-
-
-def _format_list(a):
-    a["format"] = np.array([TABLE_FORMAT])
-
-
-def _system_not_string(a):
-    a["system"] = np.array(3)
-
-
-def _method_not_string(a):
-    a["method"] = np.arange(2)
-
-
-CORRUPTIONS = [
-    # dtype / ndim
-    ("action_probs-float64", lambda a: a.update(action_probs=a["action_probs"].astype(np.float64)),
-     r"'action_probs' must be float32"),
-    ("cells-int32", lambda a: a.update(cells=a["cells"].astype(np.int32)), r"'cells' must be int64"),
-    ("level_offsets-float64", lambda a: a.update(level_offsets=a["level_offsets"].astype(np.float64)),
-     r"'level_offsets' must be int64"),
-    ("periodic-uint8", lambda a: a.update(periodic=a["periodic"].astype(np.uint8)), r"'periodic' must be bool"),
-    ("actions-float64", lambda a: a.update(actions=a["actions"].astype(np.float64)), r"'actions' must be float32"),
-    ("cell_probs-2d", lambda a: a.update(cell_probs=a["cell_probs"][:, None]), r"'cell_probs' must be float64 with 1"),
-    ("arcs-float", lambda a: a.update(arcs=a["arcs"].astype(np.float64)), r"'arcs' must be int64"),
-    ("format-bytes", _format_bytes, r"'format' must be a string"),
-    ("format-list", _format_list, r"'format' must be a string"),
-    ("system-int", _system_not_string, r"'system' must be a string"),
-    ("method-array", _method_not_string, r"'method' must be a string"),
-    # probabilities
-    ("nan-action_probs", _nan_prob, r"action_probs contains NaN"),
-    ("nan-cell_probs", _nan_cell_prob, r"cell_probs contains NaN"),
-    ("inf-cell_size", _inf_cell_size, r"cell_size contains NaN or infinite"),
-    ("row-sum", _scale_row, r"action_probs rows must sum to 1; row 0 sums to 0\.5"),
-    ("negative-prob", _negative_prob, r"action_probs must lie in \[0, 1\]"),
-    ("level-sum", _cell_probs_level_sum, r"cell_probs must sum to 1 in every level"),
-    # shapes and offsets
-    ("cell_probs-short", _cell_probs_short, r"'cell_probs' must have shape \[44\] .*header says \[43\]"),
-    ("action_probs-narrow", _action_probs_narrow, r"'action_probs' must have shape \[44, 5\] .*header says \[44, 4\]"),
-    ("offsets-end-short", _offsets_end_short, r"'cells' must have shape \[43, 3\] .*header says \[44, 3\]"),
-    ("offsets-end-long", _offsets_end_long, r"'cells' must have shape \[45, 3\] .*header says \[44, 3\]"),
-    ("offsets-flat", _offsets_not_increasing, r"level_offsets must .*increase strictly"),
-    ("offsets-start", _offsets_not_from_zero, r"level_offsets must start at 0"),
-    ("flow_target", _flow_target, r"flow_target must be n_t \* n_\{t\+1\}"),
-    ("flow_value", _flow_value, r"flow_value must lie in \[0, flow_target\]"),
-    ("angle-cell", _angle_cell, r"cells of angle dimension 2 must lie in \[0, 40\)"),
-    ("arc-outside", _arc_outside, r"arcs refer to rows outside the table"),
-    ("arc-level", _arc_wrong_level, r"arcs of step t must go from level t to level t\+1"),
-    ("transitions-alone", _transitions_alone, r"transition_offsets, transitions and transition_frac must be stored together"),
-    ("periodic-changed", _periodic_changed, r"periodic .* does not match the system"),
-]
 
 
 def _system_spec(arrays: dict[str, np.ndarray]) -> dict:
@@ -575,7 +446,7 @@ def test_unknown_object_array_is_never_read(arrays, tmp_path):
 
 # --------------------------------------------------------------------------------------------- corrupted table content
 
-@pytest.mark.parametrize("mutate, match", [pytest.param(m, r, id=i) for i, m, r in CORRUPTIONS])
+@pytest.mark.parametrize("mutate, match", [pytest.param(m, r, id=i) for i, m, r in TABLE_CORRUPTIONS])
 def test_corrupt_content(arrays, tmp_path, mutate, match):
     mutate(arrays)
     path = _write(tmp_path, arrays)
@@ -653,14 +524,7 @@ def test_system_json_dt_does_not_match_params(arrays, tmp_path):
         read_table(_write(tmp_path, arrays))
 
 
-@pytest.mark.parametrize("bad, match", [
-    ("{not json", r"system JSON does not parse"),
-    ("[1, 2]", r"system JSON must be an object with name, params and horizon"),
-    ('{"name": "dubins", "params": {}}', r"system JSON must be an object with name, params and horizon"),
-    ('{"name": "dubins", "params": {"speeed": 1}, "horizon": 3}', r"no parameter\(s\) speeed"),
-    ('{"name": "dubins", "params": {"num_actions": 0}, "horizon": 3}', r"num_actions must be a positive integer"),
-    ('{"name": "dubins", "params": {}, "horizon": "3"}', r"horizon must be a positive integer"),
-])
+@pytest.mark.parametrize("bad, match", SYSTEM_JSON_MALFORMED)
 def test_system_json_malformed(arrays, tmp_path, bad, match):
     _set_system(arrays, bad)
     with pytest.raises(TableError, match=match):
