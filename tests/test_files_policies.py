@@ -177,7 +177,7 @@ def _inf_scale(c):
 
 
 def _huge_network(c):
-    c["config"]["hidden"], c["config"]["layers"] = 1000, 30  # within MLPConfig's limits (tests/test_integrity.py)
+    c["config"]["hidden"], c["config"]["layers"] = 1000, 30  # within MLPConfig's limits (test_an_oversized_mlp_config_is_refused_before_allocation)
 
 
 SHIPPED = "unicycle-0.5"
