@@ -80,6 +80,7 @@ def test_a_worker_that_dies_is_one_clear_error_not_a_broken_pool_traceback():
 
 # ---------------------------------------------------------------------------------------- Ctrl-C and SIGTERM of a pool
 
+@pytest.mark.slow  # a pool whose workers import slowly, interrupted (its group case 17.3 s at load 11, --durations)
 @pytest.mark.skipif(not hasattr(signal, "pthread_sigmask"), reason="POSIX signals")
 @pytest.mark.parametrize("target, slow_import, after", [("group", "20", 2.0), ("parent", "0", 4.0)])
 def test_a_ctrl_c_of_a_pool_is_the_parents_alone(tmp_path, target, slow_import, after):
