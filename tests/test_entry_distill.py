@@ -12,7 +12,7 @@ import time
 from pathlib import Path
 
 import pytest
-from hardening_helpers import _build, _one_error
+from hardening_helpers import _one_error
 
 import precompute.build as build
 import training.distill as distill
@@ -25,11 +25,6 @@ TINY_DISTILL = ["--quiet", "--epochs", "1", "--hidden", "8", "--layers", "1", "-
                 "--eval-samples", "16", "--eval-every", "1000"]
 
 
-@pytest.fixture(scope="module")
-def walk_path(tmp_path_factory) -> Path:
-    out = tmp_path_factory.mktemp("tables") / "walk.npz"
-    assert build.main(_build(out)) == 0
-    return out
 
 
 def _distill(walk: Path, folder: Path, *extra: str) -> list[str]:

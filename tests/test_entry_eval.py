@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import os
 import stat
-from pathlib import Path
 
 import pytest
 from hardening_helpers import _build, _call, _fifo, _one_error, _quick
@@ -23,11 +22,6 @@ from cuniform_torch.common.fileio import (
 pytestmark = [pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="POSIX special files"), pytest.mark.usefixtures("restore_threads")]
 
 
-@pytest.fixture(scope="module")
-def walk_path(tmp_path_factory) -> Path:
-    out = tmp_path_factory.mktemp("tables") / "walk.npz"
-    assert build.main(_build(out)) == 0
-    return out
 
 
 # ------------------------------------------------------------------------------------------ special inputs and outputs

@@ -19,7 +19,7 @@ import zipfile
 import numpy as np
 import pytest
 from cases import DEEP
-from hardening_helpers import _fifo, _quick
+from hardening_helpers import _fifo, _forged_member, _quick
 
 from cuniform_torch.common.digest import DIGEST_KEY, content_digest
 from cuniform_torch.common.fileio import (
@@ -161,12 +161,6 @@ def _system_param(key, value):
 _MB = 1 << 20
 
 
-def _forged_member(name, shape, dtype, data=b"\0" * 64):
-    """The bytes of a zip member ``name.npy`` whose header claims ``shape`` but which holds only ``data``."""
-    buf = io.BytesIO()
-    np.lib.format.write_array_header_1_0(buf, {"descr": np.lib.format.dtype_to_descr(np.dtype(dtype)),
-                                               "fortran_order": False, "shape": shape})
-    return buf.getvalue() + data
 
 
 def _rezip(path, arrays, forged):

@@ -12,28 +12,25 @@ import json
 import math
 import re
 import shutil
-import sys
 import time
-import uuid
 from pathlib import Path
 
-import numpy as np
 import pytest
 import torch
 from cases import CARD_EDITS, edit_card
+from hardening_helpers import _flip_byte, _mlp, _notes
 
 import cuniform_torch.maps.pretrained as pretrained
 from cuniform_torch import load_policy, make_system
 from cuniform_torch.common.digest import DIGEST_KEY
-from cuniform_torch.grid.cells import Grid
 from cuniform_torch.maps import MapPolicy, load_map_policy
 from cuniform_torch.maps.checkpoint import MapCheckpointError, map_policy_checkpoint, save_map_policy
 from cuniform_torch.maps.encoder import PatchSpec
 from cuniform_torch.maps.policy import MAX_MAP_PARAMETERS, MapPolicyConfig
 from cuniform_torch.maps.pretrained import PretrainedError
-from cuniform_torch.policies import MLPConfig, MLPPolicy, MLPSupport, PolicyCheckpointError
+from cuniform_torch.policies import MLPConfig, MLPPolicy, PolicyCheckpointError
 from cuniform_torch.policies.checkpoint import MAX_ABS_WEIGHT, policy_checkpoint, save_policy
-from cuniform_torch.policies.mlp import MAX_WEIGHTS, default_feature_scale
+from cuniform_torch.policies.mlp import MAX_WEIGHTS
 from cuniform_torch.policies.start_mlp import StartMLPPolicy, StartRegion
 from cuniform_torch.systems import _REGISTRY, RandomWalk1D, system_to_json
 
@@ -89,12 +86,6 @@ def _saved(family: str, path: Path) -> Path:
     return path
 
 
-def _flip_byte(value: np.ndarray) -> np.ndarray:
-    """A copy of ``value`` with one bit of one byte in the middle of its data flipped."""
-    out = np.array(value, copy=True)
-    raw = out.reshape(-1).view(np.uint8)
-    raw[len(raw) // 2] ^= 0x10
-    return out
 
 
 def _damaged(loaded: dict, key_path: tuple[str, ...]) -> dict:
@@ -106,8 +97,6 @@ def _damaged(loaded: dict, key_path: tuple[str, ...]) -> dict:
     return loaded
 
 
-def _notes(err: str, path: Path) -> list[str]:
-    return [line for line in err.splitlines() if line.startswith(f"note: {path} has no content digest")]
 
 
 def _never_built(monkeypatch, cls) -> None:
@@ -116,29 +105,8 @@ def _never_built(monkeypatch, cls) -> None:
     monkeypatch.setattr(cls, "__init__", refuse)
 
 
-EVIL_MODULE = """
-from pathlib import Path
-Path({import_marker!r}).write_text("imported")
-
-def Car(**params):
-    Path({call_marker!r}).write_text("called")
-    raise RuntimeError("the factory ran")
-"""
 
 
-@pytest.fixture()
-def evil(tmp_path, monkeypatch):
-    """A module next to the table, on sys.path and in the working directory, that leaves markers when it is
-    imported or its factory is called."""
-    name = f"evil_{uuid.uuid4().hex[:8]}"
-    markers = {"import": tmp_path / "imported", "call": tmp_path / "called"}
-    (tmp_path / f"{name}.py").write_text(EVIL_MODULE.format(import_marker=str(markers["import"]),
-                                                          call_marker=str(markers["call"])))
-    monkeypatch.chdir(tmp_path)
-    monkeypatch.syspath_prepend(str(tmp_path))
-    yield name, markers
-    sys.modules.pop(name, None)
-    _REGISTRY.pop("evil_car", None)
 
 
 def _walk_policy(hidden: int = 8) -> MLPPolicy:
@@ -198,20 +166,6 @@ def _edit_card(folder, **robot) -> None:
     edit_card(folder / f"{SHIPPED}.json", **robot)
 
 
-def _mlp(table, support: bool = False, fallback: str = "nearest") -> MLPPolicy:
-    """A small untrained MLP over ``table`` whose logits are confident (one action gets almost all the mass)."""
-    system = table.make_system()
-    grid = Grid.of(system)
-    centres = grid.centers(torch.from_numpy(table.cells))
-    config = MLPConfig(state_dim=grid.dim, num_actions=table.actions.shape[0], horizon=table.horizon,
-                       periodic=list(grid.periodic), feature_scale=default_feature_scale(centres, grid),
-                       hidden=8, layers=1)
-    sup = MLPSupport(torch.from_numpy(table.cells), torch.from_numpy(table.level_offsets)) if support else None
-    model = MLPPolicy(config, system, torch.from_numpy(table.actions), support=sup, fallback=fallback).eval()
-    with torch.no_grad():
-        model.net[-1].bias.zero_()
-        model.net[-1].bias[0] = 20.0  # confident everywhere: what the issue saw outside the table
-    return model
 
 
 # ------------------------------------------------------------------------------------------------- damaged checkpoints

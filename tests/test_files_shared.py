@@ -5,7 +5,6 @@ full disk) and the temporary files a killed writer leaves."""
 
 from __future__ import annotations
 
-import io
 import json
 import os
 import signal
@@ -18,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from hardening_helpers import _dead_pid, _fifo, _quick
+from hardening_helpers import _dead_pid, _fifo, _forged_member, _quick
 
 from cuniform_torch.common import fileio
 from cuniform_torch.common.fileio import (
@@ -36,12 +35,6 @@ from precompute.cli import CLIError, check_output_file, check_output_folder
 pytestmark = [pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="POSIX special files"), pytest.mark.usefixtures("restore_threads")]
 
 
-def _forged_member(name, shape, dtype, data=b"\0" * 64):
-    """The bytes of a zip member ``name.npy`` whose header claims ``shape`` but which holds only ``data``."""
-    buf = io.BytesIO()
-    np.lib.format.write_array_header_1_0(buf, {"descr": np.lib.format.dtype_to_descr(np.dtype(dtype)),
-                                               "fortran_order": False, "shape": shape})
-    return buf.getvalue() + data
 
 
 REPO = Path(__file__).resolve().parents[1]

@@ -15,7 +15,6 @@ import json
 import math
 import os
 import sys
-import uuid
 import zipfile
 from dataclasses import replace
 from pathlib import Path
@@ -25,14 +24,14 @@ import numpy as np
 import pytest
 import torch
 from cases import SYSTEM_JSON_MALFORMED, TABLE_CORRUPTIONS
-from hardening_helpers import _fifo, _quick
+from hardening_helpers import HORIZON, _fifo, _flip_byte, _notes, _quick
 
 from cuniform_torch.common.digest import DIGEST_KEY
 from cuniform_torch.common.fileio import (
     write_npz,
 )
 from cuniform_torch.common.npz import NpzError, member_headers, read_npz
-from cuniform_torch.policies.table import TablePolicy, load_table
+from cuniform_torch.policies.table import load_table
 from cuniform_torch.systems import (
     _REGISTRY,
     RandomWalk1D,
@@ -45,7 +44,6 @@ from cuniform_torch.systems import (
 from cuniform_torch.tables.file import (
     NOGRAPH_DIGEST_KEY,
     TABLE_FORMAT,
-    Table,
     TableError,
     read_table,
     table_digests,
@@ -55,9 +53,6 @@ from precompute.coverage.method import CoverageConfig, build_coverage_table
 from precompute.flow.builder import BuildConfig, build_table
 from precompute.levels.safe_map import LocalMap, MapError, read_map_file, write_map_file
 
-HORIZON = 3
-
-
 REQUIRED_KEYS = ("system", "actions", "cell_size", "periodic", "cell_offset", "level_offsets", "cells",
                  "action_probs", "cell_probs", "flow_value", "flow_target")
 
@@ -66,11 +61,6 @@ ARRAY_FIELDS = REQUIRED_KEYS[1:] + ("arc_offsets", "arcs", "arc_flow", "transiti
                                     "transition_frac")
 
 
-@pytest.fixture(scope="module")
-def small_table() -> Table:
-    """A small valid Dubins table (levels 1, 5, 13, 25), built once for this module."""
-    table, _ = build_table(make_system("dubins"), BuildConfig(horizon=HORIZON))
-    return table
 
 
 @pytest.fixture(scope="module")
@@ -93,9 +83,6 @@ def arrays(good_arrays) -> dict[str, np.ndarray]:
     return {k: np.array(v, copy=True) for k, v in good_arrays.items() if not k.startswith("content_sha256")}
 
 
-@pytest.fixture(scope="module")
-def small_policy(small_table) -> TablePolicy:
-    return TablePolicy(small_table)
 
 
 def _write(tmp_path: Path, arrays: dict[str, np.ndarray], name: str = "bad.npz") -> Path:
@@ -156,12 +143,6 @@ def table():
 GRAPH_KEYS = ("arc_offsets", "arcs", "arc_flow", "transition_offsets", "transitions", "transition_frac")
 
 
-def _flip_byte(value: np.ndarray) -> np.ndarray:
-    """A copy of ``value`` with one bit of one byte in the middle of its data flipped."""
-    out = np.array(value, copy=True)
-    raw = out.reshape(-1).view(np.uint8)
-    raw[len(raw) // 2] ^= 0x10
-    return out
 
 
 @pytest.fixture(scope="module")
@@ -169,8 +150,6 @@ def table_arrays(table, tmp_path_factory) -> dict[str, np.ndarray]:
     return written_arrays(table, tmp_path_factory.mktemp("t") / "good.npz")
 
 
-def _notes(err: str, path: Path) -> list[str]:
-    return [line for line in err.splitlines() if line.startswith(f"note: {path} has no content digest")]
 
 
 def _rewritten(arrays: dict[str, np.ndarray], path: Path) -> Path:
@@ -204,29 +183,8 @@ def _with_system(walk_copy: dict[str, np.ndarray], **spec) -> dict[str, np.ndarr
     return walk_copy
 
 
-EVIL_MODULE = """
-from pathlib import Path
-Path({import_marker!r}).write_text("imported")
-
-def Car(**params):
-    Path({call_marker!r}).write_text("called")
-    raise RuntimeError("the factory ran")
-"""
 
 
-@pytest.fixture()
-def evil(tmp_path, monkeypatch):
-    """A module next to the table, on sys.path and in the working directory, that leaves markers when it is
-    imported or its factory is called."""
-    name = f"evil_{uuid.uuid4().hex[:8]}"
-    markers = {"import": tmp_path / "imported", "call": tmp_path / "called"}
-    (tmp_path / f"{name}.py").write_text(EVIL_MODULE.format(import_marker=str(markers["import"]),
-                                                          call_marker=str(markers["call"])))
-    monkeypatch.chdir(tmp_path)
-    monkeypatch.syspath_prepend(str(tmp_path))
-    yield name, markers
-    sys.modules.pop(name, None)
-    _REGISTRY.pop("evil_car", None)
 
 
 def _zip_member(zf: zipfile.ZipFile, name: str, header_shape: tuple, dtype: str, nbytes: int) -> None:

@@ -15,19 +15,18 @@ import warnings
 
 import pytest
 import torch
+from hardening_helpers import HORIZON, _mlp
 
 from cuniform_torch import CUniformMPPI, TablePolicy, load_policy, make_system, rollout
 from cuniform_torch.controllers import mppi
 from cuniform_torch.controllers.mppi import CUMPPI, MPPI, LogMPPI, mppi_weights
 from cuniform_torch.grid.cells import Grid
-from cuniform_torch.policies import MLPConfig, MLPPolicy, MLPSupport
+from cuniform_torch.policies import MLPConfig, MLPPolicy
 from cuniform_torch.policies.checkpoint import policy_checkpoint
-from cuniform_torch.policies.mlp import default_feature_scale
 from cuniform_torch.sampling import StartMismatchWarning
 from cuniform_torch.sampling.noise import GaussianSampler, NormalLogNormalSampler
 from cuniform_torch.sampling.rollout import RolloutPlan
 from cuniform_torch.systems import Dubins, RandomWalk1D, UnknownSystemError, se2_invariance_gap, system_to_json
-from cuniform_torch.tables.file import Table
 from precompute.flow.builder import BuildConfig, build_table
 
 TAU = 2.0 * math.pi
@@ -66,19 +65,10 @@ BAD_PARAMS = [
 ]
 
 
-HORIZON = 3
 
 
-@pytest.fixture(scope="module")
-def small_table() -> Table:
-    """A small valid Dubins table (levels 1, 5, 13, 25), built once for this module."""
-    table, _ = build_table(make_system("dubins"), BuildConfig(horizon=HORIZON))
-    return table
 
 
-@pytest.fixture(scope="module")
-def small_policy(small_table) -> TablePolicy:
-    return TablePolicy(small_table)
 
 
 @pytest.fixture(scope="module")
@@ -153,20 +143,6 @@ def _start_warnings(fn) -> list[str]:
 KS_SPEED_SMALL = dict(cell_size=(0.2, 0.2, 2 * math.pi / 18, 0.2), num_steer=3)
 
 
-def _mlp(table, support: bool = False, fallback: str = "nearest") -> MLPPolicy:
-    """A small untrained MLP over ``table`` whose logits are confident (one action gets almost all the mass)."""
-    system = table.make_system()
-    grid = Grid.of(system)
-    centres = grid.centers(torch.from_numpy(table.cells))
-    config = MLPConfig(state_dim=grid.dim, num_actions=table.actions.shape[0], horizon=table.horizon,
-                       periodic=list(grid.periodic), feature_scale=default_feature_scale(centres, grid),
-                       hidden=8, layers=1)
-    sup = MLPSupport(torch.from_numpy(table.cells), torch.from_numpy(table.level_offsets)) if support else None
-    model = MLPPolicy(config, system, torch.from_numpy(table.actions), support=sup, fallback=fallback).eval()
-    with torch.no_grad():
-        model.net[-1].bias.zero_()
-        model.net[-1].bias[0] = 20.0  # confident everywhere: what the issue saw outside the table
-    return model
 
 
 def _entropy(probs: torch.Tensor) -> torch.Tensor:
