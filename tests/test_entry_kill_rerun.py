@@ -80,7 +80,7 @@ def test_a_worker_that_dies_is_one_clear_error_not_a_broken_pool_traceback():
 
 # ---------------------------------------------------------------------------------------- Ctrl-C and SIGTERM of a pool
 
-@pytest.mark.slow  # a pool whose workers import slowly, interrupted (its group case 17.3 s at load 11, --durations)
+@pytest.mark.slow  # a pool, interrupted (pytest --durations: 17.3 s at load 11, 2-4 s at 3)
 @pytest.mark.skipif(not hasattr(signal, "pthread_sigmask"), reason="POSIX signals")
 @pytest.mark.parametrize("target, slow_import, after", [("group", "20", 2.0), ("parent", "0", 4.0)])
 def test_a_ctrl_c_of_a_pool_is_the_parents_alone(tmp_path, target, slow_import, after):
@@ -118,6 +118,7 @@ def test_a_ctrl_c_of_a_pool_is_the_parents_alone(tmp_path, target, slow_import, 
     assert not left, f"processes left: {left}"
 
 
+@pytest.mark.slow  # a pool, terminated (pytest --durations: 5.1 s at load 3)
 @pytest.mark.skipif(not hasattr(signal, "raise_signal"), reason="POSIX signals")
 def test_a_sigterm_of_a_pools_parent_ends_the_workers_first_and_still_dies_of_it(tmp_path):
     """``kill PID`` of a run with workers (the parent alone): it died at once and left its workers mid-job (a
