@@ -1095,6 +1095,8 @@ def table_family(work: Path, quick: bool) -> Family:
 
     for label, mutate, _ in _cases().TABLE_CORRUPTIONS:  # tests/test_files_tables.py::test_corrupt_content's table
         muts.append((f"content: {label} (fresh digest)", corrupted(mutate)))
+    for label, make, _ in _cases().UNREADABLE_TABLES:  # ...::test_an_unreadable_table_file_is_one_error's table
+        muts.append((f"file: {label}", (lambda m: lambda dst: m(dst, original))(make)))
     readers = ["table", "table_policy"]
     return Family("table (.npz)", readers, original, _file_cases("table (.npz)", folder, original, readers, muts))
 

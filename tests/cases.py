@@ -8,7 +8,9 @@ only, so .ci/attack.py can import it before it forks.
 
 from __future__ import annotations
 
+import io
 import json
+import zipfile
 from collections.abc import Callable
 from pathlib import Path
 
@@ -21,8 +23,89 @@ DEEP = "[" * 100000 + "]" * 100000
 
 
 # ------------------------------------------------------------------------------------------ table files (.npz)
-# Each mutation edits the arrays of a small valid Dubins table (levels 1, 5, 13, 25 for horizon 3) in place; the
-# reader must refuse the result with a TableError matching the regex (the shapes in the regexes are horizon 3's).
+# Files that are no table at all: each ``make(path, good)`` writes (or does not write) ``path`` from the valid table
+# file ``good``; read_table must raise a TableError matching the regex.
+
+def _missing(path: Path, good: Path) -> None:
+    """Nothing at ``path``."""
+
+
+def _folder(path: Path, good: Path) -> None:
+    path.mkdir()
+
+
+def _empty(path: Path, good: Path) -> None:
+    path.write_bytes(b"")
+
+
+def _truncated(path: Path, good: Path) -> None:
+    data = good.read_bytes()
+    path.write_bytes(data[: len(data) // 2])
+
+
+def _zeroed_middle(path: Path, good: Path) -> None:
+    data = bytearray(good.read_bytes())
+    mid = len(data) // 2
+    data[mid - 64: mid + 64] = bytes(128)
+    path.write_bytes(bytes(data))
+
+
+def _garbage(path: Path, good: Path) -> None:
+    path.write_bytes(np.random.default_rng(0).bytes(4096))
+
+
+def _other_npz(path: Path, good: Path) -> None:
+    with open(path, "wb") as fh:
+        np.savez(fh, foo=np.arange(3))
+
+
+def _zip_without_npy(path: Path, good: Path) -> None:
+    with zipfile.ZipFile(path, "w") as zf:
+        zf.writestr("readme.txt", b"not arrays")
+
+
+def _npy_not_npz(path: Path, good: Path) -> None:
+    with open(path, "wb") as fh:
+        np.save(fh, np.arange(5))
+
+
+def _raw_format_member(path: Path, good: Path) -> None:
+    with zipfile.ZipFile(path, "w") as zf:
+        zf.writestr("format", TABLE_FORMAT.encode())
+
+
+def _raw_cells_member(path: Path, good: Path) -> None:
+    """The valid table with its ``cells`` member raw bytes, not an ``.npy`` array."""
+    with np.load(good, allow_pickle=False) as z:
+        arrays = {k: z[k] for k in z.files}
+    with zipfile.ZipFile(path, "w") as zf:
+        for key, value in arrays.items():
+            if key == "cells":
+                zf.writestr("cells", b"not an array")
+            else:
+                buf = io.BytesIO()
+                np.lib.format.write_array(buf, value, allow_pickle=False)
+                zf.writestr(f"{key}.npy", buf.getvalue())
+
+
+UNREADABLE_TABLES: list[tuple[str, Callable[[Path, Path], None], str]] = [
+    ("missing", _missing, r"no table file there"),
+    ("a-folder", _folder, r"no table file there"),
+    ("empty", _empty, r"not a readable .npz table"),
+    ("truncated", _truncated, r"not a readable .npz table|corrupt or truncated"),
+    ("zeroed-middle", _zeroed_middle, r"not a readable .npz table|corrupt or truncated"),
+    ("random-garbage", _garbage, r"not a readable .npz table"),
+    ("another-npz", _other_npz, r"no 'format' key"),
+    ("zip-without-npy", _zip_without_npy, r"no 'format' key"),
+    ("npy-not-npz", _npy_not_npz, r"not a .*table|npz"),
+    ("format-not-an-array", _raw_format_member, r"format"),
+    ("cells-not-an-array", _raw_cells_member, r"cells"),
+]
+"""(id, make(path, good), the TableError's regex): a file at a table's path that is no table"""
+
+# Content: each mutation edits the arrays of a small valid Dubins table (levels 1, 5, 13, 25 for horizon 3) in
+# place; the reader must refuse the result with a TableError matching the regex (the shapes in the regexes are
+# horizon 3's).
 # The tests write the arrays without content digests, the attack run with fresh ones: either way the content
 # checks, not the digest, must catch it.
 

@@ -10,7 +10,6 @@ reads (decompression bombs, lying headers); tables that would load silently wron
 from __future__ import annotations
 
 import dataclasses
-import io
 import json
 import math
 import os
@@ -23,7 +22,7 @@ from typing import ClassVar
 import numpy as np
 import pytest
 import torch
-from cases import SYSTEM_JSON_MALFORMED, TABLE_CORRUPTIONS
+from cases import SYSTEM_JSON_MALFORMED, TABLE_CORRUPTIONS, UNREADABLE_TABLES
 from hardening_helpers import HORIZON, _fifo, _flip_byte, _notes, _quick
 
 from cuniform_torch.common.digest import DIGEST_KEY
@@ -43,7 +42,6 @@ from cuniform_torch.systems import (
 )
 from cuniform_torch.tables.file import (
     NOGRAPH_DIGEST_KEY,
-    TABLE_FORMAT,
     TableError,
     read_table,
     table_digests,
@@ -285,90 +283,13 @@ def test_unknown_extra_keys_are_ignored_unread(arrays, small_table, tmp_path):
 
 # ---------------------------------------------------------------------------------------------- unreadable table files
 
-def test_missing_file(tmp_path):
-    with pytest.raises(TableError, match="no table file there"):
-        read_table(tmp_path / "nope.npz")
-
-
-def test_directory_instead_of_file(tmp_path):
-    (tmp_path / "dir.npz").mkdir()
-    with pytest.raises(TableError, match="no table file there"):
-        read_table(tmp_path / "dir.npz")
-
-
-def test_empty_file(tmp_path):
-    (tmp_path / "empty.npz").write_bytes(b"")
-    with pytest.raises(TableError, match="not a readable .npz table"):
-        read_table(tmp_path / "empty.npz")
-
-
-def test_truncated_file(good_path, tmp_path):
-    data = good_path.read_bytes()
-    path = tmp_path / "truncated.npz"
-    path.write_bytes(data[: len(data) // 2])
-    with pytest.raises(TableError, match="not a readable .npz table|corrupt or truncated"):
-        read_table(path)
-
-
-def test_damaged_middle_of_file(good_path, tmp_path):
-    data = bytearray(good_path.read_bytes())
-    mid = len(data) // 2
-    data[mid - 64: mid + 64] = bytes(128)
-    path = tmp_path / "damaged.npz"
-    path.write_bytes(bytes(data))
-    with pytest.raises(TableError, match="not a readable .npz table|corrupt or truncated"):
-        read_table(path)
-
-
-def test_random_garbage(tmp_path):
-    path = tmp_path / "garbage.npz"
-    path.write_bytes(np.random.default_rng(0).bytes(4096))
-    with pytest.raises(TableError, match="not a readable .npz table"):
-        read_table(path)
-
-
-def test_valid_zip_that_is_not_a_table(tmp_path):
-    path = tmp_path / "other.npz"
-    np.savez(path, foo=np.arange(3))
-    with pytest.raises(TableError, match="no 'format' key"):
-        read_table(path)
-
-
-def test_zip_without_npy_members(tmp_path):
-    path = tmp_path / "plain.npz"
-    with zipfile.ZipFile(path, "w") as zf:
-        zf.writestr("readme.txt", b"not arrays")
-    with pytest.raises(TableError, match="no 'format' key"):
-        read_table(path)
-
-
-def test_npy_file_instead_of_npz(tmp_path):
-    path = tmp_path / "array.npz"
-    with open(path, "wb") as fh:
-        np.save(fh, np.arange(5))
-    with pytest.raises(TableError, match="not a .*table|npz"):
-        read_table(path)
-
-
-def test_format_member_that_is_not_an_array(tmp_path):
-    path = tmp_path / "rawformat.npz"
-    with zipfile.ZipFile(path, "w") as zf:
-        zf.writestr("format", TABLE_FORMAT.encode())
-    with pytest.raises(TableError, match="format"):
-        read_table(path)
-
-
-def test_required_member_that_is_not_an_array(good_arrays, tmp_path):
-    path = tmp_path / "rawcells.npz"
-    with zipfile.ZipFile(path, "w") as zf:
-        for key, value in good_arrays.items():
-            if key == "cells":
-                zf.writestr("cells", b"not an array")
-            else:
-                buf = io.BytesIO()
-                np.lib.format.write_array(buf, value, allow_pickle=False)
-                zf.writestr(f"{key}.npy", buf.getvalue())
-    with pytest.raises(TableError, match="cells"):
+@pytest.mark.parametrize("make, match", [pytest.param(m, r, id=i) for i, m, r in UNREADABLE_TABLES])
+def test_an_unreadable_table_file_is_one_error(good_path, tmp_path, make, match):
+    """Each of tests/cases.py's UNREADABLE_TABLES (missing, a folder, empty, truncated, garbage, another zip, ...)
+    made at ``bad.npz`` from the valid table: one TableError."""
+    path = tmp_path / "bad.npz"
+    make(path, good_path)
+    with pytest.raises(TableError, match=match):
         read_table(path)
 
 
