@@ -109,6 +109,16 @@ def _tree_size(path: Path) -> int:
         return 0
 
 
+def _cases() -> Any:
+    """tests/cases.py: the case tables the hardening tests and this run share (a case added there is tried by both;
+    imported late: it imports the package, which a fork-free ``--help`` does not need)."""
+    if str(REPO / "tests") not in sys.path:
+        sys.path.insert(0, str(REPO / "tests"))
+    import cases
+
+    return cases
+
+
 # --------------------------------------------------------------------------------------------------- fingerprints
 
 def fingerprint(obj: Any) -> str:
@@ -944,8 +954,8 @@ def system_json_variants(system_json: str, marker_module: str) -> list[tuple[str
             ("system: an unknown param", json.dumps({**s, "params": {**s["params"], "zz": 1}})),
             ("system: a NaN param", json.dumps({**s, "params": {**s["params"], "dt": math.nan}})),
             ("system: dt 1e38", json.dumps({**s, "dt": 1e38})),
-            ("system: not JSON", "garbage{"), ("system: a JSON list", "[]"),
-            ("system: nested 100000 deep", "[" * 100000 + "]" * 100000)]
+            *((f"system: {text[:60]}", text) for text, _ in _cases().SYSTEM_JSON_MALFORMED),
+            ("system: nested 100000 deep", _cases().DEEP)]
 
 
 def write_marker_module(folder: Path, marker: Path) -> str:
@@ -1074,6 +1084,19 @@ def table_family(work: Path, quick: bool) -> Family:
             new = {**arrays, "system": np.array(text)}
             muts.append((f"{label} ({mode} digest)",
                          (lambda n, m: lambda dst: write_npz(dst, redigest(n) if m == "fresh" else n))(new, mode)))
+    core = {k: v for k, v in arrays.items() if not k.startswith("content_sha256")}
+
+    def corrupted(mutate: Callable[[dict], None]) -> Callable[[Path], None]:
+        def write(dst: Path) -> None:
+            new = {k: np.array(v, copy=True) for k, v in core.items()}
+            mutate(new)
+            write_npz(dst, redigest(new))
+        return write
+
+    for label, mutate, _ in _cases().TABLE_CORRUPTIONS:  # tests/test_files_tables.py::test_corrupt_content's table
+        muts.append((f"content: {label} (fresh digest)", corrupted(mutate)))
+    for label, make, _ in _cases().UNREADABLE_TABLES:  # ...::test_an_unreadable_table_file_is_one_error's table
+        muts.append((f"file: {label}", (lambda m: lambda dst: m(dst, original))(make)))
     readers = ["table", "table_policy"]
     return Family("table (.npz)", readers, original, _file_cases("table (.npz)", folder, original, readers, muts))
 
@@ -1670,18 +1693,18 @@ def issue38_calls(work: Path, quick: bool) -> list[tuple[Case, Callable[[], Any]
         return dst
 
     counts = "runaway counts"
-    big = index("index-too-many", [{"file": f"start_{i:06d}.npz", "start": [float(i)]}
-                                   for i in range(MAX_SET_TABLES + 1)])
+    cases = _cases()
+    big = index("index-too-many", cases.too_many_entries(MAX_SET_TABLES))
     add(counts, f"tables.json of {MAX_SET_TABLES + 1:,} entries", lambda: load_table_set(big), (TableError,),
         "more than the", big)
-    dup = index("index-one-member-20000-times", [{"file": "start_0000.npz", "start": [float(i)]}
-                                                  for i in range(20_000)])
+    dup = index("index-one-member-20000-times", cases.one_member_repeated(20_000))
     (dup / "start_0000.npz").write_bytes(b"not read")
     add(counts, "tables.json listing one member 20,000 times", lambda: load_table_set(dup), (TableError,),
         "listed more than once", dup)
-    long_name = index("index-long-name", [{"file": "a" * 300 + ".npz", "start": [0.0]}])
-    add(counts, "a 300-character member name", lambda: load_table_set(long_name), (TableError,), "not usable",
-        long_name)
+    for label, name, said in cases.SET_MEMBER_NAMES:  # tests/test_files_sets.py's member names
+        named = index(f"index-name-{label}", [{"file": name, "start": [0.0]}])
+        add(counts, f"a member name: {label}", (lambda d: lambda: load_table_set(d))(named), (TableError,), said,
+            named)
 
     class Zero:
         def command(self, state: Any) -> Any:
@@ -1706,11 +1729,7 @@ def issue38_calls(work: Path, quick: bool) -> list[tuple[Case, Callable[[], Any]
 
     def card_edit(**robot: Any) -> Callable[[Path], None]:
         def edit(dst: Path) -> None:
-            path = dst / f"{shipped}.json"
-            card = json.loads(path.read_text())
-            for key, value in robot.items():
-                (card["robot"] if key in card["robot"] else card["robot"]["params"])[key] = value
-            path.write_text(json.dumps(card, indent=2))
+            cases.edit_card(dst / f"{shipped}.json", **robot)
         return edit
 
     def sparse(dst: Path) -> None:
@@ -1723,10 +1742,10 @@ def issue38_calls(work: Path, quick: bool) -> list[tuple[Case, Callable[[], Any]
             return load_map_policy(shipped)
         return load
 
-    for label, edit in (("the card's speed edited to 0.6", card_edit(speed=0.6)),
-                        ("the card's radius edited to 0.5", card_edit(radius=0.5)),
-                        ("the card's horizon edited to 12", card_edit(horizon=12)),
-                        ("the weights file 2 GB (sparse)", sparse)):
+    edits: list[tuple[str, Callable[[Path], None]]] = [  # tests/test_files_policies.py's card edits
+        (f"the card's {', '.join(f'{k} edited to {v}' for k, v in robot.items())}", card_edit(**robot))
+        for robot, _ in cases.CARD_EDITS]
+    for label, edit in (*edits, ("the weights file 2 GB (sparse)", sparse)):
         dst = shelf(f"card-{len(calls)}", edit)
         add(cards, label, load_from(dst), (pretrained.PretrainedError,), None, dst)
 
@@ -1763,7 +1782,7 @@ def issue38_calls(work: Path, quick: bool) -> list[tuple[Case, Callable[[], Any]
 
 
 def issue38_commands(work: Path) -> tuple[list[Case], list[Path]]:
-    """Commands of issue 38 that must be refused before any work: a --starts grid of a million members, a benchmark
+    """Commands of issue 38 that must be refused before any work: --starts grids over the limit, a benchmark
     run into a folder whose records link into another folder or to /dev/null; ``(cases, folders to watch)``."""
     from eval.navigate.records.store import EpisodeStore
 
@@ -1772,18 +1791,23 @@ def issue38_commands(work: Path) -> tuple[list[Case], list[Path]]:
     store = EpisodeStore(other)
     store.open(BENCH_SETTINGS)
     store.append(BENCH_RECORD)
-    cases = [Case("commands", "precompute.build --starts of 1,000,000 members",
+    shared = _cases()
+    cases = [Case("commands", f"precompute.build --starts {spec} ({count} members)",
                   argv=["precompute.build", "set", "--system", "random_walk_1d", "--horizon", "3", "--quiet", "--starts",
-                        "0=-1:1:1000000", "--out", str(folder / "huge-set")])]
-    for label, target in (("links into another benchmark folder", other / "episodes.jsonl"),
-                          ("links to /dev/null", Path("/dev/null"))):
+                        spec, "--out", str(folder / f"huge-set-{i}")])
+             for i, (spec, count) in enumerate(shared.STARTS_GRIDS)]  # tests/test_entry_build.py's grids
+    links = [(("links into another benchmark folder", other / "episodes.jsonl") if target == "other" else
+              (f"links to {target}", Path(target))) for target in shared.RECORD_LINK_TARGETS]
+    watch = []
+    for label, target in links:  # tests/test_files_bench.py's record links
         out = folder / f"bench-{len(cases)}"
+        watch.append(out)
         out.mkdir()
         (out / "episodes.jsonl").symlink_to(target)
         cases.append(Case("commands", f"eval.navigate --out FOLDER whose episodes.jsonl {label}",
                           argv=["eval.navigate", "--suite", "gaps", "--tasks", "1", "--methods", "mppi_1.0",
                                 "--budgets", "16", "--quiet", "--cache", str(folder / "cache"), "--out", str(out)]))
-    return cases, [other, *(folder / f"bench-{i}" for i in (1, 2))]
+    return cases, [other, *watch]
 
 
 # --------------------------------------------------------------------------------------------------- the run

@@ -75,6 +75,58 @@ def train_capturing():
     return run
 
 
+
+@pytest.fixture(scope="module")
+def small_table():
+    """A small valid Dubins table (levels 1, 5, 13, 25: ``hardening_helpers.HORIZON``), built once per module."""
+    from hardening_helpers import HORIZON
+
+    table, _ = build_table(make_system("dubins"), BuildConfig(horizon=HORIZON))
+    return table
+
+
+@pytest.fixture(scope="module")
+def small_policy(small_table):
+    """A TablePolicy of ``small_table``, one per module (its miss counters are the module's own)."""
+    from cuniform_torch.policies.table import TablePolicy
+
+    return TablePolicy(small_table)
+
+
+@pytest.fixture()
+def evil(tmp_path, monkeypatch):
+    """A module next to the table, on sys.path and in the working directory, that leaves markers when it is
+    imported or its factory is called: ``(module name, {"import": path, "call": path})``."""
+    import sys
+    import uuid
+
+    from hardening_helpers import EVIL_MODULE
+
+    from cuniform_torch.systems.registry import _REGISTRY
+
+    name = f"evil_{uuid.uuid4().hex[:8]}"
+    markers = {"import": tmp_path / "imported", "call": tmp_path / "called"}
+    (tmp_path / f"{name}.py").write_text(EVIL_MODULE.format(import_marker=str(markers["import"]),
+                                                          call_marker=str(markers["call"])))
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.syspath_prepend(str(tmp_path))
+    yield name, markers
+    sys.modules.pop(name, None)
+    _REGISTRY.pop("evil_car", None)
+
+
+@pytest.fixture(scope="module")
+def walk_path(tmp_path_factory):
+    """A tiny random-walk table (2 levels) written by ``python -m precompute.build``, once per module."""
+    from hardening_helpers import _build
+
+    import precompute.build as build
+
+    out = tmp_path_factory.mktemp("tables") / "walk.npz"
+    assert build.main(_build(out)) == 0
+    return out
+
+
 EXTRAS_TESTS = (
     "tests/test_gym_env.py::",
     "tests/test_mountain_car.py::",

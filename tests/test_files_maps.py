@@ -1,31 +1,63 @@
-"""Map data sets and local map files refuse what is silently wrong: cells, rows, patches and metadata that do not
-match, members whose headers claim more than the file holds (refused before allocation), a damaged content
-digest; old files without a digest still load, with a one-line note."""
+"""Map files: map data sets (the farm's shards and ``dataset.json``) and local map files (``read_map_file``).
+
+Cells, rows, patches and metadata that do not match, members whose headers claim more than the file holds (refused
+before allocation), a damaged content digest and special files are each one clear error; old files without a
+digest still load, with a one-line note; the commands refuse the deep defects by default."""
 
 from __future__ import annotations
 
+import contextlib
 import io
 import json
+import os
 import re
+import resource
 import shutil
 import tracemalloc
 import zipfile
 
 import numpy as np
 import pytest
+from cases import DEEP
+from hardening_helpers import _fifo, _forged_member, _quick
 
 from cuniform_torch.common.digest import DIGEST_KEY, content_digest
-from cuniform_torch.common.fileio import write_npz
-from cuniform_torch.common.npz import NpzError, read_npz
+from cuniform_torch.common.fileio import (
+    write_npz,
+)
 from precompute.levels.safe_map import LocalMap, MapError, read_map_file, write_map_file
 from precompute.maps.dataset import MapDatasetError, file_sha256, read_map_dataset
 from precompute.maps.farm import main as farm_main
 from training.maps.data import load_map_data
 
+
+def _system(**over):
+    def meta(m):
+        m["system"] = json.dumps({**json.loads(m["system"]), **over}, sort_keys=True)
+    return meta
+
+
+def _patch(**over):
+    return lambda m: m["patch"].update(over)
+
+
+@contextlib.contextmanager
+def _memory_capped(extra: int):
+    """The address space capped at what the process maps now + ``extra`` bytes (a reader that allocates what a
+    forged count asks for fails with MemoryError here, not by taking the machine's memory)."""
+    soft, hard = resource.getrlimit(resource.RLIMIT_AS)
+    with open("/proc/self/status") as f:
+        size = next(int(line.split()[1]) * 1024 for line in f if line.startswith("VmSize:"))
+    cap = size + extra if hard == resource.RLIM_INFINITY else min(hard, size + extra)
+    resource.setrlimit(resource.RLIMIT_AS, (cap, hard))
+    try:
+        yield
+    finally:
+        resource.setrlimit(resource.RLIMIT_AS, (soft, hard))
+
+
 TINY = ["--suite", "barn", "--count", "2", "--poses-per-map", "2", "--split", "train", "--seed", "0",
         "--horizon", "3", "--patch", "20", "20", "--quiet"]
-SHARD = "shard-00000.npz"
-_MB = 1 << 20
 
 
 @pytest.fixture(scope="module")
@@ -38,6 +70,9 @@ def tiny(tmp_path_factory):
 def _arrays(folder, k=0):
     with np.load(folder / f"shard-{k:05d}.npz", allow_pickle=False) as z:
         return {key: z[key] for key in z.files}
+
+
+SHARD = "shard-00000.npz"
 
 
 def _plant(tiny, tmp_path, change=None, meta=None, digest="recompute", k=0):
@@ -76,12 +111,6 @@ def _refused(folder, words, **kw):
     return str(info.value)
 
 
-def test_the_farm_writes_a_digest_and_the_reader_accepts_it(tiny, capsys):
-    assert DIGEST_KEY in _arrays(tiny)
-    ds = read_map_dataset(tiny, load=True, verify_all=True)
-    assert len(ds) == 4 and "no content digest" not in capsys.readouterr().err
-
-
 def _duplicate(a):
     lo, hi = _level(a, 0, 2)
     a["cells"][lo + 1] = a["cells"][lo]
@@ -109,6 +138,151 @@ def _reverse_actions(entry):
     return change
 
 
+def _full(a):
+    a["patches"][1] = 1
+
+
+def _transposed(a):
+    a["patches"][:] = np.ascontiguousarray(a["patches"].transpose(0, 2, 1))
+
+
+def _twos(a):
+    a["patches"][0, 0, 0] = 2
+
+
+def _system_param(key, value):
+    def meta(m):
+        s = json.loads(m["system"])
+        s["params"][key] = value
+        m["system"] = json.dumps(s)
+    return meta
+
+
+_MB = 1 << 20
+
+
+
+
+def _rezip(path, arrays, forged):
+    with zipfile.ZipFile(path, "w", zipfile.ZIP_DEFLATED) as zf:
+        for key, value in arrays.items():
+            if key in forged:
+                zf.writestr(f"{key}.npy", forged[key])
+            else:
+                buf = io.BytesIO()
+                np.lib.format.write_array(buf, np.asarray(value), allow_pickle=False)
+                zf.writestr(f"{key}.npy", buf.getvalue())
+
+
+def _peak(fn):
+    tracemalloc.start()
+    try:
+        fn()
+    finally:
+        peak = tracemalloc.get_traced_memory()[1]
+        tracemalloc.stop()
+    return peak
+
+
+def _map(tmp_path):
+    occ = np.zeros((8, 8), np.uint8)
+    occ[2, 5] = 1
+    path = tmp_path / "m.npz"
+    write_map_file(path, LocalMap(occ, (-0.2, -0.2), 0.05))
+    return path, occ
+
+
+def _commands(tiny, tmp_path):
+    """A map policy and the blind table of the tiny data set's system, for evaluate and coverage."""
+    from cuniform_torch.maps.checkpoint import map_policy_checkpoint, save_map_policy
+    from cuniform_torch.systems import system_from_json
+    from cuniform_torch.tables.file import write_table
+    from precompute.flow.builder import BuildConfig, build_table
+    from training.maps.train import make_policy
+    data = load_map_data([tiny], deep_checks=False)
+    policy, table = tmp_path / "p.pt", tmp_path / "blind.npz"
+    save_map_policy(policy, map_policy_checkpoint(make_policy(data, 8, 1, 4, 2, 0), data.system_json, {}, {}))
+    system, horizon = system_from_json(data.system_json)
+    write_table(table, build_table(system, BuildConfig(horizon=horizon))[0])
+    return ["--checkpoint", str(policy), "--table", str(table)]
+
+
+_DEFECTS = {"permuted action rows": (_reverse_actions(1), None, r"entry 1, level 3: its cell_probs are not"),
+            "a smaller radius": (None, lambda m: m.update(radius=0.1), r"free successor\(s\) .* left out"),
+            "a transposed patch": (_transposed, None, r"(lies within radius|free successor\(s\) .* left out)")}
+
+
+# ---------------------------------------------------------------------------------------------- JSON nested too deeply
+
+def test_a_dataset_json_nested_too_deeply_is_one_error(tmp_path):
+    (tmp_path / "dataset.json").write_text(DEEP)
+    with pytest.raises(MapDatasetError, match=r"dataset.json: not readable JSON \(RecursionError"):
+        read_map_dataset(tmp_path)
+
+
+# --------------------------------------------------------------------------------------------- the data set's metadata
+
+@pytest.mark.parametrize("meta, match", [
+    (_system(factory="evil:make"), r"names factory 'evil:make', but 'dubins' is a built-in system"),
+    (_system(dt=1e38), r"dt does not match its params"),
+    (_patch(resolution=1e38), r"patch origin \[-0.5, -0.5\] must be the centred origin .* = \[-1e\+39, -1e\+39\]"),
+    (_patch(origin=[-1, -0.5]), r"patch origin \[-1, -0.5\] must be the centred origin"),
+    (_patch(origin=[-0.5, 1e38]), r"patch origin \[-0.5, 1e\+38\] must be the centred origin"),
+    (_patch(resolution=0.1, origin=[-1.0, -1.0]), None),  # consistent: the reach and inflation checks' to refuse
+    (lambda m: m["grid"]["periodic"].__setitem__(0, 0), r"grid .* does not match the system's"),  # 0 for false
+    (lambda m: m["shards"][0].update(entries=10**30), r"4 entries, but the shards hold 10000000000000000000000000000"
+                                                       r"02"),  # refused before a list of 10^30 pairs is made
+])
+def test_a_dataset_json_the_farm_did_not_write_is_refused(tiny, tmp_path, meta, match):  # noqa: F811
+    m = json.loads((tiny / "dataset.json").read_text())
+    assert m["patch"]["origin"] == [-0.5, -0.5] and m["patch"]["shape"] == [20, 20]  # what the patterns assume
+    folder = _plant(tiny, tmp_path, meta=meta)
+    if match is None:
+        read_map_dataset(folder)  # the metadata alone is consistent
+        return
+    with _memory_capped(1 << 30), pytest.raises(MapDatasetError, match=rf"dataset.json: .*{match}"):
+        read_map_dataset(folder)
+
+
+# ----------------------------------------------------------------------------------------------------------- local map
+
+def test_a_local_maps_resolution_of_another_dtype_is_refused(tmp_path):
+    """float32 0.1 is 0.10000000149...: another map, though its digest is fresh."""
+    arrays = {"format": np.array("cuniform-local-map/1"), "occupied": np.zeros((4, 4), np.uint8),
+              "origin": np.zeros(2), "resolution": np.array(0.1, dtype=np.float32)}
+    write_npz(tmp_path / "m.npz", {**arrays, DIGEST_KEY: np.array(content_digest(arrays))})
+    with pytest.raises(MapError, match=r"m.npz: 'resolution' must be float64, got float32"):
+        read_map_file(tmp_path / "m.npz")
+    arrays["resolution"] = np.array(0.1)
+    write_npz(tmp_path / "m.npz", {**arrays, DIGEST_KEY: np.array(content_digest(arrays))})
+    assert read_map_file(tmp_path / "m.npz").resolution == 0.1
+
+
+# ------------------------------------------------------------------------------------------------------- special files
+
+@pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="POSIX special files")
+@pytest.mark.parametrize("target", ["fifo", "/dev/zero"])
+def test_a_barn_file_that_is_a_special_file_is_refused(tmp_path, target):
+    from precompute.worlds.barn import load_barn
+    from precompute.worlds.barn_format import BarnFormatError
+
+    path = tmp_path / "barn.npz"
+    if target == "fifo":
+        _fifo(path)
+    else:
+        path.symlink_to(target)
+    with pytest.raises(BarnFormatError, match="the BARN file is a (FIFO|character device)"):
+        _quick(load_barn, path)
+
+
+# --------------------------------------------------------------------------------- shards and local maps: strict reads
+
+def test_the_farm_writes_a_digest_and_the_reader_accepts_it(tiny, capsys):
+    assert DIGEST_KEY in _arrays(tiny)
+    ds = read_map_dataset(tiny, load=True, verify_all=True)
+    assert len(ds) == 4 and "no content digest" not in capsys.readouterr().err
+
+
 @pytest.mark.parametrize("change, words", [
     (_duplicate, r"cells of a level must be distinct and ascending.*repeats"),
     (_swap_rows, r"cells of a level must be distinct and ascending.*comes before"),
@@ -134,18 +308,6 @@ def test_a_huge_cell_index_stops_the_training_data(tiny, tmp_path):
         load_map_data([_plant(tiny, tmp_path, _huge_index)])
 
 
-def _full(a):
-    a["patches"][1] = 1
-
-
-def _transposed(a):
-    a["patches"][:] = np.ascontiguousarray(a["patches"].transpose(0, 2, 1))
-
-
-def _twos(a):
-    a["patches"][0, 0, 0] = 2
-
-
 @pytest.mark.parametrize("change, words, kw", [
     (_full, r"the patch of entry 1 is occupied everywhere", {}),
     (_transposed, r"(lies within radius 0.2 m of an obstacle of its patch|free successor\(s\) .* left out)",
@@ -156,14 +318,6 @@ def test_planted_patches_are_refused(tiny, tmp_path, change, words, kw):
     a = _arrays(tiny)
     assert not np.array_equal(a["patches"], a["patches"].transpose(0, 2, 1))
     _refused(_plant(tiny, tmp_path, change), words, **kw)
-
-
-def _system_param(key, value):
-    def meta(m):
-        s = json.loads(m["system"])
-        s["params"][key] = value
-        m["system"] = json.dumps(s)
-    return meta
 
 
 @pytest.mark.parametrize("meta, words, kw", [
@@ -190,35 +344,6 @@ def test_an_old_shard_without_digest_loads_with_one_note(tiny, tmp_path, capsys)
     assert len(read_map_dataset(old, load=True)) == 4
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "no content digest" in err[0] and SHARD in err[0]
-
-
-def _forged_member(name, shape, dtype, data=b"\0" * 64):
-    """The bytes of a zip member ``name.npy`` whose header claims ``shape`` but which holds only ``data``."""
-    buf = io.BytesIO()
-    np.lib.format.write_array_header_1_0(buf, {"descr": np.lib.format.dtype_to_descr(np.dtype(dtype)),
-                                               "fortran_order": False, "shape": shape})
-    return buf.getvalue() + data
-
-
-def _rezip(path, arrays, forged):
-    with zipfile.ZipFile(path, "w", zipfile.ZIP_DEFLATED) as zf:
-        for key, value in arrays.items():
-            if key in forged:
-                zf.writestr(f"{key}.npy", forged[key])
-            else:
-                buf = io.BytesIO()
-                np.lib.format.write_array(buf, np.asarray(value), allow_pickle=False)
-                zf.writestr(f"{key}.npy", buf.getvalue())
-
-
-def _peak(fn):
-    tracemalloc.start()
-    try:
-        fn()
-    finally:
-        peak = tracemalloc.get_traced_memory()[1]
-        tracemalloc.stop()
-    return peak
 
 
 def test_a_shard_whose_header_claims_a_huge_array_is_refused_before_allocation(tiny, tmp_path):
@@ -257,35 +382,6 @@ def test_a_local_map_whose_header_claims_a_huge_array_is_refused_before_allocati
         read_map_file(path)
 
 
-def test_read_npz_bounds_headers_and_refuses_objects(tmp_path):
-    path = tmp_path / "a.npz"
-    write_npz(path, {"x": np.arange(10), "y": np.zeros((3, 2), np.float32)})
-    got = read_npz(path)
-    assert np.array_equal(got["x"], np.arange(10)) and got["y"].shape == (3, 2) and got["x"].flags.writeable
-    with pytest.raises(NpzError, match=r"a\.npz: member 'y': must have shape \[3, 3\], got \[3, 2\]"):
-        read_npz(path, expect={"y": ((3, 3), np.float32)})
-    with pytest.raises(NpzError, match=r"more than this file may hold"):
-        read_npz(path, max_bytes=100)
-    obj = tmp_path / "o.npz"
-    np.savez(obj, o=np.array([None, 1], dtype=object))
-    with pytest.raises(NpzError, match=r"member 'o': dtype object holds Python objects"):
-        read_npz(obj)
-    lying = tmp_path / "l.npz"  # a header claiming more than the member holds (a few bytes short)
-    with zipfile.ZipFile(lying, "w", zipfile.ZIP_STORED) as zf:
-        zf.writestr("z.npy", _forged_member("z", (100,), np.int64, b"\0" * 80))
-    with pytest.raises(NpzError, match=r"member 'z': its header claims \[100\] int64 \(800 bytes\) but the member "
-                                       r"holds 80 data bytes"):
-        read_npz(lying)
-
-
-def _map(tmp_path):
-    occ = np.zeros((8, 8), np.uint8)
-    occ[2, 5] = 1
-    path = tmp_path / "m.npz"
-    write_map_file(path, LocalMap(occ, (-0.2, -0.2), 0.05))
-    return path, occ
-
-
 def test_a_local_map_carries_its_digest_and_a_damaged_one_is_refused(tmp_path, capsys):
     path, occ = _map(tmp_path)
     assert np.array_equal(read_map_file(path).occupied, occ) and "no content digest" not in capsys.readouterr().err
@@ -309,27 +405,7 @@ def test_an_old_local_map_without_digest_loads_with_one_note(tmp_path, capsys):
     assert len(err) == 1 and "no content digest" in err[0] and "m.npz" in err[0]
 
 
-# ------------------------------------------------------------------ the commands refuse them by default
-
-def _commands(tiny, tmp_path):
-    """A map policy and the blind table of the tiny data set's system, for evaluate and coverage."""
-    from cuniform_torch.maps.checkpoint import map_policy_checkpoint, save_map_policy
-    from cuniform_torch.systems import system_from_json
-    from cuniform_torch.tables.file import write_table
-    from precompute.flow.builder import BuildConfig, build_table
-    from training.maps.train import make_policy
-    data = load_map_data([tiny], deep_checks=False)
-    policy, table = tmp_path / "p.pt", tmp_path / "blind.npz"
-    save_map_policy(policy, map_policy_checkpoint(make_policy(data, 8, 1, 4, 2, 0), data.system_json, {}, {}))
-    system, horizon = system_from_json(data.system_json)
-    write_table(table, build_table(system, BuildConfig(horizon=horizon))[0])
-    return ["--checkpoint", str(policy), "--table", str(table)]
-
-
-_DEFECTS = {"permuted action rows": (_reverse_actions(1), None, r"entry 1, level 3: its cell_probs are not"),
-            "a smaller radius": (None, lambda m: m.update(radius=0.1), r"free successor\(s\) .* left out"),
-            "a transposed patch": (_transposed, None, r"(lies within radius|free successor\(s\) .* left out)")}
-
+# --------------------------------------------------------------------------------- the commands refuse them by default
 
 @pytest.mark.parametrize("defect", list(_DEFECTS))
 def test_the_commands_refuse_the_deep_defects_by_default(tiny, tmp_path, capsys, defect):

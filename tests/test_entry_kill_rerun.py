@@ -1,7 +1,7 @@
-"""Signals at any moment (issue 38, scope 4): a Ctrl-C of a run with worker processes is handled by the parent alone
-(no worker prints a KeyboardInterrupt traceback, the workers end at once and none is left), and the kill-and-rerun
-harness (``.ci/kill_rerun.py``) compares what it should. The harness itself (minutes) is run by hand; its table is
-in docs/results/hardening.md."""
+"""Signals and dead workers, for every command with worker processes (issue 38, scope 4): a Ctrl-C of
+a run is handled by the parent alone (no worker prints a KeyboardInterrupt traceback, the workers end at once and
+none is left), a worker that dies is one clear error, and the kill-and-rerun harness (``.ci/kill_rerun.py``)
+compares what it should. The harness itself (minutes) is run by hand; its table is in docs/results/hardening.md."""
 
 from __future__ import annotations
 
@@ -18,6 +18,7 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 
+
 SLOW_MODULE = """
 import os, time
 time.sleep(float(os.environ.get("SLOW_IMPORT", "0")))  # a worker importing its job's module (seconds, like torch)
@@ -26,6 +27,7 @@ def job(seconds):
     time.sleep(seconds)
     return seconds
 """
+
 
 PARENT = """
 import os, sys, time
@@ -56,6 +58,29 @@ def _session_processes(sid: int) -> list[int]:
     return found
 
 
+def _harness():
+    spec = importlib.util.spec_from_file_location("kill_rerun", ROOT / ".ci" / "kill_rerun.py")
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module  # dataclasses look their module up while the class is made
+    spec.loader.exec_module(module)
+    return module
+
+
+# ---------------------------------------------------------------------------------------------------- workers that die
+
+def test_a_worker_that_dies_is_one_clear_error_not_a_broken_pool_traceback():
+    from precompute.cli import error_message
+    from precompute.parallel import WorkerDiedError, run_jobs
+
+    with pytest.raises(WorkerDiedError) as err:
+        run_jobs(os.abort, [(), ()], workers=2)  # each worker dies by a signal, as the OOM killer's SIGKILL does
+    line = error_message(err.value)
+    assert line is not None and "a worker process died" in line and "rerun to resume" in line
+
+
+# ---------------------------------------------------------------------------------------- Ctrl-C and SIGTERM of a pool
+
+@pytest.mark.slow  # a pool, interrupted (pytest --durations: 17.3 s at load 11, 2-4 s at 3)
 @pytest.mark.skipif(not hasattr(signal, "pthread_sigmask"), reason="POSIX signals")
 @pytest.mark.parametrize("target, slow_import, after", [("group", "20", 2.0), ("parent", "0", 4.0)])
 def test_a_ctrl_c_of_a_pool_is_the_parents_alone(tmp_path, target, slow_import, after):
@@ -93,6 +118,7 @@ def test_a_ctrl_c_of_a_pool_is_the_parents_alone(tmp_path, target, slow_import, 
     assert not left, f"processes left: {left}"
 
 
+@pytest.mark.slow  # a pool, terminated (pytest --durations: 5.1 s at load 3)
 @pytest.mark.skipif(not hasattr(signal, "raise_signal"), reason="POSIX signals")
 def test_a_sigterm_of_a_pools_parent_ends_the_workers_first_and_still_dies_of_it(tmp_path):
     """``kill PID`` of a run with workers (the parent alone): it died at once and left its workers mid-job (a
@@ -120,15 +146,7 @@ def test_a_sigterm_of_a_pools_parent_ends_the_workers_first_and_still_dies_of_it
     assert not left, f"processes left: {left}"
 
 
-# ------------------------------------------------------------------------------------------ the harness's checks
-
-def _harness():
-    spec = importlib.util.spec_from_file_location("kill_rerun", ROOT / ".ci" / "kill_rerun.py")
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module  # dataclasses look their module up while the class is made
-    spec.loader.exec_module(module)
-    return module
-
+# ------------------------------------------------------------------------------------------------ the harness's checks
 
 def test_the_harness_sees_a_lost_a_duplicated_and_a_changed_record(tmp_path):
     kr = _harness()
