@@ -47,9 +47,13 @@ def test_each_subcommand_shows_only_its_flags(command, capsys):
     assert "--num-actions" not in text and "--cell-size" not in text  # system parameters are --param
 
 
-def test_the_top_help_lists_the_subcommands(capsys):
+def test_the_top_help_lists_the_subcommands_and_each_ones_flags(capsys):
+    """One --help shows every flag there is, each under the subcommands that take it (explained by SUB --help)."""
     text = _help(capsys, ["--help"])
-    assert all(name in text for name in FLAGS) and "--points" not in text
+    listing = text.split("flags of each subcommand")[1]
+    for name, flags in FLAGS.items():
+        block = listing.split(f"  {name}:")[1].split(":")[0]  # up to the next subcommand's name
+        assert set(re.findall(r"--[a-z][\w-]*", block)) == flags - {"-h", "--help"}, name
 
 
 # ------------------------------------------------------------------------------------------ config round trip
