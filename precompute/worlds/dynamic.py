@@ -28,14 +28,13 @@ through (a space-time search would); they rule out a corridor walled off at some
 from __future__ import annotations
 
 import math
-from typing import Any
 
 import numpy as np
 import torch
 
 from cuniform_torch.envs import Environment, MovingDiscs
 from precompute.worlds.geometry import SuiteError, inflate, reachable
-from precompute.worlds.suites import MAX_ATTEMPTS, NavTask, _int, _num, disc_count_range, validate_task
+from precompute.worlds.suites import MAX_ATTEMPTS, NavTask, _int, _num, _range, disc_count_range, validate_task
 
 __all__ = ["moving", "sudden", "SUDDEN_APPEAR", "sudden_id", "sudden_position"]
 
@@ -43,18 +42,6 @@ SUDDEN_APPEAR = (0.0, 1.5, 2.0, 2.2, 2.4)
 """s: the sudden suite's appearance times. Driving straight at 0.5 m/s, the benchmark robot (radius 0.2 m) would
 touch a centred disc (0.5 m at x = 2 m) at x = 1.3 m, 2.6 s after the start; it turns at up to 1.5 rad/s (a 0.33 m
 radius), so an obstacle sensed a second before that is still easy: the times crowd the last half second"""
-
-
-def _pair(value: Any, what: str, who: str, positive: bool = True) -> tuple[float, float]:
-    """A (low, high) pair of numbers with ``0 <= low <= high`` (``0 < low`` when ``positive``)."""
-    try:
-        lo, hi = value
-    except (TypeError, ValueError):
-        raise SuiteError(f"{who}: {what} must be a pair (min, max), got {value!r}") from None
-    lo, hi = _num(lo, what, who, positive), _num(hi, what, who, positive)
-    if lo > hi:
-        raise SuiteError(f"{who}: {what} must satisfy min <= max, got {value!r}")
-    return lo, hi
 
 
 def _line_distance(points: np.ndarray, through: np.ndarray, direction: np.ndarray) -> np.ndarray:
@@ -86,8 +73,8 @@ def moving(seed: int, length: float = 20.0, width: float = 6.0, num_discs: tuple
         raise SuiteError(f"{who}: seed must be >= 0, got {seed}")
     L, Wd = _num(length, "length", who), _num(width, "width", who)
     r = _num(robot_radius, "robot_radius", who, positive=False)
-    r_lo, r_hi = _pair(disc_radius, "disc_radius", who)
-    s_lo, s_hi = _pair(disc_speed, "disc_speed", who, positive=False)
+    r_lo, r_hi = _range(disc_radius, "disc_radius", who)
+    s_lo, s_hi = _range(disc_speed, "disc_speed", who, positive=False)
     angle = math.radians(_num(max_angle, "max_angle", who, positive=False))
     if angle >= math.pi / 2:
         raise SuiteError(f"{who}: max_angle must be below 90 degrees (the discs cross the corridor), got {max_angle}")
