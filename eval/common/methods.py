@@ -45,6 +45,11 @@ nominal. Method keys:
   ``python -m training.maps.distill``), which senses the local map at each command within the task's sensing
   range (opt-in: it needs that file). Closed-loop only.
 
+``mppi_1.0`` and the five new proposals above (pink, low-pass, smooth, kernel, mixture) are also opt-in methods of
+the paper's open-loop experiments (coverage, uniformity; issue 36), run on the navigation robot's table
+(``--table``): their open-loop trajectories are their controller's proposals at its first command
+(:attr:`Method.proposal_draws`, :func:`sample_states`).
+
 A benchmark's Gaussian baselines (:func:`gaussian_baselines`) are what every other method is compared with in
 the navigation benchmark (the best of them per suite and budget).
 """
