@@ -45,6 +45,11 @@ nominal. Method keys:
   ``python -m training.maps.distill``), which senses the local map at each command within the task's sensing
   range (opt-in: it needs that file). Closed-loop only.
 
+``mppi_1.0`` and the five new proposals above (pink, low-pass, smooth, kernel, mixture) are also opt-in methods of
+the paper's open-loop experiments (coverage, uniformity; issue 36), run on the navigation robot's table
+(``--table``): their open-loop trajectories are their controller's proposals at its first command
+(:attr:`Method.proposal_draws`, :func:`sample_states`).
+
 A benchmark's Gaussian baselines (:func:`gaussian_baselines`) are what every other method is compared with in
 the navigation benchmark (the best of them per suite and budget).
 """
@@ -107,7 +112,7 @@ class Method:
     """its name in tables and figures (a benchmark may print another: :attr:`labels`)"""
     family: str
     """the paper's column: "mppi", "log_mppi" or "cuniform" (or "uniform", ours)"""
-    controller: type | None = None
+    controller: Callable[..., Any] | None = None
     """the MPPI-family class that proposes with this method (None: open-loop only)"""
     noise: type | None = None
     """a noise baseline's open-loop law (``GaussianSampler``, ``NormalLogNormalSampler``), std ``noise_std``"""
@@ -116,6 +121,10 @@ class Method:
     """a C-Uniform or uniform method's proposals: one of :data:`SOURCES`"""
     open_loop: bool = True
     """it draws open-loop trajectories (coverage, uniformity, trajectory fans)"""
+    proposal_draws: bool = False
+    """its open-loop trajectories are its controller's own K proposals around a zero nominal (one ``plan`` with a
+    zero cost, :func:`sample_states`), not draws of ``noise`` or ``source`` alone: a proposal they cannot express
+    (time-correlated noise, a mixture)"""
     slow: bool = False
     """left out of a default closed-loop run unless asked for (see :data:`eval.paper.episodes.SLOW_NOTE`)"""
     paper: bool = False
@@ -135,6 +144,8 @@ class Method:
             raise ValueError(f"method {self.key}: give a noise law or a source, not both or neither")
         if self.source is not None and self.source not in SOURCES:
             raise ValueError(f"method {self.key}: unknown source {self.source!r}; choose from {', '.join(SOURCES)}")
+        if self.proposal_draws and (self.controller is None or not self.open_loop):
+            raise ValueError(f"method {self.key}: proposal_draws needs a controller and open_loop")
         if not self.benchmarks:
             raise ValueError(f"method {self.key}: give the benchmark(s) it belongs to, of {', '.join(BENCHMARKS)}")
         named = {"benchmarks": self.benchmarks, "labels": tuple(b for b, _ in self.labels), "opt_in": self.opt_in}
@@ -166,17 +177,20 @@ METHODS: dict[str, Method] = {m.key: m for m in [
     *(Method(f"log_mppi_{lvl}", f"log-MPPI {lvl} (std {s:g})", "log_mppi", LogMPPI, NormalLogNormalSampler, s,
              color=_SHADES["log_mppi"][lvl], benchmarks=(PAPER,)) for lvl, s in config.NOISE_LEVELS.items()),
     *(Method(f"mppi_{s:.1f}", f"MPPI (std {s:.1f})", "mppi", MPPI, GaussianSampler, s, color=_BLUES[s],
-             benchmarks=(NAVIGATE,)) for s in _NAV_NOISE),
+             benchmarks=(NAVIGATE,)) for s in _NAV_NOISE[:2]),
+    # std 1.0 is also the white-noise peer of the time-correlated proposals in the paper's open-loop experiments
+    Method("mppi_1.0", "MPPI (std 1.0)", "mppi", MPPI, GaussianSampler, 1.0, color=_BLUES[1.0], benchmarks=_BOTH,
+           opt_in=(PAPER,)),
     Method("log_mppi_0.3", "log-MPPI (std 0.3)", "log_mppi", LogMPPI, NormalLogNormalSampler, 0.3, color="#f16913",
            benchmarks=(NAVIGATE,)),
-    Method("mppi_pink_1.0", "MPPI, pink noise (std 1.0)", "mppi", ColoredMPPI, GaussianSampler, 1.0, open_loop=False,
-           color="#6a51a3", benchmarks=(NAVIGATE,), opt_in=(NAVIGATE,)),
+    Method("mppi_pink_1.0", "MPPI, pink noise (std 1.0)", "mppi", ColoredMPPI, GaussianSampler, 1.0,
+           proposal_draws=True, color="#6a51a3", benchmarks=_BOTH, opt_in=_BOTH),
     Method("mppi_lowpass_1.0", "MPPI, low-pass noise (std 1.0, a 0.8)", "mppi", LowPassMPPI, GaussianSampler, 1.0,
-           open_loop=False, color="#807dba", benchmarks=(NAVIGATE,), opt_in=(NAVIGATE,)),
+           proposal_draws=True, color="#807dba", benchmarks=_BOTH, opt_in=_BOTH),
     Method("smppi_2.0", "smooth MPPI (rate std 2.0 rad/s^2)", "mppi", SmoothMPPI, GaussianSampler, 2.0,
-           open_loop=False, color="#54278f", benchmarks=(NAVIGATE,), opt_in=(NAVIGATE,)),
+           proposal_draws=True, color="#54278f", benchmarks=_BOTH, opt_in=_BOTH),
     Method("kmppi_1.0", "kernel MPPI (7 control points, std 1.0)", "mppi", KernelMPPI, GaussianSampler, 1.0,
-           open_loop=False, color="#9e9ac8", benchmarks=(NAVIGATE,), opt_in=(NAVIGATE,)),
+           proposal_draws=True, color="#9e9ac8", benchmarks=_BOTH, opt_in=_BOTH),
     Method("uniform", "uniform discrete actions", "uniform", CUniformMPPI, source="uniform", color="#737373",
            benchmarks=_BOTH),
     Method("cu_table", "C-Uniform table (max-flow)", "cuniform", CUniformMPPI, source="table", paper=True,
@@ -193,7 +207,7 @@ METHODS: dict[str, Method] = {m.key: m for m in [
            source="table", open_loop=False, color="#c51b8a", benchmarks=(NAVIGATE,), opt_in=(NAVIGATE,)),
     Method("mix_cu_mppi_0.5", "mixture: half C-Uniform table, half MPPI std 1.0", "cuniform",
            functools.partial(CUniformMixtureMPPI, cuniform_fraction=0.5, noise_std=1.0), source="table",
-           open_loop=False, color="#74c476", benchmarks=(NAVIGATE,), opt_in=(NAVIGATE,)),
+           proposal_draws=True, color="#74c476", benchmarks=_BOTH, opt_in=_BOTH),
     Method("cfu_mppi", "CFU-MPPI (map-conditioned policy)", "cuniform", CFUMPPI, source="map_policy",
            open_loop=False, color="#17becf", benchmarks=(NAVIGATE,), opt_in=(NAVIGATE,)),
 ]}
@@ -320,13 +334,29 @@ def _noise_sampler(method: Method, system, horizon: int, device: str):
     return method.noise(nominal, method.noise_std, low, high)
 
 
+def _zero_cost(states: Tensor, actions: Tensor) -> Tensor:
+    """``[N, T+1, d]``, ``[N, T, q]`` -> ``[N]`` zeros: every proposal weighs the same (open-loop draws)."""
+    return states.new_zeros(states.shape[0])
+
+
 def sample_states(method: Method, sources: Sources, num_samples: int, horizon: int,
                   generator: torch.Generator) -> Tensor:
-    """``[N, T+1, d]`` open-loop trajectories of ``method`` from the origin (float32, on the sources' device)."""
+    """``[N, T+1, d]`` open-loop trajectories of ``method`` from the origin (float32, on the sources' device).
+
+    A :attr:`Method.proposal_draws` method's are its controller's N proposals at its first command (zero nominal,
+    zero last action): one :meth:`~cuniform_torch.controllers.core.MPPICore.plan` with a zero cost, the controller
+    seeded from ``generator`` (so a seed gives the same trajectories)."""
     if method.source == "graph":  # cell sequences, not a rollout
         return sources.load("graph").sample(num_samples, horizon, generator)
     system = sources.system
     x0 = torch.zeros(len(system.periodic), device=sources.device)
+    if method.proposal_draws:
+        seed = int(torch.randint(0, 2**31 - 1, (), generator=generator, device=generator.device))
+        controller = make_controller(method, sources, _zero_cost, num_samples, horizon, seed=seed)
+        try:
+            return controller.plan(x0).states  # [N, T+1, d]; plan leaves the warm start alone
+        finally:
+            controller.close()
     if method.source is None:
         sampler = _noise_sampler(method, system, horizon, sources.device)
     else:
