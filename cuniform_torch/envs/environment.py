@@ -6,8 +6,10 @@ knows then (an obstacle is sensed from its ``appear_time`` on).
 
 from __future__ import annotations
 
+import bisect
 import functools
 import math
+import operator
 from dataclasses import dataclass, field
 
 import torch
@@ -113,6 +115,34 @@ class Environment:
             hit = cache[key] = (circles, rects, circles.to(device=xy.device, dtype=xy.dtype),
                                 rects.to(device=xy.device, dtype=xy.dtype))
         return hit[2], hit[3]
+
+    def _visible_tables(self, time: float | None, dtype: torch.dtype) -> tuple[Tensor, Tensor, list]:
+        """The Circles ``[C, 3]`` (x, y, r^2) and Rects ``[R, 4]`` sensed at ``time`` (all for None) as CPU tables
+        in ``dtype``, and the other obstacles sensed then: what :meth:`visible` and :meth:`_batched` give, without
+        their walks over the obstacles per call (the tables are sorted by ``appear_time`` once, so those sensed
+        are a prefix). Cached while the obstacles are the same objects."""
+        obstacles = self.obstacles
+        cached = self.__dict__.get("_sorted_cache")
+        if cached is None or len(cached[0]) != len(obstacles) or not all(map(operator.is_, cached[0], obstacles)):
+            circles = sorted(((o.appear_time, o.center[0], o.center[1], o.radius * o.radius) for o in obstacles
+                              if type(o) is Circle), key=operator.itemgetter(0))
+            rects = sorted(((o.appear_time, o.xmin, o.ymin, o.xmax, o.ymax) for o in obstacles if type(o) is Rect),
+                           key=operator.itemgetter(0))
+            tables = (torch.tensor([c[1:] for c in circles], dtype=torch.float64).reshape(-1, 3),
+                      torch.tensor([r[1:] for r in rects], dtype=torch.float64).reshape(-1, 4))
+            others = [o for o in obstacles if type(o) not in (Circle, Rect)]
+            cached = (tuple(obstacles), [c[0] for c in circles], [r[0] for r in rects], tables, others, {})
+            self._sorted_cache = cached
+        _, c_times, r_times, tables, others, by_dtype = cached
+        full = by_dtype.get(dtype)
+        if full is None:
+            full = by_dtype[dtype] = (tables[0].to(dtype), tables[1].to(dtype))
+        if time is None:
+            return full[0], full[1], others
+        if isinstance(time, bool) or not isinstance(time, (int, float)) or math.isnan(time):
+            raise ValueError(f"Environment: time must be a number or None, got {time!r}")
+        return (full[0][:bisect.bisect_right(c_times, time)], full[1][:bisect.bisect_right(r_times, time)],
+                [o for o in others if o.appear_time <= time])
 
     def _batched(self, obstacles: list) -> tuple[Tensor, Tensor, list]:
         """The Circles ``[C, 3]`` (x, y, r^2) and Rects ``[R, 4]`` of ``obstacles`` as float64 tables, and the
