@@ -124,3 +124,29 @@ def test_a_disc_that_only_touches_the_points_box_is_kept(monkeypatch, dtype):
         got = cost(states, torch.zeros(2, 3, 1, dtype=dtype))
         want = _torch_path(monkeypatch, cost, states, torch.zeros(2, 3, 1, dtype=dtype))
         torch.testing.assert_close(got, want, rtol=1e-6, atol=0.0)
+
+
+def test_the_map_rollouts_dubins_step_is_the_fmod_step():
+    """The map kernel's step (:func:`dubins_advance`, now on the shared fmod-free wrap and sincos polynomial):
+    headings bit for bit ``wrap(theta + rate dt)`` with fmod, for headings all round the circle and turn rates small
+    and large (sums beyond [-2 pi, 4 pi) take the fmod branch); positions move by ``speed dt (cos, sin)``."""
+    import numpy as np
+
+    from cuniform_torch.systems.dubins_loops import dubins_advance
+
+    pi, two_pi, dt, speed = np.float32(np.pi), np.float32(2 * np.pi), np.float32(0.2), np.float32(0.5)
+    heads = np.linspace(-np.pi, np.pi, 2001, dtype=np.float32)[:-1]
+    rates = np.float32([-50.0, -1.5, -0.5, 0.0, 0.5, 1.5, 50.0])
+    head, rate = (a.ravel() for a in np.meshgrid(heads, rates))
+    states = np.zeros((2, 3, head.shape[0]), dtype=np.float32)  # [T+1, 3, N]
+    states[0, 0] = np.linspace(-1, 1, head.shape[0], dtype=np.float32)
+    states[0, 2] = head
+    for i in range(head.shape[0]):
+        dubins_advance(states, 0, i, rate[i], dt, speed, pi, two_pi)
+    a = rate * dt + head + pi  # float32, as the step rounds it
+    m = np.fmod(a, two_pi)
+    np.testing.assert_array_equal(states[1, 2], np.where(m < 0, m + two_pi, m) - pi)
+    assert (np.abs(a) > 4 * np.pi).any() and (a < -2 * np.pi).any()
+    th = states[1, 2].astype(np.float64)
+    np.testing.assert_allclose(states[1, 0], states[0, 0] + 0.1 * np.cos(th), atol=2e-7, rtol=0)
+    np.testing.assert_allclose(states[1, 1], 0.1 * np.sin(th), atol=2e-7, rtol=0)

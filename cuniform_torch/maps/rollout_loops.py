@@ -10,7 +10,7 @@ import math
 import numpy as np
 
 from cuniform_torch.common.compiled import njit
-from cuniform_torch.systems.dubins_loops import dubins_advance
+from cuniform_torch.systems.dubins_loops import dubins_advance, sincos
 
 __all__ = ["features", "draw_and_step", "draw_step_features"]
 
@@ -45,7 +45,8 @@ def features(t, states, feat, ok, counts, fmap, probes, geo):
     ox, oy, res, half_x, half_y, cell_x, cell_y = geo[2], geo[3], geo[4], geo[5], geo[6], geo[7], geo[8]
     for i in range(n_states):
         x, y, th = states[t, 0, i], states[t, 1, i], states[t, 2, i]
-        c, s = np.float32(math.cos(th)), np.float32(math.sin(th))
+        cv, sv = sincos(np.float64(th))  # the step's polynomial, not two libm calls
+        c, s = np.float32(cv), np.float32(sv)
         feat[i, 0], feat[i, 1], feat[i, 2], feat[i, 3] = x, y, c, s
         excess = max((abs(x) - half_x) / cell_x, (abs(y) - half_y) / cell_y)
         finite = math.isfinite(x) and math.isfinite(y) and math.isfinite(th)
