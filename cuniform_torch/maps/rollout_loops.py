@@ -17,23 +17,29 @@ __all__ = ["features", "draw_and_step", "draw_step_features"]
 @njit(nogil=True, inline="always")
 def read_channels(fmap, ix, iy, feat, i, k):
     """Bilinear reads of every channel of ``fmap [C, H, W]`` at pixel coordinates ``(ix, iy)`` (column, row) into
-    ``feat[i, k:k + C]``; zero off the map. The taps and their weights are found once for all channels; each
-    channel's sum takes the taps in the same order, with the same products, as one read of a single channel."""
+    ``feat[i, k:k + C]``; zero off the map. The taps, whether each is on the map, and their weights are found once
+    for all channels (not per channel: that was most of a read); each channel's sum takes the taps in the same
+    order, with the same products ``(x weight * y weight) * value``, as one read of a single channel."""
     H, W = fmap.shape[1], fmap.shape[2]
     x0f, y0f = math.floor(ix), math.floor(iy)
     wx, wy = ix - x0f, iy - y0f
     x0, y0 = int(x0f), int(y0f)
+    x1, y1 = x0 + 1, y0 + 1
+    one = np.float32(1.0)
+    in_x0, in_x1, in_y0, in_y1 = 0 <= x0 < W, 0 <= x1 < W, 0 <= y0 < H, 0 <= y1 < H
+    a00, a01, a10, a11 = in_y0 and in_x0, in_y0 and in_x1, in_y1 and in_x0, in_y1 and in_x1  # row, column
+    w00, w01 = (one - wx) * (one - wy), wx * (one - wy)
+    w10, w11 = (one - wx) * wy, wx * wy
     for ch in range(fmap.shape[0]):
         v = np.float32(0.0)
-        for dy in range(2):
-            yy = y0 + dy
-            if yy < 0 or yy >= H:
-                continue
-            fy = wy if dy else np.float32(1.0) - wy
-            for dx in range(2):
-                xx = x0 + dx
-                if 0 <= xx < W:
-                    v += (wx if dx else np.float32(1.0) - wx) * fy * fmap[ch, yy, xx]
+        if a00:
+            v += w00 * fmap[ch, y0, x0]
+        if a01:
+            v += w01 * fmap[ch, y0, x1]
+        if a10:
+            v += w10 * fmap[ch, y1, x0]
+        if a11:
+            v += w11 * fmap[ch, y1, x1]
         feat[i, k + ch] = v
 
 @njit(nogil=True, boundscheck=False)
