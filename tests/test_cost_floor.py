@@ -150,3 +150,26 @@ def test_the_map_rollouts_dubins_step_is_the_fmod_step():
     th = states[1, 2].astype(np.float64)
     np.testing.assert_allclose(states[1, 0], states[0, 0] + 0.1 * np.cos(th), atol=2e-7, rtol=0)
     np.testing.assert_allclose(states[1, 1], 0.1 * np.sin(th), atol=2e-7, rtol=0)
+
+
+def test_the_map_kernels_bilinear_read_is_grid_samples():
+    """The map kernel's probe read (taps and weights found once for all channels) against ``grid_sample``
+    (``align_corners=False``, zero padding), at points all over a random feature map and off its edges."""
+    import numpy as np
+
+    from cuniform_torch.maps.rollout_loops import read_channels
+
+    gen = torch.Generator().manual_seed(0)
+    C, H, W, n = 4, 9, 13, 3000
+    fmap = torch.randn(C, H, W, generator=gen)  # [C, H, W]
+    ix = torch.rand(n, generator=gen) * (W + 3) - 2.0  # [n] columns, some off the map
+    iy = torch.rand(n, generator=gen) * (H + 3) - 2.0  # [n] rows
+    feat = np.zeros((n, C + 2), dtype=np.float32)
+    fmap_np = fmap.numpy()
+    for i in range(n):
+        read_channels(fmap_np, np.float32(ix[i]), np.float32(iy[i]), feat, i, 2)
+    grid = torch.stack(((2 * ix + 1) / W - 1, (2 * iy + 1) / H - 1), dim=1).view(1, 1, n, 2)  # [1, 1, n, 2]
+    want = torch.nn.functional.grid_sample(fmap[None], grid, mode="bilinear", padding_mode="zeros",
+                                           align_corners=False)[0, :, 0].T  # [n, C]
+    torch.testing.assert_close(torch.from_numpy(feat[:, 2:]), want, atol=2e-5, rtol=1e-5)
+    assert (feat[:, :2] == 0).all()  # only its own columns written
