@@ -14,19 +14,20 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
+
 from cuniform_torch.common.compiled import njit
 
 __all__ = ["navigation_cost"]
 
 
 @njit(nogil=True, boundscheck=False)
-def navigation_cost(states, gx, gy, tol2, circles, rects, bounds, has_bounds, per_state, stop_at_goal, penalty,
-                    keep_c, keep_r, out):
+def navigation_cost(states, gx, gy, tol2, circles, rects, bounds, has_bounds, per_state, stop_at_goal, penalty, out):
     """``out[i]``: rollout ``i``'s navigation cost (:class:`~cuniform_torch.envs.costs.NavigationCost`).
 
     ``states [N, T+1, d]``; ``gx, gy, tol2`` the goal and the squared tolerance, and ``circles [C, 3]`` (x, y,
     r^2), ``rects [R, 4]``, ``bounds [4]`` (used when ``has_bounds``), all in the states' dtype; ``penalty`` (float);
-    ``keep_c [C]``, ``keep_r [R]`` (int64) scratch for the obstacles kept; ``out [N]`` in the states' dtype.
+    ``out [N]`` in the states' dtype.
 
     The obstacles that cannot meet the bounding box of the finite points are dropped first (what
     ``Environment.in_collision``'s prefilter does, with its margin, in float64): a point inside one is inside that
@@ -39,6 +40,8 @@ def navigation_cost(states, gx, gy, tol2, circles, rects, bounds, has_bounds, pe
             if math.isfinite(x) and math.isfinite(y):
                 lox, hix = min(lox, x), max(hix, x)
                 loy, hiy = min(loy, y), max(hiy, y)
+    keep_c = np.empty(circles.shape[0], dtype=np.int64)  # the obstacles kept
+    keep_r = np.empty(rects.shape[0], dtype=np.int64)
     nc = 0
     for k in range(circles.shape[0]):  # the box point nearest the centre within the radius (no finite point: none)
         cx, cy = float(circles[k, 0]), float(circles[k, 1])

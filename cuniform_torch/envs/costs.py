@@ -226,17 +226,16 @@ class NavigationCost:
         loop = _cost_loop()
         if loop is None:
             return None
-        circles, rects, others = self.env._visible_tables(self.time, states.dtype)
+        circles, rects, others = self.env._visible_arrays(self.time, states.dtype)
         if others:
             return None
         scalar = _NUMPY_SCALAR[states.dtype]
         bounds = self.env.bounds
         out = torch.empty(states.shape[0], dtype=states.dtype)  # [N]
         loop(states.detach().numpy(), scalar(self.goal[0]), scalar(self.goal[1]),
-             scalar(self.goal_tolerance * self.goal_tolerance), circles.numpy(), rects.numpy(),
-             np.asarray(bounds if bounds is not None else (0.0, 0.0, 0.0, 0.0), dtype=scalar), bounds is not None,
-             self.per_state, self.stop_at_goal, self.collision_penalty,
-             np.empty(circles.shape[0], dtype=np.int64), np.empty(rects.shape[0], dtype=np.int64), out.numpy())
+             scalar(self.goal_tolerance * self.goal_tolerance), circles, rects,
+             np.array(bounds if bounds is not None else (0.0, 0.0, 0.0, 0.0), dtype=scalar), bounds is not None,
+             self.per_state, self.stop_at_goal, self.collision_penalty, out.numpy())
         return out
 
 

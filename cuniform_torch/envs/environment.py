@@ -12,6 +12,7 @@ import math
 import operator
 from dataclasses import dataclass, field
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -121,6 +122,17 @@ class Environment:
         in ``dtype``, and the other obstacles sensed then: what :meth:`visible` and :meth:`_batched` give, without
         their walks over the obstacles per call (the tables are sorted by ``appear_time`` once, so those sensed
         are a prefix). Cached while the obstacles are the same objects."""
+        tables, others = self._visible(time, dtype)
+        return tables[0], tables[1], others
+
+    def _visible_arrays(self, time: float | None, dtype: torch.dtype) -> tuple[np.ndarray, np.ndarray, list]:
+        """:meth:`_visible_tables` as numpy arrays (views of the same memory), for the compiled cost."""
+        tables, others = self._visible(time, dtype)
+        return tables[2], tables[3], others
+
+    def _visible(self, time: float | None, dtype: torch.dtype) -> tuple[tuple, list]:
+        """``((circles, rects, circles_np, rects_np), others)`` sensed at ``time`` in ``dtype`` (see
+        :meth:`_visible_tables`); each prefix made once per dtype and count sensed."""
         obstacles = self.obstacles
         cached = self.__dict__.get("_sorted_cache")
         if cached is None or len(cached[0]) != len(obstacles) or not all(map(operator.is_, cached[0], obstacles)):
@@ -133,16 +145,20 @@ class Environment:
             others = [o for o in obstacles if type(o) not in (Circle, Rect)]
             cached = (tuple(obstacles), [c[0] for c in circles], [r[0] for r in rects], tables, others, {})
             self._sorted_cache = cached
-        _, c_times, r_times, tables, others, by_dtype = cached
-        full = by_dtype.get(dtype)
-        if full is None:
-            full = by_dtype[dtype] = (tables[0].to(dtype), tables[1].to(dtype))
+        _, c_times, r_times, tables, others, prefixes = cached
         if time is None:
-            return full[0], full[1], others
-        if isinstance(time, bool) or not isinstance(time, (int, float)) or math.isnan(time):
-            raise ValueError(f"Environment: time must be a number or None, got {time!r}")
-        return (full[0][:bisect.bisect_right(c_times, time)], full[1][:bisect.bisect_right(r_times, time)],
-                [o for o in others if o.appear_time <= time])
+            counts = (len(c_times), len(r_times))
+        else:
+            if isinstance(time, bool) or not isinstance(time, (int, float)) or math.isnan(time):
+                raise ValueError(f"Environment: time must be a number or None, got {time!r}")
+            counts = (bisect.bisect_right(c_times, time), bisect.bisect_right(r_times, time))
+            others = [o for o in others if o.appear_time <= time] if others else others
+        key = (dtype, counts)
+        hit = prefixes.get(key)
+        if hit is None:
+            c, r = tables[0][:counts[0]].to(dtype).contiguous(), tables[1][:counts[1]].to(dtype).contiguous()
+            hit = prefixes[key] = (c, r, c.numpy(), r.numpy())
+        return hit, others
 
     def _batched(self, obstacles: list) -> tuple[Tensor, Tensor, list]:
         """The Circles ``[C, 3]`` (x, y, r^2) and Rects ``[R, 4]`` of ``obstacles`` as float64 tables, and the
