@@ -143,8 +143,9 @@ class Environment:
             tables = (torch.tensor([c[1:] for c in circles], dtype=torch.float64).reshape(-1, 3),
                       torch.tensor([r[1:] for r in rects], dtype=torch.float64).reshape(-1, 4))
             others = [o for o in obstacles if type(o) not in (Circle, Rect)]
-            cached = (tuple(obstacles), [c[0] for c in circles], [r[0] for r in rects], tables, others, {})
-            self._sorted_cache = cached
+            prefixes: dict[tuple[torch.dtype, tuple[int, int]], tuple] = {}  # (dtype, counts sensed) -> tables
+            cached = (tuple(obstacles), [c[0] for c in circles], [r[0] for r in rects], tables, others, prefixes)
+            self._sorted_cache: tuple = cached
         _, c_times, r_times, tables, others, prefixes = cached
         if time is None:
             counts = (len(c_times), len(r_times))
