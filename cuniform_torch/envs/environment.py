@@ -79,13 +79,12 @@ class Environment:
         if self.moving is not None and at is None:
             raise ValueError("Environment.in_collision: this environment has moving discs; give at= the time (s) "
                              "each point is occupied (a number, or a tensor of step times)")
-        obstacles = self.visible(time)
+        circles, rects, others = self._visible_tables(time, torch.float64)  # sensed at time, walked once
         hit = ~torch.isfinite(xy).all(dim=-1)  # [...]
         if self.bounds is not None:
             xmin, ymin, xmax, ymax = self.bounds
             x, y = xy[..., 0], xy[..., 1]
             hit |= (x < xmin) | (x > xmax) | (y < ymin) | (y > ymax)
-        circles, rects, others = self._batched(obstacles)
         if len(circles) or len(rects):
             if xy.device.type != "cpu":  # the tables on that device, in the points' dtype: copied once, not per call
                 circles, rects = self._on_device(circles, rects, xy)
@@ -107,7 +106,7 @@ class Environment:
         return Environment(list(self.obstacles) + circles, bounds=self.bounds)
 
     def _on_device(self, circles: Tensor, rects: Tensor, xy: Tensor) -> tuple[Tensor, Tensor]:
-        """``circles``, ``rects`` (the CPU tables of :meth:`_batched`) on ``xy``'s device in its dtype, cached per
+        """``circles``, ``rects`` (the CPU tables of :meth:`_visible_tables`) on ``xy``'s device in its dtype, cached per
         table, device and dtype (a copy to a GPU per call would wait for it)."""
         key = (id(circles), id(rects), xy.device, xy.dtype)
         cache = self.__dict__.setdefault("_device_tables", {})
@@ -119,8 +118,8 @@ class Environment:
 
     def _visible_tables(self, time: float | None, dtype: torch.dtype) -> tuple[Tensor, Tensor, list]:
         """The Circles ``[C, 3]`` (x, y, r^2) and Rects ``[R, 4]`` sensed at ``time`` (all for None) as CPU tables
-        in ``dtype``, and the other obstacles sensed then: what :meth:`visible` and :meth:`_batched` give, without
-        their walks over the obstacles per call (the tables are sorted by ``appear_time`` once, so those sensed
+        in ``dtype``, and the other obstacles sensed then: what :meth:`visible` gives, as tables, without a walk over
+        the obstacles per call (the tables are sorted by ``appear_time`` once, so those sensed
         are a prefix). Cached while the obstacles are the same objects."""
         tables, others = self._visible(time, dtype)
         return tables[0], tables[1], others
@@ -160,20 +159,6 @@ class Environment:
             c, r = tables[0][:counts[0]].to(dtype).contiguous(), tables[1][:counts[1]].to(dtype).contiguous()
             hit = prefixes[key] = (c, r, c.numpy(), r.numpy())
         return hit, others
-
-    def _batched(self, obstacles: list) -> tuple[Tensor, Tensor, list]:
-        """The Circles ``[C, 3]`` (x, y, r^2) and Rects ``[R, 4]`` of ``obstacles`` as float64 tables, and the
-        other obstacles; cached while the obstacles are the same objects (they are frozen dataclasses)."""
-        cached = getattr(self, "_batch_cache", None)
-        if cached is not None and len(cached[0]) == len(obstacles) and all(a is b for a, b in zip(cached[0], obstacles)):
-            return cached[1]
-        circles = [(o.center[0], o.center[1], o.radius * o.radius) for o in obstacles if type(o) is Circle]
-        rects = [(o.xmin, o.ymin, o.xmax, o.ymax) for o in obstacles if type(o) is Rect]
-        others = [o for o in obstacles if type(o) not in (Circle, Rect)]  # a subclass keeps its own contains
-        batched = (torch.tensor(circles, dtype=torch.float64).reshape(-1, 3),
-                   torch.tensor(rects, dtype=torch.float64).reshape(-1, 4), others)
-        self._batch_cache = (tuple(obstacles), batched)
-        return batched
 
 
 _CONTAINS_CHUNK = 1 << 22
