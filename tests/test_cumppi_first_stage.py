@@ -81,3 +81,4 @@ def test_the_parts_benchmark_times_cfu_mppis_parts():
     assert out["cfu command"].shape == (1,) and out["cfu sense"] is None
     states, actions = out["cfu stage 1 rollouts"]
     assert states.shape[:2] == (1, 4) and actions.shape[:2] == (1, 4) and out["cfu stage 1 cost"].shape == (1, 4)
+    assert actions.unique().numel() <= 7  # the map policy's discrete turn rates, not the local Gaussian pass
