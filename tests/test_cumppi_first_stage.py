@@ -66,3 +66,19 @@ def test_the_parts_benchmark_times_the_parts_it_names(dubins_table):
     assert out["stage 1"].shape == (1, t, 1)
     assert out["stage 2 proposals"][1].shape == (1, 5, t, 1) and out["stage 2 evaluate"][0].shape == (1, 5)
     assert out["mppi command"].shape == out["cumppi command"].shape == (1,)
+
+
+def test_the_parts_benchmark_times_cfu_mppis_parts():
+    """``--parts``' CFU-MPPI closures: a command, the sensing (one map set per call), K / 2 map-policy rollouts and
+    their cost call."""
+    from cuniform_torch.envs import Circle, Environment, NavigationCost
+    from eval.bench.first_stage import _CFU_PARTS, _cfu_fns
+
+    cost = NavigationCost(Environment([Circle((1.0, 0.5), 0.3)]), goal=(3.0, 0.0))
+    fns = _cfu_fns(8, cost, torch.zeros(3))
+    assert tuple(fns) == _CFU_PARTS
+    out = {name: fn() for name, fn in fns.items()}
+    assert out["cfu command"].shape == (1,) and out["cfu sense"] is None
+    states, actions = out["cfu stage 1 rollouts"]
+    assert states.shape[:2] == (1, 4) and actions.shape[:2] == (1, 4) and out["cfu stage 1 cost"].shape == (1, 4)
+    assert actions.unique().numel() <= 7  # the map policy's discrete turn rates, not the local Gaussian pass

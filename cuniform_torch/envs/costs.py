@@ -28,11 +28,13 @@ motion predicted along the rollout (:mod:`cuniform_torch.envs.moving`).
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any, Protocol
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -195,6 +197,11 @@ class NavigationCost:
         if not isinstance(actions, torch.Tensor) or actions.ndim != 3 or actions.shape[:2] != (N, T1 - 1):
             raise ValueError(f"NavigationCost: actions must have shape [{N}, {T1 - 1}, q] to match states "
                              f"{list(states.shape)}, got {list(getattr(actions, 'shape', []))}")
+        if (self.goal_distance is None and self.env.moving is None and states.device.type == "cpu"
+                and states.dtype in _COMPILED_DTYPES and not states.requires_grad):
+            fused = self._compiled(states)
+            if fused is not None:
+                return fused
         dist2 = _goal_dist2(states, self.goal)  # [N, T] straight line, squared: arrival is judged on it
         reached = dist2 <= self.goal_tolerance * self.goal_tolerance  # [N, T]
         if self.goal_distance is not None:
@@ -211,3 +218,39 @@ class NavigationCost:
             hit = hit & _before_arrival(reached, inclusive=True)
         hit = hit.sum(dim=1) if self.per_state else hit.any(dim=1)  # [N]
         return cost + hit.to(cost.dtype) * self.collision_penalty
+
+    def _compiled(self, states: Tensor) -> Tensor | None:
+        """``[N]``: :meth:`__call__` by the compiled loop (:mod:`cuniform_torch.envs.cost_loops`) for CPU states
+        and an environment of Circles and Rects only; None where that loop cannot serve (numba missing, other
+        obstacle kinds sensed): the torch path then."""
+        loop = _cost_loop()
+        if loop is None:
+            return None
+        circles, rects, others = self.env._visible_arrays(self.time, states.dtype)
+        if others:
+            return None
+        scalar = _NUMPY_SCALAR[states.dtype]
+        bounds = self.env.bounds
+        out = torch.empty(states.shape[0], dtype=states.dtype)  # [N]
+        loop(states.detach().numpy(), scalar(self.goal[0]), scalar(self.goal[1]),
+             scalar(self.goal_tolerance * self.goal_tolerance), circles, rects,
+             np.array(bounds if bounds is not None else (0.0, 0.0, 0.0, 0.0), dtype=scalar), bounds is not None,
+             self.per_state, self.stop_at_goal, self.collision_penalty, out.numpy())
+        return out
+
+
+_COMPILED_DTYPES = (torch.float32, torch.float64)
+"""the states' dtypes the compiled cost serves"""
+_NUMPY_SCALAR = {torch.float32: np.float32, torch.float64: np.float64}
+"""the numpy scalar type of each: the goal, tolerance and bounds in the states' dtype, as torch's scalars are"""
+
+
+@functools.cache
+def _cost_loop():
+    """The compiled cost (:func:`cuniform_torch.envs.cost_loops.navigation_cost`), or None without numba."""
+    try:
+        from cuniform_torch.envs.cost_loops import navigation_cost
+    except Exception:  # numba missing or broken against this numpy: the torch path
+        return None
+    return navigation_cost
+

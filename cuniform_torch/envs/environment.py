@@ -6,10 +6,13 @@ knows then (an obstacle is sensed from its ``appear_time`` on).
 
 from __future__ import annotations
 
+import bisect
 import functools
 import math
+import operator
 from dataclasses import dataclass, field
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -76,13 +79,12 @@ class Environment:
         if self.moving is not None and at is None:
             raise ValueError("Environment.in_collision: this environment has moving discs; give at= the time (s) "
                              "each point is occupied (a number, or a tensor of step times)")
-        obstacles = self.visible(time)
+        circles, rects, others = self._visible_tables(time, torch.float64)  # sensed at time, walked once
         hit = ~torch.isfinite(xy).all(dim=-1)  # [...]
         if self.bounds is not None:
             xmin, ymin, xmax, ymax = self.bounds
             x, y = xy[..., 0], xy[..., 1]
             hit |= (x < xmin) | (x > xmax) | (y < ymin) | (y > ymax)
-        circles, rects, others = self._batched(obstacles)
         if len(circles) or len(rects):
             if xy.device.type != "cpu":  # the tables on that device, in the points' dtype: copied once, not per call
                 circles, rects = self._on_device(circles, rects, xy)
@@ -104,7 +106,7 @@ class Environment:
         return Environment(list(self.obstacles) + circles, bounds=self.bounds)
 
     def _on_device(self, circles: Tensor, rects: Tensor, xy: Tensor) -> tuple[Tensor, Tensor]:
-        """``circles``, ``rects`` (the CPU tables of :meth:`_batched`) on ``xy``'s device in its dtype, cached per
+        """``circles``, ``rects`` (the CPU tables of :meth:`_visible_tables`) on ``xy``'s device in its dtype, cached per
         table, device and dtype (a copy to a GPU per call would wait for it)."""
         key = (id(circles), id(rects), xy.device, xy.dtype)
         cache = self.__dict__.setdefault("_device_tables", {})
@@ -114,19 +116,49 @@ class Environment:
                                 rects.to(device=xy.device, dtype=xy.dtype))
         return hit[2], hit[3]
 
-    def _batched(self, obstacles: list) -> tuple[Tensor, Tensor, list]:
-        """The Circles ``[C, 3]`` (x, y, r^2) and Rects ``[R, 4]`` of ``obstacles`` as float64 tables, and the
-        other obstacles; cached while the obstacles are the same objects (they are frozen dataclasses)."""
-        cached = getattr(self, "_batch_cache", None)
-        if cached is not None and len(cached[0]) == len(obstacles) and all(a is b for a, b in zip(cached[0], obstacles)):
-            return cached[1]
-        circles = [(o.center[0], o.center[1], o.radius * o.radius) for o in obstacles if type(o) is Circle]
-        rects = [(o.xmin, o.ymin, o.xmax, o.ymax) for o in obstacles if type(o) is Rect]
-        others = [o for o in obstacles if type(o) not in (Circle, Rect)]  # a subclass keeps its own contains
-        batched = (torch.tensor(circles, dtype=torch.float64).reshape(-1, 3),
-                   torch.tensor(rects, dtype=torch.float64).reshape(-1, 4), others)
-        self._batch_cache = (tuple(obstacles), batched)
-        return batched
+    def _visible_tables(self, time: float | None, dtype: torch.dtype) -> tuple[Tensor, Tensor, list]:
+        """The Circles ``[C, 3]`` (x, y, r^2) and Rects ``[R, 4]`` sensed at ``time`` (all for None) as CPU tables
+        in ``dtype``, and the other obstacles sensed then: what :meth:`visible` gives, as tables, without a walk over
+        the obstacles per call (the tables are sorted by ``appear_time`` once, so those sensed
+        are a prefix). Cached while the obstacles are the same objects."""
+        tables, others = self._visible(time, dtype)
+        return tables[0], tables[1], others
+
+    def _visible_arrays(self, time: float | None, dtype: torch.dtype) -> tuple[np.ndarray, np.ndarray, list]:
+        """:meth:`_visible_tables` as numpy arrays (views of the same memory), for the compiled cost."""
+        tables, others = self._visible(time, dtype)
+        return tables[2], tables[3], others
+
+    def _visible(self, time: float | None, dtype: torch.dtype) -> tuple[tuple, list]:
+        """``((circles, rects, circles_np, rects_np), others)`` sensed at ``time`` in ``dtype`` (see
+        :meth:`_visible_tables`); each prefix made once per dtype and count sensed."""
+        obstacles = self.obstacles
+        cached = self.__dict__.get("_sorted_cache")
+        if cached is None or len(cached[0]) != len(obstacles) or not all(map(operator.is_, cached[0], obstacles)):
+            circles = sorted(((o.appear_time, o.center[0], o.center[1], o.radius * o.radius) for o in obstacles
+                              if type(o) is Circle), key=operator.itemgetter(0))
+            rects = sorted(((o.appear_time, o.xmin, o.ymin, o.xmax, o.ymax) for o in obstacles if type(o) is Rect),
+                           key=operator.itemgetter(0))
+            tables = (torch.tensor([c[1:] for c in circles], dtype=torch.float64).reshape(-1, 3),
+                      torch.tensor([r[1:] for r in rects], dtype=torch.float64).reshape(-1, 4))
+            others = [o for o in obstacles if type(o) not in (Circle, Rect)]
+            prefixes: dict[tuple[torch.dtype, tuple[int, int]], tuple] = {}  # (dtype, counts sensed) -> tables
+            cached = (tuple(obstacles), [c[0] for c in circles], [r[0] for r in rects], tables, others, prefixes)
+            self._sorted_cache: tuple = cached
+        _, c_times, r_times, tables, others, prefixes = cached
+        if time is None:
+            counts = (len(c_times), len(r_times))
+        else:
+            if isinstance(time, bool) or not isinstance(time, (int, float)) or math.isnan(time):
+                raise ValueError(f"Environment: time must be a number or None, got {time!r}")
+            counts = (bisect.bisect_right(c_times, time), bisect.bisect_right(r_times, time))
+            others = [o for o in others if o.appear_time <= time] if others else others
+        key = (dtype, counts)
+        hit = prefixes.get(key)
+        if hit is None:
+            c, r = tables[0][:counts[0]].to(dtype).contiguous(), tables[1][:counts[1]].to(dtype).contiguous()
+            hit = prefixes[key] = (c, r, c.numpy(), r.numpy())
+        return hit, others
 
 
 _CONTAINS_CHUNK = 1 << 22

@@ -10,30 +10,36 @@ import math
 import numpy as np
 
 from cuniform_torch.common.compiled import njit
-from cuniform_torch.systems.dubins_loops import dubins_advance
+from cuniform_torch.systems.dubins_loops import dubins_advance, sincos
 
 __all__ = ["features", "draw_and_step", "draw_step_features"]
 
 @njit(nogil=True, inline="always")
 def read_channels(fmap, ix, iy, feat, i, k):
     """Bilinear reads of every channel of ``fmap [C, H, W]`` at pixel coordinates ``(ix, iy)`` (column, row) into
-    ``feat[i, k:k + C]``; zero off the map. The taps and their weights are found once for all channels; each
-    channel's sum takes the taps in the same order, with the same products, as one read of a single channel."""
+    ``feat[i, k:k + C]``; zero off the map. The taps, whether each is on the map, and their weights are found once
+    for all channels (not per channel: that was most of a read); each channel's sum takes the taps in the same
+    order, with the same products ``(x weight * y weight) * value``, as one read of a single channel."""
     H, W = fmap.shape[1], fmap.shape[2]
     x0f, y0f = math.floor(ix), math.floor(iy)
     wx, wy = ix - x0f, iy - y0f
     x0, y0 = int(x0f), int(y0f)
+    x1, y1 = x0 + 1, y0 + 1
+    one = np.float32(1.0)
+    in_x0, in_x1, in_y0, in_y1 = 0 <= x0 < W, 0 <= x1 < W, 0 <= y0 < H, 0 <= y1 < H
+    a00, a01, a10, a11 = in_y0 and in_x0, in_y0 and in_x1, in_y1 and in_x0, in_y1 and in_x1  # row, column
+    w00, w01 = (one - wx) * (one - wy), wx * (one - wy)
+    w10, w11 = (one - wx) * wy, wx * wy
     for ch in range(fmap.shape[0]):
         v = np.float32(0.0)
-        for dy in range(2):
-            yy = y0 + dy
-            if yy < 0 or yy >= H:
-                continue
-            fy = wy if dy else np.float32(1.0) - wy
-            for dx in range(2):
-                xx = x0 + dx
-                if 0 <= xx < W:
-                    v += (wx if dx else np.float32(1.0) - wx) * fy * fmap[ch, yy, xx]
+        if a00:
+            v += w00 * fmap[ch, y0, x0]
+        if a01:
+            v += w01 * fmap[ch, y0, x1]
+        if a10:
+            v += w10 * fmap[ch, y1, x0]
+        if a11:
+            v += w11 * fmap[ch, y1, x1]
         feat[i, k + ch] = v
 
 @njit(nogil=True, boundscheck=False)
@@ -45,7 +51,8 @@ def features(t, states, feat, ok, counts, fmap, probes, geo):
     ox, oy, res, half_x, half_y, cell_x, cell_y = geo[2], geo[3], geo[4], geo[5], geo[6], geo[7], geo[8]
     for i in range(n_states):
         x, y, th = states[t, 0, i], states[t, 1, i], states[t, 2, i]
-        c, s = np.float32(math.cos(th)), np.float32(math.sin(th))
+        cv, sv = sincos(np.float64(th))  # the step's polynomial, not two libm calls
+        c, s = np.float32(cv), np.float32(sv)
         feat[i, 0], feat[i, 1], feat[i, 2], feat[i, 3] = x, y, c, s
         excess = max((abs(x) - half_x) / cell_x, (abs(y) - half_y) / cell_y)
         finite = math.isfinite(x) and math.isfinite(y) and math.isfinite(th)

@@ -115,7 +115,7 @@ def _sense_compiled(world: OccupancyGrid | Environment, poses: Tensor, local: Te
             or poses.dtype not in (torch.float32, torch.float64):
         return None
     # the Environment's own tables of its discs and rectangles (cached there while the obstacles are the same)
-    circles, rects, others = world._batched(world.visible(time))
+    circles, rects, others = world._visible_tables(time, torch.float64)
     loop = _loop() if not others else None
     if loop is None:
         return None

@@ -17,7 +17,9 @@ same (checked).
 ``--parts`` times the pieces of one command instead, the same way (round-robin, thread clock, least of the rounds):
 MPPI's proposals (``propose_batch``, K) and their weighing (``_evaluate``: the cost call, the weights); CU-MPPI's
 first stage (its C-Uniform rollouts, K1 = K / 2; their cost call; the whole lean stage, ``_best_actions``) and its
-second (the local proposals, K2 = K - K1; their ``_evaluate``). The floor of a two-stage command is the sum of its
+second (the local proposals, K2 = K - K1; their ``_evaluate``); and CFU-MPPI's command, its sensing (crop and
+encode the patch), its first stage's map-policy rollouts (sensing included) and their cost call, in a second
+table from rounds of their own. The floor of a two-stage command is the sum of its
 two stages: the second cannot start before the first stage's argmin, so the two cost calls cannot be one.
 """
 
@@ -109,6 +111,11 @@ def _round_robin(fns: dict, warmup: int, repeats: int) -> dict[str, float]:
     return {name: min(v) for name, v in times.items()}
 
 
+_CFU_PARTS = ("cfu command", "cfu sense", "cfu stage 1 rollouts", "cfu stage 1 cost")
+"""CFU-MPPI's parts that ``--parts`` times too: a command, its sensing (the patch cropped and encoded by the map
+policy's CNN: ``CFUMPPI.sense``), its first stage's map-policy rollouts (K1 = K / 2; the stage senses first, so
+this includes the sensing) and their cost call"""
+
 _PARTS = ("mppi command", "mppi proposals", "mppi evaluate", "cumppi command", "stage 1 rollouts", "stage 1 cost",
           "stage 1", "stage 2 proposals", "stage 2 evaluate")
 """what ``--parts`` times (module docstring)"""
@@ -138,15 +145,42 @@ def _part_fns(k: int, table, cost, state: torch.Tensor) -> dict:
             "stage 2 evaluate": lambda: cu._evaluate(l_x, l_u)}
 
 
+def _cfu_fns(k: int, cost, state: torch.Tensor) -> dict:
+    """One closure per part of :data:`_CFU_PARTS` at K = ``k``: the shipped map policy on ``cost.env`` (a
+    NavigationCost's), as ``eval.bench.family`` runs it."""
+    from cuniform_torch import CFUMPPI
+    from precompute.worlds.robot import NAV_ROBOT
+
+    states = state.unsqueeze(0)  # [1, d]
+    cfu = CFUMPPI("unicycle-0.5", cost.env, cost, k, horizon=NAV_ROBOT.horizon, seed=0)
+    first = cfu.cuniform
+    cfu.sense(states)  # the map the rollouts read
+    f_x, f_u = first._batch.propose_batch(states, first.streams)
+    return {"cfu command": lambda: cfu.command(state),
+            "cfu sense": lambda: cfu.sense(states),
+            "cfu stage 1 rollouts": lambda: first._batch.propose_batch(states, first.streams),
+            "cfu stage 1 cost": lambda: first._state_costs(f_x, f_u)}
+
+
 def _parts(args, table, cost, state: torch.Tensor) -> int:
     """``--parts``: per K, the least CPU ms of each part of an MPPI and a CU-MPPI command (module docstring)."""
     print(f"# per-command-part CPU ms (thread clock), least of {args.repeats} round-robin rounds, 1 thread, "
           f"BARN map 0, navigation cost")
     print(f"{'K':>6} " + " ".join(f"{n:>17}" for n in _PARTS) + f" {'two stages / mppi':>18}")
+    cfu_rows: list[str] = []
     for k in args.samples:
-        least = _round_robin(_part_fns(k, table, cost, state), args.warmup, args.repeats)
+        fns = _part_fns(k, table, cost, state)
+        least = _round_robin(fns, args.warmup, args.repeats)
+        # CFU-MPPI in rounds of its own (with MPPI for the ratio): its network and patch would push the others' data
+        # out of the cache between their calls
+        cfu = _round_robin(_cfu_fns(k, cost, state) | {"mppi command": fns["mppi command"]}, args.warmup, args.repeats)
         ratio = (least["stage 1"] + least["stage 2 proposals"] + least["stage 2 evaluate"]) / least["mppi command"]
         print(f"{k:>6} " + " ".join(f"{1e3 * least[n]:>17.3f}" for n in _PARTS) + f" {ratio:>17.2f}x")
+        cfu_rows.append(f"{k:>6} " + " ".join(f"{1e3 * cfu[n]:>20.3f}" for n in (*_CFU_PARTS, "mppi command"))
+                        + f" {cfu['cfu command'] / cfu['mppi command']:>17.2f}x")
+    print(f"# CFU-MPPI's parts, rounds of their own with MPPI's command\n{'K':>6} "
+          + " ".join(f"{n:>20}" for n in (*_CFU_PARTS, "mppi command")) + f" {'cfu / mppi':>18}")
+    print("\n".join(cfu_rows))
     print(f"load {os.getloadavg()[0]:.2f}")
     return 0
 
