@@ -56,7 +56,7 @@ __all__ = ["EXIT_ERROR", "EXIT_INTERRUPTED", "CLIError", "ArgumentParser", "cli_
            "MAX_HORIZON", "MAX_COUNT", "MAX_WORK", "device_arg", "int_in", "float_in", "positive_int",
            "non_negative_int", "threads_arg", "horizon_arg", "positive_float", "refuse_flags",
            "add_no_limit_arg", "check_work", "config_value", "config_fields", "config_json",
-           "read_config_file"]
+           "read_config_file", "add_config_args", "dataclass_from_config", "config_text"]
 
 EXIT_ERROR = 2
 EXIT_INTERRUPTED = 130
@@ -482,6 +482,36 @@ def read_config_file(path: str | os.PathLike, flag: str = "--config") -> dict[st
     if not isinstance(data, dict):
         raise CLIError(f"{flag} {path}: the file must hold one object (keys and values), got {type(data).__name__}")
     return data
+
+
+def add_config_args(parser: argparse.ArgumentParser, what: str = "the settings") -> None:
+    """``--config FILE`` (:func:`read_config_file`) and ``--print-config``, for a command whose settings are one
+    dataclass (:func:`dataclass_from_config`); flags given beside ``--config`` override its keys."""
+    parser.add_argument("--config", type=Path, default=None, metavar="FILE",
+                        help=f"read {what} from FILE (JSON, or TOML for .toml: what --print-config writes); flags "
+                             "given beside it override its values")
+    parser.add_argument("--print-config", action="store_true",
+                        help=f"print {what} these flags describe as a --config file (JSON) and do nothing else")
+
+
+def dataclass_from_config(cls: type, args: argparse.Namespace, required: Iterable[str] = ()) -> Any:
+    """``cls`` from the keys of ``--config FILE`` (each checked by :func:`config_fields`), the given flags over them
+    (:func:`given_fields`). ``required``: fields that a flag or a key must set (CLIError naming the flag)."""
+    values: dict[str, Any] = {}
+    if getattr(args, "config", None) is not None:
+        values = config_fields(cls, read_config_file(args.config), f"config {args.config}: ")
+    values.update(given_fields(cls, args))
+    for name in required:
+        if not values.get(name):
+            raise CLIError(f"--{name.replace('_', '-')} is required (a flag, or the key {name!r} of --config)")
+    return cls(**values)
+
+
+def config_text(cfg: Any) -> str:
+    """A dataclass config as the JSON that ``--config`` reads back (``--print-config``)."""
+    import json
+
+    return json.dumps(config_json(cfg), indent=2)
 
 
 # ------------------------------------------------------------------------------------------ flag values

@@ -59,12 +59,14 @@ from precompute.api import library_errors
 from precompute.cli import (
     OUT,
     ArgumentParser,
+    add_config_args,
     add_dataclass_args,
     add_system_module_arg,
     check_output_file,
     check_output_folder,
     cli_main,
-    dataclass_from_args,
+    config_text,
+    dataclass_from_config,
     device_arg,
     import_system_modules,
     int_in,
@@ -101,20 +103,21 @@ def make_parser() -> ArgumentParser:
     """A flag per :class:`DistillConfig` field (:func:`precompute.cli.add_dataclass_args`: its type, its
     docstring and its default, which lives only in the dataclass)."""
     parser = _Parser(prog="python -m training.distill", description=__doc__.splitlines()[0])
-    add_dataclass_args(parser, DistillConfig, exclude=("system_module",), required=("tables",), arg_types={
+    add_dataclass_args(parser, DistillConfig, exclude=("system_module",), arg_types={
         **{name: int_in(1, 65536) for name in ("hidden", "layers")}, "frequencies": int_in(0, MAX_FREQUENCIES),
         "epochs": positive_int,
         "batch_size": positive_int, "val_points": positive_int, "patience": positive_int, "eval_every": positive_int,
         "seed": non_negative_int, "jitter": int_in(0, 1000), "threads": threads_arg, "device": device_arg,
         "lr": positive_float})
     add_system_module_arg(parser)  # repeatable, as in every entry point
+    add_config_args(parser, "the distillation's settings")
     return parser
 
 
 def parse_args(argv: Sequence[str] | None = None) -> DistillConfig:
     """Flags -> a :class:`DistillConfig` (each flag's type checked as it is parsed; :class:`UsageError` when bad).
     :func:`distill`, the library edge, checks the whole config once (:func:`check_config`)."""
-    return dataclass_from_args(DistillConfig, make_parser().parse_args(argv))
+    return dataclass_from_config(DistillConfig, make_parser().parse_args(argv), required=("tables",))
 
 
 def check_config(cfg: DistillConfig) -> DistillConfig:
@@ -322,7 +325,12 @@ def format_comparison(c: dict[str, Any]) -> str:
 def main(argv: Sequence[str] | None = None) -> int:
     """Distil from the flags ``argv`` through the library function (:func:`training.distill_policy`): 0, or 2
     after one ``error: ...`` line, or 130 on Ctrl-C."""
-    distill_policy(parse_args(argv), progress=True)  # the library function a Python user calls
+    args = make_parser().parse_args(argv)
+    cfg = dataclass_from_config(DistillConfig, args, required=("tables",))
+    if args.print_config:  # the settings as a --config file, nothing run
+        print(config_text(cfg))
+        return 0
+    distill_policy(cfg, progress=True)  # the library function a Python user calls
     return 0
 
 

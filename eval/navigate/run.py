@@ -44,13 +44,15 @@ from precompute.cli import (
     MAX_COUNT,
     ArgumentParser,
     CLIError,
+    add_config_args,
     add_dataclass_args,
     add_no_limit_arg,
     add_system_module_arg,
     check_output_folder,
     check_work,
     cli_main,
-    dataclass_from_args,
+    config_text,
+    dataclass_from_config,
     float_in,
     horizon_arg,
     import_system_modules,
@@ -422,6 +424,7 @@ def make_parser() -> ArgumentParser:
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     add_no_limit_arg(p)
     add_system_module_arg(p)
+    add_config_args(p, "the run's settings (suite, tasks, budgets, methods, ...: the flags of NavConfig)")
     return p
 
 
@@ -476,8 +479,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     p = make_parser()
     args = p.parse_args(argv)
     import_system_modules(args.system_module)
-    cfg = dataclass_from_args(NavConfig, args)
+    cfg = dataclass_from_config(NavConfig, args)
     check_config(cfg)
+    if args.print_config:  # the run's settings as a --config file, nothing run
+        print(config_text(cfg))
+        return 0
     out = args.out or Path("out/navigate") / cfg.suite
     _check_flags(p, args, cfg, out)
     robot = _robot(args, cfg)

@@ -41,11 +41,13 @@ from precompute.cli import (
     RUNS,
     ArgumentParser,
     CLIError,
+    add_config_args,
     add_dataclass_args,
     check_output_file,
     check_output_folder,
     cli_main,
-    dataclass_from_args,
+    config_text,
+    dataclass_from_config,
     device_arg,
     int_in,
     non_negative_int,
@@ -123,13 +125,14 @@ MAP_DISTILL_TYPES = {**{name: int_in(1, 65536) for name in ("hidden", "layers", 
 
 def make_parser() -> ArgumentParser:
     parser = _Parser(prog="python -m training.maps.distill", description=__doc__.splitlines()[0])
-    add_dataclass_args(parser, MapDistillConfig, required=("maps",), arg_types=MAP_DISTILL_TYPES)
+    add_dataclass_args(parser, MapDistillConfig, arg_types=MAP_DISTILL_TYPES)
+    add_config_args(parser, "the training's settings")
     return parser
 
 
 def parse_args(argv: Sequence[str] | None = None) -> MapDistillConfig:
     """Flags -> a checked config (``out`` filled); :class:`CLIError` when bad."""
-    return check_map_config(dataclass_from_args(MapDistillConfig, make_parser().parse_args(argv)))
+    return check_map_config(dataclass_from_config(MapDistillConfig, make_parser().parse_args(argv), required=("maps",)))
 
 
 def check_map_config(cfg: MapDistillConfig) -> MapDistillConfig:
@@ -268,8 +271,12 @@ def train_map_policy(config: MapDistillConfig, *, progress: bool = False) -> Map
                       "finished epoch")
 def main(argv: Sequence[str] | None = None) -> int:
     """Train from the flags ``argv``: 0, or 2 after one ``error: ...`` line, or 130 on Ctrl-C."""
-    train_map_policy(parse_args(argv), progress=True)  # the library function a Python user calls
-    return 0
+    args = make_parser().parse_args(argv)
+    cfg = dataclass_from_config(MapDistillConfig, args, required=("maps",))
+    if args.print_config:  # the settings as a --config file, nothing run
+        print(config_text(cfg))
+        return 0
+    train_map_policy(cfg, progress=True)  # the library function a Python user calls (it checks cfg)
 
 
 if __name__ == "__main__":
