@@ -241,7 +241,10 @@ class MPPICore:
             self._check_proposals(states, actions)
         costs, weights, lambdas = self._evaluate(states, actions)
         b, k, t, q = actions.shape
-        nominal = torch.bmm(weights.unsqueeze(1), actions.reshape(b, k, t * q)).view(b, t, q)  # [B, T, q]
+        # the weighted average as a product summed over K, not a bmm: torch's sum over dim 1 of [B, K, T*q] adds a
+        # robot's K terms in an order that does not depend on B (checked for B = 1..64, K = 16..4096, 1..16
+        # threads), where a batched gemm's blocking rounds robot b differently at B = 40 than at B = 1
+        nominal = (weights.unsqueeze(-1) * actions.reshape(b, k, t * q)).sum(dim=1).view(b, t, q)  # [B, T, q]
         return MPPIResult(nominal[:, 0], nominal, states, actions, costs, weights, lambdas)
 
     @overload
