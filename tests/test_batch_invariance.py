@@ -167,3 +167,17 @@ def test_the_compiled_frame_change_moves_each_robots_samples_as_it_moves_them_al
     torch.testing.assert_close(world, se2_to_world(local.permute(2, 0, 1), poses.repeat_interleave(k, 0)[:, None]))
     with pytest.raises(ValueError, match="the number of poses must divide the samples"):
         kernels.to_world(local, poses[:5])
+
+
+def test_a_bank_moves_each_robots_subset_as_it_moves_it_alone(table):
+    """A proposal bank's batch: robot b's subset of the origin rollouts (drawn from its stream) moved to its pose
+    is the bits of that robot alone (the bank's proposals are compared: a batch shares one bank, drawn from robot
+    0's stream, so a controller of robot b alone draws another bank)."""
+    from cuniform_torch.controllers.streams import RobotStreams
+
+    bank = CUniformMPPI(table, goal_cost, num_samples=64, bank_size=256, seed=0).proposal
+    states, actions = bank.propose_batch(STARTS, RobotStreams.seeded(SEEDS, "cpu"))  # [B, K, T+1, d], [B, K, T, q]
+    for b, seed in enumerate(SEEDS):
+        alone = bank.propose_batch(STARTS[b:b + 1], RobotStreams.seeded([seed], "cpu"))
+        assert torch.equal(alone[1][0], actions[b]), f"robot {b}: another subset"
+        assert torch.equal(alone[0][0], states[b]), f"robot {b}: its subset is moved to its pose with other bits"
