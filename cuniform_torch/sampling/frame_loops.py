@@ -34,8 +34,7 @@ def heading(lth, pth, pi, two_pi):
 @njit(nogil=True, boundscheck=False)
 def pose_trig(poses, c, s):
     """``c[p], s[p] = cos, sin of poses[p, 2]`` (``poses [P, d]``): one scalar libm call per pose, in the poses'
-    dtype, so a pose's values never depend on how many poses there are (a vectorized cos may round a pose
-    differently by its position in the batch). A heading equal to the previous one reuses its values (the rows
+    dtype, so a pose's values never depend on how many poses there are or where it stands among them. A heading equal to the previous one reuses its values (the rows
     of a batch repeat each robot's pose K times: B calls, not B*K)."""
     for p in range(poses.shape[0]):
         th = poses[p, 2]

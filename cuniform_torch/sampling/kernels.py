@@ -14,7 +14,8 @@ dimensions are copied. Headings come out bit-identical to the torch path; x and 
 
 One pose ``[d]`` or one per robot (``[B, d]``, or the ``[N, d]`` start rows of a batch, robot-major): the cos and
 sin of each pose are one scalar libm call inside the loop, so a robot's world states are the same bits whether
-it is rolled out alone or in a batch of B (a torch cos over ``[B]`` rounds a pose by its position in the vector).
+it is rolled out alone or in a batch of B, whatever a vectorized cos would do with a pose's position in a vector
+(torch's CPU cos happens to be position-independent on the development machine; nothing promises it).
 
 numba is imported lazily (:func:`~cuniform_torch.tables.cpu_kernels.available` says whether it can be used); the first
 call compiles the loop (cached on disk when the directory is writable). Without numba, or off the CPU, the
