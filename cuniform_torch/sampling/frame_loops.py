@@ -2,7 +2,8 @@
 functions, so numba's disk cache finds them again in the next process (a loop made inside a function is
 compiled anew in every process).
 
-Shapes: N samples, T horizon, d >= 3 state dimensions, P poses (sample ``i`` is moved to pose ``i // (N / P)``).
+Shapes: N samples, T horizon, d >= 3 state dimensions, P poses (sample ``i`` is moved to pose ``i // (N / P)``),
+R runs of equal consecutive poses.
 """
 
 from __future__ import annotations
@@ -13,7 +14,7 @@ import numpy as np
 
 from cuniform_torch.common.compiled import njit
 
-__all__ = ["to_world", "to_world_time_major", "pose_trig"]
+__all__ = ["to_world", "to_world_time_major", "pose_runs"]
 
 @njit(nogil=True, inline="always")
 def heading(lth, pth, pi, two_pi):
@@ -32,26 +33,31 @@ def heading(lth, pth, pi, two_pi):
     return m - pi
 
 @njit(nogil=True, boundscheck=False)
-def pose_trig(poses, c, s):
-    """``c[p], s[p] = cos, sin of poses[p, 2]`` (``poses [P, d]``): one scalar libm call per pose, in the poses'
-    dtype, so a pose's values never depend on how many poses there are or where it stands among them. A heading equal to the previous one reuses its values (the rows
-    of a batch repeat each robot's pose K times: B calls, not B*K)."""
+def pose_runs(poses, k, runs, c, s, bounds):
+    """The runs of equal consecutive poses of ``poses [P, d]`` (pose ``p`` owning samples ``p k .. (p+1) k - 1``):
+    writes each run's ``x, y, theta`` to ``runs [R, 3]``, its cos and sin to ``c, s [R]`` and its samples' bounds
+    to ``bounds [R+1]``; returns R. One scalar libm call per run, in the poses' dtype, so a pose's values never
+    depend on how many poses there are or where it stands among them (a batch's ``[B*K, d]`` start rows are B
+    runs: B calls, and loops as long as for ``[B, d]`` poses)."""
+    r = 0
+    bounds[0] = 0
     for p in range(poses.shape[0]):
-        th = poses[p, 2]
-        if p > 0 and th == poses[p - 1, 2]:
-            c[p], s[p] = c[p - 1], s[p - 1]
-        else:
-            c[p], s[p] = math.cos(th), math.sin(th)
+        x, y, th = poses[p, 0], poses[p, 1], poses[p, 2]
+        if r == 0 or x != runs[r - 1, 0] or y != runs[r - 1, 1] or th != runs[r - 1, 2]:
+            runs[r, 0], runs[r, 1], runs[r, 2] = x, y, th
+            c[r], s[r] = math.cos(th), math.sin(th)
+            r += 1
+        bounds[r] = (p + 1) * k
+    return r
 
 @njit(nogil=True, boundscheck=False)
-def to_world(local, poses, c, s, pi, two_pi, out):
-    """``local [T+1, d, N]`` (origin frame) -> ``out [N, T+1, d]`` (world frame of each sample's pose, ``poses
-    [P, d]`` with cos and sin ``c, s [P]``)."""
+def to_world(local, runs, c, s, bounds, pi, two_pi, out):
+    """``local [T+1, d, N]`` (origin frame) -> ``out [N, T+1, d]`` (world frame: samples ``bounds[r] ..
+    bounds[r+1] - 1`` moved to pose ``runs[r]`` with cos and sin ``c[r], s[r]``)."""
     steps, d, n = local.shape
-    k = n // poses.shape[0]
-    for p in range(poses.shape[0]):
-        px, py, pth, cp, sp = poses[p, 0], poses[p, 1], poses[p, 2], c[p], s[p]
-        for i in range(p * k, (p + 1) * k):  # the output is written in order (the reads are T+1 d streams)
+    for r in range(bounds.shape[0] - 1):
+        px, py, pth, cp, sp = runs[r, 0], runs[r, 1], runs[r, 2], c[r], s[r]
+        for i in range(bounds[r], bounds[r + 1]):  # the output is written in order (the reads are T+1 d streams)
             for t in range(steps):
                 lx, ly = local[t, 0, i], local[t, 1, i]
                 out[i, t, 0] = (px + lx * cp) - ly * sp
@@ -61,21 +67,20 @@ def to_world(local, poses, c, s, pi, two_pi, out):
                     out[i, t, j] = local[t, j, i]
 
 @njit(nogil=True, boundscheck=False)
-def to_world_time_major(local, poses, c, s, pi, two_pi, out):
-    """``local [T+1, d, N]`` (origin frame) -> ``out [T+1, d, N]`` (world frame of each sample's pose): every
+def to_world_time_major(local, runs, c, s, bounds, pi, two_pi, out):
+    """``local [T+1, d, N]`` (origin frame) -> ``out [T+1, d, N]`` (world frame, the runs of ``to_world``): every
     read and write a contiguous row; the arithmetic of ``to_world``."""
     steps, d, n = local.shape
-    k = n // poses.shape[0]
     for t in range(steps):
-        for p in range(poses.shape[0]):
-            px, py, cp, sp = poses[p, 0], poses[p, 1], c[p], s[p]
-            for i in range(p * k, (p + 1) * k):
+        for r in range(bounds.shape[0] - 1):
+            px, py, cp, sp = runs[r, 0], runs[r, 1], c[r], s[r]
+            for i in range(bounds[r], bounds[r + 1]):
                 lx, ly = local[t, 0, i], local[t, 1, i]
                 out[t, 0, i] = (px + lx * cp) - ly * sp
                 out[t, 1, i] = (py + lx * sp) + ly * cp
-        for p in range(poses.shape[0]):
-            pth = poses[p, 2]
-            for i in range(p * k, (p + 1) * k):
+        for r in range(bounds.shape[0] - 1):
+            pth = runs[r, 2]
+            for i in range(bounds[r], bounds[r + 1]):
                 out[t, 2, i] = heading(local[t, 2, i], pth, pi, two_pi)
         for j in range(3, d):
             for i in range(n):

@@ -40,7 +40,7 @@ __all__ = ["usable", "to_world", "to_world_time_major"]
 def _kernel():
     from cuniform_torch.sampling import frame_loops  # imports numba: only when a loop is used
 
-    return frame_loops.to_world, frame_loops.to_world_time_major, frame_loops.pose_trig
+    return frame_loops.to_world, frame_loops.to_world_time_major, frame_loops.pose_runs
 
 
 def usable(x: Tensor) -> bool:
@@ -69,15 +69,17 @@ def to_world_time_major(local: Tensor, pose: Tensor) -> Tensor:
 
 
 def _pose_args(local: Tensor, pose: Tensor) -> tuple:
-    """The kernels' arguments for ``pose [d]`` or ``[P, d]``: ``poses [P, d]``, their cos and sin ``[P]`` (one
-    scalar libm call per pose inside a compiled loop: a pose's values are the same for any P), ``pi, 2 pi``, all
-    in the dtype of ``local``."""
+    """The kernels' arguments for ``pose [d]`` or ``[P, d]``: the runs of equal consecutive poses ``[R, 3]``, their
+    cos and sin ``[R]`` (one scalar libm call per run inside a compiled loop: a pose's values are the same for any
+    P), their samples' bounds ``[R+1]``, ``pi, 2 pi``; reals in the dtype of ``local``."""
     n = local.shape[2]
-    poses = pose.reshape(-1, pose.shape[-1]).to(local.dtype).contiguous().numpy()  # [P, d]
-    if n % poses.shape[0]:
-        raise ValueError(f"{poses.shape[0]} poses for {n} samples: the number of poses must divide the samples "
-                         f"(sample i belongs to pose i // (N / P))")
-    c, s = np.empty(poses.shape[0], poses.dtype), np.empty(poses.shape[0], poses.dtype)
-    _kernel()[2](poses, c, s)
+    poses = pose.reshape(-1, pose.shape[-1]).to(local.dtype).numpy()  # [P, d]
+    p = poses.shape[0]
+    if n % p:
+        raise ValueError(f"{p} poses for {n} samples: the number of poses must divide the samples (sample i "
+                         f"belongs to pose i // (N / P))")
+    runs, c, s = np.empty((p, 3), poses.dtype), np.empty(p, poses.dtype), np.empty(p, poses.dtype)
+    bounds = np.empty(p + 1, np.int64)
+    r = _kernel()[2](poses, n // p, runs, c, s, bounds)
     real = poses.dtype.type
-    return poses, c, s, real(math.pi), real(2 * math.pi)
+    return runs[:r], c[:r], s[:r], bounds[:r + 1], real(math.pi), real(2 * math.pi)
