@@ -18,6 +18,7 @@ import torch
 from cuniform_torch import CUMPPI, MPPI, CUniformMPPI, LogMPPI, TablePolicy, load_table, make_system
 from cuniform_torch.common.frames import se2_to_world
 from cuniform_torch.controllers.cfu import CFUMPPI
+from cuniform_torch.controllers.core import weighted_average
 from cuniform_torch.envs import OccupancyGrid
 from cuniform_torch.maps.encoder import PatchSpec
 from cuniform_torch.maps.policy import MapPolicy, MapPolicyConfig
@@ -148,6 +149,25 @@ def test_the_weighted_average_of_a_robot_does_not_depend_on_the_batch(dtype):
         nominal = make(list(range(b)), b).plan(starts[:b]).nominal  # [B, T, q]
         for i in (i for i in alone if i < b):
             assert torch.equal(nominal[i], alone[i]), f"robot {i}'s average differs in a batch of {b} from alone"
+
+
+@pytest.mark.parametrize("threads", [1, 4])
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_weighted_average_gives_each_robot_its_bits_alone_for_any_batch(dtype, threads):
+    """``weighted_average`` over a grid: B = 3, 40, 64, K = 16..4096, T*q = 1..60 (float32 T*q = 15 and 30 are where
+    a bmm rounds by B), with 1 and 4 torch threads (a reduction split across threads could change the order)."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(threads)
+    try:
+        for k, (t, q) in ((16, (15, 1)), (256, (15, 2)), (1024, (1, 1)), (1024, (30, 2)), (4096, (15, 1))):
+            g = torch.Generator().manual_seed(k * t * q)
+            weights = torch.softmax(torch.randn(64, k, generator=g, dtype=dtype), dim=1)  # [64, K]
+            actions = torch.randn(64, k, t, q, generator=g, dtype=dtype)  # [64, K, T, q]
+            alone = torch.cat([weighted_average(weights[i:i + 1], actions[i:i + 1]) for i in range(64)])
+            for b in (3, 40, 64):
+                assert torch.equal(weighted_average(weights[:b], actions[:b]), alone[:b]), (k, t, q, b)
+    finally:
+        torch.set_num_threads(before)
 
 
 @NUMBA
