@@ -73,7 +73,7 @@ def _pose_args(local: Tensor, pose: Tensor) -> tuple:
     cos and sin ``[R]`` (one scalar libm call per run inside a compiled loop: a pose's values are the same for any
     P), their samples' bounds ``[R+1]``, ``pi, 2 pi``; reals in the dtype of ``local``."""
     n = local.shape[2]
-    poses = pose.reshape(-1, pose.shape[-1]).to(local.dtype).numpy()  # [P, d]
+    poses = pose.detach().reshape(-1, pose.shape[-1]).to(local.dtype).numpy()  # [P, d]
     p = poses.shape[0]
     if n % p:
         raise ValueError(f"{p} poses for {n} samples: the number of poses must divide the samples (sample i "
