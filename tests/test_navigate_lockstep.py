@@ -1,7 +1,9 @@
 """Lockstep episodes (eval.navigate.lockstep, --lockstep N) give the serial run's records, and the core's trace hook.
 
 Short clutter episodes (a 6-step table, 16 s limits: collisions at different steps and timeouts, so robots
-retire mid-batch; obstacles sensed per robot) of each method family, run one at a time and as one batch.
+retire mid-batch; obstacles sensed per robot) of each method family, run one at a time and as one batch: the
+records are equal, bit for bit, because a robot's arithmetic in the library does not depend on the batch
+(tests/test_batch_invariance.py).
 """
 
 from __future__ import annotations
