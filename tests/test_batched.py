@@ -44,13 +44,17 @@ def _drive(controller, states: torch.Tensor, steps: int = 4) -> list[torch.Tenso
 
 
 def _same_as_alone(make, starts: torch.Tensor = STARTS, seeds: list[int] = SEEDS, steps: int = 4,
-                   atol: float = 1e-5) -> None:
-    """``make(seed, num_robots)`` batched over the starts = one controller per start, seeded alike."""
+                   atol: float | None = None) -> None:
+    """``make(seed, num_robots)`` batched over the starts = one controller per start, seeded alike: bit for bit
+    (``atol`` None; the CPU arithmetic of a robot does not depend on B), or to ``atol``."""
     batched = _drive(make(seeds, len(seeds)), starts, steps)
     for b, seed in enumerate(seeds):
         alone = _drive(make(seed, 1), starts[b], steps)
         for t in range(steps):
-            torch.testing.assert_close(batched[t][b], alone[t], atol=atol, rtol=0)
+            if atol is None:
+                assert torch.equal(batched[t][b], alone[t]), f"robot {b}, command {t}: {batched[t][b]} != {alone[t]}"
+            else:
+                torch.testing.assert_close(batched[t][b], alone[t], atol=atol, rtol=0)
 
 
 @pytest.fixture(scope="module")

@@ -1,12 +1,13 @@
 """Lockstep episodes (eval.navigate.lockstep, --lockstep N) give the serial run's records, and the core's trace hook.
 
 Short clutter episodes (a 6-step table, 16 s limits: collisions at different steps and timeouts, so robots
-retire mid-batch; obstacles sensed per robot) of each method family, run one at a time and as one batch.
+retire mid-batch; obstacles sensed per robot) of each method family, run one at a time and as one batch: the
+records are equal, bit for bit, because a robot's arithmetic in the library does not depend on the batch
+(tests/test_batch_invariance.py).
 """
 
 from __future__ import annotations
 
-import importlib
 import json
 from dataclasses import replace
 
@@ -65,34 +66,8 @@ def _without_timing(rec: dict) -> dict:
     return {k: v for k, v in rec.items() if k not in TIMING}
 
 
-class _TorchWithSumBmm:
-    """``torch``, but ``bmm(weights [B, 1, K], actions [B, K, N])`` as a product summed over K: per robot the same
-    arithmetic for any B (a BLAS batched gemm may round robot b's average differently at B = 40 than at B = 1)."""
-
-    def __getattr__(self, name: str):
-        return getattr(torch, name)
-
-    @staticmethod
-    def bmm(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-        return (a.transpose(1, 2) * b).sum(dim=1, keepdim=True)
-
-
-@pytest.fixture
-def batch_invariant(monkeypatch):
-    """The two last-bit differences between a robot of a batch and a controller of one robot, both outside the
-    lockstep runner, taken out (the proposed fixes, see the xfail below): the core's weighted average
-    (cuniform_torch/controllers/core.py ``_plan``'s ``torch.bmm``) as a sum over K, and the C-Uniform rollouts'
-    change to the world frame by torch ops for one start too, as for a batch's per-robot starts (the compiled
-    one-start kernel rounds differently, cuniform_torch/sampling/rollout.py). Closed loops are chaotic: a last-bit
-    difference becomes another episode within a few hundred steps."""
-    core = importlib.import_module("cuniform_torch.controllers.core")
-    rollout = importlib.import_module("cuniform_torch.sampling.rollout")
-    monkeypatch.setattr(core, "torch", _TorchWithSumBmm())
-    monkeypatch.setattr(rollout.rollout_kernels, "usable", lambda *args, **kwargs: False)
-
-
 @pytest.mark.parametrize("method", ["mppi_1.0", "cu_table", "cumppi", "cfu_mppi"])
-def test_lockstep_records_are_the_serial_records_but_for_timing(ctx, method, batch_invariant):
+def test_lockstep_records_are_the_serial_records_but_for_timing(ctx, method):
     jobs = _jobs(method)
     serial = [run_nav_episode(job, ctx) for job in jobs]
     batch = run_lockstep(jobs, ctx)
@@ -107,15 +82,6 @@ def serial_fields(records: list[dict]) -> list[dict]:
     return [_without_timing(r) for r in records]
 
 
-@pytest.mark.xfail(strict=True, reason="without batch_invariant's fixes a batched robot's arithmetic differs in the "
-                   "last bit from one robot's (here the C-Uniform rollout's frame change: a compiled kernel for one "
-                   "start [d], torch ops for per-robot starts [N, d]); passes once core and rollout take one "
-                   "arithmetic for any B")
-def test_cu_table_lockstep_as_the_library_is_now_equals_serial(ctx):
-    jobs = _jobs("cu_table")
-    assert serial_fields(run_lockstep(jobs, ctx)) == serial_fields([run_nav_episode(job, ctx) for job in jobs])
-
-
 def test_batches_are_one_method_and_budget_in_job_order():
     jobs = make_jobs(make_tasks("gaps", 0.2, 3), ["mppi_1.0", "cu_table"], [16, 32], 1, seed=0)
     batches = lockstep_batches(jobs, 2)
@@ -128,7 +94,7 @@ def test_batches_are_one_method_and_budget_in_job_order():
         run_lockstep(jobs[:2], NavContext(table="unused"))
 
 
-def test_the_benchmark_run_with_lockstep_writes_the_serial_outcomes(cache, tmp_path, batch_invariant):
+def test_the_benchmark_run_with_lockstep_writes_the_serial_outcomes(cache, tmp_path):
     cfg = NavConfig(suite="gaps", tasks=3, budgets=(16,), methods=("mppi_1.0",), repeats=1, horizon=6)
     serial = run(cfg, tmp_path / "serial", ROBOT, cache, progress=False)
     batched = run(replace(cfg, lockstep=2), tmp_path / "lockstep", ROBOT, cache, progress=False)

@@ -179,16 +179,15 @@ def _closed_loop(ctrl, states: Tensor, steps: int) -> tuple[list[Tensor], list]:
 def _same_as_alone(make, starts: Tensor, steps: int = 3) -> None:
     """Batched robots (``make(seeds, B)``) propose each robot's actions bit for bit as that robot alone
     (``make(seed, 1)``, commanded from the same states: the same draws, the same choices), and the same rollouts and
-    commands to float rounding (one robot's frame change is a compiled loop, a batch's torch ops; the core's
-    weighted sum is batched)."""
+    commands bit for bit too (the frame change and the core's weighted sum do one arithmetic for any B)."""
     states, batched = _closed_loop(make(SEEDS, len(SEEDS)), starts, steps)
     for b, seed in enumerate(SEEDS):
         alone_ctrl = make(seed, 1)
         for t in range(steps):
             alone = alone_ctrl.command_result(states[t][b])
             assert torch.equal(batched[t].actions[b], alone.actions), f"robot {b}, command {t}: actions differ"
-            torch.testing.assert_close(batched[t].states[b], alone.states, atol=1e-5, rtol=0)
-            torch.testing.assert_close(batched[t].command[b], alone.command, atol=1e-5, rtol=0)
+            assert torch.equal(batched[t].states[b], alone.states), f"robot {b}, command {t}: states differ"
+            assert torch.equal(batched[t].command[b], alone.command), f"robot {b}, command {t}: commands differ"
 
 
 @pytest.fixture(scope="module")

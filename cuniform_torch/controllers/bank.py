@@ -130,15 +130,15 @@ class BankProposal(OneRobotCall):
             b, k, t, q = actions.shape
             return (rollout_actions(self.system, states.repeat_interleave(k, dim=0), actions.view(b * k, t, q))
                     .view(b, k, t + 1, -1), actions)
-        if states.shape[0] == 1:
-            state, local = states[0], self.bank_states[idx[0]]  # [K, T+1, d]
-            if rollout_kernels.usable(local):  # the compiled frame change, reading the subset in its own order
-                world = rollout_kernels.to_world(local.permute(1, 2, 0), state)
-            else:
-                world = se2_to_world(local, state)
-            return world.unsqueeze(0), self.bank_actions[idx[0]].unsqueeze(0)
-        local = self.bank_states[idx]  # [B, K, T+1, d]
-        return se2_to_world(local, states[:, None, None, :]), self.bank_actions[idx]
+        b, k = idx.shape
+        local = self.bank_states[idx.view(-1)]  # [B*K, T+1, d]
+        # one arithmetic for any B (a robot's states are the same bits alone and in a batch): the compiled frame
+        # change with per-robot poses (each pose's cos and sin computed alone), else torch ops on [B*K, 1, d] poses
+        if rollout_kernels.usable(local):
+            world = rollout_kernels.to_world(local.permute(1, 2, 0), states)  # [B*K, T+1, d]
+        else:
+            world = se2_to_world(local, states.repeat_interleave(k, dim=0).unsqueeze(1))
+        return world.view(b, k, *world.shape[1:]), self.bank_actions[idx]
 
     def update(self, result: MPPIResult) -> None:
         """Count the command; every ``refresh`` commands, draw a new bank (or, in the background, put a finished

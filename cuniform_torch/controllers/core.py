@@ -73,7 +73,7 @@ from cuniform_torch.controllers.streams import RobotStreams, robot_seeds
 from cuniform_torch.controllers.temperature import auto_temperature, check_target_ess, temperature_weights
 from cuniform_torch.systems import System, check_dynamics
 
-__all__ = ["CostFn", "MPPIResult", "mppi_weights", "MPPICore", "COST_CAP"]
+__all__ = ["CostFn", "MPPIResult", "mppi_weights", "weighted_average", "MPPICore", "COST_CAP"]
 
 
 class CostFn(Protocol):
@@ -92,6 +92,18 @@ def mppi_weights(costs: Tensor, lambda_: float) -> Tensor:
     ValueError when ``lambda_`` is not 0 nor a normal number of ``costs.dtype`` with a finite inverse.
     """
     return _weights(_finite_costs(costs), _check_lambda(lambda_, costs.dtype))
+
+
+def weighted_average(weights: Tensor, actions: Tensor) -> Tensor:
+    """Each robot's average of its K sequences: ``weights [B, K]``, ``actions [B, K, T, q]`` -> ``[B, T, q]``.
+
+    A product summed over K, not a batched gemm: torch's sum over dim 1 of ``[B, K, T*q]`` adds a robot's K terms in
+    an order that does not depend on B, so robot b's average is the same bits alone and in a batch, where a BLAS
+    bmm's blocking rounds robots 1, 2, ... of a batch unlike one robot (float32, T*q = 15 or 30).
+    ``tests/test_batch_invariance.py`` checks B = 1..64, K = 16..4096, T*q = 1..60, 1 and 4 threads.
+    """
+    b, k, t, q = actions.shape
+    return (weights.unsqueeze(-1) * actions.reshape(b, k, t * q)).sum(dim=1).view(b, t, q)
 
 
 def _weights(costs: Tensor, lambda_: float) -> Tensor:
@@ -240,8 +252,7 @@ class MPPICore:
         if self.debug:
             self._check_proposals(states, actions)
         costs, weights, lambdas = self._evaluate(states, actions)
-        b, k, t, q = actions.shape
-        nominal = torch.bmm(weights.unsqueeze(1), actions.reshape(b, k, t * q)).view(b, t, q)  # [B, T, q]
+        nominal = weighted_average(weights, actions)  # [B, T, q]
         return MPPIResult(nominal[:, 0], nominal, states, actions, costs, weights, lambdas)
 
     @overload

@@ -292,15 +292,17 @@ class RolloutPlan:
                               or bool(x0[:3].any())):
             # the column-major states time-major ([T+1, d, N], contiguous rows: the buffer, else one stack); the
             # frame change reads that once and writes the [N, T+1, d] result once (a compiled loop on a CPU, else
-            # torch ops)
+            # torch ops). One arithmetic for one start [d] and per-sample starts [N, d]: a robot's states are the
+            # same bits alone and in a batch (the kernel computes each pose's cos and sin alone; the torch path
+            # takes the [N, 1, d] starts either way)
             local = buffer if buffer is not None else torch.stack([s.T for s in states])
-            if x0.ndim == 1 and rollout_kernels.usable(local):
+            if rollout_kernels.usable(local):
                 if buffer is not None:  # world states time-major too: [N, T+1, d] a view of [T+1, d, N]
                     states_t = rollout_kernels.to_world_time_major(local, x0).permute(2, 0, 1)
                 else:
                     states_t = rollout_kernels.to_world(local, x0)
             else:
-                states_t = se2_to_world(local.permute(2, 0, 1), x0 if x0.ndim == 1 else start.unsqueeze(1))
+                states_t = se2_to_world(local.permute(2, 0, 1), start.unsqueeze(1))
         elif buffer is not None:
             states_t = buffer.permute(2, 0, 1)  # [N, T+1, d], a view of the time-major buffer
         else:
