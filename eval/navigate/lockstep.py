@@ -6,9 +6,9 @@ Shapes: B robots (episodes) in the batch, L of them still live, K samples, T hor
 ``b`` seeded with job ``b``'s seed: its own random stream, :class:`~cuniform_torch.controllers.streams.RobotStreams`),
 so robot ``b`` draws what the serial episode's controller of one robot draws
 (:func:`eval.navigate.episode.run_nav_episode`), and its record is the serial run's in every field but the timing
-ones as far as the library's batched arithmetic equals its one-robot arithmetic to the last bit (below). Each robot keeps its own world: its cost (:class:`_RobotCosts`, the core's per-robot ``batched = True`` cost:
+ones (the library's batched arithmetic equals its one-robot arithmetic to the last bit, below). Each robot keeps its own world: its cost (:class:`_RobotCosts`, the core's per-robot ``batched = True`` cost:
 each robot's ``[K, T+1, d]`` rollouts against its own obstacles, goal and cost-to-go), its sensed obstacles, and
-for a map-conditioned method its own sensed map (:class:`_SensedPerRobot`). Per cycle, the live robots' states are
+for a map-conditioned method its own sensed map (:class:`_SensorPerRobot`). Per cycle, the live robots' states are
 one ``[B, d]`` command; the simulator then steps, checks and retires each live robot exactly as
 :func:`cuniform_torch.envs.simulate` does (goal, collision, time limit). A retired robot's state stays where its
 episode ended; the controller still plans for it (its rollouts are part of the batch's tensor program), but its
@@ -23,10 +23,8 @@ Why some loops over robots stay: the world is per robot (a different obstacle se
 sensing and the collision check run once per live robot on that robot's tensors. The simulator steps each robot as
 a ``[1, d]`` row, as :func:`~cuniform_torch.envs.simulate` does (the built-in robot's step gives the same bits for
 L rows at once, a user's system need not): a closed loop turns a last-bit difference in a state into a different
-episode within a few hundred steps. Two such differences are in the library today, outside this runner: the
-core's weighted average (``torch.bmm`` rounds robot ``b``'s average differently at B = 40 than at B = 1) and the
-C-Uniform rollout's change to the world frame (a compiled kernel for one start, torch ops for per-robot starts);
-``tests/test_navigate_lockstep.py`` shows equal records with both taken out.
+episode within a few hundred steps, which is why the library computes a robot of a batch exactly as a controller
+of one robot (``tests/test_batch_invariance.py``; ``tests/test_navigate_lockstep.py`` shows equal records).
 """
 
 from __future__ import annotations
