@@ -12,9 +12,9 @@ import pytest
 
 from eval.navigate.atlas import default_suites, judge_atlas, main, parse_suite, run_atlas, suite_methods
 from eval.navigate.records.cycle_hist import cycle_histogram
-from eval.navigate.robot_files import ensure_table
 from eval.navigate.records.stats import fmt_score, mcnemar_exact_p
 from eval.navigate.records.store import EpisodeStore
+from eval.navigate.robot_files import ensure_table
 from precompute.worlds.robot import NAV_ROBOT
 
 
