@@ -188,7 +188,11 @@ def distill(cfg: DistillConfig) -> int:
     """Train, checkpoint and compare (see the module docstring): the library function behind the command. 0, or
     a clear error (:class:`UsageError`, :class:`TableError`) before training starts."""
     import_system_modules(cfg.system_module)
-    cfg = check_config(dataclasses.replace(cfg))
+    return _distill_checked(check_config(dataclasses.replace(cfg)))
+
+
+def _distill_checked(cfg: DistillConfig) -> int:
+    """:func:`distill` of a config :func:`check_config` has checked (each config is checked once)."""
     out = output_paths(cfg)[0]
     with exclusive_lock(out.with_name(out.name + ".lock"), what=f"--out {out}"):
         if Path(cfg.tables[0]).is_dir():
@@ -283,8 +287,9 @@ def distill_policy(config: DistillConfig, *, progress: bool = False) -> MLPPolic
     cfg = dataclasses.replace(config, quiet=config.quiet or not progress)
 
     def run() -> str:
+        import_system_modules(cfg.system_module)
         checked = check_config(dataclasses.replace(cfg, tables=[str(t) for t in cfg.tables]))  # out filled
-        distill(checked)
+        _distill_checked(checked)
         assert checked.out is not None
         return checked.out
 
