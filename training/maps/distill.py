@@ -277,6 +277,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(config_text(cfg))
         return 0
     train_map_policy(cfg, progress=True)  # the library function a Python user calls (it checks cfg)
+    return 0
 
 
 if __name__ == "__main__":
