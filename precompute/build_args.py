@@ -42,6 +42,7 @@ from precompute.cli import (
     device_arg,
     field_docs,
     flag_name,
+    flags_listing,
     horizon_arg,
     import_system_modules,
     int_in,
@@ -167,25 +168,9 @@ def make_parser() -> argparse.ArgumentParser:
             for option in action.option_strings:
                 owners.setdefault(option, []).append(name)
     parser.owners = owners
-    parser.epilog = _flags_by_command(owners)
+    parser.epilog = flags_listing({name: [f for f, subs in owners.items() if name in subs] for name in COMMANDS})
     parser.formatter_class = argparse.RawDescriptionHelpFormatter  # the listing keeps its lines (flags unbroken)
     return parser
-
-
-def _flags_by_command(owners: dict[str, list[str]]) -> str:
-    """The top-level help's listing of each subcommand's flags, so that one ``--help`` shows every flag there is
-    (lines of whole flags, at most ~100 characters)."""
-    lines = ["flags of each subcommand (SUB --help explains them):"]
-    for name in COMMANDS:
-        flags = [f for f, subs in owners.items() if name in subs and f.startswith("--") and f != "--help"]
-        line = f"  {name}:"
-        for flag in flags:
-            if len(line) + len(flag) > 98:
-                lines.append(line)
-                line = " " * (len(name) + 3)
-            line += " " + flag
-        lines.append(line)
-    return "\n".join(lines)
 
 
 def _add_flags(parser: argparse.ArgumentParser, command: str) -> None:

@@ -56,7 +56,8 @@ __all__ = ["EXIT_ERROR", "EXIT_INTERRUPTED", "CLIError", "ArgumentParser", "cli_
            "MAX_HORIZON", "MAX_COUNT", "MAX_WORK", "device_arg", "int_in", "float_in", "positive_int",
            "non_negative_int", "threads_arg", "horizon_arg", "positive_float", "refuse_flags",
            "add_no_limit_arg", "check_work", "config_value", "config_fields", "config_json",
-           "read_config_file", "add_config_args", "dataclass_from_config", "config_text"]
+           "read_config_file", "add_config_args", "dataclass_from_config", "config_text", "flags_listing",
+           "parser_flags"]
 
 EXIT_ERROR = 2
 EXIT_INTERRUPTED = 130
@@ -482,6 +483,26 @@ def read_config_file(path: str | os.PathLike, flag: str = "--config") -> dict[st
     if not isinstance(data, dict):
         raise CLIError(f"{flag} {path}: the file must hold one object (keys and values), got {type(data).__name__}")
     return data
+
+
+def flags_listing(flags: Mapping[str, Sequence[str]], width: int = 98) -> str:
+    """The lines ``flags of each subcommand``: per subcommand (``flags``: name -> its flags, in order) its long flags,
+    each whole (never split at a hyphen), wrapped at ``width``; so that one ``--help`` shows every flag there is."""
+    lines = ["flags of each subcommand (SUB --help explains them):"]
+    for name, names in flags.items():
+        line = f"  {name}:"
+        for flag in (f for f in names if f.startswith("--") and f != "--help"):
+            if len(line) + len(flag) > width:
+                lines.append(line)
+                line = " " * (len(name) + 3)
+            line += " " + flag
+        lines.append(line)
+    return "\n".join(lines)
+
+
+def parser_flags(parser: argparse.ArgumentParser) -> list[str]:
+    """Every option string of ``parser``, in the order they were added."""
+    return [option for action in parser._actions for option in action.option_strings]
 
 
 def add_config_args(parser: argparse.ArgumentParser, what: str = "the settings") -> None:

@@ -14,7 +14,7 @@ import shlex
 import sys
 from collections.abc import Sequence
 
-from precompute.cli import EXIT_ERROR, ArgumentParser, cli_main
+from precompute.cli import EXIT_ERROR, ArgumentParser, cli_main, flags_listing, parser_flags
 
 __all__ = ["COMMANDS", "PROG", "main", "make_parser", "refuse_old_spelling"]
 
@@ -60,8 +60,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     from the command line)."""
     command_line = argv is None
     argv = list(sys.argv[1:] if argv is None else argv)
-    if argv and argv[0] in ("-h", "--help"):
-        print(_usage())
+    if argv and argv[0] in ("-h", "--help"):  # the subcommands, then every subcommand's flags (imports all eight)
+        parsers = {name: importlib.import_module(f"eval.bench.{name}").make_parser() for name in COMMANDS}
+        print(_usage() + "\n\n" + flags_listing({name: parser_flags(p) for name, p in parsers.items()}))
         return 0
     if not argv or argv[0].startswith("-"):
         if command_line:

@@ -17,7 +17,7 @@ import sys
 from collections.abc import Sequence
 
 from eval.navigate.subcommands import SUBCOMMANDS
-from precompute.cli import ArgumentParser, CLIError, cli_main
+from precompute.cli import ArgumentParser, CLIError, cli_main, flags_listing, parser_flags
 
 __all__ = ["SUBCOMMANDS", "make_parser", "main"]
 
@@ -47,7 +47,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     benchmark run with all of ``argv``. 2 after one ``error: ...`` line for a first word that is no subcommand."""
     argv = sys.argv[1:] if argv is None else list(argv)
     if argv[:1] in (["-h"], ["--help"]):  # the subcommands first, then the run's own flags
-        print(_listing() + "\n\nthe run's flags (python -m eval.navigate [run] ...):", flush=True)
+        tools = {name: parser_flags(importlib.import_module(module).make_parser())
+                 for name, (module, _) in SUBCOMMANDS.items() if name != "run"}
+        print(_listing() + "\n\n" + flags_listing(tools) + "\n\nthe run's flags (python -m eval.navigate [run] ...):",
+              flush=True)
         name, rest = "run", argv
     elif argv and argv[0] in SUBCOMMANDS:
         name, rest = argv[0], argv[1:]
