@@ -25,6 +25,8 @@ caught. Deleting the ``__pycache__`` folder named in a warning (or setting ``NUM
 
 from __future__ import annotations
 
+import functools
+import importlib
 import os
 import re
 import threading
@@ -32,7 +34,7 @@ import warnings
 from collections.abc import Callable
 from typing import Any
 
-__all__ = ["njit", "CompiledCacheWarning"]
+__all__ = ["njit", "CompiledCacheWarning", "optional_loop"]
 
 
 class CompiledCacheWarning(UserWarning):
@@ -158,3 +160,13 @@ class _GuardedCache:
             self._inner.save_overload(sig, data)
         except Exception as exc:  # an unwritable or full folder, a damaged index that the save reads first
             self._give_up("written", exc)
+
+
+@functools.cache
+def optional_loop(module: str, name: str) -> Callable[..., Any] | None:
+    """The compiled loop ``name`` of ``module`` (imported once, on first use), or None when numba is missing or
+    broken against this numpy: the caller then takes its torch path."""
+    try:
+        return getattr(importlib.import_module(module), name)
+    except Exception:  # numba missing or broken: any import error means no compiled loop
+        return None

@@ -28,7 +28,6 @@ motion predicted along the rollout (:mod:`cuniform_torch.envs.moving`).
 
 from __future__ import annotations
 
-import functools
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -38,6 +37,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from cuniform_torch.common.compiled import optional_loop
 from cuniform_torch.envs.environment import Environment
 
 __all__ = ["TrajectoryCost", "NavigationCost", "goal_cost", "collision_mask"]
@@ -245,12 +245,7 @@ _NUMPY_SCALAR = {torch.float32: np.float32, torch.float64: np.float64}
 """the numpy scalar type of each: the goal, tolerance and bounds in the states' dtype, as torch's scalars are"""
 
 
-@functools.cache
 def _cost_loop():
     """The compiled cost (:func:`cuniform_torch.envs.cost_loops.navigation_cost`), or None without numba."""
-    try:
-        from cuniform_torch.envs.cost_loops import navigation_cost
-    except Exception:  # numba missing or broken against this numpy: the torch path
-        return None
-    return navigation_cost
+    return optional_loop("cuniform_torch.envs.cost_loops", "navigation_cost")
 

@@ -7,7 +7,6 @@ knows then (an obstacle is sensed from its ``appear_time`` on).
 from __future__ import annotations
 
 import bisect
-import functools
 import math
 import operator
 from dataclasses import dataclass, field
@@ -16,6 +15,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from cuniform_torch.common.compiled import optional_loop
 from cuniform_torch.envs.moving import MovingDiscs
 from cuniform_torch.envs.shapes import Circle, Rect, _appear_time, _check_xy
 
@@ -174,14 +174,9 @@ _COMPILED_PAIRS = 1 << 12
 tests them: one pass over the points, stopping at the first obstacle that contains each"""
 
 
-@functools.cache
 def _compiled():
     """The compiled loop, or None without numba."""
-    try:
-        from cuniform_torch.envs.contains_loops import any_contains
-    except Exception:  # numba missing or broken against this numpy: the torch path
-        return None
-    return any_contains
+    return optional_loop("cuniform_torch.envs.contains_loops", "any_contains")
 
 
 def _near_box(pts: Tensor, circles: Tensor, rects: Tensor) -> tuple[Tensor, Tensor]:

@@ -23,6 +23,7 @@ from collections.abc import Callable
 import torch
 from torch import Tensor
 
+from cuniform_torch.common.compiled import optional_loop
 from cuniform_torch.envs.environment import Environment
 from cuniform_torch.envs.occupancy import OccupancyGrid
 from cuniform_torch.envs.shapes import Circle
@@ -88,14 +89,9 @@ def sense_patch(world: OccupancyGrid | Environment, pose: Tensor, spec: PatchSpe
     return seen if pose.ndim == 2 else seen[0]
 
 
-@functools.cache
 def _loop() -> Callable[..., None] | None:
     """The compiled sensing loop, or None without numba."""
-    try:
-        from cuniform_torch.maps.sensing_loops import sense_poses
-    except Exception:  # numba missing or broken against this numpy: the torch path
-        return None
-    return sense_poses
+    return optional_loop("cuniform_torch.maps.sensing_loops", "sense_poses")
 
 
 @functools.cache
